@@ -1,0 +1,17 @@
+//! The application layer that the STM32H7 firmware and the Linux host build
+//! share. Everything here is `no_std`, allocation-free and hardware-free: the
+//! boards hand it bytes (USB, SD-card blocks) and get bytes back.
+//!
+//! - [`line`]: bounded assembly of G-code lines from a byte stream;
+//! - [`console`]: what the firmware answers to each line;
+//! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
+#![cfg_attr(not(feature = "std"), no_std)]
+
+pub mod console;
+pub mod line;
+pub mod sdcard;
+
+/// Firmware name reported to hosts (M115).
+pub const FIRMWARE_NAME: &str = "onechip";
+/// Firmware version reported to hosts (M115).
+pub const FIRMWARE_VERSION: &str = env!("CARGO_PKG_VERSION");

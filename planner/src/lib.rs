@@ -1,0 +1,7 @@
+//! The front half of the host role: from `printer.cfg` and G-code to planned
+//! moves, as Klipper's toolhead plans them (issue #3).
+//!
+//! Contract for the crates above it: moves come out as trapezoids in
+//! move-relative f32 time (accel, cruise, decel durations in s, velocities in
+//! mm/s) anchored at integer clock ticks, so nothing drifts over long prints.
+#![cfg_attr(not(feature = "std"), no_std)]

@@ -1,0 +1,16 @@
+//! The Klipper wire protocol, as spoken between a Klipper host and a Klipper MCU.
+//!
+//! onechip speaks it in both directions: as the host towards secondary boards
+//! running stock Klipper firmware, and as an MCU towards a normal Klipper host.
+//!
+//! Layers, bottom up:
+//! - [`vlq`]: Klipper's variable-length integer encoding of command arguments;
+//! - [`crc`]: the CRC16 that closes every message block;
+//! - [`block`]: message-block framing (length, sequence, payload, CRC, sync).
+//!
+//! Everything here is `no_std` and allocation-free.
+#![cfg_attr(not(feature = "std"), no_std)]
+
+pub mod block;
+pub mod crc;
+pub mod vlq;
