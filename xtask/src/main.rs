@@ -1,1 +1,124 @@
-fn main() {}
+//! Firmware image tools, run as `cargo xtask <command>`.
+//!
+//! `cargo xtask image [ELF]` checks the firmware ELF built by `cargo fw`
+//! against `board/budget.toml` (flash and static RAM budgets, application
+//! base address, stepper interrupt vector) and writes `firmware.bin` next to
+//! it, ready for the board's SD-card bootloader. Exits non-zero on any
+//! violation, with the reason.
+
+mod budget;
+mod elf_image;
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+const DEFAULT_ELF: &str = "target/thumbv7em-none-eabihf/release/onechip-board";
+const BUDGET: &str = "board/budget.toml";
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let result = match args.first().map(String::as_str) {
+        Some("image") => image(args.get(1).map_or(DEFAULT_ELF, String::as_str)),
+        _ => Err("usage: cargo xtask image [ELF]".into()),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("xtask: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Checks the firmware image and writes firmware.bin beside the ELF.
+fn image(elf_path: &str) -> Result<(), String> {
+    let root = workspace_root();
+    let budget = budget::Budget::load(&root.join(BUDGET))?;
+    let elf_path = root.join(elf_path);
+    let data = std::fs::read(&elf_path)
+        .map_err(|e| format!("{}: {e} (build it with `cargo fw`)", elf_path.display()))?;
+    let image = elf_image::Image::parse(&data)?;
+
+    let flash = image.flash_bytes();
+    let ram = image.static_ram_bytes();
+    println!("firmware: {}", elf_path.display());
+    println!(
+        "flash: {:>7} bytes ({:.1} KiB of {} KiB budget)",
+        flash,
+        kib(flash),
+        budget.flash_kib
+    );
+    println!(
+        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: .data+.bss+.uninit)",
+        ram,
+        kib(ram),
+        budget.ram_kib
+    );
+
+    let mut problems = Vec::new();
+    if flash > budget.flash_kib * 1024 {
+        problems.push(format!(
+            "flash {flash} bytes exceeds {} KiB",
+            budget.flash_kib
+        ));
+    }
+    if ram > budget.ram_kib * 1024 {
+        problems.push(format!(
+            "static RAM {ram} bytes exceeds {} KiB",
+            budget.ram_kib
+        ));
+    }
+    match image.interrupt_handler(budget.stepper_irq_number) {
+        Ok(handler) => {
+            let expected = image.symbol(&budget.stepper_irq)?;
+            if handler == expected {
+                println!(
+                    "vector: IRQ {} -> {} at {handler:#010x}",
+                    budget.stepper_irq_number, budget.stepper_irq
+                );
+            } else {
+                problems.push(format!(
+                    "vector table entry {} is {handler:#010x}, not {} at {expected:#010x}",
+                    budget.stepper_irq_number, budget.stepper_irq
+                ));
+            }
+        }
+        Err(e) => problems.push(e),
+    }
+    for fragment in &budget.required_code {
+        if image.has_symbol_containing(fragment) {
+            println!("linked: {fragment}");
+        } else {
+            problems.push(format!("no code matching `{fragment}` is linked in"));
+        }
+    }
+    match image.flat_binary(budget.app_base) {
+        Ok(bin) => {
+            let bin_path = elf_path.with_file_name("firmware.bin");
+            std::fs::write(&bin_path, &bin).map_err(|e| format!("{}: {e}", bin_path.display()))?;
+            println!(
+                "image: {} ({} bytes at {:#010x})",
+                bin_path.display(),
+                bin.len(),
+                budget.app_base
+            );
+        }
+        Err(e) => problems.push(e),
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(problems.join("; "))
+    }
+}
+
+fn kib(bytes: u64) -> f64 {
+    bytes as f64 / 1024.0
+}
+
+/// The workspace root (this crate lives in `<root>/xtask`).
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
+}

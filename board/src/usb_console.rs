@@ -1,0 +1,129 @@
+//! The USB CDC-ACM console: G-code lines in, replies out.
+//!
+//! Packets are split into lines by the shared [`LineAssembler`]; each line is
+//! answered by [`onechip_app::console::answer`] and the reply is sent back in
+//! packets of at most the endpoint's size.
+
+use embassy_stm32::usb::Driver;
+use embassy_stm32::{bind_interrupts, peripherals, usb};
+use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
+use embassy_usb::driver::EndpointError;
+use embassy_usb::{Builder, UsbDevice};
+use onechip_app::line::{Line, LineAssembler};
+use static_cell::StaticCell;
+
+bind_interrupts!(struct Irqs {
+    OTG_HS => usb::InterruptHandler<peripherals::USB_OTG_HS>;
+});
+
+/// USB full-speed bulk packet size, in bytes.
+const PACKET: usize = 64;
+/// Longest accepted G-code line, in bytes.
+const MAX_LINE: usize = 256;
+/// Longest reply to one line, in bytes.
+const MAX_REPLY: usize = 256;
+
+type UsbDriver = Driver<'static, peripherals::USB_OTG_HS>;
+
+/// The USB device and its CDC-ACM function, ready to run.
+pub struct Console {
+    /// Runs enumeration and control transfers; must be polled forever.
+    pub device: UsbDevice<'static, UsbDriver>,
+    /// The serial port.
+    pub class: CdcAcmClass<'static, UsbDriver>,
+}
+
+/// Builds the USB device (full speed on the internal PHY).
+pub fn build(pins: crate::octopus_pro_v1_1::UsbPins) -> Console {
+    static EP_OUT: StaticCell<[u8; 256]> = StaticCell::new();
+    static CONFIG_DESC: StaticCell<[u8; 256]> = StaticCell::new();
+    static BOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
+    static CONTROL: StaticCell<[u8; 64]> = StaticCell::new();
+    static STATE: StaticCell<State> = StaticCell::new();
+
+    let mut usb_config = usb::Config::default();
+    usb_config.vbus_detection = false;
+    let driver = Driver::new_fs(
+        pins.otg,
+        Irqs,
+        pins.dp,
+        pins.dm,
+        EP_OUT.init([0; 256]),
+        usb_config,
+    );
+
+    let mut config = embassy_usb::Config::new(0x1d50, 0x614e);
+    config.manufacturer = Some("onechip");
+    config.product = Some("onechip Octopus Pro H723");
+    config.serial_number = Some("onechip-0");
+    config.max_power = 100;
+    config.max_packet_size_0 = 64;
+
+    let mut builder = Builder::new(
+        driver,
+        config,
+        CONFIG_DESC.init([0; 256]),
+        BOS_DESC.init([0; 256]),
+        &mut [],
+        CONTROL.init([0; 64]),
+    );
+    let class = CdcAcmClass::new(&mut builder, STATE.init(State::new()), PACKET as u16);
+    Console {
+        device: builder.build(),
+        class,
+    }
+}
+
+/// Serves the console forever: one connection after another.
+pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>) -> ! {
+    let mut lines = LineAssembler::<MAX_LINE>::new();
+    loop {
+        class.wait_connection().await;
+        defmt::info!("usb console connected");
+        match answer_lines(class, &mut lines).await {
+            Ok(never) => match never {},
+            Err(EndpointError::Disabled) => defmt::info!("usb console disconnected"),
+            Err(EndpointError::BufferOverflow) => defmt::warn!("usb packet overflow"),
+        }
+    }
+}
+
+/// Reads packets, answers every completed line; returns only on USB errors.
+async fn answer_lines(
+    class: &mut CdcAcmClass<'static, UsbDriver>,
+    lines: &mut LineAssembler<MAX_LINE>,
+) -> Result<core::convert::Infallible, EndpointError> {
+    let mut packet = [0u8; PACKET];
+    loop {
+        let n = class.read_packet(&mut packet).await?;
+        for &byte in &packet[..n] {
+            if let Some(event) = lines.push(byte) {
+                let mut reply = heapless::String::<MAX_REPLY>::new();
+                if onechip_app::console::answer(&event, &mut reply).is_err() {
+                    reply.clear();
+                    // Fits: the fallback is far shorter than MAX_REPLY.
+                    let _ = reply.push_str("!! reply too long\nok\n");
+                }
+                if let Line::TooLong { len } = event {
+                    defmt::warn!("dropped a {} byte line", len);
+                }
+                send(class, reply.as_bytes()).await?;
+            }
+        }
+    }
+}
+
+/// Sends `data` in packets; a reply that fills its last packet exactly is
+/// closed with a zero-length packet so the host does not wait for more.
+async fn send(
+    class: &mut CdcAcmClass<'static, UsbDriver>,
+    data: &[u8],
+) -> Result<(), EndpointError> {
+    for chunk in data.chunks(PACKET) {
+        class.write_packet(chunk).await?;
+    }
+    if data.len().is_multiple_of(PACKET) {
+        class.write_packet(&[]).await?;
+    }
+    Ok(())
+}

@@ -1,0 +1,142 @@
+//! `board/budget.toml`: the firmware's size budget and image layout.
+//!
+//! Only the flat `key = value` subset of TOML is accepted (integers in
+//! decimal or `0x` hex, double-quoted strings, `#` comments); anything else
+//! is an error naming the line.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The firmware's limits and layout.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Budget {
+    /// Flash budget, KiB.
+    pub flash_kib: u64,
+    /// Static RAM budget, KiB.
+    pub ram_kib: u64,
+    /// Address at which the bootloader places the application.
+    pub app_base: u64,
+    /// Symbol name of the stepper timer's interrupt handler.
+    pub stepper_irq: String,
+    /// Position of that interrupt in the device vector table.
+    pub stepper_irq_number: u64,
+    /// Substrings of (mangled) symbol names that must occur in the ELF.
+    pub required_code: Vec<String>,
+}
+
+#[derive(Debug)]
+enum Value {
+    Int(u64),
+    Str(String),
+}
+
+impl Budget {
+    /// Reads and checks the budget file.
+    pub fn load(path: &Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Self::parse(&text).map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    fn parse(text: &str) -> Result<Self, String> {
+        let mut values = HashMap::new();
+        for (number, raw) in text.lines().enumerate() {
+            let line = raw.split('#').next().unwrap_or_default().trim();
+            if line.is_empty() {
+                continue;
+            }
+            let (key, value) = line
+                .split_once('=')
+                .ok_or_else(|| format!("line {}: expected `key = value`", number + 1))?;
+            let value =
+                parse_value(value.trim()).map_err(|e| format!("line {}: {e}", number + 1))?;
+            values.insert(key.trim().to_string(), value);
+        }
+        let mut int = |key: &str| match values.remove(key) {
+            Some(Value::Int(v)) => Ok(v),
+            Some(Value::Str(_)) => Err(format!("`{key}` must be a number")),
+            None => Err(format!("`{key}` is missing")),
+        };
+        let (flash_kib, ram_kib, app_base, stepper_irq_number) = (
+            int("flash_kib")?,
+            int("ram_kib")?,
+            int("app_base")?,
+            int("stepper_irq_number")?,
+        );
+        let mut string = |key: &str| match values.remove(key) {
+            Some(Value::Str(s)) => Ok(s),
+            Some(Value::Int(_)) => Err(format!("`{key}` must be a string")),
+            None => Err(format!("`{key}` is missing")),
+        };
+        let stepper_irq = string("stepper_irq")?;
+        let required_code = string("required_code")?
+            .split(',')
+            .map(|s| s.trim().to_string())
+            .collect();
+        if let Some(key) = values.keys().next() {
+            return Err(format!("unknown key `{key}`"));
+        }
+        Ok(Self {
+            flash_kib,
+            ram_kib,
+            app_base,
+            stepper_irq,
+            stepper_irq_number,
+            required_code,
+        })
+    }
+}
+
+fn parse_value(text: &str) -> Result<Value, String> {
+    if let Some(s) = text.strip_prefix('"').and_then(|t| t.strip_suffix('"')) {
+        return Ok(Value::Str(s.to_string()));
+    }
+    let digits = text.replace('_', "");
+    let parsed = match digits.strip_prefix("0x") {
+        Some(hex) => u64::from_str_radix(hex, 16),
+        None => digits.parse(),
+    };
+    parsed
+        .map(Value::Int)
+        .map_err(|_| format!("`{text}` is neither a number nor a string"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GOOD: &str = "flash_kib = 512 # comment\nram_kib = 256\napp_base = 0x0802_0000\n\
+                        stepper_irq = \"TIM5\"\nstepper_irq_number = 50\n\
+                        required_code = \"a..b, c\"\n";
+
+    #[test]
+    fn parses_the_shipped_layout() {
+        let b = Budget::parse(GOOD).expect("valid");
+        assert_eq!(b.app_base, 0x0802_0000);
+        assert_eq!(
+            (b.flash_kib, b.ram_kib, b.stepper_irq_number),
+            (512, 256, 50)
+        );
+        assert_eq!(b.stepper_irq, "TIM5");
+        assert_eq!(b.required_code, ["a..b", "c"]);
+    }
+
+    #[test]
+    fn the_repository_budget_file_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../board/budget.toml");
+        let b = Budget::load(&path).expect("board/budget.toml parses");
+        assert_eq!((b.flash_kib, b.ram_kib), (512, 256));
+    }
+
+    #[test]
+    fn errors_name_the_problem() {
+        let missing = GOOD.replace("ram_kib = 256\n", "");
+        assert_eq!(Budget::parse(&missing), Err("`ram_kib` is missing".into()));
+        let bad = GOOD.replace("256", "lots");
+        assert_eq!(
+            Budget::parse(&bad),
+            Err("line 2: `lots` is neither a number nor a string".into())
+        );
+        let extra = format!("{GOOD}stack_kib = 8\n");
+        assert_eq!(Budget::parse(&extra), Err("unknown key `stack_kib`".into()));
+    }
+}

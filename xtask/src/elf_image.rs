@@ -1,0 +1,175 @@
+//! What the firmware ELF puts in flash and RAM, its vector table, and the
+//! flat binary the bootloader flashes.
+
+use object::elf::{PT_LOAD, SHF_ALLOC};
+use object::read::elf::{ElfFile32, FileHeader, ProgramHeader};
+use object::{Endianness, Object, ObjectSection, ObjectSymbol, SectionFlags};
+
+/// STM32 flash is mapped here and above (up to 0x1fff_ffff).
+const FLASH_REGION: std::ops::Range<u64> = 0x0800_0000..0x2000_0000;
+/// On-chip SRAM (DTCM, AXI SRAM, SRAM1..4) lies in this range.
+const RAM_REGION: std::ops::Range<u64> = 0x2000_0000..0x4000_0000;
+/// Entries before the device interrupts in the Cortex-M vector table.
+const CORE_VECTORS: u64 = 16;
+
+/// One loadable piece of the image: bytes and the flash address they go to.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Segment {
+    /// Load (physical) address.
+    pub load_addr: u64,
+    /// Contents.
+    pub bytes: Vec<u8>,
+}
+
+/// A parsed firmware ELF.
+pub struct Image<'a> {
+    elf: ElfFile32<'a, Endianness>,
+    segments: Vec<Segment>,
+    ram_bytes: u64,
+}
+
+impl<'a> Image<'a> {
+    /// Parses a 32-bit little-endian ARM ELF.
+    pub fn parse(data: &'a [u8]) -> Result<Self, String> {
+        let elf =
+            ElfFile32::<Endianness>::parse(data).map_err(|e| format!("not a 32-bit ELF: {e}"))?;
+        let endian = elf.endian();
+        let mut segments = Vec::new();
+        for ph in elf
+            .elf_header()
+            .program_headers(endian, data)
+            .map_err(|e| e.to_string())?
+        {
+            if ph.p_type(endian) != PT_LOAD || ph.p_filesz(endian) == 0 {
+                continue;
+            }
+            let bytes = ph
+                .data(endian, data)
+                .map_err(|()| "segment outside the file".to_string())?;
+            segments.push(Segment {
+                load_addr: u64::from(ph.p_paddr(endian)),
+                bytes: bytes.to_vec(),
+            });
+        }
+        let ram_bytes = elf
+            .sections()
+            .filter(|s| matches!(s.flags(), SectionFlags::Elf { sh_flags } if sh_flags & u64::from(SHF_ALLOC) != 0))
+            .filter(|s| RAM_REGION.contains(&s.address()))
+            .map(|s| s.size())
+            .sum();
+        Ok(Self {
+            elf,
+            segments,
+            ram_bytes,
+        })
+    }
+
+    /// Bytes stored in flash: code, read-only data and the initial values of
+    /// `.data`.
+    pub fn flash_bytes(&self) -> u64 {
+        self.segments
+            .iter()
+            .filter(|s| FLASH_REGION.contains(&s.load_addr))
+            .map(|s| s.bytes.len() as u64)
+            .sum()
+    }
+
+    /// Statically allocated RAM: `.data`, `.bss`, `.uninit` and the like.
+    pub fn static_ram_bytes(&self) -> u64 {
+        self.ram_bytes
+    }
+
+    /// Address of a global symbol (the Thumb bit cleared).
+    pub fn symbol(&self, name: &str) -> Result<u64, String> {
+        self.elf
+            .symbols()
+            .find(|s| s.name() == Ok(name))
+            .map(|s| s.address() & !1)
+            .ok_or_else(|| format!("symbol `{name}` not found in the ELF"))
+    }
+
+    /// True if some symbol's (mangled) name contains `fragment`.
+    pub fn has_symbol_containing(&self, fragment: &str) -> bool {
+        self.elf
+            .symbols()
+            .any(|s| s.name().is_ok_and(|n| n.contains(fragment)))
+    }
+
+    /// The handler address the vector table holds for device interrupt `irq`.
+    pub fn interrupt_handler(&self, irq: u64) -> Result<u64, String> {
+        let table = self
+            .elf
+            .section_by_name(".vector_table")
+            .ok_or("no .vector_table section")?;
+        let data = table.data().map_err(|e| e.to_string())?;
+        let offset = ((CORE_VECTORS + irq) * 4) as usize;
+        let word = data
+            .get(offset..offset + 4)
+            .ok_or_else(|| format!("vector table has no entry for IRQ {irq}"))?;
+        Ok(u64::from(u32::from_le_bytes([word[0], word[1], word[2], word[3]])) & !1)
+    }
+
+    /// The flash contents from `base` on, gaps filled with erased flash
+    /// (0xff), as the bootloader expects in `firmware.bin`.
+    pub fn flat_binary(&self, base: u64) -> Result<Vec<u8>, String> {
+        flatten(&self.segments, base)
+    }
+}
+
+/// Lays segments out from `base`; every flash segment must lie at or above it.
+pub fn flatten(segments: &[Segment], base: u64) -> Result<Vec<u8>, String> {
+    let flash: Vec<&Segment> = segments
+        .iter()
+        .filter(|s| FLASH_REGION.contains(&s.load_addr))
+        .collect();
+    let first = flash
+        .iter()
+        .map(|s| s.load_addr)
+        .min()
+        .ok_or("no flash contents")?;
+    if first != base {
+        return Err(format!(
+            "image starts at {first:#010x}, not at the bootloader's {base:#010x}"
+        ));
+    }
+    let end = flash
+        .iter()
+        .map(|s| s.load_addr + s.bytes.len() as u64)
+        .max()
+        .unwrap_or(base);
+    let mut bin = vec![0xff; (end - base) as usize];
+    for s in flash {
+        let at = (s.load_addr - base) as usize;
+        bin[at..at + s.bytes.len()].copy_from_slice(&s.bytes);
+    }
+    Ok(bin)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn seg(load_addr: u64, bytes: &[u8]) -> Segment {
+        Segment {
+            load_addr,
+            bytes: bytes.to_vec(),
+        }
+    }
+
+    #[test]
+    fn flatten_places_segments_and_fills_gaps_with_erased_flash() {
+        let segs = [
+            seg(0x0802_0004, &[3, 4]),
+            seg(0x0802_0000, &[1, 2]),
+            seg(0x2400_0000, &[9]),
+        ];
+        let bin = flatten(&segs, 0x0802_0000).expect("laid out");
+        assert_eq!(bin, [1, 2, 0xff, 0xff, 3, 4]);
+    }
+
+    #[test]
+    fn an_image_not_linked_at_the_bootloader_offset_is_refused() {
+        let err = flatten(&[seg(0x0800_0000, &[1])], 0x0802_0000).expect_err("wrong base");
+        assert!(err.contains("0x08000000"), "{err}");
+    }
+}
