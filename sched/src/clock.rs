@@ -62,7 +62,7 @@ mod tests {
             x ^= x >> 7;
             x ^= x << 17;
             // Mostly short steps; now and then the longest legal one, 2^32 - 1.
-            truth += if x % 97 == 0 {
+            truth += if x.is_multiple_of(97) {
                 (1 << 32) - 1
             } else {
                 x % (1 << 24)
