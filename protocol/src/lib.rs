@@ -12,5 +12,8 @@
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod block;
+pub mod codec;
 pub mod crc;
+pub mod dictionary;
+pub mod json;
 pub mod vlq;

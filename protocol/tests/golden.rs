@@ -1,0 +1,215 @@
+//! The protocol against real Klipper output (`../shared/golden`): every
+//! dictionary parses, every wire stream decodes to klippy's own decoded
+//! command log line for line, and re-encoding that log reproduces the wire
+//! bytes exactly (framing, sequence numbers and CRCs included).
+//!
+//! Which messages share a block depends on klippy's serial-queue timing, not
+//! on the commands, so the re-encoding takes each block's message count from
+//! the golden stream; everything inside the blocks is ours.
+//!
+//! klippy sends absolute clocks as 64-bit values, but the log prints the 32
+//! bits the MCU keeps. [`HostClock`] rebuilds the 64-bit value the way a host
+//! knows it: the congruent clock nearest to the latest time the stream has
+//! reached (step clocks and earlier absolute clocks).
+
+use onechip_protocol::block;
+use onechip_protocol::codec::is_absolute_clock;
+use onechip_protocol::dictionary::Dictionary;
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+/// The host's 64-bit view of MCU time, rebuilt from a command log.
+#[derive(Default)]
+struct HostClock {
+    /// Latest 64-bit clock the stream has reached.
+    now: i64,
+    /// 64-bit clock of each stepper's last queued step, by oid.
+    steps: HashMap<i64, i64>,
+}
+
+impl HostClock {
+    /// Rewrites the line's absolute clocks as 64-bit values and advances time.
+    fn extend_line(&mut self, line: &str) -> String {
+        let mut out = Vec::new();
+        let mut args = HashMap::new();
+        for word in line.split_ascii_whitespace() {
+            let Some((key, value)) = word.split_once('=') else {
+                out.push(word.to_string());
+                continue;
+            };
+            let mut value: i64 = value.parse().unwrap_or(-1);
+            // A zero clock is a literal ("stop now"), not a time.
+            if is_absolute_clock(key) && value > 0 {
+                let base = self.now - (1 << 31);
+                value = base + (value - base).rem_euclid(1 << 32);
+                self.now = self.now.max(value);
+            }
+            args.insert(key, value);
+            out.push(if value < 0 {
+                word.to_string()
+            } else {
+                format!("{key}={value}")
+            });
+        }
+        match line.split_ascii_whitespace().next() {
+            Some("queue_step") => {
+                let (count, add) = (args["count"], args["add"]);
+                let start = self.steps.entry(args["oid"]).or_insert(0);
+                *start += args["interval"] * count + add * count * (count - 1) / 2;
+                self.now = self.now.max(*start);
+            }
+            Some("reset_step_clock") => {
+                self.steps.insert(args["oid"], args["clock"]);
+            }
+            _ => {}
+        }
+        out.join(" ")
+    }
+}
+
+fn golden_dir() -> PathBuf {
+    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
+        PathBuf::from,
+    )
+}
+
+fn read(path: PathBuf) -> Vec<u8> {
+    std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e} (set ONECHIP_GOLDEN)", path.display()))
+}
+
+fn dictionary_text(name: &str) -> String {
+    String::from_utf8(read(
+        golden_dir().join("dicts").join(format!("{name}.dict")),
+    ))
+    .expect("UTF-8")
+}
+
+/// The golden cases and the MCU dictionary each ran against.
+fn cases() -> Vec<(String, &'static str)> {
+    let mut cases: Vec<(String, &'static str)> = std::fs::read_dir(golden_dir())
+        .expect("golden folder")
+        .filter_map(Result::ok)
+        .filter(|e| e.path().join("klippy.serial").exists())
+        .map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let dict = match name.split('_').next() {
+                Some("avr") => "atmega2560",
+                Some("h723") => "stm32h723",
+                _ => "stm32f446",
+            };
+            (name, dict)
+        })
+        .collect();
+    cases.sort();
+    assert_eq!(cases.len(), 15, "expected the 15 golden cases");
+    cases
+}
+
+#[test]
+fn every_golden_dictionary_parses_with_its_constants() {
+    for (name, mcu, clock) in [
+        ("atmega2560", "atmega2560", 16_000_000),
+        ("stm32f446", "stm32f446xx", 180_000_000),
+        ("stm32h723", "stm32h723xx", 520_000_000),
+        ("lpc176x", "lpc1768", 100_000_000),
+    ] {
+        let text = dictionary_text(name);
+        let dict = Dictionary::parse(&text).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(dict.constant_int("CLOCK_FREQ"), Some(clock), "{name}");
+        assert_eq!(dict.constant_str("MCU"), Some(mcu), "{name}");
+        assert!(dict.messages().len() > 100, "{name}");
+        assert!(
+            dict.version().is_some_and(|v| v.starts_with("v0.13")),
+            "{name}"
+        );
+        for step_cmd in [
+            "queue_step",
+            "set_next_step_dir",
+            "reset_step_clock",
+            "identify",
+        ] {
+            assert!(dict.by_name(step_cmd).is_some(), "{name}: {step_cmd}");
+        }
+    }
+}
+
+#[test]
+fn decoding_each_wire_stream_gives_the_command_log_line_for_line() {
+    for (case, dict_name) in cases() {
+        let text = dictionary_text(dict_name);
+        let dict = Dictionary::parse(&text).expect("dictionary");
+        let wire = read(golden_dir().join(&case).join("klippy.serial"));
+        let log = String::from_utf8(read(golden_dir().join(&case).join("mcu-commands.txt")))
+            .expect("UTF-8");
+        let mut expected = log.lines();
+        let mut at = 0;
+        let mut count = 0;
+        while at < wire.len() {
+            let frame = block::parse(&wire[at..])
+                .unwrap_or_else(|e| panic!("{case}: block at {at}: {e:?}"));
+            let mut rest = frame.payload;
+            while !rest.is_empty() {
+                let (msg, used) = dict
+                    .decode(rest)
+                    .unwrap_or_else(|e| panic!("{case}: at {at}: {e}"));
+                assert_eq!(
+                    Some(msg.to_string().as_str()),
+                    expected.next(),
+                    "{case}: message {count}"
+                );
+                rest = &rest[used..];
+                count += 1;
+            }
+            at += frame.wire_len();
+        }
+        assert_eq!(
+            expected.next(),
+            None,
+            "{case}: log has more lines than the wire"
+        );
+        assert!(count > 100, "{case}: only {count} messages");
+    }
+}
+
+#[test]
+fn encoding_each_command_log_gives_the_wire_bytes_exactly() {
+    for (case, dict_name) in cases() {
+        let text = dictionary_text(dict_name);
+        let dict = Dictionary::parse(&text).expect("dictionary");
+        let wire = read(golden_dir().join(&case).join("klippy.serial"));
+        let log = String::from_utf8(read(golden_dir().join(&case).join("mcu-commands.txt")))
+            .expect("UTF-8");
+        let mut lines = log.lines();
+        let mut clock = HostClock::default();
+        let (mut at, mut seq) = (0, 1u8);
+        while at < wire.len() {
+            // How many messages klippy put in this block (see module doc).
+            let golden = block::parse(&wire[at..]).expect("golden block");
+            let mut per_block = 0;
+            let mut rest = golden.payload;
+            while !rest.is_empty() {
+                rest = &rest[dict.decode(rest).expect("golden message").1..];
+                per_block += 1;
+            }
+            let mut payload = [0u8; block::MAX_PAYLOAD];
+            let mut len = 0;
+            for _ in 0..per_block {
+                let line = clock.extend_line(
+                    lines
+                        .next()
+                        .unwrap_or_else(|| panic!("{case}: log too short")),
+                );
+                len += dict
+                    .encode_text(&line, &mut payload[len..])
+                    .unwrap_or_else(|e| panic!("{case}: {line}: {e}"));
+            }
+            let mut frame = [0u8; block::MAX_LEN];
+            let n = block::encode(seq, &payload[..len], &mut frame).expect("fits");
+            assert_eq!(&frame[..n], &wire[at..at + n], "{case}: block at byte {at}");
+            at += n;
+            seq = seq.wrapping_add(1);
+        }
+        assert_eq!(lines.next(), None, "{case}: log has lines the wire lacks");
+    }
+}
