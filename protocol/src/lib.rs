@@ -16,4 +16,5 @@ pub mod codec;
 pub mod crc;
 pub mod dictionary;
 pub mod json;
+pub mod transport;
 pub mod vlq;
