@@ -111,12 +111,12 @@ fn run(seed: u64, messages: usize, faults: Faults) -> (u64, u64) {
             to_mcu.write(&retransmit[..n], now, &mut rng);
         }
         let arrived = to_mcu.read(now);
-        if !arrived.is_empty() {
-            if let Reply::Ack(_) = mcu.receive(&arrived, |p| delivered.push(p.to_vec())) {
-                let mut ack = [0u8; MAX_LEN];
-                let n = mcu.frame_reply(&[], &mut ack).expect("empty payload fits");
-                to_host.write(&ack[..n], now, &mut rng);
-            }
+        if !arrived.is_empty()
+            && let Reply::Ack(_) = mcu.receive(&arrived, |p| delivered.push(p.to_vec()))
+        {
+            let mut ack = [0u8; MAX_LEN];
+            let n = mcu.frame_reply(&[], &mut ack).expect("empty payload fits");
+            to_host.write(&ack[..n], now, &mut rng);
         }
         let acks = to_host.read(now);
         host.receive(&acks, now, |_| panic!("the MCU sent no data"));
