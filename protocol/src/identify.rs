@@ -1,0 +1,217 @@
+//! Fetching an MCU's data dictionary: the `identify` exchange.
+//!
+//! The host asks `identify offset=N count=40` repeatedly; the MCU answers
+//! `identify_response offset=N data=…` with that slice of its
+//! zlib-compressed dictionary, and an empty slice past the end. The
+//! [`Fetcher`] inflates the chunks as they arrive straight into the caller's
+//! buffer (no heap, no copy of the compressed data), checking the zlib
+//! checksum at the end.
+
+use miniz_oxide::inflate::TINFLStatus;
+use miniz_oxide::inflate::core::inflate_flags::{
+    TINFL_FLAG_COMPUTE_ADLER32, TINFL_FLAG_HAS_MORE_INPUT, TINFL_FLAG_PARSE_ZLIB_HEADER,
+    TINFL_FLAG_USING_NON_WRAPPING_OUTPUT_BUF,
+};
+use miniz_oxide::inflate::core::{DecompressorOxide, decompress};
+
+/// Bytes requested per `identify`, as Klipper's host asks.
+pub const CHUNK: u8 = 40;
+
+/// Why fetching the dictionary failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IdentifyError {
+    /// The answer is for another offset than the one asked (stale reply).
+    WrongOffset {
+        /// Offset asked.
+        expected: u32,
+        /// Offset answered.
+        got: u32,
+    },
+    /// The dictionary inflates to more than the output buffer holds.
+    TooLarge,
+    /// The compressed data is corrupt (or its checksum is wrong).
+    Corrupt,
+    /// The MCU's data ended before the compressed stream did.
+    Truncated,
+}
+
+impl core::fmt::Display for IdentifyError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::WrongOffset { expected, got } => {
+                write!(f, "identify answer for offset {got}, expected {expected}")
+            }
+            Self::TooLarge => f.write_str("data dictionary larger than its buffer"),
+            Self::Corrupt => f.write_str("data dictionary is not valid zlib data"),
+            Self::Truncated => f.write_str("data dictionary ended early"),
+        }
+    }
+}
+
+/// Where a fetch stands after an answer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Progress {
+    /// Ask again at [`Fetcher::offset`].
+    More,
+    /// The dictionary is complete: this many bytes of JSON in the buffer.
+    Done(usize),
+}
+
+/// Host-side state of one dictionary fetch.
+pub struct Fetcher<'b> {
+    inflater: DecompressorOxide,
+    out: &'b mut [u8],
+    out_len: usize,
+    offset: u32,
+    stream_ended: bool,
+}
+
+impl<'b> Fetcher<'b> {
+    /// Starts a fetch that inflates into `out`.
+    pub fn new(out: &'b mut [u8]) -> Self {
+        Self {
+            inflater: DecompressorOxide::new(),
+            out,
+            out_len: 0,
+            offset: 0,
+            stream_ended: false,
+        }
+    }
+
+    /// The offset to ask for next (`identify offset=… count=CHUNK`).
+    pub fn offset(&self) -> u32 {
+        self.offset
+    }
+
+    /// Takes one `identify_response`.
+    pub fn on_response(&mut self, offset: u32, data: &[u8]) -> Result<Progress, IdentifyError> {
+        if offset != self.offset {
+            return Err(IdentifyError::WrongOffset {
+                expected: self.offset,
+                got: offset,
+            });
+        }
+        if data.is_empty() {
+            return if self.stream_ended {
+                Ok(Progress::Done(self.out_len))
+            } else {
+                Err(IdentifyError::Truncated)
+            };
+        }
+        if self.stream_ended {
+            return Err(IdentifyError::Corrupt);
+        }
+        self.offset += data.len() as u32;
+        let flags = TINFL_FLAG_PARSE_ZLIB_HEADER
+            | TINFL_FLAG_USING_NON_WRAPPING_OUTPUT_BUF
+            | TINFL_FLAG_COMPUTE_ADLER32
+            | TINFL_FLAG_HAS_MORE_INPUT;
+        let mut input = data;
+        loop {
+            let (status, used, written) =
+                decompress(&mut self.inflater, input, self.out, self.out_len, flags);
+            input = &input[used..];
+            self.out_len += written;
+            match status {
+                TINFLStatus::Done => {
+                    self.stream_ended = true;
+                    return if input.is_empty() {
+                        Ok(Progress::More)
+                    } else {
+                        Err(IdentifyError::Corrupt)
+                    };
+                }
+                TINFLStatus::NeedsMoreInput if input.is_empty() => return Ok(Progress::More),
+                TINFLStatus::NeedsMoreInput => {}
+                TINFLStatus::HasMoreOutput => return Err(IdentifyError::TooLarge),
+                _ => return Err(IdentifyError::Corrupt),
+            }
+        }
+    }
+
+    /// The dictionary text inflated so far.
+    pub fn output(&self) -> &[u8] {
+        &self.out[..self.out_len]
+    }
+}
+
+/// The MCU side: serves a compressed dictionary in `identify` chunks.
+#[derive(Debug, Clone, Copy)]
+pub struct Server {
+    compressed: &'static [u8],
+}
+
+impl Server {
+    /// Serves `compressed` (zlib data).
+    pub const fn new(compressed: &'static [u8]) -> Self {
+        Self { compressed }
+    }
+
+    /// The slice answering `identify offset count` (empty past the end).
+    pub fn chunk(&self, offset: u32, count: u8) -> &'static [u8] {
+        let start = (offset as usize).min(self.compressed.len());
+        let end = (start + usize::from(count)).min(self.compressed.len());
+        &self.compressed[start..end]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use std::vec;
+
+    fn fetch(server: &Server, out: &mut [u8]) -> Result<usize, IdentifyError> {
+        let mut fetcher = Fetcher::new(out);
+        loop {
+            let offset = fetcher.offset();
+            if let Progress::Done(n) = fetcher.on_response(offset, server.chunk(offset, CHUNK))? {
+                return Ok(n);
+            }
+        }
+    }
+
+    #[test]
+    fn the_built_in_dictionary_round_trips_through_identify() {
+        let server = Server::new(crate::mcu::DICTIONARY_ZLIB);
+        let mut out = vec![0u8; 8192];
+        let n = fetch(&server, &mut out).expect("fetches");
+        assert_eq!(&out[..n], crate::mcu::DICTIONARY_JSON.as_bytes());
+    }
+
+    #[test]
+    fn a_small_buffer_is_an_error_not_an_overrun() {
+        let server = Server::new(crate::mcu::DICTIONARY_ZLIB);
+        let mut out = [0u8; 64];
+        assert_eq!(fetch(&server, &mut out), Err(IdentifyError::TooLarge));
+    }
+
+    #[test]
+    fn damaged_or_short_data_is_detected() {
+        let mut damaged = crate::mcu::DICTIONARY_ZLIB.to_vec();
+        let last = damaged.len() - 1;
+        damaged[last] ^= 1; // breaks the Adler-32 checksum
+        let server = Server::new(damaged.leak());
+        let mut out = vec![0u8; 8192];
+        assert_eq!(fetch(&server, &mut out), Err(IdentifyError::Corrupt));
+
+        let short = &crate::mcu::DICTIONARY_ZLIB[..crate::mcu::DICTIONARY_ZLIB.len() - 10];
+        assert_eq!(
+            fetch(&Server::new(short), &mut out),
+            Err(IdentifyError::Truncated)
+        );
+    }
+
+    #[test]
+    fn a_stale_answer_is_refused() {
+        let mut out = vec![0u8; 8192];
+        let mut fetcher = Fetcher::new(&mut out);
+        assert_eq!(
+            fetcher.on_response(40, b"x"),
+            Err(IdentifyError::WrongOffset {
+                expected: 0,
+                got: 40
+            })
+        );
+    }
+}
