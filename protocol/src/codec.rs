@@ -100,7 +100,16 @@ struct Writer<'o> {
 }
 
 impl Writer<'_> {
+    #[inline]
     fn int(&mut self, value: i64) -> Result<(), EncodeError<'static>> {
+        // Encode in place when five bytes of room remain (no copy), else
+        // through a scratch buffer.
+        if let Some(room) = self.out.get_mut(self.len..self.len + vlq::MAX_LEN) {
+            let room: &mut [u8; vlq::MAX_LEN] =
+                room.try_into().map_err(|_| EncodeError::NoSpace)?;
+            self.len += vlq::encode(value, room);
+            return Ok(());
+        }
         let mut buf = [0u8; vlq::MAX_LEN];
         let n = vlq::encode(value, &mut buf);
         self.bytes(&buf[..n])
@@ -146,7 +155,12 @@ fn check_range(param: &str, ty: ParamType, value: i64) -> Result<(), EncodeError
 pub struct Encoder<'d> {
     message: &'d Message<'d>,
     types: [ParamType; MAX_PARAMS],
+    /// Accepted values of each integer parameter (bytes parameters: empty).
+    bounds: [(i64, i64); MAX_PARAMS],
     count: usize,
+    /// The message id, already encoded.
+    id: [u8; vlq::MAX_LEN],
+    id_len: usize,
 }
 
 impl<'d> Encoder<'d> {
@@ -156,15 +170,25 @@ impl<'d> Encoder<'d> {
             .by_name(name)
             .ok_or(EncodeError::UnknownMessage(name))?;
         let mut types = [ParamType::U8; MAX_PARAMS];
+        let mut bounds = [(1, 0); MAX_PARAMS];
         let mut count = 0;
-        for (slot, (_, ty)) in types.iter_mut().zip(message.params()) {
-            *slot = ty;
+        for (i, (param, ty)) in message.params().enumerate().take(MAX_PARAMS) {
+            types[i] = ty;
+            if !ty.is_bytes() {
+                let range = value_range(param, ty);
+                bounds[i] = (*range.start(), *range.end());
+            }
             count += 1;
         }
+        let mut id = [0u8; vlq::MAX_LEN];
+        let id_len = vlq::encode(i64::from(message.id), &mut id);
         Ok(Self {
             message,
             types,
+            bounds,
             count,
+            id,
+            id_len,
         })
     }
 
@@ -210,21 +234,42 @@ impl<'d> Encoder<'d> {
                 given: args.len(),
             });
         }
-        let mut w = Writer { out, len: 0 };
-        w.int(i64::from(self.message.id))?;
-        for (i, &value) in args.iter().enumerate() {
-            let ty = self.types[i];
-            if ty.is_bytes() || !ty.range().contains(&value) {
-                // Off the fast path: name the parameter, allow 64-bit clocks.
-                let name = self.message.params().nth(i).map_or("?", |(n, _)| n);
-                if ty.is_bytes() {
-                    return Err(EncodeError::BadValue(name));
-                }
-                check_range(name, ty, value)?;
+        for (i, (&value, &(low, high))) in args.iter().zip(&self.bounds).enumerate() {
+            if value < low || value > high {
+                return Err(self.int_error(i, value));
             }
-            w.int(value)?;
         }
-        Ok(w.len)
+        if out.len() < (args.len() + 1) * vlq::MAX_LEN {
+            // Little room left: the checked path.
+            let mut w = Writer { out, len: 0 };
+            w.bytes(&self.id[..self.id_len])?;
+            for &value in args {
+                w.int(value)?;
+            }
+            return Ok(w.len);
+        }
+        // Room for the longest encoding of every value: write in place.
+        *out.first_chunk_mut::<{ vlq::MAX_LEN }>()
+            .ok_or(EncodeError::NoSpace)? = self.id;
+        let mut len = self.id_len;
+        for &value in args {
+            let room = out[len..]
+                .first_chunk_mut::<{ vlq::MAX_LEN }>()
+                .ok_or(EncodeError::NoSpace)?;
+            len += vlq::encode(value, room);
+        }
+        Ok(len)
+    }
+
+    /// The error for a bad integer argument `i` (off the hot path).
+    #[cold]
+    fn int_error(&self, i: usize, value: i64) -> EncodeError<'d> {
+        let name = self.message.params().nth(i).map_or("?", |(n, _)| n);
+        if self.types[i].is_bytes() {
+            EncodeError::BadValue(name)
+        } else {
+            EncodeError::OutOfRange { param: name, value }
+        }
     }
 }
 

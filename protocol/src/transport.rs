@@ -254,7 +254,7 @@ impl HostLink {
         let n = block::encode(self.send_seq as u8, payload, &mut frame)
             .map_err(|_| SendError::TooLarge)?;
         if self.sent.is_empty() {
-            self.retransmit_at = Some(now_us + u64::from(self.rto_us));
+            self.retransmit_at = Some(now_us.saturating_add(u64::from(self.rto_us)));
         }
         if self.rtt_sample_seq == 0 {
             self.rtt_sample_seq = self.send_seq;
@@ -325,7 +325,8 @@ impl HostLink {
             }
             self.rtt_sample_seq = 0;
         }
-        self.retransmit_at = (!self.sent.is_empty()).then(|| now_us + u64::from(self.rto_us));
+        self.retransmit_at =
+            (!self.sent.is_empty()).then(|| now_us.saturating_add(u64::from(self.rto_us)));
     }
 
     /// RFC 6298 smoothing; the first sample starts high (x10), as Klipper does.
@@ -383,7 +384,7 @@ impl HostLink {
         self.rtt_sample_seq = 0;
         self.stats.bytes_written += n as u64;
         self.stats.bytes_retransmitted += n as u64;
-        self.retransmit_at = Some(now_us + u64::from(self.rto_us));
+        self.retransmit_at = Some(now_us.saturating_add(u64::from(self.rto_us)));
         Some(n)
     }
 }
@@ -599,6 +600,16 @@ mod tests {
         slower.send(b"p", 0).expect("room");
         slower.receive(&block_bytes(2, b""), 1_000_000, |_| {});
         assert_eq!(slower.rto_us(), MAX_RTO_US);
+    }
+
+    #[test]
+    fn clock_values_near_the_end_of_time_do_not_overflow() {
+        let mut host = HostLink::default();
+        host.send(b"a", u64::MAX - 1).expect("room");
+        let mut out = [0u8; 1 + MAX_PENDING_BLOCKS * MAX_LEN];
+        assert!(host.poll(u64::MAX, &mut out).is_some());
+        host.receive(&block_bytes(2, b""), u64::MAX, |_| {});
+        assert_eq!(host.unacknowledged(), 0);
     }
 
     #[test]

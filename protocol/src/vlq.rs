@@ -25,25 +25,32 @@ pub struct Truncated;
 /// Encodes `value` into `out`, returning the number of bytes used. Values
 /// outside `-2^31 ..= 2^32 - 1` keep only the bits a 5-byte VLQ carries, as
 /// in Klipper's host (callers check their parameters' ranges).
+#[inline]
 pub fn encode(value: i64, out: &mut [u8; MAX_LEN]) -> usize {
-    let v = value;
-    let mut n = 0;
-    // Each threshold is the first value that no longer fits in one fewer
-    // group of 7 bits, given the sign convention of the first byte.
-    let groups: [(i64, i64, u32); 4] = [
-        (0x0c00_0000, -0x0400_0000, 28),
-        (0x0018_0000, -0x0008_0000, 21),
-        (0x3000, -0x1000, 14),
-        (0x60, -0x20, 7),
-    ];
-    for (pos_limit, neg_limit, shift) in groups {
-        if v >= pos_limit || v < neg_limit {
-            out[n] = 0x80 | ((v >> shift) & 0x7f) as u8;
-            n += 1;
+    if (-0x0400_0000..0x0c00_0000).contains(&value) {
+        // Fits 4 bytes: 32-bit arithmetic, which the Cortex-M does natively.
+        let v = value as i32;
+        let n = if (-0x20..0x60).contains(&v) {
+            1
+        } else if (-0x1000..0x3000).contains(&v) {
+            2
+        } else if (-0x0008_0000..0x0018_0000).contains(&v) {
+            3
+        } else {
+            4
+        };
+        for (i, byte) in out.iter_mut().enumerate().take(n) {
+            let group = ((v >> (7 * (n - 1 - i))) & 0x7f) as u8;
+            *byte = if i + 1 < n { 0x80 | group } else { group };
         }
+        n
+    } else {
+        for (i, byte) in out.iter_mut().enumerate() {
+            let group = ((value >> (7 * (MAX_LEN - 1 - i))) & 0x7f) as u8;
+            *byte = if i + 1 < MAX_LEN { 0x80 | group } else { group };
+        }
+        MAX_LEN
     }
-    out[n] = (v & 0x7f) as u8;
-    n + 1
 }
 
 /// Decodes one value from the front of `input`; returns it with the number of
