@@ -123,21 +123,7 @@ pub fn parse(text: &str) -> Result<Value<'_>, JsonError> {
 impl<'a> Object<'a> {
     /// The members, in document order.
     pub fn members(&self) -> impl Iterator<Item = Result<(Str<'a>, Value<'a>), JsonError>> + 'a {
-        let mut p = Parser {
-            text: self.span,
-            pos: 1,
-        };
-        let depth = self.depth;
-        let mut first = true;
-        let mut done = false;
-        core::iter::from_fn(move || {
-            if done {
-                return None;
-            }
-            let item = p.next_member(depth, &mut first);
-            done = !matches!(item, Ok(Some(_)));
-            item.transpose()
-        })
+        elements(self.span, self.depth, Parser::next_member)
     }
 
     /// The value of the first member named `key`, if any.
@@ -155,22 +141,28 @@ impl<'a> Object<'a> {
 impl<'a> Array<'a> {
     /// The items, in document order.
     pub fn items(&self) -> impl Iterator<Item = Result<Value<'a>, JsonError>> + 'a {
-        let mut p = Parser {
-            text: self.span,
-            pos: 1,
-        };
-        let depth = self.depth;
-        let mut first = true;
-        let mut done = false;
-        core::iter::from_fn(move || {
-            if done {
-                return None;
-            }
-            let item = p.next_item(depth, &mut first);
-            done = !matches!(item, Ok(Some(_)));
-            item.transpose()
-        })
+        elements(self.span, self.depth, Parser::next_item)
     }
+}
+
+/// Walks the elements of a container span with `next` (members or items),
+/// ending after the closer or the first error.
+fn elements<'a, T: 'a>(
+    span: &'a str,
+    depth: usize,
+    next: fn(&mut Parser<'a>, usize, &mut bool) -> Result<Option<T>, JsonError>,
+) -> impl Iterator<Item = Result<T, JsonError>> + 'a {
+    let mut p = Parser { text: span, pos: 1 };
+    let mut first = true;
+    let mut done = false;
+    core::iter::from_fn(move || {
+        if done {
+            return None;
+        }
+        let item = next(&mut p, depth, &mut first);
+        done = !matches!(item, Ok(Some(_)));
+        item.transpose()
+    })
 }
 
 struct Parser<'a> {

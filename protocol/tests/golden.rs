@@ -106,6 +106,46 @@ fn cases() -> Vec<(String, &'static str)> {
     cases
 }
 
+/// One golden session: its dictionary's text, the wire bytes and the log.
+struct Session {
+    case: String,
+    dictionary: String,
+    wire: Vec<u8>,
+    log: String,
+}
+
+fn sessions() -> impl Iterator<Item = Session> {
+    cases().into_iter().map(|(case, dict_name)| Session {
+        dictionary: dictionary_text(dict_name),
+        wire: read(golden_dir().join(&case).join("klippy.serial")),
+        log: String::from_utf8(read(golden_dir().join(&case).join("mcu-commands.txt")))
+            .expect("UTF-8"),
+        case,
+    })
+}
+
+/// The golden blocks of a wire stream, each as its decoded messages.
+fn golden_blocks(dict: &Dictionary<'_>, case: &str, wire: &[u8]) -> Vec<(usize, Vec<String>)> {
+    let mut blocks = Vec::new();
+    let mut at = 0;
+    while at < wire.len() {
+        let frame =
+            block::parse(&wire[at..]).unwrap_or_else(|e| panic!("{case}: block at {at}: {e:?}"));
+        let mut messages = Vec::new();
+        let mut rest = frame.payload;
+        while !rest.is_empty() {
+            let (msg, used) = dict
+                .decode(rest)
+                .unwrap_or_else(|e| panic!("{case}: at {at}: {e}"));
+            messages.push(msg.to_string());
+            rest = &rest[used..];
+        }
+        blocks.push((at, messages));
+        at += frame.wire_len();
+    }
+    blocks
+}
+
 #[test]
 fn every_golden_dictionary_parses_with_its_constants() {
     for (name, mcu, clock) in [
@@ -136,65 +176,39 @@ fn every_golden_dictionary_parses_with_its_constants() {
 
 #[test]
 fn decoding_each_wire_stream_gives_the_command_log_line_for_line() {
-    for (case, dict_name) in cases() {
-        let text = dictionary_text(dict_name);
-        let dict = Dictionary::parse(&text).expect("dictionary");
-        let wire = read(golden_dir().join(&case).join("klippy.serial"));
-        let log = String::from_utf8(read(golden_dir().join(&case).join("mcu-commands.txt")))
-            .expect("UTF-8");
-        let mut expected = log.lines();
-        let mut at = 0;
-        let mut count = 0;
-        while at < wire.len() {
-            let frame = block::parse(&wire[at..])
-                .unwrap_or_else(|e| panic!("{case}: block at {at}: {e:?}"));
-            let mut rest = frame.payload;
-            while !rest.is_empty() {
-                let (msg, used) = dict
-                    .decode(rest)
-                    .unwrap_or_else(|e| panic!("{case}: at {at}: {e}"));
-                assert_eq!(
-                    Some(msg.to_string().as_str()),
-                    expected.next(),
-                    "{case}: message {count}"
-                );
-                rest = &rest[used..];
-                count += 1;
-            }
-            at += frame.wire_len();
-        }
-        assert_eq!(
-            expected.next(),
-            None,
-            "{case}: log has more lines than the wire"
+    for session in sessions() {
+        let case = &session.case;
+        let dict = Dictionary::parse(&session.dictionary).expect("dictionary");
+        let decoded: Vec<String> = golden_blocks(&dict, case, &session.wire)
+            .into_iter()
+            .flat_map(|(_, m)| m)
+            .collect();
+        let expected: Vec<&str> = session.log.lines().collect();
+        assert!(
+            decoded.len() > 100,
+            "{case}: only {} messages",
+            decoded.len()
         );
-        assert!(count > 100, "{case}: only {count} messages");
+        assert_eq!(decoded.len(), expected.len(), "{case}: message count");
+        for (i, (got, want)) in decoded.iter().zip(&expected).enumerate() {
+            assert_eq!(got, want, "{case}: message {i}");
+        }
     }
 }
 
 #[test]
 fn encoding_each_command_log_gives_the_wire_bytes_exactly() {
-    for (case, dict_name) in cases() {
-        let text = dictionary_text(dict_name);
-        let dict = Dictionary::parse(&text).expect("dictionary");
-        let wire = read(golden_dir().join(&case).join("klippy.serial"));
-        let log = String::from_utf8(read(golden_dir().join(&case).join("mcu-commands.txt")))
-            .expect("UTF-8");
-        let mut lines = log.lines();
+    for session in sessions() {
+        let case = &session.case;
+        let dict = Dictionary::parse(&session.dictionary).expect("dictionary");
+        let mut lines = session.log.lines();
         let mut clock = HostClock::default();
-        let (mut at, mut seq) = (0, 1u8);
-        while at < wire.len() {
-            // How many messages klippy put in this block (see module doc).
-            let golden = block::parse(&wire[at..]).expect("golden block");
-            let mut per_block = 0;
-            let mut rest = golden.payload;
-            while !rest.is_empty() {
-                rest = &rest[dict.decode(rest).expect("golden message").1..];
-                per_block += 1;
-            }
+        let mut seq = 1u8;
+        // How many messages klippy put in each block (see module doc).
+        for (at, messages) in golden_blocks(&dict, case, &session.wire) {
             let mut payload = [0u8; block::MAX_PAYLOAD];
             let mut len = 0;
-            for _ in 0..per_block {
+            for _ in &messages {
                 let line = clock.extend_line(
                     lines
                         .next()
@@ -206,8 +220,11 @@ fn encoding_each_command_log_gives_the_wire_bytes_exactly() {
             }
             let mut frame = [0u8; block::MAX_LEN];
             let n = block::encode(seq, &payload[..len], &mut frame).expect("fits");
-            assert_eq!(&frame[..n], &wire[at..at + n], "{case}: block at byte {at}");
-            at += n;
+            assert_eq!(
+                &frame[..n],
+                &session.wire[at..at + n],
+                "{case}: block at byte {at}"
+            );
             seq = seq.wrapping_add(1);
         }
         assert_eq!(lines.next(), None, "{case}: log has lines the wire lacks");
