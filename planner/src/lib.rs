@@ -2,6 +2,10 @@
 //! moves, as Klipper's toolhead plans them (issue #3).
 //!
 //! Contract for the crates above it: moves come out as trapezoids in
-//! move-relative f32 time (accel, cruise, decel durations in s, velocities in
+//! move-relative time (accel, cruise, decel durations in s, velocities in
 //! mm/s) anchored at integer clock ticks, so nothing drifts over long prints.
+//!
+//! Available now: [`gcode`], parsing G-code lines without allocation.
 #![cfg_attr(not(feature = "std"), no_std)]
+
+pub mod gcode;
