@@ -5,7 +5,9 @@
 //! move-relative time (accel, cruise, decel durations in s, velocities in
 //! mm/s) anchored at integer clock ticks, so nothing drifts over long prints.
 //!
-//! Available now: [`gcode`], parsing G-code lines without allocation.
+//! Available now: [`gcode`], parsing G-code lines, and [`config`], reading
+//! `printer.cfg`, both without allocation.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod config;
 pub mod gcode;

@@ -1,0 +1,630 @@
+//! Reading Klipper's `printer.cfg` format without allocation.
+//!
+//! The text stays in the caller's buffer; [`Config::parse`] indexes its
+//! sections and option lines. Format, as Klipper reads it: `[section name]`
+//! headers; `option: value` or `option = value` lines (names are
+//! case-insensitive); whole-line comments starting with `#` or `;`, inline
+//! comments after whitespace; indented lines continue the previous value; a
+//! repeated section adds to (and overrides) the earlier one; the
+//! `#*# <---- SAVE_CONFIG ---->` block at the end is read like the rest.
+//!
+//! Every option that the firmware reads is marked used; [`Config::check_unused`]
+//! then reports the first option nobody read, as Klipper does ("Option 'x' is
+//! not valid in section 'y'").
+
+use core::cell::Cell;
+use core::fmt;
+
+/// Most sections (counting repeats) one config may have.
+pub const MAX_SECTIONS: usize = 96;
+/// Most option lines one config may have.
+pub const MAX_OPTIONS: usize = 1024;
+
+/// Why the config was refused; every error names where.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConfigError<'a> {
+    /// The file's name (for messages).
+    pub file: &'a str,
+    /// 1-based line number (0: not tied to a line).
+    pub line: usize,
+    /// What is wrong.
+    pub kind: ConfigErrorKind<'a>,
+}
+
+/// What is wrong with a config.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConfigErrorKind<'a> {
+    /// A line that is neither a section, an option nor a comment.
+    Syntax,
+    /// An option before the first section.
+    OptionOutsideSection,
+    /// More sections or options than this build holds.
+    TooLarge,
+    /// A required section is absent.
+    MissingSection(&'a str),
+    /// A required option is absent.
+    MissingOption {
+        /// The section.
+        section: &'a str,
+        /// The option.
+        option: &'a str,
+    },
+    /// An option's value is not valid.
+    BadValue {
+        /// The section.
+        section: &'a str,
+        /// The option.
+        option: &'a str,
+        /// Why.
+        reason: &'static str,
+    },
+    /// An option nobody reads (a typo, or a feature not supported).
+    UnknownOption {
+        /// The section.
+        section: &'a str,
+        /// The option.
+        option: &'a str,
+    },
+    /// A section this firmware does not support.
+    UnsupportedSection(&'a str),
+}
+
+impl fmt::Display for ConfigError<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.line > 0 {
+            write!(f, "{}:{}: ", self.file, self.line)?;
+        } else {
+            write!(f, "{}: ", self.file)?;
+        }
+        match self.kind {
+            ConfigErrorKind::Syntax => f.write_str("not a section, an option or a comment"),
+            ConfigErrorKind::OptionOutsideSection => {
+                f.write_str("option before the first [section]")
+            }
+            ConfigErrorKind::TooLarge => f.write_str("too many sections or options"),
+            ConfigErrorKind::MissingSection(s) => write!(f, "section '{s}' is required"),
+            ConfigErrorKind::MissingOption { section, option } => {
+                write!(
+                    f,
+                    "option '{option}' in section '{section}' must be specified"
+                )
+            }
+            ConfigErrorKind::BadValue {
+                section,
+                option,
+                reason,
+            } => {
+                write!(f, "option '{option}' in section '{section}' {reason}")
+            }
+            ConfigErrorKind::UnknownOption { section, option } => {
+                write!(f, "option '{option}' is not valid in section '{section}'")
+            }
+            ConfigErrorKind::UnsupportedSection(s) => {
+                write!(f, "section '{s}' is not supported by onechip yet")
+            }
+        }
+    }
+}
+
+/// One option line: where it is and its text.
+#[derive(Debug, Clone, Copy)]
+struct OptionLine<'a> {
+    section: usize,
+    line: usize,
+    name: &'a str,
+    /// The value, continuation lines included.
+    value: &'a str,
+}
+
+/// An indexed config file.
+#[derive(Debug)]
+pub struct Config<'a> {
+    file: &'a str,
+    sections: heapless::Vec<(&'a str, usize), MAX_SECTIONS>,
+    options: heapless::Vec<OptionLine<'a>, MAX_OPTIONS>,
+    used: [Cell<u32>; MAX_OPTIONS / 32],
+}
+
+impl<'a> Config<'a> {
+    /// Indexes `text`, naming it `file` in errors.
+    pub fn parse(file: &'a str, text: &'a str) -> Result<Self, ConfigError<'a>> {
+        let mut config = Self {
+            file,
+            sections: heapless::Vec::new(),
+            options: heapless::Vec::new(),
+            used: Default::default(),
+        };
+        let err = |line, kind| ConfigError { file, line, kind };
+        let mut offset = 0;
+        for (index, raw) in text.split_inclusive('\n').enumerate() {
+            let line = index + 1;
+            let start = offset;
+            offset += raw.len();
+            // SAVE_CONFIG lines are read like the rest, prefix removed.
+            let content = raw.strip_prefix("#*#").map_or(raw, str::trim_start);
+            let trimmed = strip_inline_comment(content).trim();
+            if trimmed.is_empty() {
+                continue;
+            }
+            if content.starts_with([' ', '\t']) {
+                // A continuation of the previous option's value.
+                let last = config
+                    .options
+                    .last_mut()
+                    .ok_or(err(line, ConfigErrorKind::Syntax))?;
+                let value_start = last.value.as_ptr() as usize - text.as_ptr() as usize;
+                let end = start + raw.trim_end().len();
+                last.value = text[value_start.min(end)..end].trim();
+                continue;
+            }
+            if let Some(header) = trimmed.strip_prefix('[') {
+                let name = header
+                    .strip_suffix(']')
+                    .ok_or(err(line, ConfigErrorKind::Syntax))?
+                    .trim();
+                config
+                    .sections
+                    .push((name, line))
+                    .map_err(|_| err(line, ConfigErrorKind::TooLarge))?;
+                continue;
+            }
+            let split = trimmed
+                .find([':', '='])
+                .ok_or(err(line, ConfigErrorKind::Syntax))?;
+            let name = trimmed[..split].trim();
+            if name.is_empty() {
+                return Err(err(line, ConfigErrorKind::Syntax));
+            }
+            let section = config
+                .sections
+                .len()
+                .checked_sub(1)
+                .ok_or(err(line, ConfigErrorKind::OptionOutsideSection))?;
+            let value = trimmed[split + 1..].trim();
+            config
+                .options
+                .push(OptionLine {
+                    section,
+                    line,
+                    name,
+                    value,
+                })
+                .map_err(|_| err(line, ConfigErrorKind::TooLarge))?;
+        }
+        Ok(config)
+    }
+
+    /// The file name given to [`Config::parse`].
+    pub fn file(&self) -> &'a str {
+        self.file
+    }
+
+    /// Names of all sections, in file order (repeats included).
+    pub fn section_names(&self) -> impl Iterator<Item = &'a str> + '_ {
+        self.sections.iter().map(|(name, _)| *name)
+    }
+
+    /// True if a section of this name exists.
+    pub fn has_section(&self, name: &str) -> bool {
+        self.sections.iter().any(|(n, _)| *n == name)
+    }
+
+    /// Access to the section `name` (all its repeats, later lines winning).
+    pub fn section<'c>(&'c self, name: &'c str) -> Option<Section<'c, 'a>> {
+        self.has_section(name)
+            .then_some(Section { config: self, name })
+    }
+
+    /// The section `name`, or an error saying it is required.
+    pub fn require<'c>(&'c self, name: &'c str) -> Result<Section<'c, 'a>, ConfigError<'c>> {
+        self.section(name).ok_or(ConfigError {
+            file: self.file,
+            line: 0,
+            kind: ConfigErrorKind::MissingSection(name),
+        })
+    }
+
+    /// Marks every option of section `name` as used (sections whose options
+    /// belong to features handled elsewhere).
+    pub fn accept_section(&self, name: &str) {
+        for (i, option) in self.options.iter().enumerate() {
+            if self.sections[option.section].0 == name {
+                self.mark_used(i);
+            }
+        }
+    }
+
+    fn mark_used(&self, index: usize) {
+        let cell = &self.used[index / 32];
+        cell.set(cell.get() | 1 << (index % 32));
+    }
+
+    fn is_used(&self, index: usize) -> bool {
+        self.used[index / 32].get() & (1 << (index % 32)) != 0
+    }
+
+    /// The first option nobody read, as an error.
+    pub fn check_unused(&self) -> Result<(), ConfigError<'a>> {
+        match self
+            .options
+            .iter()
+            .enumerate()
+            .find(|(i, _)| !self.is_used(*i))
+        {
+            None => Ok(()),
+            Some((_, option)) => Err(ConfigError {
+                file: self.file,
+                line: option.line,
+                kind: ConfigErrorKind::UnknownOption {
+                    section: self.sections[option.section].0,
+                    option: option.name,
+                },
+            }),
+        }
+    }
+}
+
+/// Removes a `#` or `;` comment that starts a line or follows whitespace.
+fn strip_inline_comment(line: &str) -> &str {
+    let bytes = line.as_bytes();
+    for (i, &b) in bytes.iter().enumerate() {
+        if (b == b'#' || b == b';') && (i == 0 || bytes[i - 1].is_ascii_whitespace()) {
+            return &line[..i];
+        }
+    }
+    line
+}
+
+/// Bounds for a number option, as Klipper's `getfloat` takes them.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Bounds {
+    /// Smallest allowed value.
+    pub minval: Option<f64>,
+    /// Largest allowed value.
+    pub maxval: Option<f64>,
+    /// The value must be greater than this.
+    pub above: Option<f64>,
+    /// The value must be less than this.
+    pub below: Option<f64>,
+}
+
+impl Bounds {
+    /// No bounds.
+    pub const NONE: Self = Self {
+        minval: None,
+        maxval: None,
+        above: None,
+        below: None,
+    };
+    /// Strictly positive.
+    pub const POSITIVE: Self = Self {
+        minval: None,
+        maxval: None,
+        above: Some(0.0),
+        below: None,
+    };
+    /// Zero or more.
+    pub const NON_NEGATIVE: Self = Self {
+        minval: Some(0.0),
+        maxval: None,
+        above: None,
+        below: None,
+    };
+}
+
+/// One section of a config.
+#[derive(Debug, Clone, Copy)]
+pub struct Section<'c, 'a> {
+    config: &'c Config<'a>,
+    name: &'c str,
+}
+
+impl<'c, 'a> Section<'c, 'a> {
+    /// The section's name.
+    pub fn name(&self) -> &'c str {
+        self.name
+    }
+
+    fn find(&self, option: &str) -> Option<(usize, &'c OptionLine<'a>)> {
+        self.config
+            .options
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| {
+                self.config.sections[o.section].0 == self.name
+                    && o.name.eq_ignore_ascii_case(option)
+            })
+            .last()
+    }
+
+    fn error(&self, line: usize, kind: ConfigErrorKind<'c>) -> ConfigError<'c> {
+        ConfigError {
+            file: self.config.file,
+            line,
+            kind,
+        }
+    }
+
+    /// The text of `option`, if present (marks it used).
+    pub fn get_opt(&self, option: &str) -> Option<&'a str> {
+        let (index, line) = self.find(option)?;
+        self.config.mark_used(index);
+        Some(line.value)
+    }
+
+    /// The text of `option`, which must be present.
+    pub fn get(&self, option: &'c str) -> Result<&'a str, ConfigError<'c>> {
+        self.get_opt(option).ok_or(self.error(
+            0,
+            ConfigErrorKind::MissingOption {
+                section: self.name,
+                option,
+            },
+        ))
+    }
+
+    /// A number option; `default` when absent (None: required).
+    pub fn get_float(
+        &self,
+        option: &'c str,
+        default: Option<f64>,
+        bounds: Bounds,
+    ) -> Result<f64, ConfigError<'c>> {
+        let Some((index, line)) = self.find(option) else {
+            return default.ok_or(self.error(
+                0,
+                ConfigErrorKind::MissingOption {
+                    section: self.name,
+                    option,
+                },
+            ));
+        };
+        self.config.mark_used(index);
+        let bad = |reason| {
+            self.error(
+                line.line,
+                ConfigErrorKind::BadValue {
+                    section: self.name,
+                    option,
+                    reason,
+                },
+            )
+        };
+        let value: f64 = line
+            .value
+            .parse()
+            .ok()
+            .filter(|v: &f64| v.is_finite())
+            .ok_or(bad("is not a number"))?;
+        if bounds.minval.is_some_and(|m| value < m) {
+            return Err(bad("is below its minimum"));
+        }
+        if bounds.maxval.is_some_and(|m| value > m) {
+            return Err(bad("is above its maximum"));
+        }
+        if bounds.above.is_some_and(|m| value <= m) {
+            return Err(bad("must be above its lower limit"));
+        }
+        if bounds.below.is_some_and(|m| value >= m) {
+            return Err(bad("must be below its upper limit"));
+        }
+        Ok(value)
+    }
+
+    /// An optional number option.
+    pub fn get_float_opt(
+        &self,
+        option: &'c str,
+        bounds: Bounds,
+    ) -> Result<Option<f64>, ConfigError<'c>> {
+        if self.find(option).is_none() {
+            return Ok(None);
+        }
+        self.get_float(option, None, bounds).map(Some)
+    }
+
+    /// An integer option; `default` when absent (None: required).
+    pub fn get_int(
+        &self,
+        option: &'c str,
+        default: Option<i64>,
+        minval: Option<i64>,
+    ) -> Result<i64, ConfigError<'c>> {
+        let Some((index, line)) = self.find(option) else {
+            return default.ok_or(self.error(
+                0,
+                ConfigErrorKind::MissingOption {
+                    section: self.name,
+                    option,
+                },
+            ));
+        };
+        self.config.mark_used(index);
+        let bad = |reason| {
+            self.error(
+                line.line,
+                ConfigErrorKind::BadValue {
+                    section: self.name,
+                    option,
+                    reason,
+                },
+            )
+        };
+        let value: i64 = line.value.parse().map_err(|_| bad("is not an integer"))?;
+        if minval.is_some_and(|m| value < m) {
+            return Err(bad("is below its minimum"));
+        }
+        Ok(value)
+    }
+
+    /// A boolean option (`True`/`False`, `yes`/`no`, `on`/`off`, `1`/`0`).
+    pub fn get_bool(&self, option: &'c str, default: bool) -> Result<bool, ConfigError<'c>> {
+        let Some((index, line)) = self.find(option) else {
+            return Ok(default);
+        };
+        self.config.mark_used(index);
+        match line.value.to_ascii_lowercase_bytes() {
+            Some(true) => Ok(true),
+            Some(false) => Ok(false),
+            None => Err(self.error(
+                line.line,
+                ConfigErrorKind::BadValue {
+                    section: self.name,
+                    option,
+                    reason: "is not a boolean",
+                },
+            )),
+        }
+    }
+
+    /// One of `choices` (exact match).
+    pub fn get_choice(
+        &self,
+        option: &'c str,
+        choices: &[&str],
+        default: Option<&'a str>,
+    ) -> Result<&'a str, ConfigError<'c>> {
+        let Some((index, line)) = self.find(option) else {
+            return default.ok_or(self.error(
+                0,
+                ConfigErrorKind::MissingOption {
+                    section: self.name,
+                    option,
+                },
+            ));
+        };
+        self.config.mark_used(index);
+        if choices.contains(&line.value) {
+            Ok(line.value)
+        } else {
+            Err(self.error(
+                line.line,
+                ConfigErrorKind::BadValue {
+                    section: self.name,
+                    option,
+                    reason: "is not one of the choices",
+                },
+            ))
+        }
+    }
+
+    /// Marks `options` as read by code outside the motion pipeline (heaters,
+    /// pins) so they are not reported as unknown.
+    pub fn accept(&self, options: &[&str]) {
+        for option in options {
+            let _ = self.get_opt(option);
+        }
+    }
+}
+
+/// Boolean spellings Python's configparser accepts.
+trait BoolText {
+    fn to_ascii_lowercase_bytes(&self) -> Option<bool>;
+}
+
+impl BoolText for str {
+    fn to_ascii_lowercase_bytes(&self) -> Option<bool> {
+        const TRUE: [&str; 4] = ["1", "yes", "true", "on"];
+        const FALSE: [&str; 4] = ["0", "no", "false", "off"];
+        if TRUE.iter().any(|t| self.eq_ignore_ascii_case(t)) {
+            Some(true)
+        } else if FALSE.iter().any(|t| self.eq_ignore_ascii_case(t)) {
+            Some(false)
+        } else {
+            None
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use std::string::ToString;
+
+    const CFG: &str = "# comment\n[printer]\nkinematics: cartesian\nmax_velocity = 300 ; inline\nmax_accel: 3000#not a comment\n\n[stepper_x]\nstep_pin: PF13\ngcode:\n  G28\n  G1 X10\n[printer]\nmax_velocity: 250\n#*# [extruder]\n#*# pressure_advance = 0.05\n";
+
+    #[test]
+    fn sections_options_comments_and_overrides() {
+        let c = Config::parse("printer.cfg", CFG).expect("valid");
+        let printer = c.require("printer").expect("present");
+        assert_eq!(printer.get("kinematics"), Ok("cartesian"));
+        assert_eq!(
+            printer.get_float("max_velocity", None, Bounds::POSITIVE),
+            Ok(250.0)
+        );
+        let bad = printer
+            .get_float("max_accel", None, Bounds::POSITIVE)
+            .expect_err("not a number");
+        assert_eq!(bad.line, 5);
+        assert_eq!(
+            printer.get_float("square_corner_velocity", Some(5.0), Bounds::NON_NEGATIVE),
+            Ok(5.0)
+        );
+        let x = c.section("stepper_x").expect("present");
+        assert_eq!(x.get("gcode"), Ok("G28\n  G1 X10"));
+        let saved = c.section("extruder").expect("SAVE_CONFIG block");
+        assert_eq!(
+            saved.get_float("pressure_advance", None, Bounds::NON_NEGATIVE),
+            Ok(0.05)
+        );
+    }
+
+    #[test]
+    fn unused_options_are_reported_with_their_line() {
+        let c = Config::parse(
+            "printer.cfg",
+            "[printer]\nkinematics: cartesian\nmax_velocty: 300\n",
+        )
+        .expect("valid");
+        let _ = c.require("printer").and_then(|p| p.get("kinematics"));
+        let err = c.check_unused().expect_err("typo");
+        assert_eq!(err.line, 3);
+        assert_eq!(
+            err.to_string(),
+            "printer.cfg:3: option 'max_velocty' is not valid in section 'printer'"
+        );
+    }
+
+    #[test]
+    fn errors_name_file_line_and_option() {
+        assert_eq!(
+            Config::parse("p.cfg", "[printer\n")
+                .map(|_| ())
+                .expect_err("syntax")
+                .line,
+            1
+        );
+        assert_eq!(
+            Config::parse("p.cfg", "max_velocity: 3\n")
+                .map(|_| ())
+                .expect_err("outside")
+                .kind,
+            ConfigErrorKind::OptionOutsideSection
+        );
+        assert_eq!(
+            Config::parse("p.cfg", "[a]\njunk\n")
+                .map(|_| ())
+                .expect_err("syntax")
+                .line,
+            2
+        );
+        let c = Config::parse("p.cfg", "[printer]\nmax_accel: -1\nflag: maybe\n").expect("valid");
+        let p = c.require("printer").expect("present");
+        let e = p
+            .get_float("max_accel", None, Bounds::POSITIVE)
+            .expect_err("negative");
+        assert_eq!(
+            e.to_string(),
+            "p.cfg:2: option 'max_accel' in section 'printer' must be above its lower limit"
+        );
+        assert!(p.get_bool("flag", false).is_err());
+        assert_eq!(
+            p.get_float("max_velocity", None, Bounds::POSITIVE)
+                .expect_err("missing")
+                .to_string(),
+            "p.cfg: option 'max_velocity' in section 'printer' must be specified"
+        );
+        assert!(c.require("stepper_x").is_err());
+    }
+}
