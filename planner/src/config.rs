@@ -326,15 +326,9 @@ impl<'c, 'a> Section<'c, 'a> {
     }
 
     fn find(&self, option: &str) -> Option<(usize, &'c OptionLine<'a>)> {
-        self.config
-            .options
-            .iter()
-            .enumerate()
-            .filter(|(_, o)| {
-                self.config.sections[o.section].0 == self.name
-                    && o.name.eq_ignore_ascii_case(option)
-            })
-            .last()
+        self.config.options.iter().enumerate().rev().find(|(_, o)| {
+            self.config.sections[o.section].0 == self.name && o.name.eq_ignore_ascii_case(option)
+        })
     }
 
     fn error(&self, line: usize, kind: ConfigErrorKind<'c>) -> ConfigError<'c> {
