@@ -11,3 +11,6 @@
 
 pub mod config;
 pub mod gcode;
+pub mod lookahead;
+pub mod motion;
+pub mod toolhead;

@@ -1,0 +1,457 @@
+//! The toolhead: checks moves against the machine, queues them for
+//! lookahead and hands planned moves, stamped with their print time, to the
+//! motion queues (trapq) of the toolhead and the extruder.
+//!
+//! Print time is in seconds on the MCU's clock. Timing follows Klipper in
+//! batch mode (no live MCU clock, so the estimated print time is 0): the
+//! first move after an idle queue starts at the later of 0.25 s
+//! (BUFFER_TIME_START) and the step generator's restart time; afterwards
+//! moves follow one another without gaps; dwells and M400 advance or flush.
+
+use crate::lookahead::LookAhead;
+use crate::motion::{E, Limits, Move};
+use core::fmt;
+
+/// Time to buffer before the first move, s.
+pub const BUFFER_TIME_START: f64 = 0.250;
+/// Lookahead time gathered while priming, s.
+pub const BUFFER_TIME_HIGH: f64 = 2.0;
+/// Minimum time to the first step generation, s.
+pub const MIN_KIN_TIME: f64 = 0.100;
+/// Largest step-generation batch, s.
+pub const MOVE_BATCH_TIME: f64 = 0.500;
+/// Delay between step generation and step compression flushing, s.
+pub const STEPCOMPRESS_FLUSH_TIME: f64 = 0.050;
+/// Step+dir+step filter window of stepcompress, s (the least scan delay).
+pub const SDS_CHECK_TIME: f64 = 0.001;
+
+/// One entry of a trapezoid motion queue, as `trapq_append` receives it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrapqMove {
+    /// Start of the move, s.
+    pub print_time: f64,
+    /// Acceleration phase, s.
+    pub accel_t: f64,
+    /// Cruise phase, s.
+    pub cruise_t: f64,
+    /// Deceleration phase, s.
+    pub decel_t: f64,
+    /// Start position, mm (extruder: `[e, 0, 0]`).
+    pub start_pos: [f64; 3],
+    /// Direction (extruder: `[1, pressure advance allowed, 0]`).
+    pub axes_r: [f64; 3],
+    /// Start velocity, mm/s.
+    pub start_v: f64,
+    /// Cruise velocity, mm/s.
+    pub cruise_v: f64,
+    /// Acceleration, mm/s².
+    pub accel: f64,
+}
+
+/// Receives planned moves.
+pub trait MoveSink {
+    /// A toolhead (XYZ) move.
+    fn toolhead(&mut self, m: &TrapqMove);
+    /// An extruder move.
+    fn extruder(&mut self, m: &TrapqMove);
+}
+
+/// Why a move was refused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MoveError {
+    /// What is wrong.
+    pub reason: &'static str,
+    /// The requested end position.
+    pub end: [f64; 4],
+    /// A value the message quotes (E distance, extrusion area), if any.
+    pub detail: Option<(f64, f64)>,
+}
+
+impl fmt::Display for MoveError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let e = &self.end;
+        match self.detail {
+            Some((a, b)) => write!(f, "{} ({a:.3} vs {b:.3})", self.reason),
+            None => write!(
+                f,
+                "{}: {:.3} {:.3} {:.3} [{:.3}]",
+                self.reason, e[0], e[1], e[2], e[3]
+            ),
+        }
+    }
+}
+
+fn move_error(m: &Move, reason: &'static str) -> MoveError {
+    MoveError {
+        reason,
+        end: m.end_pos,
+        detail: None,
+    }
+}
+
+/// Travel limits and Z speed limits of a cartesian-style machine
+/// (cartesian, corexy, corexz).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CartesianLimits {
+    /// Allowed range per axis once homed; `(1, -1)` while not homed.
+    pub range: [(f64, f64); 3],
+    /// Configured range per axis (position_min, position_max).
+    pub configured: [(f64, f64); 3],
+    /// max_z_velocity, mm/s.
+    pub max_z_velocity: f64,
+    /// max_z_accel, mm/s².
+    pub max_z_accel: f64,
+}
+
+const NOT_HOMED: (f64, f64) = (1.0, -1.0);
+
+impl CartesianLimits {
+    /// Limits of a machine not yet homed.
+    pub fn new(configured: [(f64, f64); 3], max_z_velocity: f64, max_z_accel: f64) -> Self {
+        Self {
+            range: [NOT_HOMED; 3],
+            configured,
+            max_z_velocity,
+            max_z_accel,
+        }
+    }
+
+    /// Marks `axes` (0 = X, 1 = Y, 2 = Z) homed.
+    pub fn set_homed(&mut self, axes: &[usize]) {
+        for &a in axes {
+            self.range[a] = self.configured[a];
+        }
+    }
+
+    fn check_endstops(&self, m: &Move) -> Result<(), MoveError> {
+        for i in 0..3 {
+            let (low, high) = self.range[i];
+            if m.axes_d[i] != 0.0 && (m.end_pos[i] < low || m.end_pos[i] > high) {
+                return Err(move_error(
+                    m,
+                    if low > high {
+                        "Must home axis first"
+                    } else {
+                        "Move out of range"
+                    },
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks the move's range and applies the Z limits.
+    pub fn check_move(&self, m: &mut Move) -> Result<(), MoveError> {
+        let [x, y] = [m.end_pos[0], m.end_pos[1]];
+        let (rx, ry) = (self.range[0], self.range[1]);
+        if x < rx.0 || x > rx.1 || y < ry.0 || y > ry.1 {
+            self.check_endstops(m)?;
+        }
+        if m.axes_d[2] == 0.0 {
+            return Ok(());
+        }
+        self.check_endstops(m)?;
+        let z_ratio = m.move_d / m.axes_d[2].abs();
+        m.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio);
+        Ok(())
+    }
+}
+
+/// The extruder's limits ([extruder] section).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExtruderLimits {
+    /// nozzle_diameter, mm.
+    pub nozzle_diameter: f64,
+    /// Filament cross-section, mm².
+    pub filament_area: f64,
+    /// max_extrude_cross_section over the filament area.
+    pub max_extrude_ratio: f64,
+    /// max_extrude_only_velocity, mm/s.
+    pub max_e_velocity: f64,
+    /// max_extrude_only_accel, mm/s².
+    pub max_e_accel: f64,
+    /// max_extrude_only_distance, mm.
+    pub max_e_dist: f64,
+    /// instantaneous_corner_velocity, mm/s.
+    pub instant_corner_v: f64,
+}
+
+impl ExtruderLimits {
+    fn check_move(&self, m: &mut Move) -> Result<(), MoveError> {
+        let axis_r = m.axes_r[E];
+        let axis_d = m.axes_d[E];
+        if (m.axes_d[0] == 0.0 && m.axes_d[1] == 0.0) || axis_r < 0.0 {
+            // Extrude-only move or retraction.
+            if axis_d.abs() > self.max_e_dist {
+                return Err(MoveError {
+                    reason: "Extrude only move too long",
+                    end: m.end_pos,
+                    detail: Some((axis_d, self.max_e_dist)),
+                });
+            }
+            let inv_extrude_r = 1.0 / axis_r.abs();
+            m.limit_speed(
+                self.max_e_velocity * inv_extrude_r,
+                self.max_e_accel * inv_extrude_r,
+            );
+        } else if axis_r > self.max_extrude_ratio
+            && axis_d > self.nozzle_diameter * self.max_extrude_ratio
+        {
+            return Err(MoveError {
+                reason: "Move exceeds maximum extrusion",
+                end: m.end_pos,
+                detail: Some((
+                    axis_r * self.filament_area,
+                    self.max_extrude_ratio * self.filament_area,
+                )),
+            });
+        }
+        Ok(())
+    }
+
+    fn calc_junction(&self, prev: &Move, m: &Move) -> f64 {
+        let diff_r = m.axes_r[E] - prev.axes_r[E];
+        if diff_r != 0.0 {
+            let v = self.instant_corner_v / diff_r.abs();
+            v * v
+        } else {
+            m.max_cruise_v2
+        }
+    }
+}
+
+/// Where the queue stands (Klipper's "special queuing state").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum QueueState {
+    /// Idle: the next flush re-anchors print time.
+    NeedPrime,
+    /// Moves flowing.
+    Main,
+}
+
+/// The toolhead with a lookahead queue of `N` moves.
+#[derive(Debug, Clone)]
+pub struct Toolhead<const N: usize> {
+    /// Current limits (SET_VELOCITY_LIMIT and M204 change them).
+    pub limits: Limits,
+    /// Kinematic travel limits.
+    pub kinematics: CartesianLimits,
+    /// The extruder, if configured.
+    pub extruder: Option<ExtruderLimits>,
+    lookahead: LookAhead<N>,
+    commanded_pos: [f64; 4],
+    print_time: f64,
+    state: QueueState,
+    min_restart_time: f64,
+    last_flush_time: f64,
+    step_gen_time: f64,
+    kin_flush_delay: f64,
+}
+
+impl<const N: usize> Toolhead<N> {
+    /// A toolhead at rest at position 0; `scan_delay` is the largest
+    /// step-generation scan window of the machine (pressure advance
+    /// smoothing, input shaping), s.
+    pub fn new(
+        limits: Limits,
+        kinematics: CartesianLimits,
+        extruder: Option<ExtruderLimits>,
+        scan_delay: f64,
+    ) -> Self {
+        let mut lookahead = LookAhead::new();
+        lookahead.set_flush_time(BUFFER_TIME_HIGH);
+        Self {
+            limits,
+            kinematics,
+            extruder,
+            lookahead,
+            commanded_pos: [0.0; 4],
+            print_time: 0.0,
+            state: QueueState::NeedPrime,
+            min_restart_time: 0.0,
+            last_flush_time: 0.0,
+            step_gen_time: 0.0,
+            kin_flush_delay: scan_delay.max(SDS_CHECK_TIME),
+        }
+    }
+
+    /// The position of the last queued move, mm.
+    pub fn position(&self) -> [f64; 4] {
+        self.commanded_pos
+    }
+
+    /// The print time queued so far, s.
+    pub fn print_time(&self) -> f64 {
+        self.print_time
+    }
+
+    /// Queues a move to `new_pos` at `speed` mm/s.
+    pub fn move_to(
+        &mut self,
+        new_pos: [f64; 4],
+        speed: f64,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
+        let Some(mut m) = Move::new(&self.limits, self.commanded_pos, new_pos, speed) else {
+            return Ok(());
+        };
+        if m.is_kinematic {
+            self.kinematics.check_move(&mut m)?;
+        }
+        if m.axes_d[E] != 0.0 {
+            match &self.extruder {
+                Some(e) => e.check_move(&mut m)?,
+                None => return Err(move_error(&m, "Extrude when no extruder present")),
+            }
+        }
+        self.commanded_pos = m.end_pos;
+        if self.lookahead.is_full() {
+            self.process_lookahead(true, sink);
+            if self.lookahead.is_full() {
+                self.process_lookahead(false, sink);
+            }
+        }
+        let extruder = self.extruder;
+        let want_flush = self.lookahead.add(m, |prev, next| match &extruder {
+            Some(e) => e.calc_junction(prev, next),
+            None => next.max_cruise_v2,
+        });
+        if want_flush {
+            self.process_lookahead(true, sink);
+        }
+        Ok(())
+    }
+
+    /// Limits the speed of the junction after the last queued move.
+    pub fn limit_next_junction_speed(&mut self, speed: f64) {
+        if let Some(m) = self.lookahead.last_mut() {
+            m.limit_next_junction_speed(speed);
+        }
+    }
+
+    /// Waits `delay` s after the queued moves (G4).
+    pub fn dwell(&mut self, delay: f64, sink: &mut impl MoveSink) {
+        let next = self.last_move_time(sink) + delay.max(0.0);
+        self.advance_move_time(next);
+    }
+
+    /// Flushes every queued move (M400).
+    pub fn wait_moves(&mut self, sink: &mut impl MoveSink) {
+        self.flush_lookahead(sink);
+    }
+
+    /// Sets the position without moving (SET_KINEMATIC_POSITION, homing).
+    pub fn set_position(&mut self, pos: [f64; 4], sink: &mut impl MoveSink) {
+        self.flush_step_generation(sink);
+        self.commanded_pos = pos;
+    }
+
+    /// Sets only the extruder's position.
+    pub fn set_extruder_position(&mut self, e: f64) {
+        self.commanded_pos[E] = e;
+    }
+
+    fn last_move_time(&mut self, sink: &mut impl MoveSink) -> f64 {
+        if self.state == QueueState::Main {
+            self.process_lookahead(false, sink);
+        } else {
+            self.flush_lookahead(sink);
+            self.calc_print_time();
+        }
+        self.print_time
+    }
+
+    fn flush_lookahead(&mut self, sink: &mut impl MoveSink) {
+        self.process_lookahead(false, sink);
+        self.state = QueueState::NeedPrime;
+        self.lookahead.set_flush_time(BUFFER_TIME_HIGH);
+    }
+
+    fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {
+        self.flush_lookahead(sink);
+        self.advance_flush_time(self.step_gen_time);
+        self.min_restart_time = self.min_restart_time.max(self.print_time);
+    }
+
+    fn calc_print_time(&mut self) {
+        let kin_time = MIN_KIN_TIME.max(self.min_restart_time) + self.kin_flush_delay;
+        let min_print_time = BUFFER_TIME_START.max(kin_time);
+        if min_print_time > self.print_time {
+            self.print_time = min_print_time;
+        }
+    }
+
+    fn process_lookahead(&mut self, lazy: bool, sink: &mut impl MoveSink) {
+        let count = self.lookahead.flush(lazy);
+        if count == 0 {
+            return;
+        }
+        if self.state != QueueState::Main {
+            self.state = QueueState::Main;
+            self.calc_print_time();
+        }
+        let mut next_move_time = self.print_time;
+        self.lookahead.take(count, |m| {
+            emit(m, next_move_time, sink);
+            // Same summation order as klippy, so times match to the last bit.
+            next_move_time = next_move_time + m.accel_t + m.cruise_t + m.decel_t;
+        });
+        self.step_gen_time = self
+            .step_gen_time
+            .max(next_move_time + self.kin_flush_delay);
+        self.advance_move_time(next_move_time);
+    }
+
+    fn advance_flush_time(&mut self, flush_time: f64) {
+        let flush_time = flush_time.max(self.last_flush_time);
+        let sg_flush_want =
+            (flush_time + STEPCOMPRESS_FLUSH_TIME).min(self.print_time - self.kin_flush_delay);
+        let sg_flush_time = sg_flush_want.max(flush_time);
+        self.min_restart_time = self.min_restart_time.max(sg_flush_time);
+        self.last_flush_time = flush_time;
+    }
+
+    fn advance_move_time(&mut self, next_print_time: f64) {
+        let pt_delay = self.kin_flush_delay + STEPCOMPRESS_FLUSH_TIME;
+        let mut flush_time = self.last_flush_time.max(self.print_time - pt_delay);
+        self.print_time = self.print_time.max(next_print_time);
+        let want_flush_time = flush_time.max(self.print_time - pt_delay);
+        loop {
+            flush_time = (flush_time + MOVE_BATCH_TIME).min(want_flush_time);
+            self.advance_flush_time(flush_time);
+            if flush_time >= want_flush_time {
+                break;
+            }
+        }
+    }
+}
+
+/// Hands one planned move to the sink's motion queues.
+fn emit(m: &Move, print_time: f64, sink: &mut impl MoveSink) {
+    let base = TrapqMove {
+        print_time,
+        accel_t: m.accel_t,
+        cruise_t: m.cruise_t,
+        decel_t: m.decel_t,
+        start_pos: [m.start_pos[0], m.start_pos[1], m.start_pos[2]],
+        axes_r: [m.axes_r[0], m.axes_r[1], m.axes_r[2]],
+        start_v: m.start_v,
+        cruise_v: m.cruise_v,
+        accel: m.accel,
+    };
+    if m.is_kinematic {
+        sink.toolhead(&base);
+    }
+    if m.axes_d[E] != 0.0 {
+        let r = m.axes_r[E];
+        let pressure_advance = r > 0.0 && (m.axes_d[0] != 0.0 || m.axes_d[1] != 0.0);
+        sink.extruder(&TrapqMove {
+            start_pos: [m.start_pos[E], 0.0, 0.0],
+            axes_r: [1.0, if pressure_advance { 1.0 } else { 0.0 }, 0.0],
+            start_v: m.start_v * r,
+            cruise_v: m.cruise_v * r,
+            accel: m.accel * r,
+            ..base
+        });
+    }
+}
