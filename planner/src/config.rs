@@ -325,6 +325,28 @@ impl<'c, 'a> Section<'c, 'a> {
         self.name
     }
 
+    /// The section's name as written in the file.
+    pub fn name_in_file(&self) -> &'a str {
+        self.config
+            .sections
+            .iter()
+            .find(|(n, _)| *n == self.name)
+            .map_or("", |(n, _)| *n)
+    }
+
+    /// An error about `option` (at its line, if present).
+    pub fn error_for(&self, option: &'c str, reason: &'static str) -> ConfigError<'c> {
+        let line = self.find(option).map_or(0, |(_, l)| l.line);
+        self.error(
+            line,
+            ConfigErrorKind::BadValue {
+                section: self.name,
+                option,
+                reason,
+            },
+        )
+    }
+
     fn find(&self, option: &str) -> Option<(usize, &'c OptionLine<'a>)> {
         self.config.options.iter().enumerate().rev().find(|(_, o)| {
             self.config.sections[o.section].0 == self.name && o.name.eq_ignore_ascii_case(option)

@@ -11,6 +11,9 @@
 
 pub mod config;
 pub mod gcode;
+pub mod gcode_move;
 pub mod lookahead;
+pub mod machine;
+pub mod math;
 pub mod motion;
 pub mod toolhead;

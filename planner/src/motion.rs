@@ -9,6 +9,8 @@
 //! touching the moves no further than mid-move, and by the extruder's
 //! instantaneous_corner_velocity.
 
+use crate::math::sqrt;
+
 /// Index of the extruder axis in positions.
 pub const E: usize = 3;
 
@@ -116,7 +118,7 @@ impl Move {
             axes_d[i] = end[i] - start[i];
         }
         let mut move_d =
-            (axes_d[0] * axes_d[0] + axes_d[1] * axes_d[1] + axes_d[2] * axes_d[2]).sqrt();
+            sqrt(axes_d[0] * axes_d[0] + axes_d[1] * axes_d[1] + axes_d[2] * axes_d[2]);
         let mut accel = limits.max_accel;
         let mut velocity = speed.min(limits.max_velocity);
         let is_kinematic = move_d >= MIN_KINEMATIC_D;
@@ -193,8 +195,8 @@ impl Move {
             .min(extruder_v2);
         let (r, p) = (&self.axes_r, &prev.axes_r);
         let junction_cos_theta = -(r[0] * p[0] + r[1] * p[1] + r[2] * p[2]);
-        let sin_theta_d2 = (0.5 * (1.0 - junction_cos_theta)).max(0.0).sqrt();
-        let cos_theta_d2 = (0.5 * (1.0 + junction_cos_theta)).max(0.0).sqrt();
+        let sin_theta_d2 = sqrt((0.5 * (1.0 - junction_cos_theta)).max(0.0));
+        let cos_theta_d2 = sqrt((0.5 * (1.0 + junction_cos_theta)).max(0.0));
         let one_minus_sin_theta_d2 = 1.0 - sin_theta_d2;
         if one_minus_sin_theta_d2 > 0.0 && cos_theta_d2 > 0.0 {
             let r_jd = sin_theta_d2 / one_minus_sin_theta_d2;
@@ -220,9 +222,9 @@ impl Move {
         let accel_d = (cruise_v2 - start_v2) * half_inv_accel;
         let decel_d = (cruise_v2 - end_v2) * half_inv_accel;
         let cruise_d = self.move_d - accel_d - decel_d;
-        self.start_v = start_v2.sqrt();
-        self.cruise_v = cruise_v2.sqrt();
-        self.end_v = end_v2.sqrt();
+        self.start_v = sqrt(start_v2);
+        self.cruise_v = sqrt(cruise_v2);
+        self.end_v = sqrt(end_v2);
         self.accel_t = accel_d / ((self.start_v + self.cruise_v) * 0.5);
         self.cruise_t = cruise_d / self.cruise_v;
         self.decel_t = decel_d / ((self.end_v + self.cruise_v) * 0.5);
@@ -257,7 +259,7 @@ mod tests {
         let mut b =
             Move::new(&l, [20.0, 0.0, 0.0, 0.0], [20.0, 20.0, 0.0, 0.0], 100.0).expect("moves");
         b.calc_junction(&a, f64::MAX);
-        let v = b.max_start_v2.sqrt();
+        let v = sqrt(b.max_start_v2);
         assert!((v - 5.0).abs() < 1e-9, "{v}");
     }
 

@@ -5,8 +5,11 @@
 //! Print time is in seconds on the MCU's clock. Timing follows Klipper in
 //! batch mode (no live MCU clock, so the estimated print time is 0): the
 //! first move after an idle queue starts at the later of 0.25 s
-//! (BUFFER_TIME_START) and the step generator's restart time; afterwards
-//! moves follow one another without gaps; dwells and M400 advance or flush.
+//! (BUFFER_TIME_START) and the step generator's restart time, which is the
+//! later of 0.1 s and the time steps were last flushed through, plus the
+//! step-generation scan delay; steps are flushed through whenever the
+//! position is set. Afterwards moves follow one another without gaps; a
+//! dwell adds its time, M400 only flushes the lookahead.
 
 use crate::lookahead::LookAhead;
 use crate::motion::{E, Limits, Move};
@@ -18,10 +21,6 @@ pub const BUFFER_TIME_START: f64 = 0.250;
 pub const BUFFER_TIME_HIGH: f64 = 2.0;
 /// Minimum time to the first step generation, s.
 pub const MIN_KIN_TIME: f64 = 0.100;
-/// Largest step-generation batch, s.
-pub const MOVE_BATCH_TIME: f64 = 0.500;
-/// Delay between step generation and step compression flushing, s.
-pub const STEPCOMPRESS_FLUSH_TIME: f64 = 0.050;
 /// Step+dir+step filter window of stepcompress, s (the least scan delay).
 pub const SDS_CHECK_TIME: f64 = 0.001;
 
@@ -225,6 +224,9 @@ impl ExtruderLimits {
 enum QueueState {
     /// Idle: the next flush re-anchors print time.
     NeedPrime,
+    /// Moves queued since idle, none planned yet; a priming timeout
+    /// flushes them all.
+    Priming,
     /// Moves flowing.
     Main,
 }
@@ -242,9 +244,15 @@ pub struct Toolhead<const N: usize> {
     commanded_pos: [f64; 4],
     print_time: f64,
     state: QueueState,
-    min_restart_time: f64,
-    last_flush_time: f64,
-    step_gen_time: f64,
+    /// The MCU's print time when printing starts (0 in klippy's batch
+    /// mode), s.
+    time_origin: f64,
+    /// Time up to which steps must be generated for the queued moves, s.
+    need_step_gen_time: f64,
+    /// Time up to which steps have been flushed through, s.
+    last_step_gen_time: f64,
+    /// Step-generation scan window (the later of SDS_CHECK_TIME and the
+    /// machine's pressure advance / input shaper windows), s.
     kin_flush_delay: f64,
 }
 
@@ -268,10 +276,28 @@ impl<const N: usize> Toolhead<N> {
             commanded_pos: [0.0; 4],
             print_time: 0.0,
             state: QueueState::NeedPrime,
-            min_restart_time: 0.0,
-            last_flush_time: 0.0,
-            step_gen_time: 0.0,
+            time_origin: 0.0,
+            need_step_gen_time: 0.0,
+            last_step_gen_time: 0.0,
             kin_flush_delay: scan_delay.max(SDS_CHECK_TIME),
+        }
+    }
+
+    /// Starts the clock at `origin` s instead of 0, as when printing begins
+    /// long after the MCU started (print times then count from there).
+    pub fn with_time_origin(mut self, origin: f64) -> Self {
+        self.time_origin = origin;
+        self.print_time = self.print_time.max(origin);
+        self
+    }
+
+    /// What klippy's priming timer does when it expires (0.1 s after the
+    /// first move of an idle queue, if no move has been planned since):
+    /// plan and release every queued move. Hosts call it when that time has
+    /// passed while reading input.
+    pub fn priming_timeout(&mut self, sink: &mut impl MoveSink) {
+        if self.state == QueueState::Priming {
+            self.flush_lookahead(sink);
         }
     }
 
@@ -319,6 +345,9 @@ impl<const N: usize> Toolhead<N> {
         if want_flush {
             self.process_lookahead(true, sink);
         }
+        if self.state == QueueState::NeedPrime {
+            self.state = QueueState::Priming;
+        }
         Ok(())
     }
 
@@ -332,7 +361,8 @@ impl<const N: usize> Toolhead<N> {
     /// Waits `delay` s after the queued moves (G4).
     pub fn dwell(&mut self, delay: f64, sink: &mut impl MoveSink) {
         let next = self.last_move_time(sink) + delay.max(0.0);
-        self.advance_move_time(next);
+        self.print_time = self.print_time.max(next);
+        self.state = QueueState::Priming;
     }
 
     /// Flushes every queued move (M400).
@@ -351,7 +381,9 @@ impl<const N: usize> Toolhead<N> {
         self.commanded_pos[E] = e;
     }
 
-    fn last_move_time(&mut self, sink: &mut impl MoveSink) -> f64 {
+    /// Flushes the lookahead and returns the print time after the queued
+    /// moves, s (re-anchoring it if the queue was idle).
+    pub fn last_move_time(&mut self, sink: &mut impl MoveSink) -> f64 {
         if self.state == QueueState::Main {
             self.process_lookahead(false, sink);
         } else {
@@ -369,13 +401,13 @@ impl<const N: usize> Toolhead<N> {
 
     fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {
         self.flush_lookahead(sink);
-        self.advance_flush_time(self.step_gen_time);
-        self.min_restart_time = self.min_restart_time.max(self.print_time);
+        self.last_step_gen_time = self.last_step_gen_time.max(self.need_step_gen_time);
     }
 
     fn calc_print_time(&mut self) {
-        let kin_time = MIN_KIN_TIME.max(self.min_restart_time) + self.kin_flush_delay;
-        let min_print_time = BUFFER_TIME_START.max(kin_time);
+        let kin_time =
+            (self.time_origin + MIN_KIN_TIME).max(self.last_step_gen_time) + self.kin_flush_delay;
+        let min_print_time = (self.time_origin + BUFFER_TIME_START).max(kin_time);
         if min_print_time > self.print_time {
             self.print_time = min_print_time;
         }
@@ -396,33 +428,10 @@ impl<const N: usize> Toolhead<N> {
             // Same summation order as klippy, so times match to the last bit.
             next_move_time = next_move_time + m.accel_t + m.cruise_t + m.decel_t;
         });
-        self.step_gen_time = self
-            .step_gen_time
+        self.need_step_gen_time = self
+            .need_step_gen_time
             .max(next_move_time + self.kin_flush_delay);
-        self.advance_move_time(next_move_time);
-    }
-
-    fn advance_flush_time(&mut self, flush_time: f64) {
-        let flush_time = flush_time.max(self.last_flush_time);
-        let sg_flush_want =
-            (flush_time + STEPCOMPRESS_FLUSH_TIME).min(self.print_time - self.kin_flush_delay);
-        let sg_flush_time = sg_flush_want.max(flush_time);
-        self.min_restart_time = self.min_restart_time.max(sg_flush_time);
-        self.last_flush_time = flush_time;
-    }
-
-    fn advance_move_time(&mut self, next_print_time: f64) {
-        let pt_delay = self.kin_flush_delay + STEPCOMPRESS_FLUSH_TIME;
-        let mut flush_time = self.last_flush_time.max(self.print_time - pt_delay);
-        self.print_time = self.print_time.max(next_print_time);
-        let want_flush_time = flush_time.max(self.print_time - pt_delay);
-        loop {
-            flush_time = (flush_time + MOVE_BATCH_TIME).min(want_flush_time);
-            self.advance_flush_time(flush_time);
-            if flush_time >= want_flush_time {
-                break;
-            }
-        }
+        self.print_time = self.print_time.max(next_move_time);
     }
 }
 

@@ -1,0 +1,441 @@
+//! G-code semantics on top of the toolhead: coordinates, offsets, speed
+//! and extrusion factors, and the motion commands, as Klipper's gcode_move
+//! and toolhead interpret them.
+//!
+//! Positions are in mm; the G-code position of an axis is the toolhead
+//! position minus the axis' base offset (G92, SET_GCODE_OFFSET); E is
+//! additionally scaled by the extrusion factor (M221). Speeds from F are in
+//! mm/min and scaled by M220.
+
+use crate::gcode::{Command, Extended, GcodeError, Line, Traditional};
+use crate::motion::E;
+use crate::toolhead::{MoveError, MoveSink, Toolhead};
+use core::fmt::{self, Write};
+
+/// Why a command failed (the printer replies `!! <error>` and goes on).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CommandError<'a> {
+    /// The line or a parameter could not be read.
+    Gcode(GcodeError<'a>),
+    /// The move was refused.
+    Move(MoveError),
+    /// A parameter is outside its allowed range.
+    Invalid {
+        /// The parameter.
+        param: &'a str,
+        /// The rule it breaks.
+        rule: &'static str,
+    },
+    /// A command this firmware does not implement yet.
+    NotSupported(&'static str),
+}
+
+impl<'a> From<GcodeError<'a>> for CommandError<'a> {
+    fn from(e: GcodeError<'a>) -> Self {
+        Self::Gcode(e)
+    }
+}
+
+impl From<MoveError> for CommandError<'_> {
+    fn from(e: MoveError) -> Self {
+        Self::Move(e)
+    }
+}
+
+impl fmt::Display for CommandError<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Gcode(e) => write!(f, "{e}"),
+            Self::Move(e) => write!(f, "{e}"),
+            Self::Invalid { param, rule } => write!(f, "{param} {rule}"),
+            Self::NotSupported(what) => write!(f, "{what} is not supported by onechip yet"),
+        }
+    }
+}
+
+/// The G-code interpreter's state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GcodeMove {
+    absolute_coord: bool,
+    absolute_extrude: bool,
+    base_position: [f64; 4],
+    last_position: [f64; 4],
+    homing_position: [f64; 4],
+    /// Current speed, mm/s.
+    speed: f64,
+    /// Factor from F units (mm/min) to mm/s, including M220.
+    speed_factor: f64,
+    extrude_factor: f64,
+}
+
+impl Default for GcodeMove {
+    fn default() -> Self {
+        Self {
+            absolute_coord: true,
+            absolute_extrude: true,
+            base_position: [0.0; 4],
+            last_position: [0.0; 4],
+            homing_position: [0.0; 4],
+            speed: 25.0,
+            speed_factor: 1.0 / 60.0,
+            extrude_factor: 1.0,
+        }
+    }
+}
+
+/// Requires `value` (if given) to be above zero.
+fn positive<'a>(param: &'a str, value: Option<f64>) -> Result<Option<f64>, CommandError<'a>> {
+    match value {
+        Some(v) if v <= 0.0 => Err(CommandError::Invalid {
+            param,
+            rule: "must be above 0",
+        }),
+        other => Ok(other),
+    }
+}
+
+impl GcodeMove {
+    /// The G-code position (X, Y, Z, E) as M114 reports it, mm.
+    pub fn gcode_position(&self) -> [f64; 4] {
+        let mut p = [0.0; 4];
+        for (i, v) in p.iter_mut().enumerate() {
+            *v = self.last_position[i] - self.base_position[i];
+        }
+        p[E] /= self.extrude_factor;
+        p
+    }
+
+    /// Runs one parsed line; text replies (M114, SET_VELOCITY_LIMIT) go to
+    /// `out`. Unknown commands get Klipper's `Unknown command` reply.
+    pub fn execute<'a, const N: usize>(
+        &mut self,
+        line: &Line<'a>,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+        out: &mut impl Write,
+    ) -> Result<(), CommandError<'a>> {
+        match line.command {
+            Command::Empty => Ok(()),
+            Command::Traditional(t) => self.traditional(&t, toolhead, sink, out),
+            Command::Extended(e) => self.extended(&e, toolhead, sink, out),
+        }
+    }
+
+    fn traditional<'a, const N: usize>(
+        &mut self,
+        t: &Traditional<'a>,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+        out: &mut impl Write,
+    ) -> Result<(), CommandError<'a>> {
+        match (t.letter, t.number, t.sub) {
+            (b'G', 0 | 1, None) => self.g1(t, toolhead, sink),
+            (b'G', 4, None) => {
+                let ms = t.float("P")?.unwrap_or(0.0);
+                if ms < 0.0 {
+                    return Err(CommandError::Invalid {
+                        param: "P",
+                        rule: "must not be negative",
+                    });
+                }
+                toolhead.dwell(ms / 1000.0, sink);
+                Ok(())
+            }
+            (b'G', 28, None) => Err(CommandError::NotSupported("G28 homing")),
+            (b'G', 90, None) => {
+                self.absolute_coord = true;
+                Ok(())
+            }
+            (b'G', 91, None) => {
+                self.absolute_coord = false;
+                Ok(())
+            }
+            (b'G', 92, None) => self.g92(t),
+            (b'M', 82, None) => {
+                self.absolute_extrude = true;
+                Ok(())
+            }
+            (b'M', 83, None) => {
+                self.absolute_extrude = false;
+                Ok(())
+            }
+            (b'M', 114, None) => {
+                let p = self.gcode_position();
+                let _ = writeln!(
+                    out,
+                    "X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}",
+                    p[0], p[1], p[2], p[3]
+                );
+                Ok(())
+            }
+            (b'M', 204, None) => self.m204(t, toolhead, out),
+            (b'M', 220, None) => {
+                let value = positive("S", t.float("S")?)?.unwrap_or(100.0) / (60.0 * 100.0);
+                self.speed = self.speed / self.speed_factor * value;
+                self.speed_factor = value;
+                Ok(())
+            }
+            (b'M', 221, None) => {
+                let factor = positive("S", t.float("S")?)?.unwrap_or(100.0) / 100.0;
+                let last_e = self.last_position[E];
+                let e_value = (last_e - self.base_position[E]) / self.extrude_factor;
+                self.base_position[E] = last_e - e_value * factor;
+                self.extrude_factor = factor;
+                Ok(())
+            }
+            (b'M', 400, None) => {
+                toolhead.wait_moves(sink);
+                Ok(())
+            }
+            _ => {
+                let _ = writeln!(out, "Unknown command:\"{}{}\"", t.letter as char, t.number);
+                Ok(())
+            }
+        }
+    }
+
+    fn g1<'a, const N: usize>(
+        &mut self,
+        t: &Traditional<'a>,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), CommandError<'a>> {
+        // Read everything first so a bad parameter changes nothing.
+        let axes = [t.float("X")?, t.float("Y")?, t.float("Z")?];
+        let e = t.float("E")?;
+        let f = t.float("F")?;
+        if f.is_some_and(|f| f <= 0.0) {
+            return Err(CommandError::Invalid {
+                param: "F",
+                rule: "must be above 0",
+            });
+        }
+        let mut target = self.last_position;
+        for (i, v) in axes.iter().enumerate() {
+            if let Some(v) = v {
+                target[i] = if self.absolute_coord {
+                    v + self.base_position[i]
+                } else {
+                    target[i] + v
+                };
+            }
+        }
+        if let Some(v) = e {
+            let v = v * self.extrude_factor;
+            target[E] = if self.absolute_coord && self.absolute_extrude {
+                v + self.base_position[E]
+            } else {
+                target[E] + v
+            };
+        }
+        let speed = f.map_or(self.speed, |f| f * self.speed_factor);
+        toolhead.move_to(target, speed, sink)?;
+        self.last_position = target;
+        self.speed = speed;
+        Ok(())
+    }
+
+    fn g92<'a>(&mut self, t: &Traditional<'a>) -> Result<(), CommandError<'a>> {
+        let offsets = [t.float("X")?, t.float("Y")?, t.float("Z")?, t.float("E")?];
+        if offsets.iter().all(Option::is_none) {
+            self.base_position = self.last_position;
+            return Ok(());
+        }
+        for (i, offset) in offsets.iter().enumerate() {
+            if let Some(mut offset) = *offset {
+                if i == E {
+                    offset *= self.extrude_factor;
+                }
+                self.base_position[i] = self.last_position[i] - offset;
+            }
+        }
+        Ok(())
+    }
+
+    fn m204<'a, const N: usize>(
+        &mut self,
+        t: &Traditional<'a>,
+        toolhead: &mut Toolhead<N>,
+        out: &mut impl Write,
+    ) -> Result<(), CommandError<'a>> {
+        let accel = match positive("S", t.float("S")?)? {
+            Some(s) => s,
+            None => match (positive("P", t.float("P")?)?, positive("T", t.float("T")?)?) {
+                (Some(p), Some(t)) => p.min(t),
+                _ => {
+                    let _ = writeln!(out, "Invalid M204 command \"M204 {}\"", t.raw_params());
+                    return Ok(());
+                }
+            },
+        };
+        toolhead.limits.max_accel = accel;
+        toolhead.limits.update_derived();
+        Ok(())
+    }
+
+    fn extended<'a, const N: usize>(
+        &mut self,
+        e: &Extended<'a>,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+        out: &mut impl Write,
+    ) -> Result<(), CommandError<'a>> {
+        let name = e.name;
+        if name.eq_ignore_ascii_case("SET_VELOCITY_LIMIT") {
+            self.set_velocity_limit(e, toolhead, out)
+        } else if name.eq_ignore_ascii_case("SET_KINEMATIC_POSITION") {
+            toolhead.last_move_time(sink);
+            let cur = toolhead.position();
+            let pos = [
+                e.float("X")?.unwrap_or(cur[0]),
+                e.float("Y")?.unwrap_or(cur[1]),
+                e.float("Z")?.unwrap_or(cur[2]),
+                cur[E],
+            ];
+            toolhead.set_position(pos, sink);
+            toolhead.kinematics.set_homed(&[0, 1, 2]);
+            self.last_position = pos;
+            Ok(())
+        } else if name.eq_ignore_ascii_case("SET_GCODE_OFFSET") {
+            self.set_gcode_offset(e, toolhead, sink)
+        } else {
+            let _ = writeln!(
+                out,
+                "Unknown command:\"{}\"",
+                name.to_ascii_uppercase_display()
+            );
+            Ok(())
+        }
+    }
+
+    fn set_velocity_limit<'a, const N: usize>(
+        &mut self,
+        e: &Extended<'a>,
+        toolhead: &mut Toolhead<N>,
+        out: &mut impl Write,
+    ) -> Result<(), CommandError<'a>> {
+        let velocity = positive("VELOCITY", e.float("VELOCITY")?)?;
+        let accel = positive("ACCEL", e.float("ACCEL")?)?;
+        let scv = e.float("SQUARE_CORNER_VELOCITY")?;
+        if scv.is_some_and(|v| v < 0.0) {
+            return Err(CommandError::Invalid {
+                param: "SQUARE_CORNER_VELOCITY",
+                rule: "must not be negative",
+            });
+        }
+        let mut mcr = e.float("MINIMUM_CRUISE_RATIO")?;
+        if mcr.is_some_and(|v| !(0.0..1.0).contains(&v)) {
+            return Err(CommandError::Invalid {
+                param: "MINIMUM_CRUISE_RATIO",
+                rule: "must be at least 0 and below 1",
+            });
+        }
+        if mcr.is_none()
+            && let Some(a2d) = positive("ACCEL_TO_DECEL", e.float("ACCEL_TO_DECEL")?)?
+        {
+            let max_accel = accel.unwrap_or(toolhead.limits.max_accel);
+            mcr = Some(1.0 - (a2d / max_accel).min(1.0));
+        }
+        let limits = &mut toolhead.limits;
+        if let Some(v) = velocity {
+            limits.max_velocity = v;
+        }
+        if let Some(a) = accel {
+            limits.max_accel = a;
+        }
+        if let Some(v) = scv {
+            limits.square_corner_velocity = v;
+        }
+        if let Some(r) = mcr {
+            limits.min_cruise_ratio = r;
+        }
+        limits.update_derived();
+        if velocity.is_none() && accel.is_none() && scv.is_none() && mcr.is_none() {
+            let _ = writeln!(
+                out,
+                "// max_velocity: {:.6}\n// max_accel: {:.6}\n// minimum_cruise_ratio: {:.6}\n// square_corner_velocity: {:.6}",
+                limits.max_velocity,
+                limits.max_accel,
+                limits.min_cruise_ratio,
+                limits.square_corner_velocity
+            );
+        }
+        Ok(())
+    }
+
+    fn set_gcode_offset<'a, const N: usize>(
+        &mut self,
+        e: &Extended<'a>,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), CommandError<'a>> {
+        const AXES: [(&str, &str); 4] = [
+            ("X", "X_ADJUST"),
+            ("Y", "Y_ADJUST"),
+            ("Z", "Z_ADJUST"),
+            ("E", "E_ADJUST"),
+        ];
+        let mut offsets = [None; 4];
+        for (i, (axis, adjust)) in AXES.iter().enumerate() {
+            offsets[i] = match e.float(axis)? {
+                Some(v) => Some(v),
+                None => e.float(adjust)?.map(|adj| adj + self.homing_position[i]),
+            };
+        }
+        let do_move = e
+            .get("MOVE")?
+            .map(|v| v.parse::<i64>())
+            .transpose()
+            .map_err(|_| CommandError::Invalid {
+                param: "MOVE",
+                rule: "must be an integer",
+            })?;
+        let move_speed = positive("MOVE_SPEED", e.float("MOVE_SPEED")?)?;
+        let mut move_delta = [0.0; 4];
+        for (i, offset) in offsets.iter().enumerate() {
+            if let Some(offset) = *offset {
+                let delta = offset - self.homing_position[i];
+                move_delta[i] = delta;
+                self.base_position[i] += delta;
+                self.homing_position[i] = offset;
+            }
+        }
+        if do_move.unwrap_or(0) != 0 {
+            let mut target = self.last_position;
+            for (t, d) in target.iter_mut().zip(move_delta) {
+                *t += d;
+            }
+            toolhead.move_to(target, move_speed.unwrap_or(self.speed), sink)?;
+            self.last_position = target;
+        }
+        Ok(())
+    }
+
+    /// What klippy does at the end of a G-code file: a 0.5 s dwell, then
+    /// waiting for every move.
+    pub fn finish<const N: usize>(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        toolhead.dwell(0.5, sink);
+        toolhead.wait_moves(sink);
+    }
+}
+
+/// Writes a command name in upper case without allocating.
+trait UpperDisplay {
+    fn to_ascii_uppercase_display(&self) -> Upper<'_>;
+}
+
+struct Upper<'a>(&'a str);
+
+impl UpperDisplay for str {
+    fn to_ascii_uppercase_display(&self) -> Upper<'_> {
+        Upper(self)
+    }
+}
+
+impl fmt::Display for Upper<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0
+            .chars()
+            .try_for_each(|c| f.write_char(c.to_ascii_uppercase()))
+    }
+}

@@ -1,0 +1,356 @@
+//! The machine as `printer.cfg` describes it: kinematics, limits, steppers
+//! and the extruder, read and checked the way Klipper reads them.
+
+use crate::config::{Bounds, Config, ConfigError, ConfigErrorKind, Section};
+use crate::motion::Limits;
+use crate::toolhead::{CartesianLimits, ExtruderLimits, Toolhead};
+
+/// Most steppers a machine may have.
+pub const MAX_STEPPERS: usize = 8;
+/// Most unsupported sections reported.
+pub const MAX_REPORTED: usize = 32;
+
+/// The kinematics of the machine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kinematics {
+    /// Each of X, Y, Z has its own stepper.
+    Cartesian,
+    /// X and Y belts shared by two steppers (A = X + Y, B = X - Y).
+    CoreXY,
+    /// X and Z belts shared by two steppers.
+    CoreXZ,
+}
+
+/// One stepper's motion settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stepper<'a> {
+    /// Section name (`stepper_x`, `extruder`).
+    pub name: &'a str,
+    /// Step pin name as written (e.g. `PF13`, `!PF13`).
+    pub step_pin: &'a str,
+    /// Direction pin name as written.
+    pub dir_pin: &'a str,
+    /// Distance per full step times microsteps: mm per step.
+    pub step_dist: f64,
+    /// position_min, mm (rails).
+    pub position_min: f64,
+    /// position_max, mm (rails).
+    pub position_max: f64,
+}
+
+/// Everything the motion pipeline needs from `printer.cfg`.
+#[derive(Debug, Clone)]
+pub struct Machine<'a> {
+    /// The kinematics.
+    pub kinematics: Kinematics,
+    /// Toolhead limits.
+    pub limits: Limits,
+    /// Travel and Z limits.
+    pub travel: CartesianLimits,
+    /// The extruder's limits, if it has one.
+    pub extruder: Option<ExtruderLimits>,
+    /// pressure_advance, s.
+    pub pressure_advance: f64,
+    /// pressure_advance_smooth_time, s.
+    pub pressure_advance_smooth_time: f64,
+    /// The steppers: the rails in axis order, then the extruder.
+    pub steppers: heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+    /// Sections present that onechip does not support yet.
+    pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
+}
+
+/// Options of stepper sections that belong to other parts of the firmware
+/// (pins and drivers) or to homing; read so they are not reported unknown.
+const STEPPER_OTHER: [&str; 9] = [
+    "enable_pin",
+    "endstop_pin",
+    "homing_speed",
+    "homing_retract_dist",
+    "homing_retract_speed",
+    "second_homing_speed",
+    "homing_positive_dir",
+    "step_pulse_duration",
+    "position_endstop",
+];
+
+/// Heater options of [extruder], handled by the heater code.
+const EXTRUDER_HEATER: [&str; 14] = [
+    "heater_pin",
+    "sensor_type",
+    "sensor_pin",
+    "control",
+    "pid_kp",
+    "pid_ki",
+    "pid_kd",
+    "max_delta",
+    "min_temp",
+    "max_temp",
+    "min_extrude_temp",
+    "max_power",
+    "smooth_time",
+    "pwm_cycle_time",
+];
+
+/// Sections whose options the motion pipeline reads.
+const MOTION_SECTIONS: [&str; 7] = [
+    "printer",
+    "stepper_x",
+    "stepper_y",
+    "stepper_z",
+    "extruder",
+    "mcu",
+    "force_move",
+];
+
+impl<'a> Machine<'a> {
+    /// Reads the machine from `config`; every option of the sections it
+    /// handles must be valid and known.
+    pub fn from_config<'c>(config: &'c Config<'a>) -> Result<Self, ConfigError<'c>> {
+        let printer = config.require("printer")?;
+        let kinematics = match printer.get_choice(
+            "kinematics",
+            &["cartesian", "corexy", "corexz", "delta"],
+            None,
+        )? {
+            "corexy" => Kinematics::CoreXY,
+            "corexz" => Kinematics::CoreXZ,
+            "delta" => {
+                return Err(ConfigError {
+                    file: config.file(),
+                    line: 0,
+                    kind: ConfigErrorKind::UnsupportedSection("printer: kinematics delta"),
+                });
+            }
+            _ => Kinematics::Cartesian,
+        };
+        let max_velocity = printer.get_float("max_velocity", None, Bounds::POSITIVE)?;
+        let max_accel = printer.get_float("max_accel", None, Bounds::POSITIVE)?;
+        let mut min_cruise_ratio = 0.5;
+        if printer
+            .get_float_opt("minimum_cruise_ratio", Bounds::NONE)?
+            .is_none()
+            && let Some(a2d) = printer.get_float_opt("max_accel_to_decel", Bounds::POSITIVE)?
+        {
+            min_cruise_ratio = 1.0 - (a2d / max_accel).min(1.0);
+        }
+        let min_cruise_ratio = printer.get_float(
+            "minimum_cruise_ratio",
+            Some(min_cruise_ratio),
+            Bounds {
+                minval: Some(0.0),
+                below: Some(1.0),
+                ..Bounds::NONE
+            },
+        )?;
+        let scv = printer.get_float("square_corner_velocity", Some(5.0), Bounds::NON_NEGATIVE)?;
+        let max_z_velocity = printer.get_float(
+            "max_z_velocity",
+            Some(max_velocity),
+            Bounds {
+                above: Some(0.0),
+                maxval: Some(max_velocity),
+                ..Bounds::NONE
+            },
+        )?;
+        let max_z_accel = printer.get_float(
+            "max_z_accel",
+            Some(max_accel),
+            Bounds {
+                above: Some(0.0),
+                maxval: Some(max_accel),
+                ..Bounds::NONE
+            },
+        )?;
+        let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
+
+        let mut steppers = heapless::Vec::new();
+        let mut ranges = [(0.0, 0.0); 3];
+        for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
+            let section = config.require(name)?;
+            let stepper = read_stepper(&section, true)?;
+            ranges[i] = (stepper.position_min, stepper.position_max);
+            let _ = steppers.push(stepper);
+        }
+        let travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
+
+        let (mut extruder, mut pressure_advance, mut smooth_time) = (None, 0.0, 0.040);
+        if let Some(section) = config.section("extruder") {
+            extruder = Some(read_extruder(&section, &limits)?);
+            pressure_advance =
+                section.get_float("pressure_advance", Some(0.0), Bounds::NON_NEGATIVE)?;
+            smooth_time = section.get_float(
+                "pressure_advance_smooth_time",
+                Some(0.040),
+                Bounds {
+                    above: Some(0.0),
+                    maxval: Some(0.200),
+                    ..Bounds::NONE
+                },
+            )?;
+            section.accept(&EXTRUDER_HEATER);
+            let _ = steppers.push(read_stepper(&section, false)?);
+        }
+        if let Some(section) = config.section("force_move") {
+            section.get_bool("enable_force_move", false)?;
+        }
+        config.accept_section("mcu");
+        let mut unsupported = heapless::Vec::new();
+        for name in config.section_names() {
+            if !MOTION_SECTIONS.contains(&name) && !unsupported.contains(&name) {
+                let _ = unsupported.push(name);
+                config.accept_section(name);
+            }
+        }
+        config.check_unused()?;
+        Ok(Self {
+            kinematics,
+            limits,
+            travel,
+            extruder,
+            pressure_advance,
+            pressure_advance_smooth_time: smooth_time,
+            steppers,
+            unsupported,
+        })
+    }
+
+    /// The step-generation scan window this machine needs, s (pressure
+    /// advance looks half its smoothing time ahead and behind).
+    pub fn scan_delay(&self) -> f64 {
+        if self.pressure_advance > 0.0 {
+            self.pressure_advance_smooth_time * 0.5
+        } else {
+            0.0
+        }
+    }
+
+    /// A toolhead for this machine with a lookahead of `N` moves.
+    pub fn toolhead<const N: usize>(&self) -> Toolhead<N> {
+        Toolhead::new(self.limits, self.travel, self.extruder, self.scan_delay())
+    }
+}
+
+fn read_stepper<'c, 'a>(
+    section: &Section<'c, 'a>,
+    is_rail: bool,
+) -> Result<Stepper<'a>, ConfigError<'c>> {
+    let step_pin = section.get("step_pin")?;
+    let dir_pin = section.get("dir_pin")?;
+    let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
+    let microsteps = section.get_int("microsteps", None, Some(1))?;
+    let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
+    if full_steps % 4 != 0 {
+        return Err(bad(
+            section,
+            "full_steps_per_rotation",
+            "must be a multiple of 4",
+        ));
+    }
+    let gear_ratio = match section.get_opt("gear_ratio") {
+        Some(text) => parse_gear_ratio(text).ok_or(bad(
+            section,
+            "gear_ratio",
+            "is not a list of 'a:b' ratios",
+        ))?,
+        None => 1.0,
+    };
+    let step_dist = rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio);
+    let (mut position_min, mut position_max) = (0.0, 0.0);
+    if is_rail {
+        position_min = section.get_float("position_min", Some(0.0), Bounds::NONE)?;
+        position_max = section.get_float(
+            "position_max",
+            None,
+            Bounds {
+                above: Some(position_min),
+                ..Bounds::NONE
+            },
+        )?;
+        section.accept(&STEPPER_OTHER);
+    } else {
+        section.accept(&["enable_pin", "step_pulse_duration"]);
+    }
+    Ok(Stepper {
+        name: section.name_in_file(),
+        step_pin,
+        dir_pin,
+        step_dist,
+        position_min,
+        position_max,
+    })
+}
+
+fn read_extruder<'c>(
+    section: &Section<'c, '_>,
+    limits: &Limits,
+) -> Result<ExtruderLimits, ConfigError<'c>> {
+    let nozzle_diameter = section.get_float("nozzle_diameter", None, Bounds::POSITIVE)?;
+    let filament_diameter = section.get_float(
+        "filament_diameter",
+        None,
+        Bounds {
+            minval: Some(nozzle_diameter),
+            ..Bounds::NONE
+        },
+    )?;
+    let filament_area =
+        core::f64::consts::PI * (filament_diameter * 0.5) * (filament_diameter * 0.5);
+    let def_max_cross_section = 4.0 * nozzle_diameter * nozzle_diameter;
+    let def_max_extrude_ratio = def_max_cross_section / filament_area;
+    let max_cross_section = section.get_float(
+        "max_extrude_cross_section",
+        Some(def_max_cross_section),
+        Bounds::POSITIVE,
+    )?;
+    Ok(ExtruderLimits {
+        nozzle_diameter,
+        filament_area,
+        max_extrude_ratio: max_cross_section / filament_area,
+        max_e_velocity: section.get_float(
+            "max_extrude_only_velocity",
+            Some(limits.max_velocity * def_max_extrude_ratio),
+            Bounds::POSITIVE,
+        )?,
+        max_e_accel: section.get_float(
+            "max_extrude_only_accel",
+            Some(limits.max_accel * def_max_extrude_ratio),
+            Bounds::POSITIVE,
+        )?,
+        max_e_dist: section.get_float(
+            "max_extrude_only_distance",
+            Some(50.0),
+            Bounds::NON_NEGATIVE,
+        )?,
+        instant_corner_v: section.get_float(
+            "instantaneous_corner_velocity",
+            Some(1.0),
+            Bounds::NON_NEGATIVE,
+        )?,
+    })
+}
+
+fn bad<'c>(section: &Section<'c, '_>, option: &'c str, reason: &'static str) -> ConfigError<'c> {
+    section.error_for(option, reason)
+}
+
+/// `"57:11, 2:1"` -> 57/11 * 2/1.
+fn parse_gear_ratio(text: &str) -> Option<f64> {
+    text.split(',').try_fold(1.0, |ratio, pair| {
+        let (a, b) = pair.split_once(':')?;
+        let (a, b): (f64, f64) = (a.trim().parse().ok()?, b.trim().parse().ok()?);
+        (a > 0.0 && b > 0.0).then_some(ratio * a / b)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gear_ratios_multiply() {
+        assert_eq!(parse_gear_ratio("3:1"), Some(3.0));
+        assert_eq!(parse_gear_ratio("57:11, 2:1"), Some(57.0 / 11.0 * 2.0));
+        assert_eq!(parse_gear_ratio("3"), None);
+        assert_eq!(parse_gear_ratio("0:1"), None);
+    }
+}
