@@ -4,11 +4,13 @@
 //!
 //! - [`line`]: bounded assembly of G-code lines from a byte stream;
 //! - [`console`]: what the firmware answers to each line;
+//! - [`printer`]: G-code lines through the planner to planned moves;
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod console;
 pub mod line;
+pub mod printer;
 pub mod sdcard;
 
 /// Firmware name reported to hosts (M115).

@@ -1,35 +1,50 @@
 //! The Linux host build: the firmware's shared logic run against a folder
 //! that plays the SD card, so users and tests see what the board would do.
 //!
-//! Today it loads `printer.cfg` and feeds a G-code file, line by line, to the
-//! same console the USB port serves, exactly as a print host would send it.
-//! The motion pipeline (planner, stepgen, sched in virtual time) joins as
-//! issues #3 to #5 land; until then the summary says that no move is planned.
+//! It reads `printer.cfg` and a G-code file, plans every move exactly as
+//! the firmware does (and as Klipper would), and reports what the printer
+//! would do: planned moves, print time, final position and any errors.
+//! Step generation and the stepper engine join as issues #4 and #5 land.
 
-use onechip_app::console;
 use onechip_app::line::{Line, LineAssembler};
+use onechip_app::printer::Printer;
+use onechip_planner::config::Config;
+use onechip_planner::machine::{Kinematics, Machine};
+use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
 /// Longest G-code line accepted, in bytes (as on the board's USB console).
 pub const MAX_LINE: usize = 256;
+/// Lookahead capacity of the host build, in moves.
+pub const LOOKAHEAD: usize = 4096;
 
 /// What a run of the host build did.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
     /// The printer.cfg that was read.
     pub config_path: PathBuf,
-    /// Its size, in bytes.
-    pub config_bytes: usize,
-    /// Its section names, in file order (`[stepper_x]` -> `stepper_x`).
-    pub sections: Vec<String>,
-    /// The G-code file that was fed.
+    /// The machine's kinematics.
+    pub kinematics: Kinematics,
+    /// Sections of printer.cfg that onechip does not support yet.
+    pub unsupported: Vec<String>,
+    /// The G-code file that was run.
     pub gcode_path: PathBuf,
-    /// Lines fed to the console.
+    /// Lines executed (comment-only lines excluded).
     pub lines: usize,
-    /// `ok` acknowledgements received.
-    pub acks: usize,
-    /// Error replies (`!! …`) received, with the line number they answered.
+    /// Planned toolhead (XYZ) moves.
+    pub toolhead_moves: usize,
+    /// Planned extruder moves.
+    pub extruder_moves: usize,
+    /// Highest planned cruise speed, mm/s.
+    pub peak_velocity: f64,
+    /// Print time at the end, s.
+    pub print_time: f64,
+    /// G-code position at the end (X, Y, Z, E), mm.
+    pub final_position: [f64; 4],
+    /// Replies other than `ok` (Unknown command, M114), by line number.
+    pub replies: Vec<(usize, String)>,
+    /// Errors (`!!` replies), by line number.
     pub errors: Vec<(usize, String)>,
 }
 
@@ -37,25 +52,46 @@ impl fmt::Display for Summary {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         writeln!(
             f,
-            "config:   {} ({} bytes)",
+            "config:       {} ({:?})",
             self.config_path.display(),
-            self.config_bytes
+            self.kinematics
         )?;
-        writeln!(f, "sections: {}", self.sections.join(", "))?;
+        if !self.unsupported.is_empty() {
+            writeln!(
+                f,
+                "not yet supported (ignored): [{}]",
+                self.unsupported.join("], [")
+            )?;
+        }
         writeln!(
             f,
-            "gcode:    {} ({} lines, {} ok)",
+            "gcode:        {} ({} lines)",
             self.gcode_path.display(),
-            self.lines,
-            self.acks
+            self.lines
         )?;
-        for (line, error) in &self.errors {
-            writeln!(f, "error:    line {line}: {error}")?;
+        for (line, reply) in &self.replies {
+            writeln!(f, "reply:        line {line}: {reply}")?;
         }
-        writeln!(f, "errors:   {}", self.errors.len())?;
+        for (line, error) in &self.errors {
+            writeln!(f, "error:        line {line}: {error}")?;
+        }
+        writeln!(
+            f,
+            "planned:      {} toolhead moves, {} extruder moves",
+            self.toolhead_moves, self.extruder_moves
+        )?;
+        writeln!(f, "peak speed:   {:.1} mm/s", self.peak_velocity)?;
+        writeln!(f, "print time:   {:.3} s", self.print_time)?;
+        let p = self.final_position;
+        writeln!(
+            f,
+            "final:        X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}",
+            p[0], p[1], p[2], p[3]
+        )?;
+        writeln!(f, "errors:       {}", self.errors.len())?;
         write!(
             f,
-            "motion:   not simulated yet (planner/stepgen/sched: issues #3-#5); no moves planned"
+            "steps:        not generated yet (stepgen/sched: issues #4-#5)"
         )
     }
 }
@@ -65,6 +101,8 @@ impl fmt::Display for Summary {
 pub enum RunError {
     /// A file could not be read.
     Read(PathBuf, std::io::Error),
+    /// printer.cfg is invalid (the message names file, line and option).
+    Config(String),
     /// The SD folder has no G-code file, or several and none was named.
     NoGcode(PathBuf),
 }
@@ -73,6 +111,7 @@ impl fmt::Display for RunError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::Read(path, e) => write!(f, "{}: {e}", path.display()),
+            Self::Config(message) => f.write_str(message),
             Self::NoGcode(dir) => write!(
                 f,
                 "{}: expected exactly one *.gcode file (or name one as the second argument)",
@@ -84,26 +123,85 @@ impl fmt::Display for RunError {
 
 impl std::error::Error for RunError {}
 
+/// Counts planned moves.
+#[derive(Default)]
+struct Tally {
+    toolhead: usize,
+    extruder: usize,
+    peak_velocity: f64,
+}
+
+impl MoveSink for Tally {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        self.toolhead += 1;
+        self.peak_velocity = self.peak_velocity.max(m.cruise_v);
+    }
+    fn extruder(&mut self, _: &TrapqMove) {
+        self.extruder += 1;
+    }
+}
+
 /// Runs the firmware logic on the SD folder `sd`, with `gcode` or else the
 /// folder's only `*.gcode` file.
 pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
     let config_path = sd.join(onechip_app::sdcard::PRINTER_CFG);
-    let config = read(&config_path)?;
+    let config_text = String::from_utf8_lossy(&read(&config_path)?).into_owned();
+    let file_name = config_path.display().to_string();
+    let config =
+        Config::parse(&file_name, &config_text).map_err(|e| RunError::Config(e.to_string()))?;
+    let machine = Machine::from_config(&config).map_err(|e| RunError::Config(e.to_string()))?;
     let gcode_path = match gcode {
         Some(path) => path.to_path_buf(),
         None => only_gcode_file(sd)?,
     };
     let program = read(&gcode_path)?;
-    let (lines, acks, errors) = feed_console(&program);
-    Ok(Summary {
-        config_bytes: config.len(),
-        sections: section_names(&String::from_utf8_lossy(&config)),
+    let mut printer: Box<Printer<LOOKAHEAD>> = Box::new(Printer::new(&machine));
+    let mut tally = Tally::default();
+    let mut summary = Summary {
         config_path,
+        kinematics: machine.kinematics,
+        unsupported: machine.unsupported.iter().map(|s| s.to_string()).collect(),
         gcode_path,
-        lines,
-        acks,
-        errors,
-    })
+        lines: 0,
+        toolhead_moves: 0,
+        extruder_moves: 0,
+        peak_velocity: 0.0,
+        print_time: 0.0,
+        final_position: [0.0; 4],
+        replies: Vec::new(),
+        errors: Vec::new(),
+    };
+    let mut assembler = LineAssembler::<MAX_LINE>::new();
+    for &byte in program.iter().chain(b"\n") {
+        let Some(event) = assembler.push(byte) else {
+            continue;
+        };
+        summary.lines += 1;
+        let text = match event {
+            Line::Complete(bytes) => String::from_utf8_lossy(bytes).into_owned(),
+            Line::TooLong { len } => {
+                summary.errors.push((
+                    summary.lines,
+                    format!("line too long ({len} bytes), ignored"),
+                ));
+                continue;
+            }
+        };
+        let mut reply = String::new();
+        if let Err(e) = printer.execute(&text, &mut tally, &mut reply) {
+            summary.errors.push((summary.lines, e.to_string()));
+        }
+        summary
+            .replies
+            .extend(reply.lines().map(|r| (summary.lines, r.to_string())));
+    }
+    printer.finish(&mut tally);
+    summary.toolhead_moves = tally.toolhead;
+    summary.extruder_moves = tally.extruder;
+    summary.peak_velocity = tally.peak_velocity;
+    summary.print_time = printer.print_time();
+    summary.final_position = printer.position();
+    Ok(summary)
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, RunError> {
@@ -123,73 +221,5 @@ fn only_gcode_file(sd: &Path) -> Result<PathBuf, RunError> {
     match found.len() {
         1 => Ok(found.remove(0)),
         _ => Err(RunError::NoGcode(sd.to_path_buf())),
-    }
-}
-
-/// Feeds `program` to the console as a print host would (a newline after the
-/// last line if missing); returns (lines, oks, errors by line number).
-fn feed_console(program: &[u8]) -> (usize, usize, Vec<(usize, String)>) {
-    let mut assembler = LineAssembler::<MAX_LINE>::new();
-    let (mut lines, mut acks, mut errors) = (0, 0, Vec::new());
-    for &byte in program.iter().chain(b"\n") {
-        let Some(event) = assembler.push(byte) else {
-            continue;
-        };
-        if let Line::Complete(text) = event
-            && is_comment_only(text)
-        {
-            continue;
-        }
-        lines += 1;
-        let mut reply = String::new();
-        // Writing into a String cannot fail.
-        let _ = console::answer(&event, &mut reply);
-        for answer in reply.lines() {
-            match answer.strip_prefix("!! ") {
-                Some(error) => errors.push((lines, error.to_string())),
-                None if answer == "ok" => acks += 1,
-                None => {}
-            }
-        }
-    }
-    (lines, acks, errors)
-}
-
-/// Print hosts strip comment-only lines before sending; so does the host build.
-fn is_comment_only(line: &[u8]) -> bool {
-    line.iter()
-        .find(|b| !b.is_ascii_whitespace())
-        .is_none_or(|&b| b == b';')
-}
-
-/// Names of the `[section]` headers of a Klipper config, in order.
-fn section_names(config: &str) -> Vec<String> {
-    config
-        .lines()
-        .filter_map(|l| l.trim().strip_prefix('[')?.split(']').next())
-        .map(|name| name.trim().to_string())
-        .collect()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn every_line_gets_one_ok_and_overlong_lines_are_errors() {
-        let long = "G1 X1 ".repeat(60);
-        let program = format!("G28\n; comment\n\n{long}\nM114");
-        let (lines, acks, errors) = feed_console(program.as_bytes());
-        assert_eq!((lines, acks), (3, 3));
-        assert_eq!(
-            errors,
-            [(2, format!("line too long ({} bytes), ignored", long.len()))]
-        );
-    }
-
-    #[test]
-    fn section_names_keep_file_order_and_ignore_options() {
-        let cfg = "[printer]\nkinematics: cartesian\n# [commented]\n[stepper_x]\nstep_pin: PF13\n";
-        assert_eq!(section_names(cfg), ["printer", "stepper_x"]);
     }
 }

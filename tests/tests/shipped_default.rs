@@ -1,44 +1,104 @@
-//! The README's main command, on the shipped default SD folder, works end to
-//! end through the host build.
+//! The README's main command, on the shipped default SD folder and on bad
+//! input, end to end through the host build.
 
+use onechip_planner::machine::Kinematics;
 use std::path::PathBuf;
 
 fn shipped_default() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
 }
 
-#[test]
-fn the_shipped_default_runs_clean() {
-    let summary = onechip_host::run(&shipped_default(), None).expect("runs");
-    assert!(summary.gcode_path.ends_with("first-layer-square.gcode"));
-    for section in [
-        "mcu",
-        "printer",
-        "stepper_x",
-        "stepper_y",
-        "stepper_z",
-        "extruder",
-    ] {
-        assert!(
-            summary.sections.iter().any(|s| s == section),
-            "missing [{section}]"
-        );
-    }
-    assert_eq!(summary.errors, []);
-    assert_eq!(summary.acks, summary.lines);
-    assert_eq!(summary.lines, 19);
+/// A throw-away SD folder with the shipped printer.cfg and `gcode`.
+fn sd_with(name: &str, gcode: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("onechip-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    std::fs::copy(
+        shipped_default().join("printer.cfg"),
+        dir.join("printer.cfg"),
+    )
+    .expect("copy cfg");
+    std::fs::write(dir.join("job.gcode"), gcode).expect("write gcode");
+    dir
 }
 
 #[test]
-fn a_folder_without_gcode_is_a_clear_error() {
-    let dir = std::env::temp_dir().join(format!("onechip-empty-sd-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    std::fs::write(dir.join("printer.cfg"), "[printer]\n").expect("write");
+fn the_shipped_default_plans_cleanly() {
+    let s = onechip_host::run(&shipped_default(), None).expect("runs");
+    assert!(s.gcode_path.ends_with("first-layer-square.gcode"));
+    assert_eq!(s.kinematics, Kinematics::Cartesian);
+    assert_eq!(s.errors, []);
+    assert_eq!(s.unsupported, ["heater_bed", "fan"]);
+    // 4 square sides, travel, z moves and the final nudge; E on 7 of them.
+    assert_eq!((s.toolhead_moves, s.extruder_moves), (11, 7));
+    assert_eq!(s.final_position, [122.5, 117.5, 10.0, 6.86]);
+    assert_eq!(
+        s.replies,
+        [(22, "X:122.500 Y:117.500 Z:10.000 E:6.860".to_string())]
+    );
+    assert!(
+        s.print_time > 5.0 && s.print_time < 15.0,
+        "{}",
+        s.print_time
+    );
+}
+
+#[test]
+fn bad_lines_are_reported_with_their_number_and_the_rest_still_runs() {
+    let dir = sd_with(
+        "bad-gcode",
+        "SET_KINEMATIC_POSITION X=0 Y=0 Z=0\nG1 X10 F6000\nG1 X1.2.3\nG1 X500\nN7 G1 Y10*99\nM999\nG1 Y10\n",
+    );
+    let s = onechip_host::run(&dir, None).expect("runs");
+    let lines: Vec<usize> = s.errors.iter().map(|(n, _)| *n).collect();
+    assert_eq!(lines, [3, 4, 5], "{:?}", s.errors);
+    assert!(
+        s.errors[0].1.contains("unable to parse X=1.2.3"),
+        "{:?}",
+        s.errors
+    );
+    assert!(
+        s.errors[1].1.starts_with("Move out of range: 500.000"),
+        "{:?}",
+        s.errors
+    );
+    assert!(s.errors[2].1.contains("checksum"), "{:?}", s.errors);
+    assert_eq!(s.replies, [(6, "Unknown command:\"M999\"".to_string())]);
+    assert_eq!(s.toolhead_moves, 2);
+    assert_eq!(s.final_position[..2], [10.0, 10.0]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_bad_config_names_file_line_and_option() {
+    let dir = sd_with("bad-cfg", "G1 X1\n");
+    let cfg = std::fs::read_to_string(dir.join("printer.cfg")).expect("cfg");
+    std::fs::write(
+        dir.join("printer.cfg"),
+        cfg.replace("max_accel: 3000", "max_accel: fast"),
+    )
+    .expect("write");
+    let err = onechip_host::run(&dir, None)
+        .expect_err("bad config")
+        .to_string();
+    assert!(
+        err.ends_with("option 'max_accel' in section 'printer' is not a number"),
+        "{err}"
+    );
+    assert!(err.contains("printer.cfg:15:"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_missing_gcode_file_is_a_clear_error() {
+    let dir = sd_with("no-gcode", "");
+    std::fs::remove_file(dir.join("job.gcode")).expect("remove");
     let err = onechip_host::run(&dir, None).expect_err("no gcode");
     assert!(
         err.to_string()
             .contains("expected exactly one *.gcode file"),
         "{err}"
     );
+    let err = onechip_host::run(&dir, Some(&dir.join("missing.gcode"))).expect_err("missing");
+    assert!(err.to_string().contains("missing.gcode"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
