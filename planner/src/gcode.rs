@@ -109,11 +109,48 @@ pub struct Param<'a> {
 
 /// Reads a value as a finite number.
 fn number<'a>(key: &'a str, value: &'a str) -> Result<f64, GcodeError<'a>> {
-    value
-        .parse::<f64>()
-        .ok()
+    fast_decimal(value)
+        .or_else(|| value.parse::<f64>().ok())
         .filter(|v| v.is_finite())
         .ok_or(GcodeError::BadNumber { key, value })
+}
+
+/// Exact conversion of a plain decimal (`-12.345`, at most 15 significant
+/// digits and 22 decimals): the integer mantissa and the power of ten are
+/// both exact in f64, so one correctly rounded division gives the same
+/// result as a full decimal parser (Clinger's fast path). None otherwise.
+fn fast_decimal(text: &str) -> Option<f64> {
+    const POW10: [f64; 23] = [
+        1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+        1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+    ];
+    let (negative, digits) = match text.as_bytes() {
+        [b'-', rest @ ..] => (true, rest),
+        [b'+', rest @ ..] => (false, rest),
+        rest => (false, rest),
+    };
+    let (mut mantissa, mut significant, mut decimals, mut seen_point, mut any) =
+        (0u64, 0u32, 0usize, false, false);
+    for &b in digits {
+        match b {
+            b'0'..=b'9' => {
+                any = true;
+                if mantissa != 0 || b != b'0' {
+                    significant += 1;
+                }
+                mantissa = mantissa * 10 + u64::from(b - b'0');
+                decimals += usize::from(seen_point);
+            }
+            b'.' if !seen_point => seen_point = true,
+            _ => return None,
+        }
+        if significant > 15 {
+            return None;
+        }
+    }
+    let scale = *POW10.get(decimals)?;
+    let value = (any && mantissa < 1 << 53).then(|| mantissa as f64 / scale)?;
+    Some(if negative { -value } else { value })
 }
 
 impl<'a> Traditional<'a> {
@@ -179,6 +216,25 @@ impl<'a> Traditional<'a> {
     /// The number given for `key`, if the key is present.
     pub fn float(&self, key: &str) -> Result<Option<f64>, GcodeError<'a>> {
         self.param(key).map(|p| number(p.key, p.value)).transpose()
+    }
+
+    /// The numbers given for each of `keys` (case-insensitive, the last of
+    /// repeated keys), read in one pass over the parameters.
+    pub fn floats<const K: usize>(
+        &self,
+        keys: [&str; K],
+    ) -> Result<[Option<f64>; K], GcodeError<'a>> {
+        let mut found: [Option<Param<'a>>; K] = [None; K];
+        for p in self.params() {
+            if let Some(slot) = keys.iter().position(|k| p.key.eq_ignore_ascii_case(k)) {
+                found[slot] = Some(p);
+            }
+        }
+        let mut out = [None; K];
+        for (slot, p) in out.iter_mut().zip(found) {
+            *slot = p.map(|p| number(p.key, p.value)).transpose()?;
+        }
+        Ok(out)
     }
 }
 
@@ -417,6 +473,40 @@ mod tests {
         assert_eq!(trad("G1 X1 X2").float("X"), Ok(Some(2.0)));
         let sub = trad("G28.1");
         assert_eq!((sub.number, sub.sub), (28, Some(1)));
+    }
+
+    #[test]
+    fn decimals_convert_exactly_like_a_full_parser() {
+        for text in [
+            "0",
+            "-0.5",
+            "120.000",
+            "97.5",
+            "0.0125",
+            "-1.234567890123",
+            "299.75",
+            "+3",
+            "1.",
+            ".5",
+            "007",
+        ] {
+            let expected: f64 = text.parse().expect("valid");
+            assert_eq!(
+                fast_decimal(text).map(f64::to_bits),
+                Some(expected.to_bits()),
+                "{text}"
+            );
+        }
+        // Outside the fast path the full parser takes over.
+        assert_eq!(fast_decimal("1.2345678901234567"), None);
+        assert_eq!(fast_decimal("1e5"), None);
+        assert_eq!(fast_decimal("-"), None);
+        assert_eq!(
+            number("X", "1.2345678901234567"),
+            Ok(1.234_567_890_123_456_7)
+        );
+        let g = trad("G1 X1 Y2 Z3 X4");
+        assert_eq!(g.floats(["X", "y", "E"]), Ok([Some(4.0), Some(2.0), None]));
     }
 
     #[test]

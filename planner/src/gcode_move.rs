@@ -201,9 +201,8 @@ impl GcodeMove {
         sink: &mut impl MoveSink,
     ) -> Result<(), CommandError<'a>> {
         // Read everything first so a bad parameter changes nothing.
-        let axes = [t.float("X")?, t.float("Y")?, t.float("Z")?];
-        let e = t.float("E")?;
-        let f = t.float("F")?;
+        let [x, y, z, e, f] = t.floats(["X", "Y", "Z", "E", "F"])?;
+        let axes = [x, y, z];
         if f.is_some_and(|f| f <= 0.0) {
             return Err(CommandError::Invalid {
                 param: "F",

@@ -1,23 +1,25 @@
 //! Exact floating-point helpers for `no_std`.
 //!
 //! `sqrt` must be correctly rounded (the planner reproduces Klipper's
-//! numbers): on a Cortex-M7 with a double-precision FPU it is the FPU's
-//! `vsqrt.f64`; elsewhere libm's `sqrt`, which is correctly rounded too, so
-//! both give the same bits as Python's `math.sqrt`.
+//! numbers): with the `fpu-f64` feature on ARM (a Cortex-M7 with a
+//! double-precision FPU, as the STM32H7) it is the FPU's `vsqrt.f64`;
+//! elsewhere libm's `sqrt`, which is correctly rounded too, so both give the
+//! same bits as Python's `math.sqrt`. (Rust does not expose the FPU's
+//! double-precision support to `cfg`, hence the feature.)
 
 /// The correctly rounded square root of `x`.
 #[inline]
 pub fn sqrt(x: f64) -> f64 {
-    #[cfg(all(target_arch = "arm", target_feature = "fp64"))]
+    #[cfg(all(target_arch = "arm", feature = "fpu-f64"))]
     {
         let out: f64;
         // SAFETY: vsqrt.f64 only reads and writes the given FPU registers.
         unsafe {
-            core::arch::asm!("vsqrt.f64 {o}, {i}", o = out(dreg) out, i = in(dreg) x, options(pure, nomem, nostack))
+            core::arch::asm!("vsqrt.f64 {o}, {i}", o = out(dreg_low16) out, i = in(dreg_low16) x, options(pure, nomem, nostack))
         };
         out
     }
-    #[cfg(not(all(target_arch = "arm", target_feature = "fp64")))]
+    #[cfg(not(all(target_arch = "arm", feature = "fpu-f64")))]
     {
         libm::sqrt(x)
     }
