@@ -292,7 +292,7 @@ impl GcodeMove {
                 cur[E],
             ];
             toolhead.set_position(pos, sink);
-            toolhead.kinematics.set_homed(&[0, 1, 2]);
+            toolhead.kinematics.set_homed();
             self.last_position = pos;
             Ok(())
         } else if name.eq_ignore_ascii_case("SET_GCODE_OFFSET") {

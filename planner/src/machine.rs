@@ -1,9 +1,10 @@
 //! The machine as `printer.cfg` describes it: kinematics, limits, steppers
 //! and the extruder, read and checked the way Klipper reads them.
 
-use crate::config::{Bounds, Config, ConfigError, ConfigErrorKind, Section};
+use crate::config::{Bounds, Config, ConfigError, Section};
+use crate::math::sqrt;
 use crate::motion::Limits;
-use crate::toolhead::{CartesianLimits, ExtruderLimits, Toolhead};
+use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 
 /// Most steppers a machine may have.
 pub const MAX_STEPPERS: usize = 8;
@@ -19,6 +20,8 @@ pub enum Kinematics {
     CoreXY,
     /// X and Z belts shared by two steppers.
     CoreXZ,
+    /// Three towers with arms (linear delta).
+    Delta,
 }
 
 /// One stepper's motion settings.
@@ -46,7 +49,7 @@ pub struct Machine<'a> {
     /// Toolhead limits.
     pub limits: Limits,
     /// Travel and Z limits.
-    pub travel: CartesianLimits,
+    pub travel: Travel,
     /// The extruder's limits, if it has one.
     pub extruder: Option<ExtruderLimits>,
     /// pressure_advance, s.
@@ -92,15 +95,23 @@ const EXTRUDER_HEATER: [&str; 14] = [
 ];
 
 /// Sections whose options the motion pipeline reads.
-const MOTION_SECTIONS: [&str; 7] = [
+const MOTION_SECTIONS: [&str; 10] = [
     "printer",
     "stepper_x",
     "stepper_y",
     "stepper_z",
+    "stepper_a",
+    "stepper_b",
+    "stepper_c",
     "extruder",
     "mcu",
     "force_move",
 ];
+
+/// Delta tower angles when not configured, degrees.
+const DELTA_ANGLES: [f64; 3] = [210.0, 330.0, 90.0];
+/// Tower-to-XY motion ratio past which delta moves are slowed.
+const SLOW_RATIO: f64 = 3.0;
 
 impl<'a> Machine<'a> {
     /// Reads the machine from `config`; every option of the sections it
@@ -114,13 +125,7 @@ impl<'a> Machine<'a> {
         )? {
             "corexy" => Kinematics::CoreXY,
             "corexz" => Kinematics::CoreXZ,
-            "delta" => {
-                return Err(ConfigError {
-                    file: config.file(),
-                    line: 0,
-                    kind: ConfigErrorKind::UnsupportedSection("printer: kinematics delta"),
-                });
-            }
+            "delta" => Kinematics::Delta,
             _ => Kinematics::Cartesian,
         };
         let max_velocity = printer.get_float("max_velocity", None, Bounds::POSITIVE)?;
@@ -152,26 +157,28 @@ impl<'a> Machine<'a> {
                 ..Bounds::NONE
             },
         )?;
-        let max_z_accel = printer.get_float(
-            "max_z_accel",
-            Some(max_accel),
-            Bounds {
-                above: Some(0.0),
-                maxval: Some(max_accel),
-                ..Bounds::NONE
-            },
-        )?;
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
-
         let mut steppers = heapless::Vec::new();
-        let mut ranges = [(0.0, 0.0); 3];
-        for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
-            let section = config.require(name)?;
-            let stepper = read_stepper(&section, true)?;
-            ranges[i] = (stepper.position_min, stepper.position_max);
-            let _ = steppers.push(stepper);
-        }
-        let travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
+        let travel = if kinematics == Kinematics::Delta {
+            read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
+        } else {
+            let max_z_accel = printer.get_float(
+                "max_z_accel",
+                Some(max_accel),
+                Bounds {
+                    above: Some(0.0),
+                    maxval: Some(max_accel),
+                    ..Bounds::NONE
+                },
+            )?;
+            let mut ranges = [(0.0, 0.0); 3];
+            for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
+                let stepper = read_stepper(&config.require(name)?, StepperKind::Rail)?;
+                ranges[i] = (stepper.position_min, stepper.position_max);
+                let _ = steppers.push(stepper);
+            }
+            Travel::Cartesian(CartesianLimits::new(ranges, max_z_velocity, max_z_accel))
+        };
 
         let (mut extruder, mut pressure_advance, mut smooth_time) = (None, 0.0, 0.040);
         if let Some(section) = config.section("extruder") {
@@ -188,7 +195,7 @@ impl<'a> Machine<'a> {
                 },
             )?;
             section.accept(&EXTRUDER_HEATER);
-            let _ = steppers.push(read_stepper(&section, false)?);
+            let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
         if let Some(section) = config.section("force_move") {
             section.get_bool("enable_force_move", false)?;
@@ -230,9 +237,20 @@ impl<'a> Machine<'a> {
     }
 }
 
+/// What a stepper section drives, which decides its options.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum StepperKind {
+    /// A cartesian axis with a travel range.
+    Rail,
+    /// A delta tower (no travel range; arm and angle read elsewhere).
+    Tower,
+    /// The extruder.
+    Extruder,
+}
+
 fn read_stepper<'c, 'a>(
     section: &Section<'c, 'a>,
-    is_rail: bool,
+    kind: StepperKind,
 ) -> Result<Stepper<'a>, ConfigError<'c>> {
     let step_pin = section.get("step_pin")?;
     let dir_pin = section.get("dir_pin")?;
@@ -256,19 +274,21 @@ fn read_stepper<'c, 'a>(
     };
     let step_dist = rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio);
     let (mut position_min, mut position_max) = (0.0, 0.0);
-    if is_rail {
-        position_min = section.get_float("position_min", Some(0.0), Bounds::NONE)?;
-        position_max = section.get_float(
-            "position_max",
-            None,
-            Bounds {
-                above: Some(position_min),
-                ..Bounds::NONE
-            },
-        )?;
-        section.accept(&STEPPER_OTHER);
-    } else {
-        section.accept(&["enable_pin", "step_pulse_duration"]);
+    match kind {
+        StepperKind::Rail => {
+            position_min = section.get_float("position_min", Some(0.0), Bounds::NONE)?;
+            position_max = section.get_float(
+                "position_max",
+                None,
+                Bounds {
+                    above: Some(position_min),
+                    ..Bounds::NONE
+                },
+            )?;
+            section.accept(&STEPPER_OTHER);
+        }
+        StepperKind::Tower => section.accept(&STEPPER_OTHER),
+        StepperKind::Extruder => section.accept(&["enable_pin", "step_pulse_duration"]),
     }
     Ok(Stepper {
         name: section.name_in_file(),
@@ -278,6 +298,72 @@ fn read_stepper<'c, 'a>(
         position_min,
         position_max,
     })
+}
+
+/// Reads a linear delta's towers and derives its travel limits.
+fn read_delta<'c, 'a>(
+    config: &'c Config<'a>,
+    printer: &Section<'c, 'a>,
+    limits: &Limits,
+    max_z_velocity: f64,
+    steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+) -> Result<Travel, ConfigError<'c>> {
+    let radius = printer.get_float("delta_radius", None, Bounds::POSITIVE)?;
+    let print_radius = printer.get_float("print_radius", Some(radius), Bounds::POSITIVE)?;
+    let towers = [
+        config.require("stepper_a")?,
+        config.require("stepper_b")?,
+        config.require("stepper_c")?,
+    ];
+    let above_radius = Bounds {
+        above: Some(radius),
+        ..Bounds::NONE
+    };
+    let arm_a = towers[0].get_float("arm_length", None, above_radius)?;
+    let endstop_a = towers[0].get_float("position_endstop", None, Bounds::NONE)?;
+    let (mut max_z, mut limit_z, mut min_arm, mut min_step_dist) =
+        (f64::MAX, f64::MAX, f64::MAX, f64::MAX);
+    for (tower, default_angle) in towers.iter().zip(DELTA_ANGLES) {
+        let arm = tower.get_float("arm_length", Some(arm_a), above_radius)?;
+        let endstop = tower.get_float("position_endstop", Some(endstop_a), Bounds::NONE)?;
+        tower.get_float("angle", Some(default_angle), Bounds::NONE)?;
+        let abs_endstop = endstop + sqrt(arm * arm - radius * radius);
+        max_z = max_z.min(endstop);
+        limit_z = limit_z.min(abs_endstop - arm);
+        min_arm = min_arm.min(arm);
+        let stepper = read_stepper(tower, StepperKind::Tower)?;
+        min_step_dist = min_step_dist.min(stepper.step_dist);
+        let _ = steppers.push(stepper);
+    }
+    let min_z = printer.get_float(
+        "minimum_z_position",
+        Some(0.0),
+        Bounds {
+            maxval: Some(max_z),
+            ..Bounds::NONE
+        },
+    )?;
+    let half_step = min_step_dist * 0.5;
+    let ratio_to_xy = |ratio: f64| {
+        ratio * sqrt(min_arm * min_arm / (ratio * ratio + 1.0) - half_step * half_step) + half_step
+            - radius
+    };
+    let slow = ratio_to_xy(SLOW_RATIO);
+    let very_slow = ratio_to_xy(2.0 * SLOW_RATIO);
+    let max_xy = print_radius
+        .min(min_arm - radius)
+        .min(ratio_to_xy(4.0 * SLOW_RATIO));
+    Ok(Travel::Delta(DeltaLimits::new(
+        max_xy * max_xy,
+        slow * slow,
+        very_slow * very_slow,
+        max_z,
+        min_z,
+        limit_z,
+        limits.max_velocity,
+        limits.max_accel,
+        max_z_velocity,
+    )))
 }
 
 fn read_extruder<'c>(

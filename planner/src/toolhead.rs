@@ -156,6 +156,132 @@ impl CartesianLimits {
     }
 }
 
+/// Travel limits of a linear delta: a cylinder tapered at the top, with
+/// moves slowed near its edge where towers move fast for small XY motion.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeltaLimits {
+    /// Squared XY radius within which plain XY moves skip the checks
+    /// (learned from previous moves; -1 forces a full check).
+    limit_xy2: f64,
+    /// Largest allowed XY radius, squared, mm².
+    pub max_xy2: f64,
+    /// XY radius squared beyond which moves run at half speed, mm².
+    pub slow_xy2: f64,
+    /// XY radius squared beyond which moves run at quarter speed, mm².
+    pub very_slow_xy2: f64,
+    /// Highest reachable Z (the lowest tower endstop), mm.
+    pub max_z: f64,
+    /// minimum_z_position, mm.
+    pub min_z: f64,
+    /// Z above which the radius tapers, mm.
+    pub limit_z: f64,
+    /// Toolhead limits at start-up, mm/s and mm/s².
+    pub max_velocity: f64,
+    /// See `max_velocity`.
+    pub max_accel: f64,
+    /// max_z_velocity, mm/s.
+    pub max_z_velocity: f64,
+    need_home: bool,
+}
+
+impl DeltaLimits {
+    /// Limits of a delta not yet homed.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        max_xy2: f64,
+        slow_xy2: f64,
+        very_slow_xy2: f64,
+        max_z: f64,
+        min_z: f64,
+        limit_z: f64,
+        max_velocity: f64,
+        max_accel: f64,
+        max_z_velocity: f64,
+    ) -> Self {
+        Self {
+            limit_xy2: -1.0,
+            max_xy2,
+            slow_xy2,
+            very_slow_xy2,
+            max_z,
+            min_z,
+            limit_z,
+            max_velocity,
+            max_accel,
+            max_z_velocity,
+            need_home: true,
+        }
+    }
+
+    fn check_move(&mut self, m: &mut Move) -> Result<(), MoveError> {
+        let end = m.end_pos;
+        let end_xy2 = end[0] * end[0] + end[1] * end[1];
+        if end_xy2 <= self.limit_xy2 && m.axes_d[2] == 0.0 {
+            return Ok(());
+        }
+        if self.need_home {
+            return Err(move_error(m, "Must home first"));
+        }
+        let end_z = end[2];
+        let mut limit_xy2 = self.max_xy2;
+        if end_z > self.limit_z {
+            let above = self.max_z - end_z;
+            limit_xy2 = limit_xy2.min(above * above);
+        }
+        if end_xy2 > limit_xy2 || end_z > self.max_z || end_z < self.min_z {
+            return Err(move_error(m, "Move out of range"));
+        }
+        if m.axes_d[2] != 0.0 {
+            let z_ratio = m.move_d / m.axes_d[2].abs();
+            m.limit_speed(self.max_z_velocity * z_ratio, m.accel);
+            limit_xy2 = -1.0;
+        }
+        let start_xy2 = m.start_pos[0] * m.start_pos[0] + m.start_pos[1] * m.start_pos[1];
+        let extreme_xy2 = end_xy2.max(start_xy2);
+        if extreme_xy2 > self.slow_xy2 {
+            let r = if extreme_xy2 > self.very_slow_xy2 {
+                0.25
+            } else {
+                0.5
+            };
+            m.limit_speed(self.max_velocity * r, self.max_accel * r);
+            limit_xy2 = -1.0;
+        }
+        self.limit_xy2 = limit_xy2.min(self.slow_xy2);
+        Ok(())
+    }
+}
+
+/// The machine's travel limits, by kinematics.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Travel {
+    /// Cartesian, CoreXY, CoreXZ.
+    Cartesian(CartesianLimits),
+    /// Linear delta.
+    Delta(DeltaLimits),
+}
+
+impl Travel {
+    /// Checks a move and applies the kinematics' speed limits.
+    pub fn check_move(&mut self, m: &mut Move) -> Result<(), MoveError> {
+        match self {
+            Self::Cartesian(c) => c.check_move(m),
+            Self::Delta(d) => d.check_move(m),
+        }
+    }
+
+    /// Notes that the position was set with every axis homed.
+    pub fn set_homed(&mut self) {
+        match self {
+            Self::Cartesian(c) => c.set_homed(&[0, 1, 2]),
+            Self::Delta(d) => {
+                d.limit_xy2 = -1.0;
+                d.need_home = false;
+            }
+        }
+    }
+}
+
 /// The extruder's limits ([extruder] section).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ExtruderLimits {
@@ -237,7 +363,7 @@ pub struct Toolhead<const N: usize> {
     /// Current limits (SET_VELOCITY_LIMIT and M204 change them).
     pub limits: Limits,
     /// Kinematic travel limits.
-    pub kinematics: CartesianLimits,
+    pub kinematics: Travel,
     /// The extruder, if configured.
     pub extruder: Option<ExtruderLimits>,
     lookahead: LookAhead<N>,
@@ -262,7 +388,7 @@ impl<const N: usize> Toolhead<N> {
     /// smoothing, input shaping), s.
     pub fn new(
         limits: Limits,
-        kinematics: CartesianLimits,
+        kinematics: Travel,
         extruder: Option<ExtruderLimits>,
         scan_delay: f64,
     ) -> Self {
