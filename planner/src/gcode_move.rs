@@ -141,7 +141,20 @@ impl GcodeMove {
                 toolhead.dwell(ms / 1000.0, sink);
                 Ok(())
             }
-            (b'G', 28, None) => Err(CommandError::NotSupported("G28 homing")),
+            (b'G', 28, None) => {
+                let mut axes = heapless::Vec::<usize, 3>::new();
+                for (i, axis) in ["X", "Y", "Z"].iter().enumerate() {
+                    if t.param(axis).is_some() {
+                        let _ = axes.push(i);
+                    }
+                }
+                if axes.is_empty() {
+                    axes.extend([0, 1, 2]);
+                }
+                toolhead.home(&axes, sink)?;
+                self.last_position = toolhead.position();
+                Ok(())
+            }
             (b'G', 90, None) => {
                 self.absolute_coord = true;
                 Ok(())

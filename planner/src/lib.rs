@@ -12,6 +12,7 @@
 pub mod config;
 pub mod gcode;
 pub mod gcode_move;
+pub mod homing;
 pub mod lookahead;
 pub mod machine;
 pub mod math;

@@ -2,6 +2,7 @@
 //! and the extruder, read and checked the way Klipper reads them.
 
 use crate::config::{Bounds, Config, ConfigError, Section};
+use crate::homing::HomingInfo;
 use crate::math::sqrt;
 use crate::motion::Limits;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
@@ -172,12 +173,17 @@ impl<'a> Machine<'a> {
                 },
             )?;
             let mut ranges = [(0.0, 0.0); 3];
+            let mut homing = [None; 3];
             for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
-                let stepper = read_stepper(&config.require(name)?, StepperKind::Rail)?;
+                let section = config.require(name)?;
+                let stepper = read_stepper(&section, StepperKind::Rail)?;
                 ranges[i] = (stepper.position_min, stepper.position_max);
+                homing[i] = Some(read_homing(&section, ranges[i])?);
                 let _ = steppers.push(stepper);
             }
-            Travel::Cartesian(CartesianLimits::new(ranges, max_z_velocity, max_z_accel))
+            let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
+            travel.homing = homing;
+            Travel::Cartesian(travel)
         };
 
         let (mut extruder, mut pressure_advance, mut smooth_time) = (None, 0.0, 0.040);
@@ -297,6 +303,52 @@ fn read_stepper<'c, 'a>(
         step_dist,
         position_min,
         position_max,
+    })
+}
+
+/// Reads how a rail homes, with Klipper's defaults.
+fn read_homing<'c>(
+    section: &Section<'c, '_>,
+    (min, max): (f64, f64),
+) -> Result<HomingInfo, ConfigError<'c>> {
+    let position_endstop = section.get_float("position_endstop", None, Bounds::NONE)?;
+    if position_endstop < min || position_endstop > max {
+        return Err(bad(
+            section,
+            "position_endstop",
+            "must be between position_min and position_max",
+        ));
+    }
+    let speed = section.get_float("homing_speed", Some(5.0), Bounds::POSITIVE)?;
+    let second_speed =
+        section.get_float("second_homing_speed", Some(speed / 2.0), Bounds::POSITIVE)?;
+    let retract_speed = section.get_float("homing_retract_speed", Some(speed), Bounds::POSITIVE)?;
+    let retract_dist = section.get_float("homing_retract_dist", Some(5.0), Bounds::NON_NEGATIVE)?;
+    let positive_dir = match section.get_opt("homing_positive_dir") {
+        Some(_) => section.get_bool("homing_positive_dir", false)?,
+        None => {
+            let quarter = (max - min) / 4.0;
+            if position_endstop <= min + quarter {
+                false
+            } else if position_endstop >= max - quarter {
+                true
+            } else {
+                return Err(bad(
+                    section,
+                    "position_endstop",
+                    "is mid-travel: set homing_positive_dir",
+                ));
+            }
+        }
+    };
+    Ok(HomingInfo {
+        position_endstop,
+        positive_dir,
+        speed,
+        second_speed,
+        retract_dist,
+        retract_speed,
+        range: (min, max),
     })
 }
 

@@ -11,6 +11,7 @@
 //! position is set. Afterwards moves follow one another without gaps; a
 //! dwell adds its time, M400 only flushes the lookahead.
 
+use crate::homing::HomingInfo;
 use crate::lookahead::LookAhead;
 use crate::motion::{E, Limits, Move};
 use core::fmt;
@@ -100,6 +101,8 @@ pub struct CartesianLimits {
     pub max_z_velocity: f64,
     /// max_z_accel, mm/s².
     pub max_z_accel: f64,
+    /// How each axis homes, if configured.
+    pub homing: [Option<HomingInfo>; 3],
 }
 
 const NOT_HOMED: (f64, f64) = (1.0, -1.0);
@@ -109,6 +112,7 @@ impl CartesianLimits {
     pub fn new(configured: [(f64, f64); 3], max_z_velocity: f64, max_z_accel: f64) -> Self {
         Self {
             range: [NOT_HOMED; 3],
+            homing: [None; 3],
             configured,
             max_z_velocity,
             max_z_accel,
@@ -253,6 +257,8 @@ impl DeltaLimits {
 }
 
 /// The machine's travel limits, by kinematics.
+// One per machine and no heap to box into: the size difference is harmless.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Travel {
     /// Cartesian, CoreXY, CoreXZ.
@@ -267,6 +273,21 @@ impl Travel {
         match self {
             Self::Cartesian(c) => c.check_move(m),
             Self::Delta(d) => d.check_move(m),
+        }
+    }
+
+    /// How `axis` homes, where supported.
+    pub fn homing_info(&self, axis: usize) -> Option<HomingInfo> {
+        match self {
+            Self::Cartesian(c) => c.homing.get(axis).copied().flatten(),
+            Self::Delta(_) => None,
+        }
+    }
+
+    /// Notes that `axis` has been homed (cartesian-style machines).
+    pub fn set_axis_homed(&mut self, axis: usize) {
+        if let Self::Cartesian(c) = self {
+            c.set_homed(&[axis]);
         }
     }
 
@@ -525,7 +546,44 @@ impl<const N: usize> Toolhead<N> {
         self.lookahead.set_flush_time(BUFFER_TIME_HIGH);
     }
 
-    fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {
+    /// A move planned alone and run to its end (a homing move): it starts
+    /// after the step generator's scan window and steps are flushed through
+    /// its end before anything else moves.
+    pub fn drip_move(
+        &mut self,
+        target: [f64; 4],
+        speed: f64,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
+        let mut target = target;
+        target[E] = self.commanded_pos[E];
+        let mut planned = Move::new(&self.limits, self.commanded_pos, target, speed);
+        if let Some(m) = planned.as_mut() {
+            self.kinematics.check_move(m)?;
+        }
+        self.dwell(self.kin_flush_delay, sink);
+        self.process_lookahead(false, sink);
+        if let Some(m) = planned {
+            self.commanded_pos = m.end_pos;
+            self.lookahead.add(m, |_, next| next.max_cruise_v2);
+        }
+        let count = self.lookahead.flush(false);
+        self.calc_print_time();
+        let mut next_move_time = self.print_time;
+        self.lookahead.take(count, |m| {
+            emit(m, next_move_time, sink);
+            next_move_time = next_move_time + m.accel_t + m.cruise_t + m.decel_t;
+        });
+        self.lookahead.reset();
+        self.print_time = self.print_time.max(next_move_time);
+        let through = next_move_time + self.kin_flush_delay;
+        self.need_step_gen_time = self.need_step_gen_time.max(through);
+        self.last_step_gen_time = self.last_step_gen_time.max(through);
+        self.flush_step_generation(sink);
+        Ok(())
+    }
+
+    pub(crate) fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {
         self.flush_lookahead(sink);
         self.last_step_gen_time = self.last_step_gen_time.max(self.need_step_gen_time);
     }

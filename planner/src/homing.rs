@@ -1,0 +1,111 @@
+//! Homing (G28) as Klipper performs it in its batch mode, where each
+//! endstop "triggers" exactly when its homing move ends.
+//!
+//! Per axis: the axis is declared to be far beyond its endstop (1.5 times
+//! the travel), a homing move runs to the endstop at `homing_speed`, the
+//! axis retracts by `homing_retract_dist`, and a second homing move runs at
+//! `second_homing_speed`. Homing moves are "drip" moves: planned alone,
+//! starting after the endstop start delay and the step generator's scan
+//! window. With real endstops (issue #5) the trigger ends the move early.
+
+use crate::motion::E;
+use crate::toolhead::{MoveError, MoveSink, Toolhead};
+
+/// Delay between arming endstops and starting a homing move, s.
+pub const HOMING_START_DELAY: f64 = 0.001;
+
+/// How one axis homes (from its stepper section).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HomingInfo {
+    /// position_endstop, mm.
+    pub position_endstop: f64,
+    /// True if the endstop is at the positive end of the axis.
+    pub positive_dir: bool,
+    /// homing_speed, mm/s.
+    pub speed: f64,
+    /// second_homing_speed, mm/s.
+    pub second_speed: f64,
+    /// homing_retract_dist, mm (0: no second homing move).
+    pub retract_dist: f64,
+    /// homing_retract_speed, mm/s.
+    pub retract_speed: f64,
+    /// The axis' travel (position_min, position_max), mm.
+    pub range: (f64, f64),
+}
+
+impl<const N: usize> Toolhead<N> {
+    /// Homes each of `axes` (0 = X, 1 = Y, 2 = Z) in turn.
+    pub fn home(&mut self, axes: &[usize], sink: &mut impl MoveSink) -> Result<(), MoveError> {
+        for &axis in axes {
+            let Some(info) = self.kinematics.homing_info(axis) else {
+                return Err(MoveError {
+                    reason: "Homing is not supported for this kinematics yet",
+                    end: self.position(),
+                    detail: None,
+                });
+            };
+            self.home_axis(axis, &info, sink)?;
+        }
+        Ok(())
+    }
+
+    fn home_axis(
+        &mut self,
+        axis: usize,
+        hi: &HomingInfo,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
+        let (min, max) = hi.range;
+        let mut force = self.position();
+        force[axis] = if hi.positive_dir {
+            hi.position_endstop - 1.5 * (hi.position_endstop - min)
+        } else {
+            hi.position_endstop + 1.5 * (max - hi.position_endstop)
+        };
+        let mut home = self.position();
+        home[axis] = hi.position_endstop;
+        self.set_position(force, sink);
+        self.kinematics.set_axis_homed(axis);
+        self.homing_move(home, hi.speed, sink)?;
+        if hi.retract_dist > 0.0 {
+            let mut axes_d = [0.0; 4];
+            for i in 0..3 {
+                axes_d[i] = home[i] - force[i];
+            }
+            let move_d = crate::math::sqrt(
+                axes_d[0] * axes_d[0] + axes_d[1] * axes_d[1] + axes_d[2] * axes_d[2],
+            );
+            let retract_r = (hi.retract_dist / move_d).min(1.0);
+            let mut retract = home;
+            let mut start = home;
+            for i in 0..3 {
+                retract[i] = home[i] - axes_d[i] * retract_r;
+                start[i] = retract[i] - axes_d[i] * retract_r;
+            }
+            self.move_to(retract, hi.retract_speed, sink)?;
+            self.set_position(start, sink);
+            self.homing_move(home, hi.second_speed, sink)?;
+        }
+        self.flush_step_generation(sink);
+        Ok(())
+    }
+
+    /// One homing move to `target`, ending where the endstop triggers.
+    fn homing_move(
+        &mut self,
+        target: [f64; 4],
+        speed: f64,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
+        self.flush_step_generation(sink);
+        self.last_move_time(sink);
+        self.dwell(HOMING_START_DELAY, sink);
+        let mut target = target;
+        target[E] = self.position()[E];
+        self.drip_move(target, speed, sink)?;
+        self.last_move_time(sink);
+        self.flush_step_generation(sink);
+        self.set_position(target, sink);
+        Ok(())
+    }
+}
