@@ -1,7 +1,6 @@
-; onechip sample: one 40 mm first-layer square with a retract and a travel,
-; around the bed centre. Temperatures are left to the user. Homing (G28)
-; needs the endstop simulation of issue #5, so the position is set instead.
-SET_KINEMATIC_POSITION X=0 Y=0 Z=0
+; onechip sample: home, then one 40 mm first-layer square with a retract and
+; a travel, around the bed centre. Temperatures are left to the user.
+G28
 G90
 M82
 G92 E0
