@@ -13,6 +13,7 @@ pub mod config;
 pub mod gcode;
 pub mod gcode_move;
 pub mod homing;
+pub mod kinematics;
 pub mod lookahead;
 pub mod machine;
 pub mod math;

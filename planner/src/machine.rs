@@ -3,6 +3,7 @@
 
 use crate::config::{Bounds, Config, ConfigError, Section};
 use crate::homing::HomingInfo;
+use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::motion::Limits;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
@@ -57,8 +58,10 @@ pub struct Machine<'a> {
     pub pressure_advance: f64,
     /// pressure_advance_smooth_time, s.
     pub pressure_advance_smooth_time: f64,
-    /// The steppers: the rails in axis order, then the extruder.
+    /// The steppers: the rails (or towers) in order, then the extruder.
     pub steppers: heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+    /// How the first three steppers follow the toolhead.
+    pub stepper_kinematics: [StepperKinematics; 3],
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -160,7 +163,7 @@ impl<'a> Machine<'a> {
         )?;
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
         let mut steppers = heapless::Vec::new();
-        let travel = if kinematics == Kinematics::Delta {
+        let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
             let max_z_accel = printer.get_float(
@@ -183,7 +186,13 @@ impl<'a> Machine<'a> {
             }
             let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
             travel.homing = homing;
-            Travel::Cartesian(travel)
+            use StepperKinematics::{Axis, Difference, Sum};
+            let kin = match kinematics {
+                Kinematics::CoreXY => [Sum(0, 1), Difference(0, 1), Axis(2)],
+                Kinematics::CoreXZ => [Sum(0, 2), Axis(1), Difference(0, 2)],
+                _ => [Axis(0), Axis(1), Axis(2)],
+            };
+            (Travel::Cartesian(travel), kin)
         };
 
         let (mut extruder, mut pressure_advance, mut smooth_time) = (None, 0.0, 0.040);
@@ -223,6 +232,7 @@ impl<'a> Machine<'a> {
             pressure_advance,
             pressure_advance_smooth_time: smooth_time,
             steppers,
+            stepper_kinematics,
             unsupported,
         })
     }
@@ -359,7 +369,7 @@ fn read_delta<'c, 'a>(
     limits: &Limits,
     max_z_velocity: f64,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
-) -> Result<Travel, ConfigError<'c>> {
+) -> Result<(Travel, [StepperKinematics; 3]), ConfigError<'c>> {
     let radius = printer.get_float("delta_radius", None, Bounds::POSITIVE)?;
     let print_radius = printer.get_float("print_radius", Some(radius), Bounds::POSITIVE)?;
     let towers = [
@@ -375,10 +385,16 @@ fn read_delta<'c, 'a>(
     let endstop_a = towers[0].get_float("position_endstop", None, Bounds::NONE)?;
     let (mut max_z, mut limit_z, mut min_arm, mut min_step_dist) =
         (f64::MAX, f64::MAX, f64::MAX, f64::MAX);
-    for (tower, default_angle) in towers.iter().zip(DELTA_ANGLES) {
+    let mut kinematics = [StepperKinematics::Axis(0); 3];
+    for ((tower, default_angle), kin) in towers.iter().zip(DELTA_ANGLES).zip(kinematics.iter_mut())
+    {
         let arm = tower.get_float("arm_length", Some(arm_a), above_radius)?;
         let endstop = tower.get_float("position_endstop", Some(endstop_a), Bounds::NONE)?;
-        tower.get_float("angle", Some(default_angle), Bounds::NONE)?;
+        let angle = tower.get_float("angle", Some(default_angle), Bounds::NONE)?;
+        *kin = StepperKinematics::DeltaTower {
+            arm2: arm * arm,
+            tower: delta_tower(angle, radius),
+        };
         let abs_endstop = endstop + sqrt(arm * arm - radius * radius);
         max_z = max_z.min(endstop);
         limit_z = limit_z.min(abs_endstop - arm);
@@ -405,7 +421,7 @@ fn read_delta<'c, 'a>(
     let max_xy = print_radius
         .min(min_arm - radius)
         .min(ratio_to_xy(4.0 * SLOW_RATIO));
-    Ok(Travel::Delta(DeltaLimits::new(
+    let travel = Travel::Delta(DeltaLimits::new(
         max_xy * max_xy,
         slow * slow,
         very_slow * very_slow,
@@ -415,7 +431,8 @@ fn read_delta<'c, 'a>(
         limits.max_velocity,
         limits.max_accel,
         max_z_velocity,
-    )))
+    ));
+    Ok((travel, kinematics))
 }
 
 fn read_extruder<'c>(

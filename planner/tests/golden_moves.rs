@@ -203,3 +203,67 @@ golden_cases!(
     avr_cart_extrude,
     h723_cart_extrude,
 );
+
+/// Each stepper's position functions against klippy's: the final toolhead
+/// position of every case maps to the commanded position klippy's
+/// itersolve reports for each motion stepper, and back. That report is
+/// where step generation last evaluated the stepper, which on a delta can
+/// be off the exact end point by less than half a step; hence the
+/// half-step tolerance (cartesian-style machines agree to 1e-9 mm).
+#[test]
+fn stepper_positions_match_klippy_at_the_end_of_every_case() {
+    use onechip_planner::kinematics::calc_position;
+    for entry in std::fs::read_dir(golden_dir()).expect("golden folder") {
+        let dir = entry.expect("entry").path();
+        let Ok(summary) = std::fs::read_to_string(dir.join("summary.txt")) else {
+            continue;
+        };
+        let case = dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .expect("name")
+            .to_string();
+        let cfg_text =
+            std::fs::read_to_string(golden_dir().join("configs").join(config_for(&case)))
+                .expect("config");
+        let config = Config::parse(config_for(&case), &cfg_text).expect("config parses");
+        let machine = Machine::from_config(&config).expect("machine");
+        let field = |line: &str, key: &str| -> f64 {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            let at = words.iter().position(|w| *w == key).expect("key");
+            words[at + 1].parse().expect("number")
+        };
+        let final_pos: Vec<f64> = summary
+            .lines()
+            .find_map(|l| l.strip_prefix("toolhead_final_position "))
+            .expect("final position")
+            .split_whitespace()
+            .map(|v| v.parse().expect("number"))
+            .collect();
+        let p = [final_pos[0], final_pos[1], final_pos[2]];
+        let steppers: Vec<f64> = summary
+            .lines()
+            .filter(|l| l.starts_with("stepper ") && !l.starts_with("stepper extruder"))
+            .map(|l| field(l, "commanded_pos"))
+            .collect();
+        for (i, kin) in machine.stepper_kinematics.iter().enumerate() {
+            let ours = kin.position(p);
+            let half_step = machine.steppers[i].step_dist / 2.0;
+            assert!(
+                (ours - steppers[i]).abs() < half_step,
+                "{case} stepper {i}: {ours} vs {}",
+                steppers[i]
+            );
+        }
+        let back = calc_position(
+            &machine.stepper_kinematics,
+            [steppers[0], steppers[1], steppers[2]],
+        );
+        for a in 0..3 {
+            assert!(
+                (back[a] - p[a]).abs() < 0.02,
+                "{case} axis {a}: {back:?} vs {p:?}"
+            );
+        }
+    }
+}
