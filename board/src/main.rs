@@ -1,9 +1,10 @@
 //! onechip firmware for the BTT Octopus Pro v1.1 (STM32H723ZG at 520 MHz).
 //!
 //! Boot: clocks, interrupt priorities, the stepper timer; then read
-//! `printer.cfg` from the SD card and serve the USB console. The motion
-//! pipeline (planner, stepgen, sched) plugs in behind the console and the
-//! stepper timer as it lands.
+//! `printer.cfg` from the SD card, build the printer from it, and serve the
+//! USB console, whose G-code lines the printer plans. Step generation and
+//! the stepper engine (issues #4, #5) plug in behind the planner and the
+//! stepper timer.
 #![no_std]
 #![no_main]
 
@@ -19,6 +20,9 @@ use embassy_executor::Spawner;
 use embassy_time::{Duration, Ticker};
 use embassy_usb::UsbDevice;
 use octopus_pro_v1_1::Board;
+use onechip_app::printer::Printer;
+use onechip_planner::config::Config;
+use onechip_planner::machine::Machine;
 use panic_probe as _;
 use static_cell::StaticCell;
 
@@ -33,27 +37,70 @@ async fn main(spawner: Spawner) -> ! {
     defmt::info!("onechip: core at {} Hz", clocks::SYSCLK_HZ);
     let board = Board::take(p);
 
-    load_printer_cfg(board.sd).await;
+    let printer = match load_printer_cfg(board.sd).await {
+        Some(text) => build_printer(text),
+        None => None,
+    };
 
     let console = usb_console::build(board.usb);
     spawner.spawn(usb_device(console.device).expect("spawned once"));
     spawner.spawn(heartbeat().expect("spawned once"));
     let mut class = console.class;
-    usb_console::serve(&mut class).await
+    usb_console::serve(&mut class, printer).await
 }
 
-/// Reads printer.cfg from the SD card and reports what was found.
-async fn load_printer_cfg(pins: octopus_pro_v1_1::SdPins) {
+/// Reads printer.cfg from the SD card; None (logged) if there is none.
+async fn load_printer_cfg(pins: octopus_pro_v1_1::SdPins) -> Option<&'static str> {
     static CFG: StaticCell<[u8; MAX_PRINTER_CFG]> = StaticCell::new();
     let cfg = CFG.init([0; MAX_PRINTER_CFG]);
     let mut sdmmc = sd_card::controller(pins);
     let card = match sd_card::open(&mut sdmmc).await {
         Ok(card) => card,
-        Err(e) => return defmt::warn!("no SD card: {}", e),
+        Err(e) => {
+            defmt::warn!("no SD card: {}", e);
+            return None;
+        }
     };
     match onechip_app::sdcard::read_root_file(card, onechip_app::sdcard::PRINTER_CFG, cfg) {
-        Ok(n) => defmt::info!("printer.cfg: {} bytes", n),
-        Err(e) => defmt::warn!("printer.cfg: {}", defmt::Display2Format(&e)),
+        Ok(n) => match core::str::from_utf8(&cfg[..n]) {
+            Ok(text) => {
+                defmt::info!("printer.cfg: {} bytes", n);
+                Some(text)
+            }
+            Err(_) => {
+                defmt::warn!("printer.cfg is not UTF-8 text");
+                None
+            }
+        },
+        Err(e) => {
+            defmt::warn!("printer.cfg: {}", defmt::Display2Format(&e));
+            None
+        }
+    }
+}
+
+/// Builds the printer described by printer.cfg; None (logged) if invalid.
+fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
+    static CONFIG: StaticCell<Config<'static>> = StaticCell::new();
+    static PRINTER: StaticCell<Printer<{ usb_console::LOOKAHEAD }>> = StaticCell::new();
+    let config = match Config::parse("printer.cfg", text) {
+        Ok(config) => CONFIG.init(config),
+        Err(e) => {
+            defmt::warn!("{}", defmt::Display2Format(&e));
+            return None;
+        }
+    };
+    match Machine::from_config(config) {
+        Ok(machine) => {
+            for section in &machine.unsupported {
+                defmt::info!("[{}] is not supported yet, ignored", section);
+            }
+            Some(PRINTER.init(Printer::new(&machine)))
+        }
+        Err(e) => {
+            defmt::warn!("{}", defmt::Display2Format(&e));
+            None
+        }
     }
 }
 

@@ -1,15 +1,21 @@
 //! The USB CDC-ACM console: G-code lines in, replies out.
 //!
 //! Packets are split into lines by the shared [`LineAssembler`]; each line is
-//! answered by [`onechip_app::console::answer`] and the reply is sent back in
-//! packets of at most the endpoint's size.
+//! answered by [`onechip_app::console::answer`], which runs it on the
+//! printer, and the reply is sent back in packets of at most the endpoint's
+//! size.
 
+use core::fmt;
 use embassy_stm32::usb::Driver;
 use embassy_stm32::{bind_interrupts, peripherals, usb};
 use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
 use embassy_usb::driver::EndpointError;
 use embassy_usb::{Builder, UsbDevice};
+use onechip_app::console::error_text;
 use onechip_app::line::{Line, LineAssembler};
+use onechip_app::printer::Printer;
+use onechip_planner::gcode_move::CommandError;
+use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use static_cell::StaticCell;
 
 bind_interrupts!(struct Irqs {
@@ -24,6 +30,45 @@ const MAX_LINE: usize = 256;
 const MAX_REPLY: usize = 256;
 
 type UsbDriver = Driver<'static, peripherals::USB_OTG_HS>;
+
+/// Lookahead capacity of the board's printer, in moves.
+pub const LOOKAHEAD: usize = 128;
+
+/// The printer the console drives (None if printer.cfg did not load).
+pub type BoardPrinter = Option<&'static mut Printer<LOOKAHEAD>>;
+
+/// Why a line could not run.
+enum RunError<'l> {
+    /// No valid printer.cfg, so no printer.
+    NoConfig,
+    /// The printer refused the command.
+    Command(CommandError<'l>),
+}
+
+impl fmt::Display for RunError<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::NoConfig => f.write_str("no valid printer.cfg on the SD card"),
+            Self::Command(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+/// Planned moves, counted until step generation (issue #4) consumes them.
+#[derive(Default)]
+struct PlannedMoves {
+    toolhead: u32,
+    extruder: u32,
+}
+
+impl MoveSink for PlannedMoves {
+    fn toolhead(&mut self, _: &TrapqMove) {
+        self.toolhead += 1;
+    }
+    fn extruder(&mut self, _: &TrapqMove) {
+        self.extruder += 1;
+    }
+}
 
 /// The USB device and its CDC-ACM function, ready to run.
 pub struct Console {
@@ -75,12 +120,13 @@ pub fn build(pins: crate::octopus_pro_v1_1::UsbPins) -> Console {
 }
 
 /// Serves the console forever: one connection after another.
-pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>) -> ! {
+pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>, mut printer: BoardPrinter) -> ! {
     let mut lines = LineAssembler::<MAX_LINE>::new();
+    let mut planned = PlannedMoves::default();
     loop {
         class.wait_connection().await;
         defmt::info!("usb console connected");
-        match answer_lines(class, &mut lines).await {
+        match answer_lines(class, &mut lines, &mut printer, &mut planned).await {
             Ok(never) => match never {},
             Err(EndpointError::Disabled) => defmt::info!("usb console disconnected"),
             Err(EndpointError::BufferOverflow) => defmt::warn!("usb packet overflow"),
@@ -92,6 +138,8 @@ pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>) -> ! {
 async fn answer_lines(
     class: &mut CdcAcmClass<'static, UsbDriver>,
     lines: &mut LineAssembler<MAX_LINE>,
+    printer: &mut BoardPrinter,
+    planned: &mut PlannedMoves,
 ) -> Result<core::convert::Infallible, EndpointError> {
     let mut packet = [0u8; PACKET];
     loop {
@@ -99,7 +147,15 @@ async fn answer_lines(
         for &byte in &packet[..n] {
             if let Some(event) = lines.push(byte) {
                 let mut reply = heapless::String::<MAX_REPLY>::new();
-                if onechip_app::console::answer(&event, &mut reply).is_err() {
+                let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer
+                    .as_deref_mut()
+                {
+                    Some(p) => p
+                        .execute(text, planned, out)
+                        .map_err(|e| error_text(&RunError::Command(e))),
+                    None => Err(error_text(&RunError::NoConfig)),
+                };
+                if onechip_app::console::answer(&event, &mut reply, run).is_err() {
                     reply.clear();
                     // Fits: the fallback is far shorter than MAX_REPLY.
                     let _ = reply.push_str("!! reply too long\nok\n");
