@@ -28,6 +28,8 @@ pub struct Summary {
     pub kinematics: Kinematics,
     /// Sections of printer.cfg that onechip does not support yet.
     pub unsupported: Vec<String>,
+    /// The input shapers configured, as `axis: type freq`.
+    pub input_shaper: Vec<String>,
     /// The G-code file that was run.
     pub gcode_path: PathBuf,
     /// Lines executed (comment-only lines excluded).
@@ -56,6 +58,13 @@ impl fmt::Display for Summary {
             self.config_path.display(),
             self.kinematics
         )?;
+        if !self.input_shaper.is_empty() {
+            writeln!(
+                f,
+                "input shaper: {} (applied once step generation lands, #4)",
+                self.input_shaper.join(", ")
+            )?;
+        }
         if !self.unsupported.is_empty() {
             writeln!(
                 f,
@@ -161,6 +170,10 @@ pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
         config_path,
         kinematics: machine.kinematics,
         unsupported: machine.unsupported.iter().map(|s| s.to_string()).collect(),
+        input_shaper: [("x", machine.input_shaper.x), ("y", machine.input_shaper.y)]
+            .iter()
+            .filter_map(|(axis, s)| s.map(|s| format!("{axis}: {} {} Hz", s.kind.name(), s.freq)))
+            .collect(),
         gcode_path,
         lines: 0,
         toolhead_moves: 0,

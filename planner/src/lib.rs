@@ -18,4 +18,5 @@ pub mod lookahead;
 pub mod machine;
 pub mod math;
 pub mod motion;
+pub mod shaper_config;
 pub mod toolhead;

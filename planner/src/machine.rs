@@ -6,6 +6,7 @@ use crate::homing::HomingInfo;
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::motion::Limits;
+use crate::shaper_config::{self, InputShaperConfig};
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 
 /// Most steppers a machine may have.
@@ -62,6 +63,8 @@ pub struct Machine<'a> {
     pub steppers: heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
     /// How the first three steppers follow the toolhead.
     pub stepper_kinematics: [StepperKinematics; 3],
+    /// Input shaping ([input_shaper]), applied by step generation.
+    pub input_shaper: InputShaperConfig,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -99,7 +102,7 @@ const EXTRUDER_HEATER: [&str; 14] = [
 ];
 
 /// Sections whose options the motion pipeline reads.
-const MOTION_SECTIONS: [&str; 10] = [
+const MOTION_SECTIONS: [&str; 11] = [
     "printer",
     "stepper_x",
     "stepper_y",
@@ -110,6 +113,7 @@ const MOTION_SECTIONS: [&str; 10] = [
     "extruder",
     "mcu",
     "force_move",
+    "input_shaper",
 ];
 
 /// Delta tower angles when not configured, degrees.
@@ -212,6 +216,10 @@ impl<'a> Machine<'a> {
             section.accept(&EXTRUDER_HEATER);
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
+        let input_shaper = match config.section("input_shaper") {
+            Some(section) => shaper_config::read(&section)?,
+            None => InputShaperConfig::default(),
+        };
         if let Some(section) = config.section("force_move") {
             section.get_bool("enable_force_move", false)?;
         }
@@ -233,6 +241,7 @@ impl<'a> Machine<'a> {
             pressure_advance_smooth_time: smooth_time,
             steppers,
             stepper_kinematics,
+            input_shaper,
             unsupported,
         })
     }
