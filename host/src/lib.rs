@@ -8,7 +8,7 @@
 
 use onechip_app::line::{Line, LineAssembler};
 use onechip_app::printer::Printer;
-use onechip_planner::config::Config;
+use onechip_planner::config::{Config, ConfigFile};
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use std::fmt;
@@ -154,10 +154,12 @@ impl MoveSink for Tally {
 /// folder's only `*.gcode` file.
 pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
     let config_path = sd.join(onechip_app::sdcard::PRINTER_CFG);
-    let config_text = String::from_utf8_lossy(&read(&config_path)?).into_owned();
-    let file_name = config_path.display().to_string();
-    let config =
-        Config::parse(&file_name, &config_text).map_err(|e| RunError::Config(e.to_string()))?;
+    let texts = config_files(sd, &config_path)?;
+    let files: Vec<ConfigFile<'_>> = texts
+        .iter()
+        .map(|(name, text)| ConfigFile { name, text })
+        .collect();
+    let config = Config::parse_files(&files).map_err(|e| RunError::Config(e.to_string()))?;
     let machine = Machine::from_config(&config).map_err(|e| RunError::Config(e.to_string()))?;
     let gcode_path = match gcode {
         Some(path) => path.to_path_buf(),
@@ -215,6 +217,27 @@ pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
     summary.print_time = printer.print_time();
     summary.final_position = printer.position();
     Ok(summary)
+}
+
+/// printer.cfg (first) and every other `.cfg` file under the SD folder,
+/// named relative to it, for `[include]` to choose from.
+fn config_files(sd: &Path, printer_cfg: &Path) -> Result<Vec<(String, String)>, RunError> {
+    let text = |path: &Path| read(path).map(|bytes| String::from_utf8_lossy(&bytes).into_owned());
+    let mut files = vec![(printer_cfg.display().to_string(), text(printer_cfg)?)];
+    let mut folders = vec![(sd.to_path_buf(), String::new())];
+    while let Some((dir, prefix)) = folders.pop() {
+        let entries = std::fs::read_dir(&dir).map_err(|e| RunError::Read(dir.clone(), e))?;
+        for entry in entries.filter_map(Result::ok) {
+            let path = entry.path();
+            let name = format!("{prefix}{}", entry.file_name().to_string_lossy());
+            if path.is_dir() && prefix.matches('/').count() < 3 {
+                folders.push((path, format!("{name}/")));
+            } else if path.extension().is_some_and(|x| x == "cfg") && path != printer_cfg {
+                files.push((name, text(&path)?));
+            }
+        }
+    }
+    Ok(files)
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, RunError> {

@@ -19,6 +19,48 @@ use core::fmt;
 pub const MAX_SECTIONS: usize = 96;
 /// Most option lines one config may have.
 pub const MAX_OPTIONS: usize = 1024;
+/// Most files (printer.cfg and its includes) one config may read.
+pub const MAX_FILES: usize = 16;
+/// Deepest nesting of `[include]`.
+pub const MAX_INCLUDE_DEPTH: usize = 4;
+
+/// One file of a config: its name (as `[include]` patterns see it) and text.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConfigFile<'a> {
+    /// File name, relative to the folder of printer.cfg.
+    pub name: &'a str,
+    /// Its contents.
+    pub text: &'a str,
+}
+
+/// True if `name` matches `pattern`, where `*` matches any run of
+/// characters and `?` any one character.
+pub fn glob_match(pattern: &str, name: &str) -> bool {
+    let (p, n) = (pattern.as_bytes(), name.as_bytes());
+    let (mut pi, mut ni) = (0, 0);
+    let mut star: Option<(usize, usize)> = None;
+    while ni < n.len() {
+        match p.get(pi) {
+            Some(b'*') => {
+                star = Some((pi, ni));
+                pi += 1;
+            }
+            Some(&c) if c == b'?' || c == n[ni] => {
+                pi += 1;
+                ni += 1;
+            }
+            _ => match star {
+                Some((sp, sn)) => {
+                    pi = sp + 1;
+                    ni = sn + 1;
+                    star = Some((sp, sn + 1));
+                }
+                None => return false,
+            },
+        }
+    }
+    p[pi..].iter().all(|&c| c == b'*')
+}
 
 /// Why the config was refused; every error names where.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -67,6 +109,10 @@ pub enum ConfigErrorKind<'a> {
     },
     /// A section this firmware does not support.
     UnsupportedSection(&'a str),
+    /// An `[include]` names a file that does not exist.
+    MissingInclude,
+    /// `[include]` nested deeper than [`MAX_INCLUDE_DEPTH`].
+    IncludeTooDeep,
 }
 
 impl fmt::Display for ConfigError<'_> {
@@ -102,6 +148,8 @@ impl fmt::Display for ConfigError<'_> {
             ConfigErrorKind::UnsupportedSection(s) => {
                 write!(f, "section '{s}' is not supported by onechip yet")
             }
+            ConfigErrorKind::MissingInclude => f.write_str("include file does not exist"),
+            ConfigErrorKind::IncludeTooDeep => f.write_str("includes nested too deeply"),
         }
     }
 }
@@ -110,6 +158,8 @@ impl fmt::Display for ConfigError<'_> {
 #[derive(Debug, Clone, Copy)]
 struct OptionLine<'a> {
     section: usize,
+    /// Index of its file in `Config::files`.
+    file: usize,
     line: usize,
     name: &'a str,
     /// The value, continuation lines included.
@@ -119,7 +169,9 @@ struct OptionLine<'a> {
 /// An indexed config file.
 #[derive(Debug)]
 pub struct Config<'a> {
-    file: &'a str,
+    /// File names, the main file first, in the order they were read.
+    files: heapless::Vec<&'a str, MAX_FILES>,
+    /// Section names with the index of the file that opened them.
     sections: heapless::Vec<(&'a str, usize), MAX_SECTIONS>,
     options: heapless::Vec<OptionLine<'a>, MAX_OPTIONS>,
     used: [Cell<u32>; MAX_OPTIONS / 32],
@@ -128,13 +180,45 @@ pub struct Config<'a> {
 impl<'a> Config<'a> {
     /// Indexes `text`, naming it `file` in errors.
     pub fn parse(file: &'a str, text: &'a str) -> Result<Self, ConfigError<'a>> {
+        Self::parse_files(&[ConfigFile { name: file, text }])
+    }
+
+    /// Indexes `files[0]` (the printer.cfg), splicing in the files its
+    /// `[include pattern]` sections name at the point they are named.
+    /// `files` must hold every file a pattern can match (the loader reads
+    /// them); patterns use `*` and `?` and match file names as given.
+    pub fn parse_files(files: &[ConfigFile<'a>]) -> Result<Self, ConfigError<'a>> {
         let mut config = Self {
-            file,
+            files: heapless::Vec::new(),
             sections: heapless::Vec::new(),
             options: heapless::Vec::new(),
             used: Default::default(),
         };
-        let err = |line, kind| ConfigError { file, line, kind };
+        let main = files.first().ok_or(ConfigError {
+            file: "printer.cfg",
+            line: 0,
+            kind: ConfigErrorKind::Syntax,
+        })?;
+        config.read_file(files, main, 0)?;
+        Ok(config)
+    }
+
+    fn read_file(
+        &mut self,
+        files: &[ConfigFile<'a>],
+        file: &ConfigFile<'a>,
+        depth: usize,
+    ) -> Result<(), ConfigError<'a>> {
+        let (name, text) = (file.name, file.text);
+        let err = |line, kind| ConfigError {
+            file: name,
+            line,
+            kind,
+        };
+        let file_index = self.files.len();
+        self.files
+            .push(name)
+            .map_err(|_| err(0, ConfigErrorKind::TooLarge))?;
         let mut offset = 0;
         for (index, raw) in text.split_inclusive('\n').enumerate() {
             let line = index + 1;
@@ -147,10 +231,11 @@ impl<'a> Config<'a> {
                 continue;
             }
             if content.starts_with([' ', '\t']) {
-                // A continuation of the previous option's value.
-                let last = config
+                // A continuation of the previous option's value (same file).
+                let last = self
                     .options
                     .last_mut()
+                    .filter(|o| o.file == file_index)
                     .ok_or(err(line, ConfigErrorKind::Syntax))?;
                 let value_start = last.value.as_ptr() as usize - text.as_ptr() as usize;
                 let end = start + raw.trim_end().len();
@@ -158,45 +243,91 @@ impl<'a> Config<'a> {
                 continue;
             }
             if let Some(header) = trimmed.strip_prefix('[') {
-                let name = header
+                let section = header
                     .strip_suffix(']')
                     .ok_or(err(line, ConfigErrorKind::Syntax))?
                     .trim();
-                config
-                    .sections
-                    .push((name, line))
+                if let Some(pattern) = section.strip_prefix("include ") {
+                    self.include(files, pattern.trim(), depth)?;
+                    continue;
+                }
+                self.sections
+                    .push((section, file_index))
                     .map_err(|_| err(line, ConfigErrorKind::TooLarge))?;
                 continue;
             }
             let split = trimmed
                 .find([':', '='])
                 .ok_or(err(line, ConfigErrorKind::Syntax))?;
-            let name = trimmed[..split].trim();
-            if name.is_empty() {
+            let option = trimmed[..split].trim();
+            if option.is_empty() {
                 return Err(err(line, ConfigErrorKind::Syntax));
             }
-            let section = config
+            let section = self
                 .sections
-                .len()
-                .checked_sub(1)
+                .iter()
+                .rposition(|(_, f)| *f == file_index)
                 .ok_or(err(line, ConfigErrorKind::OptionOutsideSection))?;
             let value = trimmed[split + 1..].trim();
-            config
-                .options
+            self.options
                 .push(OptionLine {
                     section,
+                    file: file_index,
                     line,
-                    name,
+                    name: option,
                     value,
                 })
                 .map_err(|_| err(line, ConfigErrorKind::TooLarge))?;
         }
-        Ok(config)
+        Ok(())
     }
 
-    /// The file name given to [`Config::parse`].
+    /// Reads every file matching `pattern`, in name order; an error inside
+    /// an included file names that file.
+    fn include(
+        &mut self,
+        files: &[ConfigFile<'a>],
+        pattern: &str,
+        depth: usize,
+    ) -> Result<(), ConfigError<'a>> {
+        let including = self.files.last().copied().unwrap_or("printer.cfg");
+        let err = |kind| ConfigError {
+            file: including,
+            line: 0,
+            kind,
+        };
+        if depth >= MAX_INCLUDE_DEPTH {
+            return Err(err(ConfigErrorKind::IncludeTooDeep));
+        }
+        let mut last: Option<&str> = None;
+        let mut found = false;
+        // Files in name order, each once, without sorting into a buffer.
+        while let Some(next) = files
+            .iter()
+            .filter(|f| glob_match(pattern, f.name) && last.is_none_or(|l| f.name > l))
+            .min_by(|a, b| a.name.cmp(b.name))
+        {
+            found = true;
+            last = Some(next.name);
+            self.read_file(files, next, depth + 1)?;
+        }
+        if !found && !pattern.contains(['*', '?']) {
+            return Err(err(ConfigErrorKind::MissingInclude));
+        }
+        Ok(())
+    }
+
+    /// The name of the main file (printer.cfg).
     pub fn file(&self) -> &'a str {
-        self.file
+        self.files.first().copied().unwrap_or("printer.cfg")
+    }
+
+    /// The name of the file an option line comes from.
+    fn file_of(&self, option: &OptionLine<'a>) -> &'a str {
+        self.files
+            .get(option.file)
+            .copied()
+            .unwrap_or("printer.cfg")
     }
 
     /// Names of all sections, in file order (repeats included).
@@ -218,7 +349,7 @@ impl<'a> Config<'a> {
     /// The section `name`, or an error saying it is required.
     pub fn require<'c>(&'c self, name: &'c str) -> Result<Section<'c, 'a>, ConfigError<'c>> {
         self.section(name).ok_or(ConfigError {
-            file: self.file,
+            file: self.file(),
             line: 0,
             kind: ConfigErrorKind::MissingSection(name),
         })
@@ -253,7 +384,7 @@ impl<'a> Config<'a> {
         {
             None => Ok(()),
             Some((_, option)) => Err(ConfigError {
-                file: self.file,
+                file: self.file_of(option),
                 line: option.line,
                 kind: ConfigErrorKind::UnknownOption {
                     section: self.sections[option.section].0,
@@ -336,9 +467,9 @@ impl<'c, 'a> Section<'c, 'a> {
 
     /// An error about `option` (at its line, if present).
     pub fn error_for(&self, option: &'c str, reason: &'static str) -> ConfigError<'c> {
-        let line = self.find(option).map_or(0, |(_, l)| l.line);
+        let at = self.find(option).map(|(_, l)| l);
         self.error(
-            line,
+            at,
             ConfigErrorKind::BadValue {
                 section: self.name,
                 option,
@@ -347,31 +478,51 @@ impl<'c, 'a> Section<'c, 'a> {
         )
     }
 
+    /// Marks every definition of `option` in this section as read (later
+    /// definitions override earlier ones, which are not errors).
+    fn mark_read(&self, option: &str, last: usize) {
+        for (i, o) in self.config.options.iter().enumerate().take(last + 1) {
+            if self.config.sections[o.section].0 == self.name && o.name.eq_ignore_ascii_case(option)
+            {
+                self.config.mark_used(i);
+            }
+        }
+    }
+
     fn find(&self, option: &str) -> Option<(usize, &'c OptionLine<'a>)> {
         self.config.options.iter().enumerate().rev().find(|(_, o)| {
             self.config.sections[o.section].0 == self.name && o.name.eq_ignore_ascii_case(option)
         })
     }
 
-    fn error(&self, line: usize, kind: ConfigErrorKind<'c>) -> ConfigError<'c> {
-        ConfigError {
-            file: self.config.file,
-            line,
-            kind,
+    /// An error at option line `at` (in its file), or about the section as
+    /// a whole (in printer.cfg) when there is no such line.
+    fn error(&self, at: Option<&OptionLine<'a>>, kind: ConfigErrorKind<'c>) -> ConfigError<'c> {
+        match at {
+            Some(o) => ConfigError {
+                file: self.config.file_of(o),
+                line: o.line,
+                kind,
+            },
+            None => ConfigError {
+                file: self.config.file(),
+                line: 0,
+                kind,
+            },
         }
     }
 
     /// The text of `option`, if present (marks it used).
     pub fn get_opt(&self, option: &str) -> Option<&'a str> {
         let (index, line) = self.find(option)?;
-        self.config.mark_used(index);
+        self.mark_read(option, index);
         Some(line.value)
     }
 
     /// The text of `option`, which must be present.
     pub fn get(&self, option: &'c str) -> Result<&'a str, ConfigError<'c>> {
         self.get_opt(option).ok_or(self.error(
-            0,
+            None,
             ConfigErrorKind::MissingOption {
                 section: self.name,
                 option,
@@ -388,17 +539,17 @@ impl<'c, 'a> Section<'c, 'a> {
     ) -> Result<f64, ConfigError<'c>> {
         let Some((index, line)) = self.find(option) else {
             return default.ok_or(self.error(
-                0,
+                None,
                 ConfigErrorKind::MissingOption {
                     section: self.name,
                     option,
                 },
             ));
         };
-        self.config.mark_used(index);
+        self.mark_read(option, index);
         let bad = |reason| {
             self.error(
-                line.line,
+                Some(line),
                 ConfigErrorKind::BadValue {
                     section: self.name,
                     option,
@@ -448,17 +599,17 @@ impl<'c, 'a> Section<'c, 'a> {
     ) -> Result<i64, ConfigError<'c>> {
         let Some((index, line)) = self.find(option) else {
             return default.ok_or(self.error(
-                0,
+                None,
                 ConfigErrorKind::MissingOption {
                     section: self.name,
                     option,
                 },
             ));
         };
-        self.config.mark_used(index);
+        self.mark_read(option, index);
         let bad = |reason| {
             self.error(
-                line.line,
+                Some(line),
                 ConfigErrorKind::BadValue {
                     section: self.name,
                     option,
@@ -478,12 +629,12 @@ impl<'c, 'a> Section<'c, 'a> {
         let Some((index, line)) = self.find(option) else {
             return Ok(default);
         };
-        self.config.mark_used(index);
+        self.mark_read(option, index);
         match line.value.to_ascii_lowercase_bytes() {
             Some(true) => Ok(true),
             Some(false) => Ok(false),
             None => Err(self.error(
-                line.line,
+                Some(line),
                 ConfigErrorKind::BadValue {
                     section: self.name,
                     option,
@@ -502,19 +653,19 @@ impl<'c, 'a> Section<'c, 'a> {
     ) -> Result<&'a str, ConfigError<'c>> {
         let Some((index, line)) = self.find(option) else {
             return default.ok_or(self.error(
-                0,
+                None,
                 ConfigErrorKind::MissingOption {
                     section: self.name,
                     option,
                 },
             ));
         };
-        self.config.mark_used(index);
+        self.mark_read(option, index);
         if choices.contains(&line.value) {
             Ok(line.value)
         } else {
             Err(self.error(
-                line.line,
+                Some(line),
                 ConfigErrorKind::BadValue {
                     section: self.name,
                     option,
@@ -584,6 +735,93 @@ mod tests {
             saved.get_float("pressure_advance", None, Bounds::NON_NEGATIVE),
             Ok(0.05)
         );
+    }
+
+    #[test]
+    fn includes_are_spliced_in_at_their_place_and_errors_name_their_file() {
+        let files = [
+            ConfigFile {
+                name: "printer.cfg",
+                text: "[include macros/*.cfg]\n[printer]\nmax_velocity: 300\n[include late.cfg]\n",
+            },
+            ConfigFile {
+                name: "macros/b.cfg",
+                text: "[printer]\nmax_accel: 2000\n",
+            },
+            ConfigFile {
+                name: "macros/a.cfg",
+                text: "[printer]\nmax_accel: 1000\nmax_velocity: 100\n",
+            },
+            ConfigFile {
+                name: "late.cfg",
+                text: "[printer]\nsquare_corner_velocity: x\n",
+            },
+            ConfigFile {
+                name: "unrelated.cfg",
+                text: "[printer]\nmax_accel: 1\n",
+            },
+        ];
+        let c = Config::parse_files(&files).expect("valid");
+        let p = c.require("printer").expect("present");
+        // a.cfg then b.cfg (name order), then printer.cfg's own line.
+        assert_eq!(p.get_float("max_accel", None, Bounds::POSITIVE), Ok(2000.0));
+        assert_eq!(
+            p.get_float("max_velocity", None, Bounds::POSITIVE),
+            Ok(300.0)
+        );
+        let e = p
+            .get_float("square_corner_velocity", None, Bounds::NONE)
+            .expect_err("bad");
+        assert_eq!((e.file, e.line), ("late.cfg", 2));
+        let missing = [ConfigFile {
+            name: "printer.cfg",
+            text: "[include nope.cfg]\n",
+        }];
+        assert_eq!(
+            Config::parse_files(&missing)
+                .map(|_| ())
+                .expect_err("missing")
+                .kind,
+            ConfigErrorKind::MissingInclude
+        );
+        let none_matching = [ConfigFile {
+            name: "printer.cfg",
+            text: "[include *.nothing]\n[printer]\n",
+        }];
+        assert!(Config::parse_files(&none_matching).is_ok());
+        let looping = [ConfigFile {
+            name: "printer.cfg",
+            text: "[include printer.cfg]\n",
+        }];
+        assert_eq!(
+            Config::parse_files(&looping)
+                .map(|_| ())
+                .expect_err("loop")
+                .kind,
+            ConfigErrorKind::IncludeTooDeep
+        );
+    }
+
+    #[test]
+    fn glob_patterns() {
+        assert!(glob_match("*.cfg", "a.cfg"));
+        assert!(glob_match("macros/*.cfg", "macros/x.cfg"));
+        assert!(glob_match("m?cros/*", "macros/x.cfg"));
+        assert!(!glob_match("*.cfg", "a.cfgx"));
+        assert!(glob_match("a*b*c", "aXXbYYc"));
+        assert!(!glob_match("a*b*c", "aXXbYY"));
+    }
+
+    #[test]
+    fn an_overridden_option_is_not_reported_unknown() {
+        let c = Config::parse(
+            "p.cfg",
+            "[printer]\nmax_velocity: 1\n[printer]\nmax_velocity: 2\n",
+        )
+        .expect("valid");
+        let p = c.require("printer").expect("present");
+        assert_eq!(p.get_float("max_velocity", None, Bounds::POSITIVE), Ok(2.0));
+        assert!(c.check_unused().is_ok());
     }
 
     #[test]

@@ -91,6 +91,38 @@ fn a_bad_config_names_file_line_and_option() {
 }
 
 #[test]
+fn includes_are_read_from_the_sd_folder() {
+    let dir = sd_with("include", "G28\nG1 X10 Y10 F6000\n");
+    let cfg = std::fs::read_to_string(dir.join("printer.cfg")).expect("cfg");
+    std::fs::create_dir_all(dir.join("extras")).expect("dir");
+    std::fs::write(
+        dir.join("extras/speed.cfg"),
+        "[printer]\nmax_velocity: 120\n",
+    )
+    .expect("write");
+    std::fs::write(
+        dir.join("printer.cfg"),
+        format!("{cfg}\n[include extras/*.cfg]\n"),
+    )
+    .expect("write");
+    let s = onechip_host::run(&dir, None).expect("runs");
+    assert_eq!(s.errors, []);
+    std::fs::write(
+        dir.join("extras/speed.cfg"),
+        "[printer]\nmax_velocity: fast\n",
+    )
+    .expect("write");
+    let err = onechip_host::run(&dir, None)
+        .expect_err("bad include")
+        .to_string();
+    assert!(
+        err.starts_with("extras/speed.cfg:2: option 'max_velocity'"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn a_missing_gcode_file_is_a_clear_error() {
     let dir = sd_with("no-gcode", "");
     std::fs::remove_file(dir.join("job.gcode")).expect("remove");
