@@ -95,7 +95,7 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
             for section in &machine.unsupported {
                 defmt::info!("[{}] is not supported yet, ignored", section);
             }
-            Some(PRINTER.init(Printer::new(&machine)))
+            Some(PRINTER.init_with(|| Printer::new(&machine)))
         }
         Err(e) => {
             defmt::warn!("{}", defmt::Display2Format(&e));

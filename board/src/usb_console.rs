@@ -31,8 +31,10 @@ const MAX_REPLY: usize = 256;
 
 type UsbDriver = Driver<'static, peripherals::USB_OTG_HS>;
 
-/// Lookahead capacity of the board's printer, in moves.
-pub const LOOKAHEAD: usize = 128;
+/// Lookahead capacity of the board's printer, in moves: more than the
+/// 0.25 s lazy-flush window of 1 ms segments, so long runs of tiny moves
+/// are released lazily (about 117 KB of RAM).
+pub const LOOKAHEAD: usize = 384;
 
 /// The printer the console drives (None if printer.cfg did not load).
 pub type BoardPrinter = Option<&'static mut Printer<LOOKAHEAD>>;
