@@ -512,6 +512,45 @@ impl<'c, 'a> Section<'c, 'a> {
         }
     }
 
+    /// The definition of `option` (marked read); else `default`; else an
+    /// error saying the option is required.
+    fn lookup<T>(
+        &self,
+        option: &'c str,
+        default: Option<T>,
+    ) -> Result<Result<&'c OptionLine<'a>, T>, ConfigError<'c>> {
+        match self.find(option) {
+            Some((index, line)) => {
+                self.mark_read(option, index);
+                Ok(Ok(line))
+            }
+            None => default.map(Err).ok_or(self.error(
+                None,
+                ConfigErrorKind::MissingOption {
+                    section: self.name,
+                    option,
+                },
+            )),
+        }
+    }
+
+    /// A bad-value error at `line`.
+    fn bad_value(
+        &self,
+        line: &OptionLine<'a>,
+        option: &'c str,
+        reason: &'static str,
+    ) -> ConfigError<'c> {
+        self.error(
+            Some(line),
+            ConfigErrorKind::BadValue {
+                section: self.name,
+                option,
+                reason,
+            },
+        )
+    }
+
     /// The text of `option`, if present (marks it used).
     pub fn get_opt(&self, option: &str) -> Option<&'a str> {
         let (index, line) = self.find(option)?;
@@ -521,13 +560,8 @@ impl<'c, 'a> Section<'c, 'a> {
 
     /// The text of `option`, which must be present.
     pub fn get(&self, option: &'c str) -> Result<&'a str, ConfigError<'c>> {
-        self.get_opt(option).ok_or(self.error(
-            None,
-            ConfigErrorKind::MissingOption {
-                section: self.name,
-                option,
-            },
-        ))
+        self.lookup(option, None::<&str>)
+            .map(|found| found.map_or_else(|default| default, |line| line.value))
     }
 
     /// A number option; `default` when absent (None: required).
@@ -537,26 +571,11 @@ impl<'c, 'a> Section<'c, 'a> {
         default: Option<f64>,
         bounds: Bounds,
     ) -> Result<f64, ConfigError<'c>> {
-        let Some((index, line)) = self.find(option) else {
-            return default.ok_or(self.error(
-                None,
-                ConfigErrorKind::MissingOption {
-                    section: self.name,
-                    option,
-                },
-            ));
+        let line = match self.lookup(option, default)? {
+            Ok(line) => line,
+            Err(default) => return Ok(default),
         };
-        self.mark_read(option, index);
-        let bad = |reason| {
-            self.error(
-                Some(line),
-                ConfigErrorKind::BadValue {
-                    section: self.name,
-                    option,
-                    reason,
-                },
-            )
-        };
+        let bad = |reason| self.bad_value(line, option, reason);
         let value: f64 = line
             .value
             .parse()
@@ -597,26 +616,11 @@ impl<'c, 'a> Section<'c, 'a> {
         default: Option<i64>,
         minval: Option<i64>,
     ) -> Result<i64, ConfigError<'c>> {
-        let Some((index, line)) = self.find(option) else {
-            return default.ok_or(self.error(
-                None,
-                ConfigErrorKind::MissingOption {
-                    section: self.name,
-                    option,
-                },
-            ));
+        let line = match self.lookup(option, default)? {
+            Ok(line) => line,
+            Err(default) => return Ok(default),
         };
-        self.mark_read(option, index);
-        let bad = |reason| {
-            self.error(
-                Some(line),
-                ConfigErrorKind::BadValue {
-                    section: self.name,
-                    option,
-                    reason,
-                },
-            )
-        };
+        let bad = |reason| self.bad_value(line, option, reason);
         let value: i64 = line.value.parse().map_err(|_| bad("is not an integer"))?;
         if minval.is_some_and(|m| value < m) {
             return Err(bad("is below its minimum"));
@@ -626,22 +630,15 @@ impl<'c, 'a> Section<'c, 'a> {
 
     /// A boolean option (`True`/`False`, `yes`/`no`, `on`/`off`, `1`/`0`).
     pub fn get_bool(&self, option: &'c str, default: bool) -> Result<bool, ConfigError<'c>> {
-        let Some((index, line)) = self.find(option) else {
-            return Ok(default);
+        let line = match self.lookup(option, Some(default))? {
+            Ok(line) => line,
+            Err(default) => return Ok(default),
         };
-        self.mark_read(option, index);
-        match line.value.to_ascii_lowercase_bytes() {
-            Some(true) => Ok(true),
-            Some(false) => Ok(false),
-            None => Err(self.error(
-                Some(line),
-                ConfigErrorKind::BadValue {
-                    section: self.name,
-                    option,
-                    reason: "is not a boolean",
-                },
-            )),
-        }
+        line.value.to_ascii_lowercase_bytes().ok_or(self.bad_value(
+            line,
+            option,
+            "is not a boolean",
+        ))
     }
 
     /// One of `choices` (exact match).
@@ -651,27 +648,14 @@ impl<'c, 'a> Section<'c, 'a> {
         choices: &[&str],
         default: Option<&'a str>,
     ) -> Result<&'a str, ConfigError<'c>> {
-        let Some((index, line)) = self.find(option) else {
-            return default.ok_or(self.error(
-                None,
-                ConfigErrorKind::MissingOption {
-                    section: self.name,
-                    option,
-                },
-            ));
+        let line = match self.lookup(option, default)? {
+            Ok(line) => line,
+            Err(default) => return Ok(default),
         };
-        self.mark_read(option, index);
         if choices.contains(&line.value) {
             Ok(line.value)
         } else {
-            Err(self.error(
-                Some(line),
-                ConfigErrorKind::BadValue {
-                    section: self.name,
-                    option,
-                    reason: "is not one of the choices",
-                },
-            ))
+            Err(self.bad_value(line, option, "is not one of the choices"))
         }
     }
 

@@ -569,15 +569,9 @@ impl<const N: usize> Toolhead<N> {
         }
         let count = self.lookahead.flush(false);
         self.calc_print_time();
-        let mut next_move_time = self.print_time;
-        self.lookahead.take(count, |m| {
-            emit(m, next_move_time, sink);
-            next_move_time = next_move_time + m.accel_t + m.cruise_t + m.decel_t;
-        });
+        let end = self.release(count, sink);
         self.lookahead.reset();
-        self.print_time = self.print_time.max(next_move_time);
-        let through = next_move_time + self.kin_flush_delay;
-        self.need_step_gen_time = self.need_step_gen_time.max(through);
+        let through = end + self.kin_flush_delay;
         self.last_step_gen_time = self.last_step_gen_time.max(through);
         self.flush_step_generation(sink);
         Ok(())
@@ -606,6 +600,13 @@ impl<const N: usize> Toolhead<N> {
             self.state = QueueState::Main;
             self.calc_print_time();
         }
+        self.release(count, sink);
+    }
+
+    /// Hands the `count` oldest planned moves to the sink, back to back from
+    /// the current print time, and advances print time past them; returns
+    /// the end of the last one, s.
+    fn release(&mut self, count: usize, sink: &mut impl MoveSink) -> f64 {
         let mut next_move_time = self.print_time;
         self.lookahead.take(count, |m| {
             emit(m, next_move_time, sink);
@@ -616,6 +617,7 @@ impl<const N: usize> Toolhead<N> {
             .need_step_gen_time
             .max(next_move_time + self.kin_flush_delay);
         self.print_time = self.print_time.max(next_move_time);
+        next_move_time
     }
 }
 
