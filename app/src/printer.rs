@@ -10,6 +10,10 @@ use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::{MoveSink, Toolhead};
 
+/// Idle input time after which queued moves are released, s (Klipper's
+/// priming delay).
+pub const PRIMING_TIME: f64 = 0.100;
+
 /// The motion side of a printer.
 #[derive(Debug, Clone)]
 pub struct Printer<const N: usize> {
@@ -35,6 +39,13 @@ impl<const N: usize> Printer<N> {
     ) -> Result<(), CommandError<'l>> {
         let parsed = gcode::parse(line).map_err(CommandError::Gcode)?;
         self.gcode.execute(&parsed, &mut self.toolhead, sink, out)
+    }
+
+    /// To call when no input has arrived for [`PRIMING_TIME`] s: plans and
+    /// releases moves still waiting for the lookahead to fill, as Klipper's
+    /// priming timer does, so a streamed move does not wait for the next.
+    pub fn priming_timeout(&mut self, sink: &mut impl MoveSink) {
+        self.toolhead.priming_timeout(sink);
     }
 
     /// Ends the input as klippy does: a 0.5 s dwell, then every move.

@@ -6,14 +6,16 @@
 //! size.
 
 use core::fmt;
+use embassy_futures::select::{Either, select};
 use embassy_stm32::usb::Driver;
 use embassy_stm32::{bind_interrupts, peripherals, usb};
+use embassy_time::{Duration, Timer};
 use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
 use embassy_usb::driver::EndpointError;
 use embassy_usb::{Builder, UsbDevice};
 use onechip_app::console::error_text;
 use onechip_app::line::{Line, LineAssembler};
-use onechip_app::printer::Printer;
+use onechip_app::printer::{PRIMING_TIME, Printer};
 use onechip_planner::gcode_move::CommandError;
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use static_cell::StaticCell;
@@ -136,7 +138,9 @@ pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>, mut printer: Boa
     }
 }
 
-/// Reads packets, answers every completed line; returns only on USB errors.
+/// Reads packets, answers every completed line; when no input arrives for
+/// the priming time, releases the moves still waiting in the lookahead.
+/// Returns only on USB errors.
 async fn answer_lines(
     class: &mut CdcAcmClass<'static, UsbDriver>,
     lines: &mut LineAssembler<MAX_LINE>,
@@ -144,8 +148,17 @@ async fn answer_lines(
     planned: &mut PlannedMoves,
 ) -> Result<core::convert::Infallible, EndpointError> {
     let mut packet = [0u8; PACKET];
+    let idle = Duration::from_micros((PRIMING_TIME * 1e6) as u64);
     loop {
-        let n = class.read_packet(&mut packet).await?;
+        let n = match select(class.read_packet(&mut packet), Timer::after(idle)).await {
+            Either::First(read) => read?,
+            Either::Second(()) => {
+                if let Some(p) = printer.as_deref_mut() {
+                    p.priming_timeout(planned);
+                }
+                continue;
+            }
+        };
         for &byte in &packet[..n] {
             if let Some(event) = lines.push(byte) {
                 let mut reply = heapless::String::<MAX_REPLY>::new();
