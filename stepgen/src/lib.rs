@@ -1,4 +1,15 @@
 //! The expensive half of the host role: itersolve and stepcompress over the
 //! planner's moves, producing `(interval, count, add)` step queues for the
 //! local stepper engine and `queue_step` commands for secondary MCUs (issue #4).
+//!
+//! Available now:
+//! - [`segment`]: planned moves split into constant-acceleration segments;
+//! - [`solver`]: step times of one stepper (half-step crossings of its
+//!   position), with Klipper's direction-change rules;
+//! - [`compress`]: step clocks to `(interval, count, add)` sequences within
+//!   `max_error`, with the step+dir+step filter and far steps.
 #![cfg_attr(not(feature = "std"), no_std)]
+
+pub mod compress;
+pub mod segment;
+pub mod solver;

@@ -1,0 +1,258 @@
+//! Step clocks to `(interval, count, add)` sequences, as the MCU executes
+//! them: `count` steps, each `interval` ticks after the previous, `interval`
+//! growing by `add` after each step.
+//!
+//! Every step may be scheduled up to `max_error` ticks early, never late
+//! (nor earlier than half-way to the previous step), so a compressed step
+//! is within `[t - max_error, t]` of its ideal clock `t`. For each sequence
+//! the longest run is sought by bisecting on `add`, as Klipper does.
+//! Two filters come first: a step followed within 750 µs by a step back
+//! cancels both (step+dir+step), and a step 3·2^28 ticks or more after the
+//! previous one is sent alone (the MCU's 32-bit clock wraps).
+
+/// A step reversed within this time cancels the step before it, s.
+pub const SDS_FILTER_TIME: f64 = 0.000_750;
+/// Steps this many ticks or more apart are sent as single steps.
+pub const CLOCK_DIFF_MAX: u64 = 3 << 28;
+/// The MCU's limit on steps per sequence.
+pub const MAX_COUNT: usize = 0xffff;
+/// Bound of the add search around a valid add (`(6 + 4√2)·max_error /
+/// count²` in theory; 11 is what works in practice).
+const QUADRATIC_DEV: i64 = 11;
+
+/// What the compressor produces, in order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StepCommand {
+    /// The direction of the following steps (true: positive).
+    Dir(bool),
+    /// `count` steps: the first `interval` ticks after the previous step.
+    Steps {
+        /// Ticks to the first step.
+        interval: u32,
+        /// Number of steps.
+        count: u16,
+        /// Change of the interval after each step.
+        add: i16,
+    },
+}
+
+/// Acceptable range of one step, relative to the last compressed step.
+#[derive(Debug, Clone, Copy)]
+struct Window {
+    min: i64,
+    max: i64,
+}
+
+/// Compression state of one stepper, holding up to `Q` step clocks.
+#[derive(Debug, Clone)]
+pub struct Compressor<const Q: usize> {
+    max_error: u32,
+    freq: f64,
+    last_step_clock: u64,
+    queue: heapless::Vec<u64, Q>,
+    dir: Option<bool>,
+    /// The newest step, held back until the next shows it is not reversed.
+    held: Option<(u64, bool)>,
+}
+
+impl<const Q: usize> Compressor<Q> {
+    /// A compressor for an MCU clock of `freq` Hz with `max_error` ticks.
+    pub fn new(max_error: u32, freq: f64) -> Self {
+        Self {
+            max_error,
+            freq,
+            last_step_clock: 0,
+            queue: heapless::Vec::new(),
+            dir: None,
+            held: None,
+        }
+    }
+
+    /// Adds a step at print time `time` s in direction `dir`.
+    pub fn append(&mut self, time: f64, dir: bool, out: &mut impl FnMut(StepCommand)) {
+        let clock = (time * self.freq + 0.5) as u64;
+        if let Some((held_clock, held_dir)) = self.held {
+            if dir != held_dir
+                && ((clock as f64) - (held_clock as f64)) < SDS_FILTER_TIME * self.freq
+            {
+                // Step, reverse, step back: neither step is needed.
+                self.held = None;
+                return;
+            }
+            self.commit(held_clock, held_dir, out);
+        }
+        self.held = Some((clock, dir));
+    }
+
+    /// Sends everything queued (the end of the motion, or before a pause).
+    pub fn flush(&mut self, out: &mut impl FnMut(StepCommand)) {
+        if let Some((clock, dir)) = self.held.take() {
+            self.commit(clock, dir, out);
+        }
+        self.compress_all(out);
+    }
+
+    fn commit(&mut self, clock: u64, dir: bool, out: &mut impl FnMut(StepCommand)) {
+        if self.dir != Some(dir) {
+            self.compress_all(out);
+            out(StepCommand::Dir(dir));
+            self.dir = Some(dir);
+        }
+        let last_queued = self.queue.last().copied().unwrap_or(self.last_step_clock);
+        if clock >= last_queued + CLOCK_DIFF_MAX {
+            self.compress_all(out);
+            out(StepCommand::Steps {
+                interval: clock.wrapping_sub(self.last_step_clock) as u32,
+                count: 1,
+                add: 0,
+            });
+            self.last_step_clock = clock;
+            return;
+        }
+        if self.queue.is_full() {
+            self.compress_some(out);
+        }
+        // There is room now: compress_some consumed at least one step.
+        let _ = self.queue.push(clock);
+    }
+
+    fn compress_all(&mut self, out: &mut impl FnMut(StepCommand)) {
+        while !self.queue.is_empty() {
+            self.compress_some(out);
+        }
+    }
+
+    /// Emits one sequence from the front of the queue.
+    fn compress_some(&mut self, out: &mut impl FnMut(StepCommand)) {
+        let (interval, count, add) = self.best_sequence();
+        out(StepCommand::Steps {
+            interval: interval as u32,
+            count: count as u16,
+            add: add as i16,
+        });
+        let addfactor = count * (count - 1) / 2;
+        self.last_step_clock = self
+            .last_step_clock
+            .wrapping_add((add * addfactor + interval * count) as u64);
+        self.queue.rotate_left(count as usize);
+        self.queue.truncate(self.queue.len() - count as usize);
+    }
+
+    /// The acceptable window of queued step `i`.
+    fn window(&self, i: usize) -> Window {
+        let point = (self.queue[i] - self.last_step_clock) as i64;
+        let prev = if i > 0 {
+            (self.queue[i - 1] - self.last_step_clock) as i64
+        } else {
+            0
+        };
+        let error = ((point - prev) / 2).min(i64::from(self.max_error));
+        Window {
+            min: point - error,
+            max: point,
+        }
+    }
+
+    /// The longest `(interval, count, add)` run from the front of the queue.
+    fn best_sequence(&self) -> (i64, i64, i64) {
+        let len = self.queue.len().min(MAX_COUNT);
+        let first = self.window(0);
+        let (mut outer_min, mut outer_max) = (first.min, first.max);
+        let (mut add, mut min_add, mut max_add) = (0i64, -0x8000i64, 0x7fffi64);
+        let (mut best_interval, mut best_count, mut best_add, mut best_reach) =
+            (0i64, 1i64, 1i64, i64::MIN);
+        let (mut zero_interval, mut zero_count) = (0i64, 0i64);
+        loop {
+            // The longest run with this add.
+            let (mut next_min, mut next_max) = (outer_min, outer_max);
+            let mut interval = next_max;
+            let mut next_count = 1i64;
+            let next_window = loop {
+                next_count += 1;
+                if next_count as usize > len {
+                    return (interval, next_count - 1, add);
+                }
+                let w = self.window(next_count as usize - 1);
+                let c = add * (next_count * (next_count - 1) / 2);
+                if next_min * next_count < w.min - c {
+                    // C's round-up division (truncating toward zero).
+                    next_min = (w.min - c + next_count - 1) / next_count;
+                }
+                if next_max * next_count > w.max - c {
+                    next_max = (w.max - c) / next_count;
+                }
+                if next_min > next_max {
+                    break w;
+                }
+                interval = next_max;
+            };
+            let count = next_count - 1;
+            let reach = add * (count * (count - 1) / 2) + interval * count;
+            if reach > best_reach || (reach == best_reach && interval > best_interval) {
+                (best_interval, best_count, best_add, best_reach) = (interval, count, add, reach);
+                if add == 0 {
+                    (zero_interval, zero_count) = (interval, count);
+                }
+                if count > 0x200 {
+                    break;
+                }
+            }
+            // Could a larger or smaller add reach further?
+            let next_factor = next_count * (next_count - 1) / 2;
+            if add * next_factor + interval * next_count < next_window.min {
+                min_add = add + 1;
+                outer_max = next_max;
+            } else {
+                max_add = add - 1;
+                outer_min = next_min;
+            }
+            if count > 1 {
+                let delta = i64::from(self.max_error) * QUADRATIC_DEV / (count * count);
+                min_add = min_add.max(add - delta);
+                max_add = max_add.min(add + delta);
+            }
+            let c = outer_max * next_count;
+            if min_add * next_factor < next_window.min - c {
+                min_add = div_ceil(next_window.min - c, next_factor);
+            }
+            let c = outer_min * next_count;
+            if max_add * next_factor > next_window.max - c {
+                max_add = (next_window.max - c).div_euclid(next_factor);
+            }
+            if min_add > max_add {
+                break;
+            }
+            add = max_add - (max_add - min_add) / 4;
+        }
+        if zero_count + zero_count / 16 >= best_count {
+            return (zero_interval, zero_count, 0);
+        }
+        (best_interval, best_count, best_add)
+    }
+}
+
+fn div_ceil(n: i64, d: i64) -> i64 {
+    -(-n).div_euclid(d)
+}
+
+/// Expands commands back into step clocks and directions (the MCU's view).
+pub fn expand(commands: &[StepCommand], mut emit: impl FnMut(u64, bool)) {
+    let (mut clock, mut dir) = (0u64, true);
+    for cmd in commands {
+        match *cmd {
+            StepCommand::Dir(d) => dir = d,
+            StepCommand::Steps {
+                interval,
+                count,
+                add,
+            } => {
+                let mut interval = interval;
+                for _ in 0..count {
+                    clock += u64::from(interval);
+                    emit(clock, dir);
+                    interval = interval.wrapping_add(add as u32);
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,283 @@
+//! Step times of one stepper: where its position crosses the half-step
+//! boundaries, searched the way Klipper's itersolve searches them.
+//!
+//! A step happens when the stepper's position moves half a step away from
+//! its last step's position (steps sit at `position_set ± (k + ½)·step`).
+//! The search widens a time window until the position has moved half a step,
+//! then narrows onto the crossing by false position to 1 ns. A direction
+//! change is only taken once the position is past the midpoint, so jitter
+//! at a reversal does not produce extra steps.
+
+use crate::segment::Segment;
+use onechip_planner::kinematics::StepperKinematics;
+
+/// Time resolution of the crossing search, s.
+const TIME_EPSILON: f64 = 0.000_000_001;
+/// First widening of the search window, s.
+const FIRST_SEEK: f64 = 0.000_100;
+
+/// One generated step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Step {
+    /// When, s (print time).
+    pub time: f64,
+    /// True for the positive direction.
+    pub dir: bool,
+}
+
+/// A point of the stepper's motion: time into the segment (s) and position (mm).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct TimePos {
+    t: f64,
+    pos: f64,
+}
+
+/// Step generation state of one stepper.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepSolver {
+    kin: StepperKinematics,
+    half_step: f64,
+    /// The stepper's position at its last step (the centre between two
+    /// step boundaries), mm.
+    commanded_pos: f64,
+    /// Direction of the last step (None before any).
+    dir: Option<bool>,
+}
+
+impl StepSolver {
+    /// A solver for a stepper moving `step_dist` mm per step, with the
+    /// toolhead at `pos`.
+    pub fn new(kin: StepperKinematics, step_dist: f64, pos: [f64; 3]) -> Self {
+        Self {
+            kin,
+            half_step: 0.5 * step_dist,
+            commanded_pos: kin.position(pos),
+            dir: None,
+        }
+    }
+
+    /// Sets the toolhead position without stepping (homing,
+    /// SET_KINEMATIC_POSITION).
+    pub fn set_position(&mut self, pos: [f64; 3]) {
+        self.commanded_pos = self.kin.position(pos);
+    }
+
+    /// The stepper's position at its last step, mm.
+    pub fn commanded_pos(&self) -> f64 {
+        self.commanded_pos
+    }
+
+    /// True if `seg` can move this stepper.
+    pub fn is_active(&self, seg: &Segment) -> bool {
+        let r = seg.axes_r;
+        match self.kin {
+            StepperKinematics::Axis(a) => r[a] != 0.0,
+            StepperKinematics::Sum(a, b) | StepperKinematics::Difference(a, b) => {
+                r[a] != 0.0 || r[b] != 0.0
+            }
+            StepperKinematics::DeltaTower { .. } => r.iter().any(|&v| v != 0.0),
+        }
+    }
+
+    /// Generates the steps of `seg` between print times `start` and `end`.
+    pub fn generate(&mut self, seg: &Segment, start: f64, end: f64, mut emit: impl FnMut(Step)) {
+        let kin = self.kin;
+        let position = |t: f64| kin.position(seg.position(t));
+        let half = self.half_step;
+        let (start, end) = (start - seg.print_time, end - seg.print_time);
+        let mut last = TimePos {
+            t: start,
+            pos: self.commanded_pos,
+        };
+        let (mut low, mut high) = (last, last);
+        let mut seek = FIRST_SEEK;
+        let mut dir = self.dir;
+        loop {
+            let dist = high.pos - last.pos;
+            let mut widen = dist.abs() < half;
+            if !widen {
+                let next_dir = dist > 0.0;
+                if dir != Some(next_dir) {
+                    if dist.abs() < half + TIME_EPSILON {
+                        // Only reverse once past the midpoint.
+                        widen = true;
+                    } else if last.t >= low.t {
+                        // Search must restart after the last step's time.
+                        if high.t < last.t + TIME_EPSILON {
+                            widen = true;
+                        } else {
+                            high.t = (last.t + high.t) * 0.5;
+                            high.pos = position(high.t);
+                            continue;
+                        }
+                    } else {
+                        dir = Some(next_dir);
+                    }
+                }
+            }
+            if widen {
+                if !widen_window(&position, &mut low, &mut high, last, &mut seek, end) {
+                    break;
+                }
+                continue;
+            }
+            let forward = dir == Some(true);
+            let target = last.pos + if forward { half } else { -half };
+            let next = find_crossing(&position, low, high, target);
+            emit(Step {
+                time: seg.print_time + next.t,
+                dir: forward,
+            });
+            seek = (next.t - last.t).max(TIME_EPSILON);
+            last = TimePos {
+                t: next.t,
+                pos: target + if forward { half } else { -half },
+            };
+            low = next;
+            // A spent window is widened from the new step.
+            if last.t >= high.t
+                && !widen_window(&position, &mut low, &mut high, last, &mut seek, end)
+            {
+                break;
+            }
+        }
+        self.commanded_pos = last.pos;
+        self.dir = dir;
+    }
+}
+
+/// Moves the search window past `high`: the old high end becomes the low
+/// end, the new high end lies `seek` after the last step (doubling `seek`),
+/// capped at `end`. False when the window already reached `end`.
+fn widen_window(
+    position: &impl Fn(f64) -> f64,
+    low: &mut TimePos,
+    high: &mut TimePos,
+    last: TimePos,
+    seek: &mut f64,
+    end: f64,
+) -> bool {
+    if high.t >= end {
+        return false;
+    }
+    *low = *high;
+    loop {
+        high.t = last.t + *seek;
+        *seek += *seek;
+        if high.t > low.t {
+            break;
+        }
+    }
+    high.t = high.t.min(end);
+    high.pos = position(high.t);
+    true
+}
+
+/// The time in `low..high` where the position reaches `target`, by false
+/// position to [`TIME_EPSILON`]; the window's start if it does not.
+fn find_crossing(
+    position: &impl Fn(f64) -> f64,
+    low: TimePos,
+    high: TimePos,
+    target: f64,
+) -> TimePos {
+    let mut best = high;
+    let (mut lo, mut hi) = (
+        TimePos {
+            pos: low.pos - target,
+            ..low
+        },
+        TimePos {
+            pos: high.pos - target,
+            ..high
+        },
+    );
+    if hi.pos == 0.0 {
+        return best;
+    }
+    let high_negative = hi.pos.is_sign_negative();
+    if high_negative == lo.pos.is_sign_negative() {
+        return TimePos {
+            t: low.t,
+            pos: target,
+        };
+    }
+    loop {
+        let guess = (lo.t * hi.pos - hi.t * lo.pos) / (hi.pos - lo.pos);
+        if (guess - best.t).abs() <= TIME_EPSILON {
+            return best;
+        }
+        best = TimePos {
+            t: guess,
+            pos: position(guess),
+        };
+        let offset = best.pos - target;
+        if offset.is_sign_negative() == high_negative {
+            hi = TimePos {
+                t: guess,
+                pos: offset,
+            };
+        } else {
+            lo = TimePos {
+                t: guess,
+                pos: offset,
+            };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use std::vec::Vec;
+
+    fn cruise(from: f64, v: f64, t: f64) -> Segment {
+        Segment {
+            print_time: 1.0,
+            move_t: t,
+            start_v: v.abs(),
+            half_accel: 0.0,
+            start_pos: [from, 0.0, 0.0],
+            axes_r: [v.signum(), 0.0, 0.0],
+        }
+    }
+
+    #[test]
+    fn constant_speed_steps_fall_on_half_step_boundaries() {
+        let mut s = StepSolver::new(StepperKinematics::Axis(0), 0.0125, [100.0, 0.0, 0.0]);
+        let seg = cruise(100.0, 10.0, 0.1);
+        let mut steps = Vec::new();
+        s.generate(&seg, seg.print_time, seg.end_time(), |st| steps.push(st));
+        // 1 mm at 0.0125 mm/step: 80 steps, the first half a step in.
+        assert_eq!(steps.len(), 80);
+        for (k, st) in steps.iter().enumerate() {
+            let expected = 1.0 + (k as f64 + 0.5) * 0.0125 / 10.0;
+            assert!(
+                (st.time - expected).abs() < 2e-9,
+                "step {k}: {} vs {expected}",
+                st.time
+            );
+            assert!(st.dir);
+        }
+        assert!((s.commanded_pos() - 101.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn reversal_changes_direction_and_returns_home() {
+        let mut s = StepSolver::new(StepperKinematics::Axis(0), 0.0125, [0.0; 3]);
+        let mut steps = Vec::new();
+        for seg in [
+            cruise(0.0, 10.0, 0.01),
+            Segment {
+                print_time: 1.01,
+                ..cruise(0.1, -10.0, 0.01)
+            },
+        ] {
+            s.generate(&seg, seg.print_time, seg.end_time(), |st| steps.push(st));
+        }
+        let forward = steps.iter().filter(|s| s.dir).count();
+        assert_eq!((forward, steps.len() - forward), (8, 8));
+        assert!(s.commanded_pos().abs() < 1e-9);
+    }
+}

@@ -1,0 +1,197 @@
+//! Step generation against klippy's own steps: the golden planned moves
+//! (`moves.tsv`, which the planner reproduces) through our solver and
+//! compressor give, per stepper, the same number of steps, the same
+//! directions, and every step clock within `max_error` ticks of klippy's
+//! (as the MCU's 32-bit clock sees it).
+
+use onechip_planner::config::Config;
+use onechip_planner::kinematics::StepperKinematics;
+use onechip_planner::machine::Machine;
+use onechip_planner::toolhead::TrapqMove;
+use onechip_stepgen::compress::{Compressor, StepCommand, expand};
+use onechip_stepgen::segment::segments;
+use onechip_stepgen::solver::StepSolver;
+use std::path::PathBuf;
+
+fn golden_dir() -> PathBuf {
+    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
+        PathBuf::from,
+    )
+}
+
+/// The golden trapq entries of `queue` ("toolhead" or "extruder").
+fn moves(case: &str, queue: &str) -> Vec<TrapqMove> {
+    let text =
+        std::fs::read_to_string(golden_dir().join(case).join("moves.tsv")).expect("moves.tsv");
+    text.lines()
+        .skip(1)
+        .filter(|l| l.starts_with(&format!("{queue}\t")))
+        .map(|l| {
+            let v: Vec<f64> = l
+                .split('\t')
+                .skip(1)
+                .map(|x| x.parse().expect("float"))
+                .collect();
+            TrapqMove {
+                print_time: v[0],
+                accel_t: v[1],
+                cruise_t: v[2],
+                decel_t: v[3],
+                start_pos: [v[4], v[5], v[6]],
+                axes_r: [v[7], v[8], v[9]],
+                start_v: v[10],
+                cruise_v: v[11],
+                accel: v[12],
+            }
+        })
+        .collect()
+}
+
+fn summary_value(case: &str, key: &str) -> f64 {
+    let text =
+        std::fs::read_to_string(golden_dir().join(case).join("summary.txt")).expect("summary");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&format!("{key} ")))
+        .expect("key")
+        .trim()
+        .parse()
+        .expect("number")
+}
+
+/// Our steps for one stepper: (clock, positive direction).
+fn our_steps(
+    trapq: &[TrapqMove],
+    kin: StepperKinematics,
+    step_dist: f64,
+    freq: f64,
+    max_error: u32,
+) -> Vec<(u64, bool)> {
+    let Some(first) = trapq.first() else {
+        return Vec::new();
+    };
+    let mut solver = StepSolver::new(kin, step_dist, first.start_pos);
+    let mut compressor = Compressor::<4096>::new(max_error, freq);
+    let mut commands = Vec::new();
+    let mut out = |c: StepCommand| commands.push(c);
+    for m in trapq {
+        for seg in segments(m) {
+            if solver.is_active(&seg) {
+                solver.generate(&seg, seg.print_time, seg.end_time(), |s| {
+                    compressor.append(s.time, s.dir, &mut out)
+                });
+            }
+        }
+    }
+    compressor.flush(&mut out);
+    let mut steps = Vec::new();
+    expand(&commands, |clock, dir| steps.push((clock, dir)));
+    steps
+}
+
+fn golden_steps(case: &str, stepper: &str) -> Vec<(u64, bool)> {
+    let text =
+        std::fs::read_to_string(golden_dir().join(case).join(format!("steps-{stepper}.txt")))
+            .expect("steps");
+    text.lines()
+        .map(|l| {
+            let (c, d) = l.split_once(' ').expect("clock dir");
+            (c.parse().expect("clock"), d == "1")
+        })
+        .collect()
+}
+
+fn check(case: &str, config: &str, with_extruder: bool) {
+    let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
+    let config = Config::parse(config, &cfg).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    let freq = summary_value(case, "clock_freq");
+    let max_error = summary_value(case, "max_error_ticks") as u32;
+    let toolhead = moves(case, "toolhead");
+    let mut steppers: Vec<(&str, Vec<(u64, bool)>)> = Vec::new();
+    for (i, kin) in machine.stepper_kinematics.iter().enumerate() {
+        let s = &machine.steppers[i];
+        steppers.push((
+            s.name,
+            our_steps(&toolhead, *kin, s.step_dist, freq, max_error),
+        ));
+    }
+    if with_extruder && let Some(e) = machine.steppers.get(3) {
+        steppers.push((
+            e.name,
+            our_steps(
+                &moves(case, "extruder"),
+                StepperKinematics::Axis(0),
+                e.step_dist,
+                freq,
+                max_error,
+            ),
+        ));
+    }
+    for (name, ours) in steppers {
+        let golden = golden_steps(case, name);
+        assert_eq!(ours.len(), golden.len(), "{case} {name}: step count");
+        let mut worst = 0i64;
+        for (i, (o, g)) in ours.iter().zip(&golden).enumerate() {
+            assert_eq!(o.1, g.1, "{case} {name}: direction of step {i}");
+            // The MCU counts in 32 bits; a step more than 2^32 ticks after
+            // the previous one is sent modulo 2^32 (as klippy does), so
+            // compare as the MCU sees clocks.
+            let d = i64::from(o.0.wrapping_sub(g.0) as u32 as i32);
+            worst = worst.max(d.abs());
+            assert!(
+                d.abs() <= i64::from(max_error),
+                "{case} {name}: step {i} at {} vs golden {} ({d} ticks)",
+                o.0,
+                g.0
+            );
+        }
+        println!(
+            "{case} {name}: {} steps, worst deviation {worst} ticks ({:.2} us)",
+            ours.len(),
+            worst as f64 / freq * 1e6
+        );
+    }
+}
+
+#[test]
+fn cart_square() {
+    check("cart_square", "cartesian.cfg", true);
+}
+
+#[test]
+fn cart_circle() {
+    check("cart_circle", "cartesian.cfg", true);
+}
+
+#[test]
+fn cart_extrude() {
+    check("cart_extrude", "cartesian.cfg", true);
+}
+
+#[test]
+fn corexy_square() {
+    check("corexy_square", "corexy.cfg", false);
+}
+
+#[test]
+fn corexy_circle() {
+    check("corexy_circle", "corexy.cfg", false);
+}
+
+#[test]
+fn avr_and_h723_clocks() {
+    check("avr_cart_extrude", "cartesian_avr.cfg", true);
+    check("h723_cart_extrude", "cartesian_h723.cfg", true);
+}
+
+#[test]
+fn delta_square_and_circle() {
+    check("delta_square", "delta.cfg", true);
+    check("delta_circle", "delta.cfg", true);
+}
+
+#[test]
+fn delta_and_shaperless_extrude() {
+    check("delta_extrude", "delta.cfg", true);
+}
