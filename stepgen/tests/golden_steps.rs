@@ -59,7 +59,9 @@ fn summary_value(case: &str, key: &str) -> f64 {
         .expect("number")
 }
 
-/// Our steps for one stepper: (clock, positive direction).
+/// Our steps for one stepper: (clock, positive direction). Also checks
+/// that the commands expand to our own ideal steps, each in
+/// `[ideal - max_error, ideal]`, and respect the MCU's limits.
 fn our_steps(
     trapq: &[TrapqMove],
     kin: StepperKinematics,
@@ -73,19 +75,54 @@ fn our_steps(
     let mut solver = StepSolver::new(kin, step_dist, first.start_pos);
     let mut compressor = Compressor::<4096>::new(max_error, freq);
     let mut commands = Vec::new();
+    let mut ideal = Vec::new();
     let mut out = |c: StepCommand| commands.push(c);
     for m in trapq {
         for seg in segments(m) {
             if solver.is_active(&seg) {
                 solver.generate(&seg, seg.print_time, seg.end_time(), |s| {
-                    compressor.append(s.time, s.dir, &mut out)
+                    ideal.push(((s.time * freq + 0.5) as u64, s.dir));
+                    compressor.append(s.time, s.dir, &mut out);
                 });
             }
         }
     }
     compressor.flush(&mut out);
+    assert!(
+        commands
+            .iter()
+            .all(|c| !matches!(c, StepCommand::Steps { count: 0, .. })),
+        "empty sequence"
+    );
     let mut steps = Vec::new();
     expand(&commands, |clock, dir| steps.push((clock, dir)));
+    // Walk both in order: each expanded step is its ideal step moved at most
+    // max_error earlier; ideal steps skipped on the way are pairs the
+    // step+dir+step filter removed (a step and its immediate reversal).
+    let mut j = 0;
+    for (i, &(clock, dir)) in steps.iter().enumerate() {
+        let start = j;
+        while j < ideal.len() {
+            let (c, d) = ideal[j];
+            let early = c.wrapping_sub(clock) as u32;
+            if d == dir && early <= max_error {
+                break;
+            }
+            j += 1;
+        }
+        assert!(j < ideal.len(), "expanded step {i} matches no ideal step");
+        let skipped = &ideal[start..j];
+        assert!(
+            skipped.len() % 2 == 0,
+            "step {i}: {} ideal steps skipped",
+            skipped.len()
+        );
+        assert!(
+            skipped.chunks(2).all(|p| p[0].1 != p[1].1),
+            "step {i}: skipped steps are not reversals"
+        );
+        j += 1;
+    }
     steps
 }
 
