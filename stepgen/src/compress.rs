@@ -18,7 +18,7 @@ pub const CLOCK_DIFF_MAX: u64 = 3 << 28;
 pub const MAX_COUNT: usize = 0xffff;
 /// Bound of the add search around a valid add (`(6 + 4√2)·max_error /
 /// count²` in theory; 11 is what works in practice).
-const QUADRATIC_DEV: i64 = 11;
+const QUADRATIC_DEV: i32 = 11;
 
 /// What the compressor produces, in order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -36,11 +36,13 @@ pub enum StepCommand {
     },
 }
 
-/// Acceptable range of one step, relative to the last compressed step.
+/// Acceptable range of one step, in ticks after the last compressed step:
+/// 32 bits, as queued steps are less than `CLOCK_DIFF_MAX` (3·2^28) ticks
+/// apart, and 32-bit arithmetic is native on the MCU.
 #[derive(Debug, Clone, Copy)]
 struct Window {
-    min: i64,
-    max: i64,
+    min: i32,
+    max: i32,
 }
 
 /// Compression state of one stepper, holding up to `Q` step clocks.
@@ -130,6 +132,7 @@ impl<const Q: usize> Compressor<Q> {
             count: count as u16,
             add: add as i16,
         });
+        let (interval, count, add) = (i64::from(interval), i64::from(count), i64::from(add));
         let addfactor = count * (count - 1) / 2;
         self.last_step_clock = self
             .last_step_clock
@@ -140,33 +143,33 @@ impl<const Q: usize> Compressor<Q> {
 
     /// The acceptable window of queued step `i`.
     fn window(&self, i: usize) -> Window {
-        let point = (self.queue[i] - self.last_step_clock) as i64;
+        let point = self.queue[i].wrapping_sub(self.last_step_clock) as u32;
         let prev = if i > 0 {
-            (self.queue[i - 1] - self.last_step_clock) as i64
+            self.queue[i - 1].wrapping_sub(self.last_step_clock) as u32
         } else {
             0
         };
-        let error = ((point - prev) / 2).min(i64::from(self.max_error));
+        let error = ((point - prev) / 2).min(self.max_error);
         Window {
-            min: point - error,
-            max: point,
+            min: (point - error) as i32,
+            max: point as i32,
         }
     }
 
     /// The longest `(interval, count, add)` run from the front of the queue.
-    fn best_sequence(&self) -> (i64, i64, i64) {
+    fn best_sequence(&self) -> (i32, i32, i32) {
         let len = self.queue.len().min(MAX_COUNT);
         let first = self.window(0);
         let (mut outer_min, mut outer_max) = (first.min, first.max);
-        let (mut add, mut min_add, mut max_add) = (0i64, -0x8000i64, 0x7fffi64);
+        let (mut add, mut min_add, mut max_add) = (0i32, -0x8000i32, 0x7fffi32);
         let (mut best_interval, mut best_count, mut best_add, mut best_reach) =
-            (0i64, 1i64, 1i64, i64::MIN);
-        let (mut zero_interval, mut zero_count) = (0i64, 0i64);
+            (0i32, 1i32, 1i32, i32::MIN);
+        let (mut zero_interval, mut zero_count) = (0i32, 0i32);
         loop {
             // The longest run with this add.
             let (mut next_min, mut next_max) = (outer_min, outer_max);
             let mut interval = next_max;
-            let mut next_count = 1i64;
+            let mut next_count = 1i32;
             let next_window = loop {
                 next_count += 1;
                 if next_count as usize > len {
@@ -207,7 +210,7 @@ impl<const Q: usize> Compressor<Q> {
                 outer_min = next_min;
             }
             if count > 1 {
-                let delta = i64::from(self.max_error) * QUADRATIC_DEV / (count * count);
+                let delta = self.max_error as i32 * QUADRATIC_DEV / (count * count);
                 min_add = min_add.max(add - delta);
                 max_add = max_add.min(add + delta);
             }
@@ -231,7 +234,7 @@ impl<const Q: usize> Compressor<Q> {
     }
 }
 
-fn div_ceil(n: i64, d: i64) -> i64 {
+fn div_ceil(n: i32, d: i32) -> i32 {
     -(-n).div_euclid(d)
 }
 
