@@ -5,11 +5,15 @@
 //! Available now:
 //! - [`segment`]: planned moves split into constant-acceleration segments;
 //! - [`solver`]: step times of one stepper (half-step crossings of its
-//!   position), with Klipper's direction-change rules;
+//!   position), with Klipper's direction-change rules, over a whole
+//!   segment queue as Klipper's itersolve walks its trapq;
+//! - [`extruder`]: the extruder's position with smoothed pressure advance,
+//!   and the stationary segments that fill the gaps between extrusions;
 //! - [`compress`]: step clocks to `(interval, count, add)` sequences within
 //!   `max_error`, with the step+dir+step filter and far steps.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod compress;
+pub mod extruder;
 pub mod segment;
 pub mod solver;

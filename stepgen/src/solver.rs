@@ -13,8 +13,15 @@ use onechip_planner::kinematics::StepperKinematics;
 
 /// Time resolution of the crossing search, s.
 const TIME_EPSILON: f64 = 0.000_000_001;
-/// First widening of the search window, s.
+/// First widening of the search window, s, and its cap near reversals.
 const FIRST_SEEK: f64 = 0.000_100;
+/// Step generation runs in windows of this much print time, s, aligned to
+/// multiples of it; the search restarts at each window's start. Klipper's
+/// search also restarts where its step-generation flushes cut the queue;
+/// with short fixed windows a direction excursion of a few milliseconds
+/// (a pressure-advance retraction) is found wherever klippy's flushes
+/// happened to fall, instead of being jumped over by a widened search.
+pub const GENERATION_WINDOW: f64 = 0.005;
 
 /// One generated step.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -79,12 +86,80 @@ impl StepSolver {
         }
     }
 
-    /// Generates the steps of `seg` between print times `start` and `end`.
-    pub fn generate(&mut self, seg: &Segment, start: f64, end: f64, mut emit: impl FnMut(Step)) {
+    /// Generates the steps of `seg` between print times `start` and `end`
+    /// (clipped to the segment).
+    pub fn generate(&mut self, seg: &Segment, start: f64, end: f64, emit: impl FnMut(Step)) {
         let kin = self.kin;
-        let position = |t: f64| kin.position(seg.position(t));
+        self.generate_with(seg, start, end, |t| kin.position(seg.position(t)), emit);
+    }
+
+    /// Generates the steps of a time-ordered segment queue, the way
+    /// Klipper's itersolve walks its trapq: segments that do not move this
+    /// stepper are skipped, except for the `margin` s before and after
+    /// segments that do (where a smoothed position, such as pressure
+    /// advance's, already moves). `position(i, t)` is the stepper's
+    /// position (mm) at `t` s into `segs[i]`. With a non-zero margin the
+    /// queue must have no time gaps (see [`crate::extruder::fill_gaps`]).
+    pub fn generate_queue(
+        &mut self,
+        segs: &[Segment],
+        margin: f64,
+        position: impl Fn(usize, f64) -> f64,
+        mut emit: impl FnMut(Step),
+    ) {
+        let mut range = |solver: &mut Self, i: usize, start: f64, end: f64| {
+            let seg = &segs[i];
+            let (mut from, to) = (start.max(seg.print_time), end.min(seg.end_time()));
+            while from < to {
+                let until = next_window_start(from).min(to);
+                solver.generate_with(seg, from, until, |t| position(i, t), &mut emit);
+                from = until;
+            }
+        };
+        // Steps are still due until this print time, s.
+        let mut active_until = f64::NEG_INFINITY;
+        // Inactive segments passed since the last generated one.
+        let mut skipped = 0usize;
+        for (i, seg) in segs.iter().enumerate() {
+            if self.is_active(seg) {
+                if skipped > 0 && margin > 0.0 {
+                    // Lead in: the skipped segments within the margin.
+                    let from = (seg.print_time - margin).max(active_until);
+                    let mut first = i - 1;
+                    while skipped > 1 && segs[first].print_time > from {
+                        skipped -= 1;
+                        first -= 1;
+                    }
+                    for j in first..i {
+                        range(self, j, from, f64::INFINITY);
+                    }
+                }
+                range(self, i, f64::NEG_INFINITY, f64::INFINITY);
+                skipped = 0;
+                active_until = seg.end_time() + margin;
+            } else if seg.print_time < active_until {
+                // Lead out after the last active segment.
+                range(self, i, f64::NEG_INFINITY, active_until);
+                skipped = 1;
+            } else {
+                skipped += 1;
+            }
+        }
+    }
+
+    /// Generates steps from `position` (mm at `t` s into `seg`) between
+    /// print times `start` and `end`, clipped to the segment.
+    fn generate_with(
+        &mut self,
+        seg: &Segment,
+        start: f64,
+        end: f64,
+        position: impl Fn(f64) -> f64,
+        mut emit: impl FnMut(Step),
+    ) {
         let half = self.half_step;
-        let (start, end) = (start - seg.print_time, end - seg.print_time);
+        let start = (start - seg.print_time).max(0.0);
+        let end = (end - seg.print_time).min(seg.move_t);
         let mut last = TimePos {
             t: start,
             pos: self.commanded_pos,
@@ -92,6 +167,8 @@ impl StepSolver {
         let (mut low, mut high) = (last, last);
         let mut seek = FIRST_SEEK;
         let mut dir = self.dir;
+        // True from a reversal until the first step after it.
+        let mut reversing = false;
         loop {
             let dist = high.pos - last.pos;
             let mut widen = dist.abs() < half;
@@ -101,17 +178,21 @@ impl StepSolver {
                     if dist.abs() < half + TIME_EPSILON {
                         // Only reverse once past the midpoint.
                         widen = true;
-                    } else if last.t >= low.t {
-                        // Search must restart after the last step's time.
-                        if high.t < last.t + TIME_EPSILON {
+                    } else {
+                        // A reversal: search around it closely, so that a
+                        // short excursion is not jumped over.
+                        reversing = true;
+                        seek = seek.min(FIRST_SEEK);
+                        if low.t > last.t {
+                            dir = Some(next_dir);
+                        } else if high.t < last.t + TIME_EPSILON {
+                            // Search must restart after the last step's time.
                             widen = true;
                         } else {
                             high.t = (last.t + high.t) * 0.5;
                             high.pos = position(high.t);
                             continue;
                         }
-                    } else {
-                        dir = Some(next_dir);
                     }
                 }
             }
@@ -129,6 +210,10 @@ impl StepSolver {
                 dir: forward,
             });
             seek = (next.t - last.t).max(TIME_EPSILON);
+            if reversing {
+                seek = seek.min(FIRST_SEEK);
+                reversing = false;
+            }
             last = TimePos {
                 t: next.t,
                 pos: target + if forward { half } else { -half },
@@ -223,6 +308,19 @@ fn find_crossing(
                 pos: offset,
             };
         }
+    }
+}
+
+/// The first window boundary after print time `t`, s: the next multiple of
+/// [`GENERATION_WINDOW`], always later than `t`.
+fn next_window_start(t: f64) -> f64 {
+    // Print times are never negative, so truncation is the floor.
+    let next = (((t / GENERATION_WINDOW) as i64) as f64 + 1.0) * GENERATION_WINDOW;
+    if next > t {
+        next
+    } else {
+        // Rounding put `t` on the boundary itself.
+        next + GENERATION_WINDOW
     }
 }
 

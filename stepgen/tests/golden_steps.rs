@@ -9,7 +9,8 @@ use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::TrapqMove;
 use onechip_stepgen::compress::{Compressor, StepCommand, expand};
-use onechip_stepgen::segment::segments;
+use onechip_stepgen::extruder::{self, PressureAdvance, fill_gaps};
+use onechip_stepgen::segment::{Segment, segments};
 use onechip_stepgen::solver::StepSolver;
 use std::path::PathBuf;
 
@@ -63,13 +64,15 @@ fn summary_value(case: &str, key: &str) -> f64 {
 /// that the commands expand to our own ideal steps, each in
 /// `[ideal - max_error, ideal]`, and respect the MCU's limits.
 fn our_steps(
-    trapq: &[TrapqMove],
+    segs: &[Segment],
+    margin: f64,
+    position: impl Fn(usize, f64) -> f64,
     kin: StepperKinematics,
     step_dist: f64,
     freq: f64,
     max_error: u32,
 ) -> Vec<(u64, bool)> {
-    let Some(first) = trapq.first() else {
+    let Some(first) = segs.first() else {
         return Vec::new();
     };
     let mut solver = StepSolver::new(kin, step_dist, first.start_pos);
@@ -77,16 +80,10 @@ fn our_steps(
     let mut commands = Vec::new();
     let mut ideal = Vec::new();
     let mut out = |c: StepCommand| commands.push(c);
-    for m in trapq {
-        for seg in segments(m) {
-            if solver.is_active(&seg) {
-                solver.generate(&seg, seg.print_time, seg.end_time(), |s| {
-                    ideal.push(((s.time * freq + 0.5) as u64, s.dir));
-                    compressor.append(s.time, s.dir, &mut out);
-                });
-            }
-        }
-    }
+    solver.generate_queue(segs, margin, position, |s| {
+        ideal.push(((s.time * freq + 0.5) as u64, s.dir));
+        compressor.append(s.time, s.dir, &mut out);
+    });
     compressor.flush(&mut out);
     assert!(
         commands
@@ -144,21 +141,33 @@ fn check(case: &str, config: &str, with_extruder: bool) {
     let machine = Machine::from_config(&config).expect("machine");
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u32;
-    let toolhead = moves(case, "toolhead");
+    let toolhead: Vec<Segment> = moves(case, "toolhead").iter().flat_map(segments).collect();
     let mut steppers: Vec<(&str, Vec<(u64, bool)>)> = Vec::new();
     for (i, kin) in machine.stepper_kinematics.iter().enumerate() {
         let s = &machine.steppers[i];
+        let position = |j: usize, t: f64| kin.position(toolhead[j].position(t));
         steppers.push((
             s.name,
-            our_steps(&toolhead, *kin, s.step_dist, freq, max_error),
+            our_steps(&toolhead, 0.0, position, *kin, s.step_dist, freq, max_error),
         ));
     }
     if with_extruder && let Some(e) = machine.steppers.get(3) {
+        let pa = PressureAdvance::new(
+            machine.pressure_advance,
+            machine.pressure_advance_smooth_time,
+        );
+        let planned: Vec<Segment> = moves(case, "extruder").iter().flat_map(segments).collect();
+        let mut filled = Vec::new();
+        fill_gaps(&planned, pa.half_smooth_time, |s| filled.push(s));
+        let position = |j: usize, t: f64| extruder::position(&filled, j, t, &pa);
+        let kin = StepperKinematics::Axis(0);
         steppers.push((
             e.name,
             our_steps(
-                &moves(case, "extruder"),
-                StepperKinematics::Axis(0),
+                &filled,
+                pa.half_smooth_time,
+                position,
+                kin,
                 e.step_dist,
                 freq,
                 max_error,
@@ -231,4 +240,9 @@ fn delta_square_and_circle() {
 #[test]
 fn delta_and_shaperless_extrude() {
     check("delta_extrude", "delta.cfg", true);
+}
+
+#[test]
+fn corexy_extrude_with_pressure_advance() {
+    check("corexy_extrude", "corexy.cfg", true);
 }
