@@ -246,14 +246,21 @@ impl<'a> Machine<'a> {
         })
     }
 
-    /// The step-generation scan window this machine needs, s (pressure
-    /// advance looks half its smoothing time ahead and behind).
+    /// The step-generation scan window this machine needs, s: how far
+    /// step times can lie before or after the motion causing them
+    /// (pressure advance smooths over half its smoothing time each way;
+    /// an input shaper's impulses look ahead and behind).
     pub fn scan_delay(&self) -> f64 {
-        if self.pressure_advance > 0.0 {
+        let pa = if self.pressure_advance > 0.0 {
             self.pressure_advance_smooth_time * 0.5
         } else {
             0.0
-        }
+        };
+        [self.input_shaper.x, self.input_shaper.y]
+            .into_iter()
+            .flatten()
+            .map(|s| s.pulses())
+            .fold(pa, |w, p| w.max(p.lead()).max(p.lag()))
     }
 
     /// A toolhead for this machine with a lookahead of `N` moves.

@@ -9,8 +9,9 @@
 //! `[t - hst, t + hst]`, `hst = smooth_time / 2`.
 //!
 //! The extruder's queue has gaps (travel moves do not extrude); like
-//! Klipper's trapq they are filled with stationary segments, so that the
-//! average sees the filament at rest there.
+//! Klipper's trapq they are filled with stationary segments
+//! ([`crate::segment::fill_gaps`]), so that the average sees the filament
+//! at rest there.
 
 use crate::segment::Segment;
 
@@ -37,42 +38,6 @@ impl PressureAdvance {
             advance,
             half_smooth_time,
         }
-    }
-}
-
-/// Longest stationary segment put before the first move, s.
-const MAX_NULL_MOVE: f64 = 1.0;
-
-/// The extruder's segments with gaps filled by stationary ones, plus one
-/// before the first and one after the last (long enough for any window).
-pub fn fill_gaps(segments: &[Segment], margin: f64, mut out: impl FnMut(Segment)) {
-    let still = |print_time: f64, move_t: f64, pos: [f64; 3]| Segment {
-        print_time,
-        move_t,
-        start_v: 0.0,
-        half_accel: 0.0,
-        start_pos: pos,
-        axes_r: [0.0; 3],
-    };
-    let Some(first) = segments.first() else {
-        return;
-    };
-    let lead = MAX_NULL_MOVE.max(margin);
-    out(still(first.print_time - lead, lead, first.start_pos));
-    let mut end = first.print_time;
-    for seg in segments {
-        if seg.print_time > end {
-            out(still(end, seg.print_time - end, seg.start_pos));
-        }
-        out(*seg);
-        end = seg.end_time();
-    }
-    if let Some(last) = segments.last() {
-        out(still(
-            end,
-            margin.max(MAX_NULL_MOVE),
-            last.position(last.move_t),
-        ));
     }
 }
 
@@ -150,6 +115,7 @@ pub fn position(segs: &[Segment], i: usize, t: f64, pa: &PressureAdvance) -> f64
 mod tests {
     extern crate std;
     use super::*;
+    use crate::segment::fill_gaps;
     use std::vec::Vec;
 
     fn filled(segs: &[Segment]) -> Vec<Segment> {

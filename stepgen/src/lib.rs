@@ -3,12 +3,13 @@
 //! local stepper engine and `queue_step` commands for secondary MCUs (issue #4).
 //!
 //! Available now:
-//! - [`segment`]: planned moves split into constant-acceleration segments;
+//! - [`segment`]: planned moves split into constant-acceleration segments,
+//!   time gaps filled with stationary ones;
 //! - [`solver`]: step times of one stepper (half-step crossings of its
 //!   position), with Klipper's direction-change rules, over a whole
 //!   segment queue as Klipper's itersolve walks its trapq;
-//! - [`extruder`]: the extruder's position with smoothed pressure advance,
-//!   and the stationary segments that fill the gaps between extrusions;
+//! - [`extruder`]: the extruder's position with smoothed pressure advance;
+//! - [`shaper`]: input shaping of the X and Y positions a stepper follows;
 //! - [`compress`]: step clocks to `(interval, count, add)` sequences within
 //!   `max_error`, with the step+dir+step filter and far steps.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -16,4 +17,5 @@
 pub mod compress;
 pub mod extruder;
 pub mod segment;
+pub mod shaper;
 pub mod solver;

@@ -72,6 +72,58 @@ pub fn segments(m: &TrapqMove) -> impl Iterator<Item = Segment> {
         })
 }
 
+/// Longest stationary segment put before the first move, s.
+const MAX_NULL_MOVE: f64 = 1.0;
+
+/// `segments` with their time gaps filled by stationary segments, plus one
+/// before the first and one after the last of at least `margin` s (as
+/// Klipper's trapq does), so that filters looking across segments
+/// (pressure advance, input shaping) always find one.
+pub fn fill_gaps(segments: &[Segment], margin: f64, mut out: impl FnMut(Segment)) {
+    let still = |print_time: f64, move_t: f64, pos: [f64; 3]| Segment {
+        print_time,
+        move_t,
+        start_v: 0.0,
+        half_accel: 0.0,
+        start_pos: pos,
+        axes_r: [0.0; 3],
+    };
+    let Some(first) = segments.first() else {
+        return;
+    };
+    let lead = MAX_NULL_MOVE.max(margin);
+    out(still(first.print_time - lead, lead, first.start_pos));
+    let mut end = first.print_time;
+    for seg in segments {
+        if seg.print_time > end {
+            out(still(end, seg.print_time - end, seg.start_pos));
+        }
+        out(*seg);
+        end = seg.end_time();
+    }
+    if let Some(last) = segments.last() {
+        out(still(
+            end,
+            margin.max(MAX_NULL_MOVE),
+            last.position(last.move_t),
+        ));
+    }
+}
+
+/// The position `t` s into `segs[i]` (`t` may lie outside it: the
+/// neighbouring segments are used, as far as the queue reaches), mm.
+pub fn position_across(segs: &[Segment], mut i: usize, mut t: f64) -> [f64; 3] {
+    while t < 0.0 && i > 0 {
+        i -= 1;
+        t += segs[i].move_t;
+    }
+    while t > segs[i].move_t && i + 1 < segs.len() {
+        t -= segs[i].move_t;
+        i += 1;
+    }
+    segs[i].position(t)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -23,6 +23,25 @@ const FIRST_SEEK: f64 = 0.000_100;
 /// happened to fall, instead of being jumped over by a widened search.
 pub const GENERATION_WINDOW: f64 = 0.005;
 
+/// How far a stepper's steps can lie around the segments that move it, s.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Margins {
+    /// Steps may come this long before such a segment starts.
+    pub before: f64,
+    /// Steps may come this long after such a segment ends.
+    pub after: f64,
+}
+
+impl Margins {
+    /// The same margin on both sides, s.
+    pub fn both(margin: f64) -> Self {
+        Self {
+            before: margin,
+            after: margin,
+        }
+    }
+}
+
 /// One generated step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Step {
@@ -95,15 +114,16 @@ impl StepSolver {
 
     /// Generates the steps of a time-ordered segment queue, the way
     /// Klipper's itersolve walks its trapq: segments that do not move this
-    /// stepper are skipped, except for the `margin` s before and after
-    /// segments that do (where a smoothed position, such as pressure
-    /// advance's, already moves). `position(i, t)` is the stepper's
-    /// position (mm) at `t` s into `segs[i]`. With a non-zero margin the
-    /// queue must have no time gaps (see [`crate::extruder::fill_gaps`]).
+    /// stepper are skipped, except within `margins` of segments that do
+    /// (where a filtered position, such as pressure advance's or an input
+    /// shaper's, already or still moves). `position(i, t)` is the
+    /// stepper's position (mm) at `t` s into `segs[i]`. With non-zero
+    /// margins the queue must have no time gaps (see
+    /// [`crate::segment::fill_gaps`]).
     pub fn generate_queue(
         &mut self,
         segs: &[Segment],
-        margin: f64,
+        margins: Margins,
         position: impl Fn(usize, f64) -> f64,
         mut emit: impl FnMut(Step),
     ) {
@@ -122,9 +142,9 @@ impl StepSolver {
         let mut skipped = 0usize;
         for (i, seg) in segs.iter().enumerate() {
             if self.is_active(seg) {
-                if skipped > 0 && margin > 0.0 {
+                if skipped > 0 && margins.before > 0.0 {
                     // Lead in: the skipped segments within the margin.
-                    let from = (seg.print_time - margin).max(active_until);
+                    let from = (seg.print_time - margins.before).max(active_until);
                     let mut first = i - 1;
                     while skipped > 1 && segs[first].print_time > from {
                         skipped -= 1;
@@ -136,7 +156,7 @@ impl StepSolver {
                 }
                 range(self, i, f64::NEG_INFINITY, f64::INFINITY);
                 skipped = 0;
-                active_until = seg.end_time() + margin;
+                active_until = seg.end_time() + margins.after;
             } else if seg.print_time < active_until {
                 // Lead out after the last active segment.
                 range(self, i, f64::NEG_INFINITY, active_until);

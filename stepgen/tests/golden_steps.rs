@@ -9,9 +9,10 @@ use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::TrapqMove;
 use onechip_stepgen::compress::{Compressor, StepCommand, expand};
-use onechip_stepgen::extruder::{self, PressureAdvance, fill_gaps};
-use onechip_stepgen::segment::{Segment, segments};
-use onechip_stepgen::solver::StepSolver;
+use onechip_stepgen::extruder::{self, PressureAdvance};
+use onechip_stepgen::segment::{Segment, fill_gaps, segments};
+use onechip_stepgen::shaper::StepperShaper;
+use onechip_stepgen::solver::{Margins, StepSolver};
 use std::path::PathBuf;
 
 fn golden_dir() -> PathBuf {
@@ -65,7 +66,7 @@ fn summary_value(case: &str, key: &str) -> f64 {
 /// `[ideal - max_error, ideal]`, and respect the MCU's limits.
 fn our_steps(
     segs: &[Segment],
-    margin: f64,
+    margins: Margins,
     position: impl Fn(usize, f64) -> f64,
     kin: StepperKinematics,
     step_dist: f64,
@@ -80,7 +81,7 @@ fn our_steps(
     let mut commands = Vec::new();
     let mut ideal = Vec::new();
     let mut out = |c: StepCommand| commands.push(c);
-    solver.generate_queue(segs, margin, position, |s| {
+    solver.generate_queue(segs, margins, position, |s| {
         ideal.push(((s.time * freq + 0.5) as u64, s.dir));
         compressor.append(s.time, s.dir, &mut out);
     });
@@ -142,14 +143,38 @@ fn check(case: &str, config: &str, with_extruder: bool) {
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u32;
     let toolhead: Vec<Segment> = moves(case, "toolhead").iter().flat_map(segments).collect();
+    let mut filled = Vec::new();
+    fill_gaps(&toolhead, machine.scan_delay(), |s| filled.push(s));
     let mut steppers: Vec<(&str, Vec<(u64, bool)>)> = Vec::new();
     for (i, kin) in machine.stepper_kinematics.iter().enumerate() {
         let s = &machine.steppers[i];
-        let position = |j: usize, t: f64| kin.position(toolhead[j].position(t));
-        steppers.push((
-            s.name,
-            our_steps(&toolhead, 0.0, position, *kin, s.step_dist, freq, max_error),
-        ));
+        let shaper = StepperShaper::new(&machine.input_shaper, *kin);
+        let steps = if shaper.is_active() {
+            let position = |j: usize, t: f64| kin.position(shaper.position(&filled, j, t));
+            let margins = shaper.margins();
+            our_steps(
+                &filled,
+                margins,
+                position,
+                *kin,
+                s.step_dist,
+                freq,
+                max_error,
+            )
+        } else {
+            let position = |j: usize, t: f64| kin.position(toolhead[j].position(t));
+            let margins = Margins::default();
+            our_steps(
+                &toolhead,
+                margins,
+                position,
+                *kin,
+                s.step_dist,
+                freq,
+                max_error,
+            )
+        };
+        steppers.push((s.name, steps));
     }
     if with_extruder && let Some(e) = machine.steppers.get(3) {
         let pa = PressureAdvance::new(
@@ -165,7 +190,7 @@ fn check(case: &str, config: &str, with_extruder: bool) {
             e.name,
             our_steps(
                 &filled,
-                pa.half_smooth_time,
+                Margins::both(pa.half_smooth_time),
                 position,
                 kin,
                 e.step_dist,
@@ -177,14 +202,14 @@ fn check(case: &str, config: &str, with_extruder: bool) {
     for (name, ours) in steppers {
         let golden = golden_steps(case, name);
         assert_eq!(ours.len(), golden.len(), "{case} {name}: step count");
-        let mut worst = 0i64;
+        let mut deviations = Vec::with_capacity(ours.len());
         for (i, (o, g)) in ours.iter().zip(&golden).enumerate() {
             assert_eq!(o.1, g.1, "{case} {name}: direction of step {i}");
             // The MCU counts in 32 bits; a step more than 2^32 ticks after
             // the previous one is sent modulo 2^32 (as klippy does), so
             // compare as the MCU sees clocks.
             let d = i64::from(o.0.wrapping_sub(g.0) as u32 as i32);
-            worst = worst.max(d.abs());
+            deviations.push(d.unsigned_abs());
             assert!(
                 d.abs() <= i64::from(max_error),
                 "{case} {name}: step {i} at {} vs golden {} ({d} ticks)",
@@ -192,10 +217,17 @@ fn check(case: &str, config: &str, with_extruder: bool) {
                 g.0
             );
         }
+        deviations.sort_unstable();
+        let us = |q: f64| {
+            let i = ((deviations.len() as f64 - 1.0) * q) as usize;
+            deviations.get(i).map_or(0.0, |&d| d as f64 / freq * 1e6)
+        };
         println!(
-            "{case} {name}: {} steps, worst deviation {worst} ticks ({:.2} us)",
+            "{case} {name}: {} steps, deviation from golden p50 {:.2} us, p99 {:.2} us, max {:.2} us",
             ours.len(),
-            worst as f64 / freq * 1e6
+            us(0.5),
+            us(0.99),
+            us(1.0)
         );
     }
 }
@@ -245,4 +277,19 @@ fn delta_and_shaperless_extrude() {
 #[test]
 fn corexy_extrude_with_pressure_advance() {
     check("corexy_extrude", "corexy.cfg", true);
+}
+
+#[test]
+fn shaper_square() {
+    check("shaper_square", "cartesian_shaper.cfg", true);
+}
+
+#[test]
+fn shaper_circle() {
+    check("shaper_circle", "cartesian_shaper.cfg", true);
+}
+
+#[test]
+fn shaper_extrude() {
+    check("shaper_extrude", "cartesian_shaper.cfg", true);
 }
