@@ -54,6 +54,13 @@ pub trait MoveSink {
     fn toolhead(&mut self, m: &TrapqMove);
     /// An extruder move.
     fn extruder(&mut self, m: &TrapqMove);
+    /// The toolhead position was set without moving (homing,
+    /// SET_KINEMATIC_POSITION), after every move so far: steppers take
+    /// `pos` (mm) as where they are. Sinks that only look at moves may
+    /// ignore it.
+    fn set_position(&mut self, pos: [f64; 3]) {
+        let _ = pos;
+    }
 }
 
 /// Why a move was refused.
@@ -521,6 +528,7 @@ impl<const N: usize> Toolhead<N> {
     pub fn set_position(&mut self, pos: [f64; 4], sink: &mut impl MoveSink) {
         self.flush_step_generation(sink);
         self.commanded_pos = pos;
+        sink.set_position([pos[0], pos[1], pos[2]]);
     }
 
     /// Sets only the extruder's position.

@@ -5,9 +5,11 @@
 //! (as the MCU's 32-bit clock sees it).
 
 use onechip_planner::config::Config;
+use onechip_planner::gcode::parse;
+use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::{Compressor, StepCommand, expand};
 use onechip_stepgen::extruder::{self, PressureAdvance};
 use onechip_stepgen::segment::{Segment, fill_gaps, segments};
@@ -61,30 +63,47 @@ fn summary_value(case: &str, key: &str) -> f64 {
         .expect("number")
 }
 
+/// Segments moving from where the last set_position (or the start) put
+/// the toolhead, which is `start` (mm).
+struct Run {
+    start: [f64; 3],
+    segs: Vec<Segment>,
+}
+
 /// Our steps for one stepper: (clock, positive direction). Also checks
 /// that the commands expand to our own ideal steps, each in
 /// `[ideal - max_error, ideal]`, and respect the MCU's limits.
+/// `position(segs, i, t)` is the stepper's position at `t` s into `segs[i]`.
 fn our_steps(
-    segs: &[Segment],
+    runs: &[Run],
     margins: Margins,
-    position: impl Fn(usize, f64) -> f64,
+    position: impl Fn(&[Segment], usize, f64) -> f64,
     kin: StepperKinematics,
     step_dist: f64,
     freq: f64,
     max_error: u32,
 ) -> Vec<(u64, bool)> {
-    let Some(first) = segs.first() else {
+    let Some(first) = runs.first() else {
         return Vec::new();
     };
-    let mut solver = StepSolver::new(kin, step_dist, first.start_pos);
+    let mut solver = StepSolver::new(kin, step_dist, first.start);
     let mut compressor = Compressor::<4096>::new(max_error, freq);
     let mut commands = Vec::new();
     let mut ideal = Vec::new();
     let mut out = |c: StepCommand| commands.push(c);
-    solver.generate_queue(segs, margins, position, |s| {
-        ideal.push(((s.time * freq + 0.5) as u64, s.dir));
-        compressor.append(s.time, s.dir, &mut out);
-    });
+    for run in runs {
+        solver.set_position(run.start);
+        let segs = &run.segs;
+        solver.generate_queue(
+            segs,
+            margins,
+            |i, t| position(segs, i, t),
+            |s| {
+                ideal.push(((s.time * freq + 0.5) as u64, s.dir));
+                compressor.append(s.time, s.dir, &mut out);
+            },
+        );
+    }
     compressor.flush(&mut out);
     assert!(
         commands
@@ -136,43 +155,135 @@ fn golden_steps(case: &str, stepper: &str) -> Vec<(u64, bool)> {
         .collect()
 }
 
+/// What the planner hands step generation.
+enum Event {
+    Toolhead(TrapqMove),
+    Extruder(TrapqMove),
+    SetPosition([f64; 3]),
+}
+
+/// The golden planned moves (klippy's trapq appends) as events. They carry
+/// no set_position: only for cases whose only one is the prologue's.
+fn golden_events(case: &str) -> Vec<Event> {
+    let mut events: Vec<Event> = moves(case, "toolhead")
+        .into_iter()
+        .map(Event::Toolhead)
+        .collect();
+    events.extend(moves(case, "extruder").into_iter().map(Event::Extruder));
+    events
+}
+
+struct Planned(Vec<Event>);
+
+impl MoveSink for Planned {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        self.0.push(Event::Toolhead(*m));
+    }
+    fn extruder(&mut self, m: &TrapqMove) {
+        self.0.push(Event::Extruder(*m));
+    }
+    fn set_position(&mut self, pos: [f64; 3]) {
+        self.0.push(Event::SetPosition(pos));
+    }
+}
+
+/// Our planner's events for a case's G-code (moves and set_position), with
+/// each move's start time taken from golden: klippy's batch-mode flushing
+/// can delay a restart from rest (the planner's golden test explains and
+/// bounds this); durations and positions must match.
+fn planned_events(case: &str, config: &str) -> Vec<Event> {
+    let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
+    let config = Config::parse(config, &cfg).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    let mut toolhead = machine.toolhead::<4096>();
+    let mut gcode = GcodeMove::default();
+    let mut planned = Planned(Vec::new());
+    let mut replies = String::new();
+    let program = std::fs::read_to_string(golden_dir().join("gcode").join(format!("{case}.gcode")))
+        .expect("gcode");
+    for (n, line) in program.lines().enumerate() {
+        let parsed = parse(line).unwrap_or_else(|e| panic!("{case}:{}: {e}", n + 1));
+        gcode
+            .execute(&parsed, &mut toolhead, &mut planned, &mut replies)
+            .unwrap_or_else(|e| panic!("{case}:{}: {e}", n + 1));
+    }
+    gcode.finish(&mut toolhead, &mut planned);
+    let (mut golden_toolhead, mut golden_extruder) = (
+        moves(case, "toolhead").into_iter(),
+        moves(case, "extruder").into_iter(),
+    );
+    for event in &mut planned.0 {
+        let (m, golden) = match event {
+            Event::Toolhead(m) => (m, golden_toolhead.next()),
+            Event::Extruder(m) => (m, golden_extruder.next()),
+            Event::SetPosition(_) => continue,
+        };
+        let golden = golden.expect("golden has as many moves");
+        let duration = |m: &TrapqMove| m.accel_t + m.cruise_t + m.decel_t;
+        assert!((duration(m) - duration(&golden)).abs() < 1e-9);
+        assert!((0..3).all(|k| (m.start_pos[k] - golden.start_pos[k]).abs() < 1e-6));
+        m.print_time = golden.print_time;
+    }
+    assert!(golden_toolhead.next().is_none() && golden_extruder.next().is_none());
+    planned.0
+}
+
+/// Toolhead runs between set_position events, and the extruder's segments.
+fn split(events: &[Event]) -> (Vec<Run>, Vec<Segment>) {
+    let mut runs: Vec<Run> = Vec::new();
+    let mut extruder = Vec::new();
+    for event in events {
+        match event {
+            Event::SetPosition(pos) => runs.push(Run {
+                start: *pos,
+                segs: Vec::new(),
+            }),
+            Event::Toolhead(m) => {
+                if runs.is_empty() {
+                    runs.push(Run {
+                        start: m.start_pos,
+                        segs: Vec::new(),
+                    });
+                }
+                if let Some(run) = runs.last_mut() {
+                    run.segs.extend(segments(m));
+                }
+            }
+            Event::Extruder(m) => extruder.extend(segments(m)),
+        }
+    }
+    (runs, extruder)
+}
+
 fn check(case: &str, config: &str, with_extruder: bool) {
+    check_events(case, config, with_extruder, &golden_events(case));
+}
+
+fn check_events(case: &str, config: &str, with_extruder: bool, events: &[Event]) {
     let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
     let config = Config::parse(config, &cfg).expect("config");
     let machine = Machine::from_config(&config).expect("machine");
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u32;
-    let toolhead: Vec<Segment> = moves(case, "toolhead").iter().flat_map(segments).collect();
-    let mut filled = Vec::new();
-    fill_gaps(&toolhead, machine.scan_delay(), |s| filled.push(s));
+    let (mut runs, extruder_segs) = split(events);
     let mut steppers: Vec<(&str, Vec<(u64, bool)>)> = Vec::new();
     for (i, kin) in machine.stepper_kinematics.iter().enumerate() {
         let s = &machine.steppers[i];
         let shaper = StepperShaper::new(&machine.input_shaper, *kin);
         let steps = if shaper.is_active() {
-            let position = |j: usize, t: f64| kin.position(shaper.position(&filled, j, t));
+            for run in &mut runs {
+                let mut filled = Vec::new();
+                fill_gaps(&run.segs, machine.scan_delay(), |s| filled.push(s));
+                run.segs = filled;
+            }
+            let position =
+                |segs: &[Segment], j: usize, t: f64| kin.position(shaper.position(segs, j, t));
             let margins = shaper.margins();
-            our_steps(
-                &filled,
-                margins,
-                position,
-                *kin,
-                s.step_dist,
-                freq,
-                max_error,
-            )
+            our_steps(&runs, margins, position, *kin, s.step_dist, freq, max_error)
         } else {
-            let position = |j: usize, t: f64| kin.position(toolhead[j].position(t));
+            let position = |segs: &[Segment], j: usize, t: f64| kin.position(segs[j].position(t));
             let margins = Margins::default();
-            our_steps(
-                &toolhead,
-                margins,
-                position,
-                *kin,
-                s.step_dist,
-                freq,
-                max_error,
-            )
+            our_steps(&runs, margins, position, *kin, s.step_dist, freq, max_error)
         };
         steppers.push((s.name, steps));
     }
@@ -181,15 +292,18 @@ fn check(case: &str, config: &str, with_extruder: bool) {
             machine.pressure_advance,
             machine.pressure_advance_smooth_time,
         );
-        let planned: Vec<Segment> = moves(case, "extruder").iter().flat_map(segments).collect();
         let mut filled = Vec::new();
-        fill_gaps(&planned, pa.half_smooth_time, |s| filled.push(s));
-        let position = |j: usize, t: f64| extruder::position(&filled, j, t, &pa);
+        fill_gaps(&extruder_segs, pa.half_smooth_time, |s| filled.push(s));
+        let runs = [Run {
+            start: [filled.first().map_or(0.0, |s| s.start_pos[0]), 0.0, 0.0],
+            segs: filled,
+        }];
+        let position = |segs: &[Segment], j: usize, t: f64| extruder::position(segs, j, t, &pa);
         let kin = StepperKinematics::Axis(0);
         steppers.push((
             e.name,
             our_steps(
-                &filled,
+                &runs,
                 Margins::both(pa.half_smooth_time),
                 position,
                 kin,
@@ -277,6 +391,20 @@ fn delta_and_shaperless_extrude() {
 #[test]
 fn corexy_extrude_with_pressure_advance() {
     check("corexy_extrude", "corexy.cfg", true);
+}
+
+#[test]
+fn cart_move_g28_with_homing() {
+    let events = planned_events("cart_move_g28", "cartesian.cfg");
+    assert!(
+        events
+            .iter()
+            .filter(|e| matches!(e, Event::SetPosition(_)))
+            .count()
+            > 3,
+        "homing sets positions"
+    );
+    check_events("cart_move_g28", "cartesian.cfg", true, &events);
 }
 
 #[test]
