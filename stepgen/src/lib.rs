@@ -3,6 +3,8 @@
 //! local stepper engine and `queue_step` commands for secondary MCUs (issue #4).
 //!
 //! Available now:
+//! - [`trapq`]: the bounded motion queue the planner fills and step
+//!   generation reads, pruned as generation passes;
 //! - [`segment`]: planned moves split into constant-acceleration segments,
 //!   time gaps filled with stationary ones;
 //! - [`solver`]: step times of one stepper (half-step crossings of its
@@ -19,3 +21,4 @@ pub mod extruder;
 pub mod segment;
 pub mod shaper;
 pub mod solver;
+pub mod trapq;

@@ -68,6 +68,10 @@ pub struct StepSolver {
     commanded_pos: f64,
     /// Direction of the last step (None before any).
     dir: Option<bool>,
+    /// Steps are generated up to this print time, s.
+    generated_until: f64,
+    /// End of the last segment that moved this stepper, s.
+    last_active_end: f64,
 }
 
 impl StepSolver {
@@ -79,6 +83,8 @@ impl StepSolver {
             half_step: 0.5 * step_dist,
             commanded_pos: kin.position(pos),
             dir: None,
+            generated_until: f64::NEG_INFINITY,
+            last_active_end: f64::NEG_INFINITY,
         }
     }
 
@@ -91,6 +97,11 @@ impl StepSolver {
     /// The stepper's position at its last step, mm.
     pub fn commanded_pos(&self) -> f64 {
         self.commanded_pos
+    }
+
+    /// Print time up to which steps have been generated, s.
+    pub fn generated_until(&self) -> f64 {
+        self.generated_until
     }
 
     /// True if `seg` can move this stepper.
@@ -113,56 +124,82 @@ impl StepSolver {
     }
 
     /// Generates the steps of a time-ordered segment queue, the way
-    /// Klipper's itersolve walks its trapq: segments that do not move this
+    /// Klipper's itersolve walks its trapq, from where the last call
+    /// stopped up to print time `until` (s). Splitting generation at
+    /// multiples of [`GENERATION_WINDOW`] gives the same steps as one
+    /// call; elsewhere the split restarts the search, as Klipper's flushes
+    /// do. Segments that do not move this
     /// stepper are skipped, except within `margins` of segments that do
     /// (where a filtered position, such as pressure advance's or an input
     /// shaper's, already or still moves). `position(i, t)` is the
-    /// stepper's position (mm) at `t` s into `segs[i]`. With non-zero
-    /// margins the queue must have no time gaps (see
-    /// [`crate::segment::fill_gaps`]).
-    pub fn generate_queue(
+    /// stepper's position (mm) at `t` s into `segs[i]`.
+    ///
+    /// `segs` must reach past `until` by the margins (later segments may
+    /// not change steps already generated), and with non-zero margins it
+    /// must have no time gaps (see [`crate::segment::fill_gaps`] and
+    /// [`crate::trapq::Trapq`]). Segments may be dropped from its front
+    /// once they end before [`Self::generated_until`] less the margins.
+    pub fn generate_until(
         &mut self,
         segs: &[Segment],
         margins: Margins,
+        until: f64,
         position: impl Fn(usize, f64) -> f64,
         mut emit: impl FnMut(Step),
     ) {
+        let since = self.generated_until;
+        if until <= since {
+            return;
+        }
+        self.generated_until = until;
         let mut range = |solver: &mut Self, i: usize, start: f64, end: f64| {
             let seg = &segs[i];
-            let (mut from, to) = (start.max(seg.print_time), end.min(seg.end_time()));
+            let from = start.max(since).max(seg.print_time);
+            let to = end.min(until).min(seg.end_time());
+            let mut from = from;
             while from < to {
-                let until = next_window_start(from).min(to);
-                solver.generate_with(seg, from, until, |t| position(i, t), &mut emit);
-                from = until;
+                let window_end = next_window_start(from).min(to);
+                solver.generate_with(seg, from, window_end, |t| position(i, t), &mut emit);
+                from = window_end;
             }
         };
         // Steps are still due until this print time, s.
-        let mut active_until = f64::NEG_INFINITY;
+        let mut active_until = self.last_active_end + margins.after;
         // Inactive segments passed since the last generated one.
         let mut skipped = 0usize;
-        for (i, seg) in segs.iter().enumerate() {
+        let first = segs.partition_point(|seg| seg.end_time() <= since);
+        for (i, seg) in segs.iter().enumerate().skip(first) {
             if self.is_active(seg) {
                 if skipped > 0 && margins.before > 0.0 {
                     // Lead in: the skipped segments within the margin.
                     let from = (seg.print_time - margins.before).max(active_until);
-                    let mut first = i - 1;
-                    while skipped > 1 && segs[first].print_time > from {
+                    let mut lead = i - 1;
+                    while skipped > 1 && segs[lead].print_time > from {
                         skipped -= 1;
-                        first -= 1;
+                        lead -= 1;
                     }
-                    for j in first..i {
+                    for j in lead..i {
                         range(self, j, from, f64::INFINITY);
                     }
                 }
                 range(self, i, f64::NEG_INFINITY, f64::INFINITY);
+                if seg.end_time() >= until {
+                    return;
+                }
                 skipped = 0;
+                self.last_active_end = seg.end_time();
                 active_until = seg.end_time() + margins.after;
-            } else if seg.print_time < active_until {
-                // Lead out after the last active segment.
-                range(self, i, f64::NEG_INFINITY, active_until);
-                skipped = 1;
             } else {
-                skipped += 1;
+                if seg.print_time < active_until {
+                    // Lead out after the last active segment.
+                    range(self, i, f64::NEG_INFINITY, active_until);
+                    skipped = 1;
+                } else {
+                    skipped += 1;
+                }
+                if until + margins.before <= seg.end_time() {
+                    return;
+                }
             }
         }
     }
