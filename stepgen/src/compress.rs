@@ -86,6 +86,23 @@ impl<const Q: usize> Compressor<Q> {
         self.held = Some((clock, dir));
     }
 
+    /// Sends the commands of the steps before print time `time` (s),
+    /// keeping later ones to compress with the steps that follow them.
+    /// Steps must have been appended past `time` by more than the
+    /// step+dir+step filter's window.
+    pub fn flush_until(&mut self, time: f64, out: &mut impl FnMut(StepCommand)) {
+        let clock = (time.max(0.0) * self.freq) as u64;
+        if let Some((held_clock, held_dir)) = self.held
+            && held_clock < clock
+        {
+            self.held = None;
+            self.commit(held_clock, held_dir, out);
+        }
+        while self.queue.first().is_some_and(|&c| c < clock) {
+            self.compress_some(out);
+        }
+    }
+
     /// Sends everything queued (the end of the motion, or before a pause).
     pub fn flush(&mut self, out: &mut impl FnMut(StepCommand)) {
         if let Some((clock, dir)) = self.held.take() {

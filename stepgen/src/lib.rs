@@ -3,6 +3,8 @@
 //! local stepper engine and `queue_step` commands for secondary MCUs (issue #4).
 //!
 //! Available now:
+//! - [`motion`]: the whole pipeline for a machine: planned moves in, each
+//!   stepper's commands out, with back-pressure;
 //! - [`trapq`]: the bounded motion queue the planner fills and step
 //!   generation reads, pruned as generation passes;
 //! - [`segment`]: planned moves split into constant-acceleration segments,
@@ -18,6 +20,7 @@
 
 pub mod compress;
 pub mod extruder;
+pub mod motion;
 pub mod segment;
 pub mod shaper;
 pub mod solver;

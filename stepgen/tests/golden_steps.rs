@@ -15,10 +15,10 @@ use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::{Compressor, StepCommand, expand};
 use onechip_stepgen::extruder::{self, PressureAdvance};
+use onechip_stepgen::motion::{Motion, StepSink};
 use onechip_stepgen::segment::{Segment, fill_gaps, segments};
 use onechip_stepgen::shaper::StepperShaper;
-use onechip_stepgen::solver::{GENERATION_WINDOW, Margins, Step, StepSolver};
-use onechip_stepgen::trapq::Trapq;
+use onechip_stepgen::solver::{Margins, StepSolver};
 use std::path::PathBuf;
 
 fn golden_dir() -> PathBuf {
@@ -461,183 +461,96 @@ fn shaper_extrude() {
     check("shaper_extrude", "cartesian_shaper.cfg", true);
 }
 
-/// Steps of every stepper when moves stream through bounded queues of `N`
-/// segments: appended one by one, generated in [`GENERATION_WINDOW`]
-/// steps as far as the queued motion allows, retired behind generation.
-fn streamed_steps<const N: usize>(case: &str, config: &str) -> Vec<Vec<Step>> {
-    let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
-    let config = Config::parse(config, &cfg).expect("config");
-    let machine = Machine::from_config(&config).expect("machine");
-    let pa = PressureAdvance::new(
-        machine.pressure_advance,
-        machine.pressure_advance_smooth_time,
-    );
-    // (solver, shaper, margins) per toolhead stepper, then the extruder.
-    let mut toolhead_gens: Vec<(StepSolver, StepperShaper, Margins)> = Vec::new();
-    let mut first_toolhead = moves(case, "toolhead").into_iter();
-    let start = first_toolhead.next().map_or([0.0; 3], |m| m.start_pos);
-    for (kin, s) in machine.stepper_kinematics.iter().zip(&machine.steppers) {
-        let shaper = StepperShaper::new(&machine.input_shaper, *kin);
-        let margins = if shaper.is_active() {
-            shaper.margins()
-        } else {
-            Margins::default()
-        };
-        toolhead_gens.push((StepSolver::new(*kin, s.step_dist, start), shaper, margins));
+/// Collects each stepper's commands.
+struct Commands(Vec<Vec<StepCommand>>);
+
+impl StepSink for Commands {
+    fn command(&mut self, index: usize, cmd: StepCommand) {
+        self.0[index].push(cmd);
     }
-    let e_start = moves(case, "extruder")
-        .first()
-        .map_or(0.0, |m| m.start_pos[0]);
-    let e_dist = machine.steppers.get(3).map_or(1.0, |s| s.step_dist);
-    let mut extruder = StepSolver::new(StepperKinematics::Axis(0), e_dist, [e_start, 0.0, 0.0]);
-    let e_margins = Margins::both(pa.half_smooth_time);
-    let mut toolhead_q = Trapq::<N>::new();
-    let mut extruder_q = Trapq::<N>::new();
-    let mut steps = vec![Vec::new(); toolhead_gens.len() + 1];
-    // Klipper appends a G1's toolhead and extruder parts together, moves
-    // in time order.
-    let mut events = golden_events(case);
-    let start_time = |e: &Event| match e {
-        Event::Toolhead(m) | Event::Extruder(m) => m.print_time,
-        Event::SetPosition(_) => unreachable!("golden moves only"),
-    };
-    events.sort_by(|a, b| start_time(a).total_cmp(&start_time(b)));
-    let mut events = events.iter().peekable();
-    loop {
-        // Queue moves while there is room.
-        while let Some(event) = events.peek() {
-            let queued = match event {
-                Event::Toolhead(m) => toolhead_q.append(m),
-                Event::Extruder(m) => extruder_q.append(m),
-                Event::SetPosition(_) => unreachable!("golden moves only"),
-            };
-            if queued.is_err() {
-                break;
-            }
-            events.next();
-        }
-        // Generate as far as the queued motion is final: up to where the
-        // next move starts (or to the end).
-        let all_queued = events.peek().is_none();
-        let known = events.peek().map_or(f64::INFINITY, |e| start_time(e));
-        let window = |t: f64| {
-            if t.is_finite() {
-                (t / GENERATION_WINDOW).floor() * GENERATION_WINDOW
-            } else {
-                t
-            }
-        };
-        let mut progress = false;
-        for (k, (solver, shaper, margins)) in toolhead_gens.iter_mut().enumerate() {
-            let until = window(known - margins.before);
-            let before = solver.generated_until();
-            let segs = toolhead_q.segments();
-            let kin = machine.stepper_kinematics[k];
-            solver.generate_until(
-                segs,
-                *margins,
-                until,
-                |i, t| kin.position(shaper.position(segs, i, t)),
-                |s| steps[k].push(s),
-            );
-            progress |= solver.generated_until() > before;
-        }
-        let until = window(known - e_margins.before);
-        let before = extruder.generated_until();
-        let segs = extruder_q.segments();
-        extruder.generate_until(
-            segs,
-            e_margins,
-            until,
-            |i, t| extruder::position(segs, i, t, &pa),
-            |s| steps[toolhead_gens.len()].push(s),
-        );
-        progress |= extruder.generated_until() > before;
-        if all_queued {
-            break;
-        }
-        // Drop what every stepper has passed, keeping what filters look
-        // back on.
-        let look_back = toolhead_gens
-            .iter()
-            .map(|g| g.2.before.max(g.2.after))
-            .fold(0.0, f64::max);
-        let th_done = toolhead_gens
-            .iter()
-            .map(|g| g.0.generated_until())
-            .fold(f64::INFINITY, f64::min);
-        toolhead_q.retire(th_done - look_back);
-        extruder_q.retire(extruder.generated_until() - e_margins.before.max(e_margins.after));
-        assert!(
-            progress || (toolhead_q.has_room() && extruder_q.has_room()),
-            "{case}: queues of {N} segments are too small to make progress"
-        );
-    }
-    steps
 }
 
-/// The same steps in one pass over the whole (gap-filled) queues.
-fn one_shot_steps(case: &str, config: &str) -> Vec<Vec<Step>> {
+/// The whole pipeline as the firmware runs it: moves streamed in time
+/// order through [`Motion`] with queues of only 64 segments (so generation
+/// runs while moves arrive and the queues are pruned behind it), its
+/// commands expanded as the MCU does, against golden.
+fn check_motion(case: &str, config: &str, events: &[Event]) {
     let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
     let config = Config::parse(config, &cfg).expect("config");
     let machine = Machine::from_config(&config).expect("machine");
-    let pa = PressureAdvance::new(
-        machine.pressure_advance,
-        machine.pressure_advance_smooth_time,
-    );
-    let (runs, extruder_segs) = split(&golden_events(case));
-    let mut toolhead = Vec::new();
-    fill_gaps(&runs[0].segs, 1.0, |s| toolhead.push(s));
-    let mut out = Vec::new();
-    for (kin, s) in machine.stepper_kinematics.iter().zip(&machine.steppers) {
-        let shaper = StepperShaper::new(&machine.input_shaper, *kin);
-        let margins = if shaper.is_active() {
-            shaper.margins()
-        } else {
-            Margins::default()
-        };
-        let mut solver = StepSolver::new(*kin, s.step_dist, runs[0].start);
-        let mut steps = Vec::new();
-        solver.generate_until(
-            &toolhead,
-            margins,
-            f64::INFINITY,
-            |i, t| kin.position(shaper.position(&toolhead, i, t)),
-            |s| steps.push(s),
-        );
-        out.push(steps);
+    let freq = summary_value(case, "clock_freq");
+    let max_error = summary_value(case, "max_error_ticks") as u32;
+    let start = events
+        .iter()
+        .find_map(|e| match e {
+            Event::Toolhead(m) => Some(m.start_pos),
+            _ => None,
+        })
+        .unwrap_or([0.0; 3]);
+    let mut motion = Motion::<64, 512>::new(&machine, freq, max_error, start);
+    let mut commands = Commands(vec![Vec::new(); machine.steppers.len()]);
+    let mut sink = motion.sink(&mut commands);
+    for event in events {
+        match event {
+            Event::Toolhead(m) => sink.toolhead(m),
+            Event::Extruder(m) => sink.extruder(m),
+            Event::SetPosition(pos) => sink.set_position(*pos),
+        }
     }
-    let mut filled = Vec::new();
-    fill_gaps(&extruder_segs, 1.0, |s| filled.push(s));
-    let e_start = filled.first().map_or(0.0, |s| s.start_pos[0]);
-    let e_dist = machine.steppers.get(3).map_or(1.0, |s| s.step_dist);
-    let mut solver = StepSolver::new(StepperKinematics::Axis(0), e_dist, [e_start, 0.0, 0.0]);
-    let mut steps = Vec::new();
-    solver.generate_until(
-        &filled,
-        Margins::both(pa.half_smooth_time),
-        f64::INFINITY,
-        |i, t| extruder::position(&filled, i, t, &pa),
-        |s| steps.push(s),
-    );
-    out.push(steps);
-    out
+    motion.finish(&mut commands);
+    assert_eq!(motion.error(), None);
+    for (stepper, cmds) in machine.steppers.iter().zip(&commands.0) {
+        let mut ours = Vec::new();
+        expand(cmds, |clock, dir| ours.push((clock, dir)));
+        let golden = golden_steps(case, stepper.name);
+        assert_eq!(
+            ours.len(),
+            golden.len(),
+            "{case} {}: step count",
+            stepper.name
+        );
+        for (i, (o, g)) in ours.iter().zip(&golden).enumerate() {
+            let d = (o.0.wrapping_sub(g.0) as u32 as i32).unsigned_abs();
+            assert!(
+                o.1 == g.1 && d <= max_error,
+                "{case} {}: step {i} ours {o:?} golden {g:?}",
+                stepper.name
+            );
+        }
+    }
+}
+
+/// Golden moves in the order klippy appends them: by start time, a G1's
+/// toolhead part before its extruder part.
+fn time_ordered(mut events: Vec<Event>) -> Vec<Event> {
+    let start = |e: &Event| match e {
+        Event::Toolhead(m) | Event::Extruder(m) => m.print_time,
+        Event::SetPosition(_) => f64::NEG_INFINITY,
+    };
+    events.sort_by(|a, b| start(a).total_cmp(&start(b)));
+    events
 }
 
 #[test]
-fn streaming_through_small_queues_gives_the_same_steps() {
+fn streamed_through_small_queues() {
     for (case, config) in [
+        ("cart_square", "cartesian.cfg"),
         ("cart_circle", "cartesian.cfg"),
+        ("cart_extrude", "cartesian.cfg"),
+        ("corexy_square", "corexy.cfg"),
+        ("corexy_circle", "corexy.cfg"),
         ("corexy_extrude", "corexy.cfg"),
-        ("shaper_extrude", "cartesian_shaper.cfg"),
-        ("shaper_circle", "cartesian_shaper.cfg"),
+        ("delta_square", "delta.cfg"),
+        ("delta_circle", "delta.cfg"),
         ("delta_extrude", "delta.cfg"),
+        ("shaper_square", "cartesian_shaper.cfg"),
+        ("shaper_circle", "cartesian_shaper.cfg"),
+        ("shaper_extrude", "cartesian_shaper.cfg"),
+        ("avr_cart_extrude", "cartesian_avr.cfg"),
+        ("h723_cart_extrude", "cartesian_h723.cfg"),
     ] {
-        let streamed = streamed_steps::<64>(case, config);
-        let whole = one_shot_steps(case, config);
-        for (k, (s, w)) in streamed.iter().zip(&whole).enumerate() {
-            assert_eq!(s.len(), w.len(), "{case} stepper {k}: step count");
-            assert!(s == w, "{case} stepper {k}: steps differ");
-        }
+        check_motion(case, config, &time_ordered(golden_events(case)));
     }
+    let homing = planned_events("cart_move_g28", "cartesian.cfg");
+    check_motion("cart_move_g28", "cartesian.cfg", &homing);
 }

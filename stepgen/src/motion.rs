@@ -1,0 +1,315 @@
+//! The whole step-generation pipeline of a printer: planned moves into
+//! bounded motion queues, each stepper's steps found in windows as far as
+//! the queued motion is final, compressed into step commands, handed to a
+//! [`StepSink`] (the local stepper engine or a secondary MCU's link).
+//!
+//! Back-pressure: when a motion queue is full, steps are generated up to
+//! the start of the move being appended (everything before it is final)
+//! and the queue is pruned; the sink decides how to wait for room
+//! downstream.
+
+use crate::compress::{Compressor, StepCommand};
+use crate::extruder::{self, PressureAdvance};
+use crate::segment::Segment;
+use crate::shaper::StepperShaper;
+use crate::solver::{GENERATION_WINDOW, Margins, StepSolver};
+use crate::trapq::Trapq;
+use onechip_planner::kinematics::StepperKinematics;
+use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::toolhead::{MoveSink, TrapqMove};
+
+/// Steps compressed behind generation so that a command can cover the
+/// steps that follow it, s (Klipper's STEPCOMPRESS_FLUSH_TIME).
+const COMPRESS_LAG: f64 = 0.050;
+
+/// Receives each stepper's commands, in order per stepper.
+pub trait StepSink {
+    /// The next command of stepper `index` (as in [`Machine::steppers`]).
+    fn command(&mut self, index: usize, cmd: StepCommand);
+}
+
+/// What a stepper's position follows.
+#[derive(Debug, Clone, Copy)]
+enum Follows {
+    /// The toolhead through its kinematics (shaped by the channel's
+    /// shaper, if active).
+    Toolhead(StepperKinematics),
+    /// The extruder's queue, with pressure advance.
+    Extruder(PressureAdvance),
+}
+
+/// One stepper's generation and compression state.
+#[derive(Debug, Clone)]
+struct Channel<const Q: usize> {
+    solver: StepSolver,
+    follows: Follows,
+    shaper: StepperShaper,
+    margins: Margins,
+    compressor: Compressor<Q>,
+}
+
+impl<const Q: usize> Channel<Q> {
+    /// Generates up to `until` (s) from `segs` and compresses what lies
+    /// [`COMPRESS_LAG`] behind.
+    fn generate(&mut self, index: usize, segs: &[Segment], until: f64, sink: &mut impl StepSink) {
+        let Self {
+            solver,
+            follows,
+            shaper,
+            margins,
+            compressor,
+        } = self;
+        let mut out = |cmd| sink.command(index, cmd);
+        let mut emit = |s: crate::solver::Step| compressor.append(s.time, s.dir, &mut out);
+        match follows {
+            Follows::Toolhead(kin) => {
+                let position = |i: usize, t: f64| {
+                    if shaper.is_active() {
+                        kin.position(shaper.position(segs, i, t))
+                    } else {
+                        kin.position(segs[i].position(t))
+                    }
+                };
+                solver.generate_until(segs, *margins, until, position, &mut emit);
+            }
+            Follows::Extruder(pa) => {
+                let position = |i: usize, t: f64| extruder::position(segs, i, t, pa);
+                solver.generate_until(segs, *margins, until, position, &mut emit);
+            }
+        }
+        let done = solver.generated_until();
+        if done.is_finite() {
+            compressor.flush_until(done - COMPRESS_LAG, &mut out);
+        }
+    }
+
+    /// How far back of its generated time this stepper still reads, s.
+    fn look_back(&self) -> f64 {
+        self.margins.before.max(self.margins.after)
+    }
+}
+
+/// Step generation for a machine: motion queues of `N` segments, step
+/// compressors holding `Q` steps.
+#[derive(Debug, Clone)]
+pub struct Motion<const N: usize, const Q: usize> {
+    toolhead: Trapq<N>,
+    extruder: Trapq<N>,
+    channels: heapless::Vec<Channel<Q>, MAX_STEPPERS>,
+    /// Motion before this print time is final (later moves start after), s.
+    known_until: f64,
+    error: Option<MotionError>,
+}
+
+/// A fault of the step-generation pipeline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MotionError {
+    /// A move did not fit its queue even after generating every step
+    /// before it: the segments within the filters' look-back window
+    /// outnumber the queue (a build with too small a queue).
+    QueueTooSmall,
+}
+
+impl core::fmt::Display for MotionError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::QueueTooSmall => {
+                f.write_str("Motion queue too small for the step generation window")
+            }
+        }
+    }
+}
+
+impl<const N: usize, const Q: usize> Motion<N, Q> {
+    /// Step generation for `machine`'s steppers, with an MCU clock of `freq`
+    /// Hz and steps within `max_error` ticks; the toolhead starts at `pos`.
+    pub fn new(machine: &Machine<'_>, freq: f64, max_error: u32, pos: [f64; 3]) -> Self {
+        let mut channels = heapless::Vec::new();
+        for (i, stepper) in machine.steppers.iter().enumerate() {
+            let (kin, follows, shaper, margins) = match machine.stepper_kinematics.get(i) {
+                Some(&kin) => {
+                    let shaper = StepperShaper::new(&machine.input_shaper, kin);
+                    let margins = if shaper.is_active() {
+                        shaper.margins()
+                    } else {
+                        Margins::default()
+                    };
+                    (kin, Follows::Toolhead(kin), shaper, margins)
+                }
+                None => {
+                    let pa = PressureAdvance::new(
+                        machine.pressure_advance,
+                        machine.pressure_advance_smooth_time,
+                    );
+                    let margins = Margins::both(pa.half_smooth_time);
+                    let kin = StepperKinematics::Axis(0);
+                    (
+                        kin,
+                        Follows::Extruder(pa),
+                        StepperShaper::default(),
+                        margins,
+                    )
+                }
+            };
+            let start = match follows {
+                Follows::Toolhead(..) => pos,
+                Follows::Extruder(_) => [0.0; 3],
+            };
+            // Machine holds at most MAX_STEPPERS steppers.
+            let _ = channels.push(Channel {
+                solver: StepSolver::new(kin, stepper.step_dist, start),
+                follows,
+                shaper,
+                margins,
+                compressor: Compressor::new(max_error, freq),
+            });
+        }
+        Self {
+            toolhead: Trapq::new(),
+            extruder: Trapq::new(),
+            channels,
+            known_until: f64::NEG_INFINITY,
+            error: None,
+        }
+    }
+
+    /// A [`MoveSink`] for the planner that queues moves here, generating
+    /// steps into `sink` when a queue needs room.
+    pub fn sink<'m, S: StepSink>(&'m mut self, steps: &'m mut S) -> MotionSink<'m, N, Q, S> {
+        MotionSink {
+            motion: self,
+            steps,
+        }
+    }
+
+    /// Generates every stepper's steps up to print time `until` (s), as far
+    /// as the queued motion is final, in whole generation windows.
+    pub fn generate(&mut self, until: f64, sink: &mut impl StepSink) {
+        let limit = until.min(self.known_until);
+        for (i, ch) in self.channels.iter_mut().enumerate() {
+            let queue = match ch.follows {
+                Follows::Toolhead(..) => &self.toolhead,
+                Follows::Extruder(_) => &self.extruder,
+            };
+            let to = window_floor(limit - ch.margins.before);
+            ch.generate(i, queue.segments(), to, sink);
+        }
+        self.retire();
+    }
+
+    /// Generates and sends every remaining step (the end of the motion).
+    pub fn finish(&mut self, sink: &mut impl StepSink) {
+        self.known_until = f64::INFINITY;
+        self.generate(f64::INFINITY, sink);
+        for (i, ch) in self.channels.iter_mut().enumerate() {
+            ch.compressor.flush(&mut |cmd| sink.command(i, cmd));
+        }
+    }
+
+    /// Steppers' positions at their last step, mm (as [`Machine::steppers`]).
+    pub fn commanded_positions(&self) -> impl Iterator<Item = f64> + '_ {
+        self.channels.iter().map(|ch| ch.solver.commanded_pos())
+    }
+
+    /// Drops the queued segments every stepper has passed.
+    fn retire(&mut self) {
+        let passed = |toolhead: bool| {
+            self.channels
+                .iter()
+                .filter(|ch| matches!(ch.follows, Follows::Toolhead(..)) == toolhead)
+                .map(|ch| ch.solver.generated_until() - ch.look_back())
+                .fold(f64::INFINITY, f64::min)
+        };
+        let (toolhead, extruder) = (passed(true), passed(false));
+        self.toolhead.retire(toolhead);
+        self.extruder.retire(extruder);
+    }
+
+    fn append(&mut self, extruder: bool, m: &TrapqMove, sink: &mut impl StepSink) {
+        self.known_until = self.known_until.max(m.print_time);
+        if !self.queue(extruder).has_room() {
+            self.generate(m.print_time, sink);
+        }
+        if self.queue(extruder).append(m).is_err() {
+            self.error = Some(MotionError::QueueTooSmall);
+        }
+    }
+
+    fn queue(&mut self, extruder: bool) -> &mut Trapq<N> {
+        if extruder {
+            &mut self.extruder
+        } else {
+            &mut self.toolhead
+        }
+    }
+
+    /// Why motion was lost, if it was: the printer must stop.
+    pub fn error(&self) -> Option<MotionError> {
+        self.error
+    }
+
+    /// Generates every queued step, then lets a new position take effect
+    /// (homing, SET_KINEMATIC_POSITION).
+    fn set_position(&mut self, pos: [f64; 3], sink: &mut impl StepSink) {
+        self.generate_through(sink);
+        for ch in &mut self.channels {
+            if let Follows::Toolhead(..) = ch.follows {
+                ch.solver.set_position(pos);
+            }
+        }
+    }
+
+    /// Generates through the end of all queued motion and its margins.
+    fn generate_through(&mut self, sink: &mut impl StepSink) {
+        let end = |q: &Trapq<N>| {
+            q.segments()
+                .last()
+                .map_or(f64::NEG_INFINITY, |t| t.print_time)
+        };
+        let end = end(&self.toolhead).max(end(&self.extruder));
+        for (i, ch) in self.channels.iter_mut().enumerate() {
+            let queue = match ch.follows {
+                Follows::Toolhead(..) => &self.toolhead,
+                Follows::Extruder(_) => &self.extruder,
+            };
+            ch.generate(i, queue.segments(), end + ch.margins.after, sink);
+        }
+        self.retire();
+    }
+}
+
+/// The last generation window boundary at or before `t` (s); infinite
+/// times stay as they are.
+fn window_floor(t: f64) -> f64 {
+    if t.is_finite() {
+        let floor = ((t / GENERATION_WINDOW) as i64) as f64 * GENERATION_WINDOW;
+        if floor > t {
+            floor - GENERATION_WINDOW
+        } else {
+            floor
+        }
+    } else {
+        t
+    }
+}
+
+/// The planner's view of a [`Motion`]: moves and positions go into its
+/// queues, steps into `S`.
+pub struct MotionSink<'m, const N: usize, const Q: usize, S> {
+    motion: &'m mut Motion<N, Q>,
+    steps: &'m mut S,
+}
+
+impl<const N: usize, const Q: usize, S: StepSink> MoveSink for MotionSink<'_, N, Q, S> {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        self.motion.append(false, m, self.steps);
+    }
+
+    fn extruder(&mut self, m: &TrapqMove) {
+        self.motion.append(true, m, self.steps);
+    }
+
+    fn set_position(&mut self, pos: [f64; 3]) {
+        self.motion.set_position(pos, self.steps);
+    }
+}
