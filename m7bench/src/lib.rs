@@ -10,6 +10,8 @@
 
 use cortex_m_semihosting::{debug, hprintln};
 
+pub mod stepgen;
+
 /// Marks the start of measured region `id` (the symbol m7count looks for).
 #[unsafe(no_mangle)]
 #[inline(never)]

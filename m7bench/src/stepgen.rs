@@ -1,0 +1,111 @@
+//! The step-generation benchmark shared by the `stepgen_*` programs: a
+//! golden case's G-code planned outside the measurement, then its moves
+//! streamed through the whole pipeline ([`Motion`]: queues, itersolve,
+//! input shaping / pressure advance, compression) as measured region 1.
+
+use crate::{exit, measure, report};
+use core::fmt;
+use onechip_planner::config::Config;
+use onechip_planner::gcode::parse;
+use onechip_planner::gcode_move::GcodeMove;
+use onechip_planner::machine::Machine;
+use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_stepgen::compress::StepCommand;
+use onechip_stepgen::motion::{Motion, StepSink};
+
+/// The golden runs' MCU clock and 25 µs step error at that clock.
+const FREQ: f64 = 180_000_000.0;
+const MAX_ERROR: u32 = 4500;
+
+/// What the planner produced, in order.
+#[derive(Clone, Copy)]
+enum Event {
+    Toolhead(TrapqMove),
+    Extruder(TrapqMove),
+    SetPosition([f64; 3]),
+}
+
+struct Planned(heapless::Vec<Event, 3200>);
+
+impl MoveSink for Planned {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        let _ = self.0.push(Event::Toolhead(*m));
+    }
+    fn extruder(&mut self, m: &TrapqMove) {
+        let _ = self.0.push(Event::Extruder(*m));
+    }
+    fn set_position(&mut self, pos: [f64; 3]) {
+        let _ = self.0.push(Event::SetPosition(pos));
+    }
+}
+
+/// Discards console replies.
+struct Quiet;
+
+impl fmt::Write for Quiet {
+    fn write_str(&mut self, _: &str) -> fmt::Result {
+        Ok(())
+    }
+}
+
+/// Counts steps and commands.
+struct Count {
+    steps: u32,
+    commands: u32,
+}
+
+impl StepSink for Count {
+    fn command(&mut self, _: usize, cmd: StepCommand) {
+        self.commands += 1;
+        if let StepCommand::Steps { count, .. } = cmd {
+            self.steps += u32::from(count);
+        }
+    }
+}
+
+/// Plans `gcode` on the machine of `config` (named `config_name`), then
+/// measures its step generation and reports steps and commands as `label`.
+pub fn run(label: &str, config_name: &str, config: &str, gcode: &str) -> ! {
+    let Ok(config) = Config::parse(config_name, config) else {
+        panic!("config")
+    };
+    let Ok(machine) = Machine::from_config(&config) else {
+        panic!("machine")
+    };
+    let mut toolhead = machine.toolhead::<2048>();
+    let mut gcode_move = GcodeMove::default();
+    let mut planned = Planned(heapless::Vec::new());
+    for line in gcode.lines() {
+        if let Ok(l) = parse(line) {
+            let _ = gcode_move.execute(&l, &mut toolhead, &mut planned, &mut Quiet);
+        }
+    }
+    gcode_move.finish(&mut toolhead, &mut planned);
+    let events = &planned.0;
+
+    measure(0, || 0u32);
+    let count = measure(1, || {
+        let mut motion = Motion::<256, 512>::new(&machine, FREQ, MAX_ERROR, [0.0; 3]);
+        let mut count = Count {
+            steps: 0,
+            commands: 0,
+        };
+        let mut sink = motion.sink(&mut count);
+        for event in events {
+            match event {
+                Event::Toolhead(m) => sink.toolhead(m),
+                Event::Extruder(m) => sink.extruder(m),
+                Event::SetPosition(pos) => sink.set_position(*pos),
+            }
+        }
+        motion.finish(&mut count);
+        count
+    });
+    report(format_args!(
+        "{label}: region 1 generates {} steps in {} commands from {} planner events",
+        count.steps,
+        count.commands,
+        events.len()
+    ));
+    exit()
+}
