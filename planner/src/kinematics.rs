@@ -26,6 +26,19 @@ pub enum StepperKinematics {
 }
 
 impl StepperKinematics {
+    /// For kinematics linear in the toolhead position, the weights `w`
+    /// with position = `w · p`; None for a delta tower.
+    pub fn linear_weights(&self) -> Option<[f64; 3]> {
+        let mut w = [0.0; 3];
+        match *self {
+            Self::Axis(a) => w[a] = 1.0,
+            Self::Sum(a, b) => (w[a], w[b]) = (1.0, 1.0),
+            Self::Difference(a, b) => (w[a], w[b]) = (1.0, -1.0),
+            Self::DeltaTower { .. } => return None,
+        }
+        Some(w)
+    }
+
     /// The stepper's position for toolhead position `p` (X, Y, Z), mm.
     pub fn position(&self, p: [f64; 3]) -> f64 {
         match *self {

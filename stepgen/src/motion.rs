@@ -62,18 +62,28 @@ impl<const Q: usize> Channel<Q> {
         let mut out = |cmd| sink.command(index, cmd);
         let mut emit = |s: crate::solver::Step| compressor.append(s.time, s.dir, &mut out);
         match follows {
-            Follows::Toolhead(kin) => {
-                let position = |i: usize, t: f64| {
-                    if shaper.is_active() {
-                        kin.position(shaper.position(segs, i, t))
-                    } else {
-                        kin.position(segs[i].position(t))
-                    }
-                };
-                solver.generate_until(segs, *margins, until, position, &mut emit);
-            }
+            Follows::Toolhead(kin) => match kin.linear_weights() {
+                Some(w) if !shaper.is_active() => {
+                    // Affine in the distance along each segment: two
+                    // coefficients per segment, two operations per time.
+                    let position = |i: usize| {
+                        let seg: &Segment = &segs[i];
+                        let dot = |v: [f64; 3]| w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
+                        let (base, ratio) = (dot(seg.start_pos), dot(seg.axes_r));
+                        move |t: f64| base + ratio * seg.distance(t)
+                    };
+                    solver.generate_until(segs, *margins, until, position, &mut emit);
+                }
+                _ => {
+                    let (kin, shaper) = (*kin, *shaper);
+                    let position =
+                        |i: usize| move |t: f64| kin.position(shaper.position(segs, i, t));
+                    solver.generate_until(segs, *margins, until, position, &mut emit);
+                }
+            },
             Follows::Extruder(pa) => {
-                let position = |i: usize, t: f64| extruder::position(segs, i, t, pa);
+                let pa = *pa;
+                let position = |i: usize| move |t: f64| extruder::position(segs, i, t, &pa);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
         }

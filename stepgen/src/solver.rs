@@ -131,20 +131,21 @@ impl StepSolver {
     /// do. Segments that do not move this
     /// stepper are skipped, except within `margins` of segments that do
     /// (where a filtered position, such as pressure advance's or an input
-    /// shaper's, already or still moves). `position(i, t)` is the
-    /// stepper's position (mm) at `t` s into `segs[i]`.
+    /// shaper's, already or still moves). `position(i)` gives the
+    /// stepper's position (mm) as a function of the time into `segs[i]`
+    /// (s), so that per-segment work is done once.
     ///
     /// `segs` must reach past `until` by the margins (later segments may
     /// not change steps already generated), and with non-zero margins it
     /// must have no time gaps (see [`crate::segment::fill_gaps`] and
     /// [`crate::trapq::Trapq`]). Segments may be dropped from its front
     /// once they end before [`Self::generated_until`] less the margins.
-    pub fn generate_until(
+    pub fn generate_until<P: Fn(f64) -> f64>(
         &mut self,
         segs: &[Segment],
         margins: Margins,
         until: f64,
-        position: impl Fn(usize, f64) -> f64,
+        position: impl Fn(usize) -> P,
         mut emit: impl FnMut(Step),
     ) {
         let since = self.generated_until;
@@ -157,10 +158,13 @@ impl StepSolver {
             let from = start.max(since).max(seg.print_time);
             let to = end.min(until).min(seg.end_time());
             let mut from = from;
-            while from < to {
-                let window_end = next_window_start(from).min(to);
-                solver.generate_with(seg, from, window_end, |t| position(i, t), &mut emit);
-                from = window_end;
+            if from < to {
+                let at = position(i);
+                while from < to {
+                    let window_end = next_window_start(from).min(to);
+                    solver.generate_with(seg, from, window_end, &at, &mut emit);
+                    from = window_end;
+                }
             }
         };
         // Steps are still due until this print time, s.

@@ -107,7 +107,10 @@ fn our_steps(
             segs,
             margins,
             until,
-            |i, t| position(segs, i, t),
+            |i| {
+                let position = &position;
+                move |t| position(segs, i, t)
+            },
             |s| {
                 ideal.push(((s.time * freq + 0.5) as u64, s.dir));
                 compressor.append(s.time, s.dir, &mut out);
