@@ -45,13 +45,76 @@ struct Window {
     max: i32,
 }
 
+/// Step clocks waiting for compression: a ring of `Q`, so that sending a
+/// sequence from the front moves nothing.
+#[derive(Debug, Clone)]
+struct Ring<const Q: usize> {
+    clocks: [u64; Q],
+    head: usize,
+    len: usize,
+}
+
+impl<const Q: usize> Ring<Q> {
+    const fn new() -> Self {
+        Self {
+            clocks: [0; Q],
+            head: 0,
+            len: 0,
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    fn is_full(&self) -> bool {
+        self.len == Q
+    }
+
+    /// The `i`-th clock from the front; `i < len`.
+    fn get(&self, i: usize) -> u64 {
+        let at = self.head + i;
+        self.clocks[if at >= Q { at - Q } else { at }]
+    }
+
+    fn first(&self) -> Option<u64> {
+        (!self.is_empty()).then(|| self.get(0))
+    }
+
+    fn last(&self) -> Option<u64> {
+        (!self.is_empty()).then(|| self.get(self.len - 1))
+    }
+
+    /// Appends unless full.
+    fn push(&mut self, clock: u64) {
+        if !self.is_full() {
+            let at = self.head + self.len;
+            self.clocks[if at >= Q { at - Q } else { at }] = clock;
+            self.len += 1;
+        }
+    }
+
+    /// Removes `count` clocks (at most all) from the front.
+    fn drop_front(&mut self, count: usize) {
+        let count = count.min(self.len);
+        self.head = (self.head + count) % Q;
+        self.len -= count;
+    }
+}
+
 /// Compression state of one stepper, holding up to `Q` step clocks.
 #[derive(Debug, Clone)]
 pub struct Compressor<const Q: usize> {
     max_error: u32,
     freq: f64,
+    /// Steps closer than this many ticks to a reversed one are filtered.
+    sds_ticks: u64,
     last_step_clock: u64,
-    queue: heapless::Vec<u64, Q>,
+    queue: Ring<Q>,
     dir: Option<bool>,
     /// The newest step, held back until the next shows it is not reversed.
     held: Option<(u64, bool)>,
@@ -60,11 +123,16 @@ pub struct Compressor<const Q: usize> {
 impl<const Q: usize> Compressor<Q> {
     /// A compressor for an MCU clock of `freq` Hz with `max_error` ticks.
     pub fn new(max_error: u32, freq: f64) -> Self {
+        // Ticks strictly below SDS_FILTER_TIME: the ceiling of it.
+        let sds = SDS_FILTER_TIME * freq;
+        let whole = to_clock(sds);
+        let sds_ticks = if (whole as f64) < sds { whole + 1 } else { whole };
         Self {
             max_error,
             freq,
+            sds_ticks,
             last_step_clock: 0,
-            queue: heapless::Vec::new(),
+            queue: Ring::new(),
             dir: None,
             held: None,
         }
@@ -72,11 +140,9 @@ impl<const Q: usize> Compressor<Q> {
 
     /// Adds a step at print time `time` s in direction `dir`.
     pub fn append(&mut self, time: f64, dir: bool, out: &mut impl FnMut(StepCommand)) {
-        let clock = (time * self.freq + 0.5) as u64;
+        let clock = to_clock(time * self.freq + 0.5);
         if let Some((held_clock, held_dir)) = self.held {
-            if dir != held_dir
-                && ((clock as f64) - (held_clock as f64)) < SDS_FILTER_TIME * self.freq
-            {
+            if dir != held_dir && clock.saturating_sub(held_clock) < self.sds_ticks {
                 // Step, reverse, step back: neither step is needed.
                 self.held = None;
                 return;
@@ -91,14 +157,14 @@ impl<const Q: usize> Compressor<Q> {
     /// Steps must have been appended past `time` by more than the
     /// step+dir+step filter's window.
     pub fn flush_until(&mut self, time: f64, out: &mut impl FnMut(StepCommand)) {
-        let clock = (time.max(0.0) * self.freq) as u64;
+        let clock = to_clock(time * self.freq);
         if let Some((held_clock, held_dir)) = self.held
             && held_clock < clock
         {
             self.held = None;
             self.commit(held_clock, held_dir, out);
         }
-        while self.queue.first().is_some_and(|&c| c < clock) {
+        while self.queue.first().is_some_and(|c| c < clock) {
             self.compress_some(out);
         }
     }
@@ -117,7 +183,7 @@ impl<const Q: usize> Compressor<Q> {
             out(StepCommand::Dir(dir));
             self.dir = Some(dir);
         }
-        let last_queued = self.queue.last().copied().unwrap_or(self.last_step_clock);
+        let last_queued = self.queue.last().unwrap_or(self.last_step_clock);
         if clock >= last_queued + CLOCK_DIFF_MAX {
             self.compress_all(out);
             out(StepCommand::Steps {
@@ -132,7 +198,7 @@ impl<const Q: usize> Compressor<Q> {
             self.compress_some(out);
         }
         // There is room now: compress_some consumed at least one step.
-        let _ = self.queue.push(clock);
+        self.queue.push(clock);
     }
 
     fn compress_all(&mut self, out: &mut impl FnMut(StepCommand)) {
@@ -154,15 +220,14 @@ impl<const Q: usize> Compressor<Q> {
         self.last_step_clock = self
             .last_step_clock
             .wrapping_add((add * addfactor + interval * count) as u64);
-        self.queue.rotate_left(count as usize);
-        self.queue.truncate(self.queue.len() - count as usize);
+        self.queue.drop_front(count as usize);
     }
 
     /// The acceptable window of queued step `i`.
     fn window(&self, i: usize) -> Window {
-        let point = self.queue[i].wrapping_sub(self.last_step_clock) as u32;
+        let point = self.queue.get(i).wrapping_sub(self.last_step_clock) as u32;
         let prev = if i > 0 {
-            self.queue[i - 1].wrapping_sub(self.last_step_clock) as u32
+            self.queue.get(i - 1).wrapping_sub(self.last_step_clock) as u32
         } else {
             0
         };
@@ -253,6 +318,17 @@ impl<const Q: usize> Compressor<Q> {
 
 fn div_ceil(n: i32, d: i32) -> i32 {
     -(-n).div_euclid(d)
+}
+
+/// `x` (ticks, non-negative, below 2^53) truncated to an integer; negative
+/// values give 0. Two 32-bit conversions, which the Cortex-M7's FPU does in
+/// hardware (a direct 64-bit conversion is a library call).
+#[inline]
+fn to_clock(x: f64) -> u64 {
+    const TWO_32: f64 = 4_294_967_296.0;
+    let high = (x * (1.0 / TWO_32)) as u32;
+    let low = (x - f64::from(high) * TWO_32) as u32;
+    (u64::from(high) << 32) | u64::from(low)
 }
 
 /// Expands commands back into step clocks and directions (the MCU's view).
