@@ -126,7 +126,11 @@ impl<const Q: usize> Compressor<Q> {
         // Ticks strictly below SDS_FILTER_TIME: the ceiling of it.
         let sds = SDS_FILTER_TIME * freq;
         let whole = to_clock(sds);
-        let sds_ticks = if (whole as f64) < sds { whole + 1 } else { whole };
+        let sds_ticks = if (whole as f64) < sds {
+            whole + 1
+        } else {
+            whole
+        };
         Self {
             max_error,
             freq,

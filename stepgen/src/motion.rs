@@ -12,7 +12,7 @@ use crate::compress::{Compressor, StepCommand};
 use crate::extruder::{self, PressureAdvance};
 use crate::segment::Segment;
 use crate::shaper::StepperShaper;
-use crate::solver::{GENERATION_WINDOW, Margins, StepSolver};
+use crate::solver::{AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
 use crate::trapq::Trapq;
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
@@ -69,8 +69,12 @@ impl<const Q: usize> Channel<Q> {
                     let position = |i: usize| {
                         let seg: &Segment = &segs[i];
                         let dot = |v: [f64; 3]| w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
-                        let (base, ratio) = (dot(seg.start_pos), dot(seg.axes_r));
-                        move |t: f64| base + ratio * seg.distance(t)
+                        AlongSegment {
+                            base: dot(seg.start_pos),
+                            ratio: dot(seg.axes_r),
+                            start_v: seg.start_v,
+                            half_accel: seg.half_accel,
+                        }
                     };
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }

@@ -42,6 +42,39 @@ impl Margins {
     }
 }
 
+/// A stepper's position (mm) as a function of the time into a segment (s).
+pub trait PositionFn {
+    /// The position at `t`.
+    fn at(&self, t: f64) -> f64;
+}
+
+impl<F: Fn(f64) -> f64> PositionFn for F {
+    fn at(&self, t: f64) -> f64 {
+        self(t)
+    }
+}
+
+/// `base + ratio · distance(t)` along a segment starting at `start_v`
+/// with half-acceleration `half_accel`: the position of a stepper whose
+/// kinematics is linear in the toolhead position.
+#[derive(Debug, Clone, Copy)]
+pub struct AlongSegment {
+    /// Position at the segment's start, mm.
+    pub base: f64,
+    /// Stepper travel per toolhead distance.
+    pub ratio: f64,
+    /// The segment's start velocity, mm/s.
+    pub start_v: f64,
+    /// The segment's half acceleration, mm/s².
+    pub half_accel: f64,
+}
+
+impl PositionFn for AlongSegment {
+    fn at(&self, t: f64) -> f64 {
+        self.base + self.ratio * ((self.start_v + self.half_accel * t) * t)
+    }
+}
+
 /// One generated step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Step {
@@ -120,7 +153,7 @@ impl StepSolver {
     /// (clipped to the segment).
     pub fn generate(&mut self, seg: &Segment, start: f64, end: f64, emit: impl FnMut(Step)) {
         let kin = self.kin;
-        self.generate_with(seg, start, end, |t| kin.position(seg.position(t)), emit);
+        self.generate_with(seg, start, end, &|t| kin.position(seg.position(t)), emit);
     }
 
     /// Generates the steps of a time-ordered segment queue, the way
@@ -140,7 +173,7 @@ impl StepSolver {
     /// must have no time gaps (see [`crate::segment::fill_gaps`] and
     /// [`crate::trapq::Trapq`]). Segments may be dropped from its front
     /// once they end before [`Self::generated_until`] less the margins.
-    pub fn generate_until<P: Fn(f64) -> f64>(
+    pub fn generate_until<P: PositionFn>(
         &mut self,
         segs: &[Segment],
         margins: Margins,
@@ -215,7 +248,7 @@ impl StepSolver {
         seg: &Segment,
         start: f64,
         end: f64,
-        position: impl Fn(f64) -> f64,
+        position: &impl PositionFn,
         mut emit: impl FnMut(Step),
     ) {
         let half = self.half_step;
@@ -251,21 +284,21 @@ impl StepSolver {
                             widen = true;
                         } else {
                             high.t = (last.t + high.t) * 0.5;
-                            high.pos = position(high.t);
+                            high.pos = position.at(high.t);
                             continue;
                         }
                     }
                 }
             }
             if widen {
-                if !widen_window(&position, &mut low, &mut high, last, &mut seek, end) {
+                if !widen_window(position, &mut low, &mut high, last, &mut seek, end) {
                     break;
                 }
                 continue;
             }
             let forward = dir == Some(true);
             let target = last.pos + if forward { half } else { -half };
-            let next = find_crossing(&position, low, high, target);
+            let next = find_crossing(position, low, high, target);
             emit(Step {
                 time: seg.print_time + next.t,
                 dir: forward,
@@ -282,7 +315,7 @@ impl StepSolver {
             low = next;
             // A spent window is widened from the new step.
             if last.t >= high.t
-                && !widen_window(&position, &mut low, &mut high, last, &mut seek, end)
+                && !widen_window(position, &mut low, &mut high, last, &mut seek, end)
             {
                 break;
             }
@@ -296,7 +329,7 @@ impl StepSolver {
 /// end, the new high end lies `seek` after the last step (doubling `seek`),
 /// capped at `end`. False when the window already reached `end`.
 fn widen_window(
-    position: &impl Fn(f64) -> f64,
+    position: &impl PositionFn,
     low: &mut TimePos,
     high: &mut TimePos,
     last: TimePos,
@@ -315,18 +348,13 @@ fn widen_window(
         }
     }
     high.t = high.t.min(end);
-    high.pos = position(high.t);
+    high.pos = position.at(high.t);
     true
 }
 
 /// The time in `low..high` where the position reaches `target`, by false
 /// position to [`TIME_EPSILON`]; the window's start if it does not.
-fn find_crossing(
-    position: &impl Fn(f64) -> f64,
-    low: TimePos,
-    high: TimePos,
-    target: f64,
-) -> TimePos {
+fn find_crossing(position: &impl PositionFn, low: TimePos, high: TimePos, target: f64) -> TimePos {
     let mut best = high;
     let (mut lo, mut hi) = (
         TimePos {
@@ -355,8 +383,9 @@ fn find_crossing(
         }
         best = TimePos {
             t: guess,
-            pos: position(guess),
+            pos: position.at(guess),
         };
+
         let offset = best.pos - target;
         if offset.is_sign_negative() == high_negative {
             hi = TimePos {
