@@ -80,8 +80,7 @@ impl<const Q: usize> Channel<Q> {
                 }
                 _ => {
                     let (kin, shaper) = (*kin, *shaper);
-                    let position =
-                        |i: usize| move |t: f64| kin.position(shaper.position(segs, i, t));
+                    let position = |i: usize| shaper.on_segment(segs, i, kin);
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }
             },

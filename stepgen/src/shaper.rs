@@ -4,9 +4,9 @@
 //! boundaries. Z and the extruder are never shaped.
 
 use crate::segment::{Segment, position_across};
-use crate::solver::Margins;
+use crate::solver::{Margins, PositionFn};
 use onechip_planner::kinematics::StepperKinematics;
-use onechip_planner::shaper_config::{InputShaperConfig, ShaperPulses};
+use onechip_planner::shaper_config::{InputShaperConfig, MAX_PULSES, ShaperPulses};
 
 /// The shaping one stepper sees: the shapers of the axes its kinematics
 /// uses.
@@ -65,6 +65,96 @@ impl StepperShaper {
         }
         pos
     }
+
+    /// The shaped position of a stepper with kinematics `kin` along
+    /// `segs[i]`, with each impulse's segment found once for the segment
+    /// instead of at every evaluation.
+    pub fn on_segment<'s>(
+        &self,
+        segs: &'s [Segment],
+        i: usize,
+        kin: StepperKinematics,
+    ) -> ShapedSegment<'s> {
+        let mut taps = [[Tap::default(); MAX_PULSES]; 2];
+        for (axis, pulses) in self.axes.iter().enumerate() {
+            if let Some(p) = pulses {
+                for k in 0..p.len {
+                    // Walk to the segment holding the impulse at t = 0.
+                    let (mut j, mut offset) = (i, p.t[k]);
+                    while offset < 0.0 && j > 0 {
+                        j -= 1;
+                        offset += segs[j].move_t;
+                    }
+                    while offset > segs[j].move_t && j + 1 < segs.len() {
+                        offset -= segs[j].move_t;
+                        j += 1;
+                    }
+                    taps[axis][k] = Tap {
+                        amplitude: p.a[k],
+                        offset,
+                        seg: j,
+                    };
+                }
+            }
+        }
+        ShapedSegment {
+            segs,
+            i,
+            kin,
+            taps,
+            lens: [0, 1].map(|a| self.axes[a].map_or(0, |p| p.len)),
+        }
+    }
+}
+
+/// One impulse of a shaper, placed relative to a segment.
+#[derive(Debug, Clone, Copy, Default)]
+struct Tap {
+    amplitude: f64,
+    /// Time into `seg` of the impulse at the segment's start, s.
+    offset: f64,
+    seg: usize,
+}
+
+/// A shaped stepper position along one segment (see
+/// [`StepperShaper::on_segment`]).
+#[derive(Debug, Clone, Copy)]
+pub struct ShapedSegment<'s> {
+    segs: &'s [Segment],
+    i: usize,
+    kin: StepperKinematics,
+    taps: [[Tap; MAX_PULSES]; 2],
+    lens: [usize; 2],
+}
+
+impl PositionFn for ShapedSegment<'_> {
+    fn at(&self, t: f64) -> f64 {
+        let mut pos = self.segs[self.i].position(t);
+        for (axis, taps) in self.taps.iter().enumerate() {
+            if self.lens[axis] > 0 {
+                pos[axis] = taps[..self.lens[axis]]
+                    .iter()
+                    .map(|tap| tap.amplitude * axis_at(self.segs, tap.seg, t + tap.offset, axis))
+                    .sum();
+            }
+        }
+        self.kin.position(pos)
+    }
+}
+
+/// Coordinate `axis` at `t` s into `segs[j]` (`t` may leave it: the
+/// neighbouring segments are used, as far as the queue reaches), mm.
+fn axis_at(segs: &[Segment], mut j: usize, mut t: f64, axis: usize) -> f64 {
+    while t < 0.0 && j > 0 {
+        j -= 1;
+        t += segs[j].move_t;
+    }
+    while t > segs[j].move_t && j + 1 < segs.len() {
+        t -= segs[j].move_t;
+        j += 1;
+    }
+    let seg = &segs[j];
+    seg.start_pos[axis] + seg.axes_r[axis] * seg.distance(t)
 }
 
 #[cfg(test)]
