@@ -78,7 +78,7 @@ impl StepperShaper {
         let mut taps = [[Tap::default(); MAX_PULSES]; 2];
         for (axis, pulses) in self.axes.iter().enumerate() {
             if let Some(p) = pulses {
-                for k in 0..p.len {
+                for (k, tap) in taps[axis].iter_mut().enumerate().take(p.len) {
                     // Walk to the segment holding the impulse at t = 0.
                     let (mut j, mut offset) = (i, p.t[k]);
                     while offset < 0.0 && j > 0 {
@@ -89,7 +89,7 @@ impl StepperShaper {
                         offset -= segs[j].move_t;
                         j += 1;
                     }
-                    taps[axis][k] = Tap {
+                    *tap = Tap {
                         amplitude: p.a[k],
                         offset,
                         seg: j,
