@@ -110,20 +110,6 @@ pub fn fill_gaps(segments: &[Segment], margin: f64, mut out: impl FnMut(Segment)
     }
 }
 
-/// The position `t` s into `segs[i]` (`t` may lie outside it: the
-/// neighbouring segments are used, as far as the queue reaches), mm.
-pub fn position_across(segs: &[Segment], mut i: usize, mut t: f64) -> [f64; 3] {
-    while t < 0.0 && i > 0 {
-        i -= 1;
-        t += segs[i].move_t;
-    }
-    while t > segs[i].move_t && i + 1 < segs.len() {
-        t -= segs[i].move_t;
-        i += 1;
-    }
-    segs[i].position(t)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

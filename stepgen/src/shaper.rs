@@ -3,7 +3,7 @@
 //! shaper's impulses, `x̃(t) = Σ aᵢ · x(t + tᵢ)`, across segment
 //! boundaries. Z and the extruder are never shaped.
 
-use crate::segment::{Segment, position_across};
+use crate::segment::Segment;
 use crate::solver::{Margins, PositionFn};
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::shaper_config::{InputShaperConfig, MAX_PULSES, ShaperPulses};
@@ -52,23 +52,10 @@ impl StepperShaper {
             })
     }
 
-    /// The shaped toolhead position `t` s into `segs[i]`, mm. `segs` must
-    /// have no time gaps (see [`crate::segment::fill_gaps`]).
-    pub fn position(&self, segs: &[Segment], i: usize, t: f64) -> [f64; 3] {
-        let mut pos = segs[i].position(t);
-        for (axis, pulses) in self.axes.iter().enumerate() {
-            if let Some(p) = pulses {
-                pos[axis] = (0..p.len)
-                    .map(|k| p.a[k] * position_across(segs, i, t + p.t[k])[axis])
-                    .sum();
-            }
-        }
-        pos
-    }
-
     /// The shaped position of a stepper with kinematics `kin` along
     /// `segs[i]`, with each impulse's segment found once for the segment
-    /// instead of at every evaluation.
+    /// instead of at every evaluation. `segs` must have no time gaps (see
+    /// [`crate::segment::fill_gaps`]).
     pub fn on_segment<'s>(
         &self,
         segs: &'s [Segment],
@@ -207,14 +194,19 @@ mod tests {
         let mut segs = Vec::new();
         fill_gaps(&[seg], 0.1, |s| segs.push(s));
         let shaper = shaped_x();
-        let mid = shaper.position(&segs, 1, 0.5)[0];
+        let x = |i: usize, t: f64| {
+            shaper
+                .on_segment(&segs, i, StepperKinematics::Axis(0))
+                .at(t)
+        };
+        let mid = x(1, 0.5);
         assert!((mid - 5.0).abs() < 1e-12, "{mid}");
         // Right at the abrupt stop the shaped position lags behind...
-        let at_stop = shaper.position(&segs, 1, 1.0)[0];
+        let at_stop = x(1, 1.0);
         assert!(at_stop < 10.0 && at_stop > 9.8, "{at_stop}");
         // ...and arrives once the shaper's window has passed.
         let m = shaper.margins();
-        let after = shaper.position(&segs, 2, m.after + 1e-9)[0];
+        let after = x(2, m.after + 1e-9);
         assert!((after - 10.0).abs() < 1e-12, "{after}");
         assert!(m.before > 0.0 && m.after > 0.0);
     }

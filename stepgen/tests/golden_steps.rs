@@ -18,7 +18,7 @@ use onechip_stepgen::extruder::{self, PressureAdvance};
 use onechip_stepgen::motion::{Motion, StepSink};
 use onechip_stepgen::segment::{Segment, fill_gaps, segments};
 use onechip_stepgen::shaper::StepperShaper;
-use onechip_stepgen::solver::{Margins, StepSolver};
+use onechip_stepgen::solver::{Margins, PositionFn, StepSolver};
 use std::path::PathBuf;
 
 fn golden_dir() -> PathBuf {
@@ -319,7 +319,7 @@ fn check_from(case: &str, config: &str, with_extruder: bool, events: &[Event], o
                 run.segs = filled;
             }
             let position =
-                |segs: &[Segment], j: usize, t: f64| kin.position(shaper.position(segs, j, t));
+                |segs: &[Segment], j: usize, t: f64| shaper.on_segment(segs, j, *kin).at(t);
             let margins = shaper.margins();
             our_steps(&runs, margins, position, *kin, s.step_dist, freq, max_error)
         } else {
