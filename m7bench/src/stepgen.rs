@@ -55,7 +55,7 @@ struct Count {
 }
 
 impl StepSink for Count {
-    fn command(&mut self, _: usize, cmd: StepCommand) {
+    fn command(&mut self, _: usize, cmd: StepCommand, _: u64) {
         self.commands += 1;
         if let StepCommand::Steps { count, .. } = cmd {
             self.steps += u32::from(count);

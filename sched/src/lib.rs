@@ -2,8 +2,13 @@
 //! `(interval, count, add)` queues, endstops, outputs with safety timeouts,
 //! ADC range checks and shutdown (issue #5).
 //!
-//! Available now: [`clock`], rollover-safe arithmetic on the 32-bit hardware
-//! clock, which everything else here is built on.
+//! Available now:
+//! - [`clock`]: rollover-safe arithmetic on the 32-bit hardware clock,
+//!   which everything else here is built on;
+//! - [`stepper`]: the stepper engine, executing queued moves from a timer;
+//! - [`shutdown`]: why everything stopped, in Klipper's words.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod clock;
+pub mod shutdown;
+pub mod stepper;

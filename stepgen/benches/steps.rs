@@ -50,7 +50,7 @@ fn moves(case: &str) -> Vec<(bool, TrapqMove)> {
 struct Count(u64);
 
 impl StepSink for Count {
-    fn command(&mut self, _: usize, cmd: StepCommand) {
+    fn command(&mut self, _: usize, cmd: StepCommand, _: u64) {
         if let StepCommand::Steps { count, .. } = cmd {
             self.0 += u64::from(count);
         }

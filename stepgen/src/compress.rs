@@ -142,8 +142,11 @@ impl<const Q: usize> Compressor<Q> {
         }
     }
 
-    /// Adds a step at print time `time` s in direction `dir`.
-    pub fn append(&mut self, time: f64, dir: bool, out: &mut impl FnMut(StepCommand)) {
+    /// Adds a step at print time `time` s in direction `dir`. Commands go
+    /// to `out` with the 64-bit clock of their first step (for a direction
+    /// change: of the last step before it), which the 32-bit interval of
+    /// a far step does not carry.
+    pub fn append(&mut self, time: f64, dir: bool, out: &mut impl FnMut(StepCommand, u64)) {
         let clock = to_clock(time * self.freq + 0.5);
         if let Some((held_clock, held_dir)) = self.held {
             if dir != held_dir && clock.saturating_sub(held_clock) < self.sds_ticks {
@@ -160,7 +163,7 @@ impl<const Q: usize> Compressor<Q> {
     /// keeping later ones to compress with the steps that follow them.
     /// Steps must have been appended past `time` by more than the
     /// step+dir+step filter's window.
-    pub fn flush_until(&mut self, time: f64, out: &mut impl FnMut(StepCommand)) {
+    pub fn flush_until(&mut self, time: f64, out: &mut impl FnMut(StepCommand, u64)) {
         let clock = to_clock(time * self.freq);
         if let Some((held_clock, held_dir)) = self.held
             && held_clock < clock
@@ -174,27 +177,30 @@ impl<const Q: usize> Compressor<Q> {
     }
 
     /// Sends everything queued (the end of the motion, or before a pause).
-    pub fn flush(&mut self, out: &mut impl FnMut(StepCommand)) {
+    pub fn flush(&mut self, out: &mut impl FnMut(StepCommand, u64)) {
         if let Some((clock, dir)) = self.held.take() {
             self.commit(clock, dir, out);
         }
         self.compress_all(out);
     }
 
-    fn commit(&mut self, clock: u64, dir: bool, out: &mut impl FnMut(StepCommand)) {
+    fn commit(&mut self, clock: u64, dir: bool, out: &mut impl FnMut(StepCommand, u64)) {
         if self.dir != Some(dir) {
             self.compress_all(out);
-            out(StepCommand::Dir(dir));
+            out(StepCommand::Dir(dir), self.last_step_clock);
             self.dir = Some(dir);
         }
         let last_queued = self.queue.last().unwrap_or(self.last_step_clock);
         if clock >= last_queued + CLOCK_DIFF_MAX {
             self.compress_all(out);
-            out(StepCommand::Steps {
-                interval: clock.wrapping_sub(self.last_step_clock) as u32,
-                count: 1,
-                add: 0,
-            });
+            out(
+                StepCommand::Steps {
+                    interval: clock.wrapping_sub(self.last_step_clock) as u32,
+                    count: 1,
+                    add: 0,
+                },
+                clock,
+            );
             self.last_step_clock = clock;
             return;
         }
@@ -205,20 +211,26 @@ impl<const Q: usize> Compressor<Q> {
         self.queue.push(clock);
     }
 
-    fn compress_all(&mut self, out: &mut impl FnMut(StepCommand)) {
+    fn compress_all(&mut self, out: &mut impl FnMut(StepCommand, u64)) {
         while !self.queue.is_empty() {
             self.compress_some(out);
         }
     }
 
     /// Emits one sequence from the front of the queue.
-    fn compress_some(&mut self, out: &mut impl FnMut(StepCommand)) {
+    fn compress_some(&mut self, out: &mut impl FnMut(StepCommand, u64)) {
         let (interval, count, add) = self.best_sequence();
-        out(StepCommand::Steps {
-            interval: interval as u32,
-            count: count as u16,
-            add: add as i16,
-        });
+        let first = self
+            .last_step_clock
+            .wrapping_add(u64::from(interval as u32));
+        out(
+            StepCommand::Steps {
+                interval: interval as u32,
+                count: count as u16,
+                add: add as i16,
+            },
+            first,
+        );
         let (interval, count, add) = (i64::from(interval), i64::from(count), i64::from(add));
         let addfactor = count * (count - 1) / 2;
         self.last_step_clock = self

@@ -24,8 +24,10 @@ const COMPRESS_LAG: f64 = 0.050;
 
 /// Receives each stepper's commands, in order per stepper.
 pub trait StepSink {
-    /// The next command of stepper `index` (as in [`Machine::steppers`]).
-    fn command(&mut self, index: usize, cmd: StepCommand);
+    /// The next command of stepper `index` (as in [`Machine::steppers`]);
+    /// `clock` is the 64-bit MCU clock of its first step (see
+    /// [`Compressor::append`]).
+    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64);
 }
 
 /// What a stepper's position follows.
@@ -59,7 +61,7 @@ impl<const Q: usize> Channel<Q> {
             margins,
             compressor,
         } = self;
-        let mut out = |cmd| sink.command(index, cmd);
+        let mut out = |cmd, clock| sink.command(index, cmd, clock);
         let mut emit = |s: crate::solver::Step| compressor.append(s.time, s.dir, &mut out);
         match follows {
             Follows::Toolhead(kin) => match kin.linear_weights() {
@@ -215,7 +217,8 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         self.known_until = f64::INFINITY;
         self.generate(f64::INFINITY, sink);
         for (i, ch) in self.channels.iter_mut().enumerate() {
-            ch.compressor.flush(&mut |cmd| sink.command(i, cmd));
+            ch.compressor
+                .flush(&mut |cmd, clock| sink.command(i, cmd, clock));
         }
     }
 

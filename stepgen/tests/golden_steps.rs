@@ -94,7 +94,7 @@ fn our_steps(
     let mut compressor = Compressor::<4096>::new(max_error, freq);
     let mut commands = Vec::new();
     let mut ideal = Vec::new();
-    let mut out = |c: StepCommand| commands.push(c);
+    let mut out = |c: StepCommand, _| commands.push(c);
     for (k, run) in runs.iter().enumerate() {
         solver.set_position(run.start);
         let segs = &run.segs;
@@ -464,13 +464,40 @@ fn shaper_extrude() {
     check("shaper_extrude", "cartesian_shaper.cfg", true);
 }
 
-/// Collects each stepper's commands.
-struct Commands(Vec<Vec<StepCommand>>);
+/// Collects each stepper's commands with their first steps' 64-bit clocks.
+struct Commands(Vec<Vec<(StepCommand, u64)>>);
 
 impl StepSink for Commands {
-    fn command(&mut self, index: usize, cmd: StepCommand) {
-        self.0[index].push(cmd);
+    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
+        self.0[index].push((cmd, clock));
     }
+}
+
+/// Expands commands with 64-bit clocks: each sequence from the clock given
+/// with it (which a far step's 32-bit interval does not carry).
+fn expand_64(cmds: &[(StepCommand, u64)]) -> Vec<(u64, bool)> {
+    let mut steps = Vec::new();
+    let mut dir = true;
+    for &(cmd, first) in cmds {
+        match cmd {
+            StepCommand::Dir(d) => dir = d,
+            StepCommand::Steps {
+                interval,
+                count,
+                add,
+            } => {
+                let (mut clock, mut interval) = (first, interval);
+                for k in 0..count {
+                    if k > 0 {
+                        interval = interval.wrapping_add(add as u32);
+                        clock += u64::from(interval);
+                    }
+                    steps.push((clock, dir));
+                }
+            }
+        }
+    }
+    steps
 }
 
 /// The whole pipeline as the firmware runs it: moves streamed in time
@@ -504,8 +531,26 @@ fn check_motion(case: &str, config: &str, events: &[Event]) {
     assert_eq!(motion.error(), None);
     for (stepper, cmds) in machine.steppers.iter().zip(&commands.0) {
         let mut ours = Vec::new();
-        expand(cmds, |clock, dir| ours.push((clock, dir)));
+        let plain: Vec<StepCommand> = cmds.iter().map(|c| c.0).collect();
+        expand(&plain, |clock, dir| ours.push((clock, dir)));
         let golden = golden_steps(case, stepper.name);
+        // The clocks given with the commands place every step exactly as
+        // the 32-bit expansion does, but in 64 bits, also after far steps.
+        let with_clocks = expand_64(cmds);
+        assert!(
+            with_clocks
+                .iter()
+                .zip(&ours)
+                .all(|(a, b)| a.0 as u32 == b.0 as u32 && a.1 == b.1)
+        );
+        assert!(
+            with_clocks
+                .iter()
+                .zip(&golden)
+                .all(|(a, g)| a.0.abs_diff(g.0) <= u64::from(max_error)),
+            "{case} {}: 64-bit clocks",
+            stepper.name
+        );
         assert_eq!(
             ours.len(),
             golden.len(),
