@@ -30,6 +30,13 @@ impl<const N: usize> Printer<N> {
         }
     }
 
+    /// The same printer with its print time starting `origin` s after the
+    /// MCU's clock did (a printer powered on long before the print).
+    pub fn with_time_origin(mut self, origin: f64) -> Self {
+        self.toolhead = self.toolhead.with_time_origin(origin);
+        self
+    }
+
     /// Runs one line of G-code; replies other than `ok` go to `out`.
     pub fn execute<'l>(
         &mut self,

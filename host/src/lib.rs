@@ -2,22 +2,78 @@
 //! that plays the SD card, so users and tests see what the board would do.
 //!
 //! It reads `printer.cfg` and a G-code file, plans every move exactly as
-//! the firmware does (and as Klipper would), and reports what the printer
-//! would do: planned moves, print time, final position and any errors.
-//! Step generation and the stepper engine join as issues #4 and #5 land.
+//! the firmware does (and as Klipper would), generates and compresses the
+//! steps, runs them through the MCU role's stepper engine in virtual time
+//! ([`virtual_mcu`]), and reports what the printer would do: planned
+//! moves, print time, every stepper's steps, peak step rate and final
+//! position, and any errors; optionally every step's clock, in the format
+//! of Klipper's golden `steps-*.txt`.
+
+pub mod virtual_mcu;
 
 use onechip_app::line::{Line, LineAssembler};
 use onechip_app::printer::Printer;
 use onechip_planner::config::{Config, ConfigFile};
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_stepgen::motion::Motion;
 use std::fmt;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
+use virtual_mcu::VirtualMcu;
 
 /// Longest G-code line accepted, in bytes (as on the board's USB console).
 pub const MAX_LINE: usize = 256;
 /// Lookahead capacity of the host build, in moves.
 pub const LOOKAHEAD: usize = 4096;
+/// Motion queue length of the host build, in segments.
+pub const MOTION_QUEUE: usize = 1024;
+/// Steps each stepper's compressor holds.
+pub const COMPRESS_QUEUE: usize = 512;
+/// The board's MCU clock (STM32H723 at 520 MHz), Hz.
+pub const BOARD_CLOCK: f64 = 520_000_000.0;
+/// Step time error allowed to compression, s (Klipper's).
+pub const MAX_STEP_ERROR: f64 = 0.000_025;
+
+/// How to run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Options {
+    /// The G-code file; by default the SD folder's only `*.gcode`.
+    pub gcode: Option<PathBuf>,
+    /// If set, every stepper's steps are written there as
+    /// `steps-<stepper>.txt` (`<clock> <dir>` lines).
+    pub steps_dir: Option<PathBuf>,
+    /// MCU clock frequency, Hz.
+    pub mcu_freq: f64,
+    /// MCU clock at print time 0, ticks (to start near the 32-bit wrap).
+    pub clock_origin: u64,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Self {
+            gcode: None,
+            steps_dir: None,
+            mcu_freq: BOARD_CLOCK,
+            clock_origin: 0,
+        }
+    }
+}
+
+/// What one stepper did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepperSummary {
+    /// Section name.
+    pub name: String,
+    /// Steps made.
+    pub steps: usize,
+    /// Final position in steps from the start (+1 per positive step).
+    pub position: i64,
+    /// Highest step rate (inverse of the shortest step interval), steps/s.
+    pub peak_rate: f64,
+    /// Clock of the last step, ticks.
+    pub last_step: Option<u64>,
+}
 
 /// What a run of the host build did.
 #[derive(Debug, Clone, PartialEq)]
@@ -48,6 +104,12 @@ pub struct Summary {
     pub replies: Vec<(usize, String)>,
     /// Errors (`!!` replies), by line number.
     pub errors: Vec<(usize, String)>,
+    /// Every stepper's steps.
+    pub steppers: Vec<StepperSummary>,
+    /// The MCU role's shutdown message, if it shut down.
+    pub shutdown: Option<String>,
+    /// MCU clock frequency, Hz.
+    pub mcu_freq: f64,
 }
 
 impl fmt::Display for Summary {
@@ -59,11 +121,7 @@ impl fmt::Display for Summary {
             self.kinematics
         )?;
         if !self.input_shaper.is_empty() {
-            writeln!(
-                f,
-                "input shaper: {} (applied once step generation lands, #4)",
-                self.input_shaper.join(", ")
-            )?;
+            writeln!(f, "input shaper: {}", self.input_shaper.join(", "))?;
         }
         if !self.unsupported.is_empty() {
             writeln!(
@@ -97,11 +155,23 @@ impl fmt::Display for Summary {
             "final:        X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}",
             p[0], p[1], p[2], p[3]
         )?;
-        writeln!(f, "errors:       {}", self.errors.len())?;
-        write!(
-            f,
-            "steps:        not generated yet (stepgen/sched: issues #4-#5)"
-        )
+        for st in &self.steppers {
+            writeln!(
+                f,
+                "{:<13} {} steps, final position {} steps, peak {:.0} steps/s",
+                format!("{}:", st.name),
+                st.steps,
+                st.position,
+                st.peak_rate
+            )?;
+        }
+        if let Some(last) = self.steppers.iter().filter_map(|s| s.last_step).max() {
+            writeln!(f, "last step:    {:.6} s", last as f64 / self.mcu_freq)?;
+        }
+        if let Some(reason) = &self.shutdown {
+            writeln!(f, "SHUTDOWN:     {reason}")?;
+        }
+        write!(f, "errors:       {}", self.errors.len())
     }
 }
 
@@ -151,8 +221,40 @@ impl MoveSink for Tally {
 }
 
 /// Runs the firmware logic on the SD folder `sd`, with `gcode` or else the
-/// folder's only `*.gcode` file.
+/// folder's only `*.gcode` file, on the board's clock.
 pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
+    run_with(
+        sd,
+        &Options {
+            gcode: gcode.map(Path::to_path_buf),
+            ..Options::default()
+        },
+    )
+}
+
+/// Forwards planned moves to step generation and counts them.
+struct Planned<'a, S> {
+    tally: &'a mut Tally,
+    motion: S,
+}
+
+impl<S: MoveSink> MoveSink for Planned<'_, S> {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        self.tally.toolhead(m);
+        self.motion.toolhead(m);
+    }
+    fn extruder(&mut self, m: &TrapqMove) {
+        self.tally.extruder(m);
+        self.motion.extruder(m);
+    }
+    fn set_position(&mut self, pos: [f64; 3]) {
+        self.motion.set_position(pos);
+    }
+}
+
+/// Runs the firmware logic on the SD folder `sd` as `options` say.
+pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
+    let gcode = options.gcode.as_deref();
     let config_path = sd.join(onechip_app::sdcard::PRINTER_CFG);
     let texts = config_files(sd, &config_path)?;
     let files: Vec<ConfigFile<'_>> = texts
@@ -166,8 +268,15 @@ pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
         None => only_gcode_file(sd)?,
     };
     let program = read(&gcode_path)?;
-    let mut printer: Box<Printer<LOOKAHEAD>> = Box::new(Printer::new(&machine));
+    let freq = options.mcu_freq;
+    let origin = options.clock_origin as f64 / freq;
+    let mut printer: Box<Printer<LOOKAHEAD>> =
+        Box::new(Printer::new(&machine).with_time_origin(origin));
     let mut tally = Tally::default();
+    let max_error = (MAX_STEP_ERROR * freq) as u32;
+    let mut motion: Box<Motion<MOTION_QUEUE, COMPRESS_QUEUE>> =
+        Box::new(Motion::new(&machine, freq, max_error, [0.0; 3]));
+    let mut mcu = VirtualMcu::new(machine.steppers.len(), options.clock_origin);
     let mut summary = Summary {
         config_path,
         kinematics: machine.kinematics,
@@ -185,6 +294,9 @@ pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
         final_position: [0.0; 4],
         replies: Vec::new(),
         errors: Vec::new(),
+        steppers: Vec::new(),
+        shutdown: None,
+        mcu_freq: freq,
     };
     let mut assembler = LineAssembler::<MAX_LINE>::new();
     for &byte in program.iter().chain(b"\n") {
@@ -203,20 +315,90 @@ pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
             }
         };
         let mut reply = String::new();
-        if let Err(e) = printer.execute(&text, &mut tally, &mut reply) {
+        let mut planned = Planned {
+            tally: &mut tally,
+            motion: motion.sink(&mut mcu),
+        };
+        if let Err(e) = printer.execute(&text, &mut planned, &mut reply) {
             summary.errors.push((summary.lines, e.to_string()));
         }
         summary
             .replies
             .extend(reply.lines().map(|r| (summary.lines, r.to_string())));
+        // Steps as far as the planned motion is final, executed as far as
+        // they have all been sent.
+        motion.generate(f64::INFINITY, &mut mcu);
+        mcu.run_until(clock_at(motion.sent_until(), freq));
+        if stopped(&motion, &mcu, &mut summary) {
+            break;
+        }
     }
-    printer.finish(&mut tally);
+    let mut planned = Planned {
+        tally: &mut tally,
+        motion: motion.sink(&mut mcu),
+    };
+    printer.finish(&mut planned);
+    motion.finish(&mut mcu);
+    mcu.run_until(u64::MAX);
+    stopped(&motion, &mcu, &mut summary);
     summary.toolhead_moves = tally.toolhead;
     summary.extruder_moves = tally.extruder;
     summary.peak_velocity = tally.peak_velocity;
     summary.print_time = printer.print_time();
     summary.final_position = printer.position();
+    for (stepper, log) in machine.steppers.iter().zip(mcu.logs()) {
+        summary.steppers.push(StepperSummary {
+            name: stepper.name.to_string(),
+            steps: log.steps.len(),
+            position: log.position,
+            peak_rate: log.min_interval.map_or(0.0, |i| freq / i as f64),
+            last_step: log.steps.last().map(|s| s.0),
+        });
+        if let Some(dir) = &options.steps_dir {
+            write_steps(dir, stepper.name, &log.steps)?;
+        }
+    }
     Ok(summary)
+}
+
+/// MCU clock at print time `t` (s), ticks (0 before the start).
+fn clock_at(t: f64, freq: f64) -> u64 {
+    if t.is_finite() {
+        (t * freq).max(0.0) as u64
+    } else if t > 0.0 {
+        u64::MAX
+    } else {
+        0
+    }
+}
+
+/// Notes a fault of step generation or the MCU role; true if the run
+/// must stop.
+fn stopped<const N: usize, const Q: usize>(
+    motion: &Motion<N, Q>,
+    mcu: &VirtualMcu,
+    summary: &mut Summary,
+) -> bool {
+    if summary.shutdown.is_none() {
+        summary.shutdown = motion
+            .error()
+            .map(|e| e.to_string())
+            .or_else(|| mcu.shutdown().map(|s| s.to_string()));
+    }
+    summary.shutdown.is_some()
+}
+
+/// Writes `steps-<name>.txt` into `dir`: one `<clock> <dir>` line per step.
+fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), RunError> {
+    let path = dir.join(format!("steps-{name}.txt"));
+    let io = |e| RunError::Read(path.clone(), e);
+    std::fs::create_dir_all(dir).map_err(io)?;
+    let file = std::fs::File::create(&path).map_err(io)?;
+    let mut out = std::io::BufWriter::new(file);
+    for &(clock, positive) in steps {
+        writeln!(out, "{clock} {}", u8::from(positive)).map_err(io)?;
+    }
+    out.flush().map_err(io)
 }
 
 /// printer.cfg (first) and every other `.cfg` file under the SD folder,

@@ -114,6 +114,8 @@ pub struct Motion<const N: usize, const Q: usize> {
     /// Motion before this print time is final (later moves start after), s.
     known_until: f64,
     error: Option<MotionError>,
+    /// The compressors' max_error, s.
+    max_error_time: f64,
 }
 
 /// A fault of the step-generation pipeline.
@@ -185,6 +187,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             channels,
             known_until: f64::NEG_INFINITY,
             error: None,
+            max_error_time: f64::from(max_error) / freq,
         }
     }
 
@@ -220,6 +223,16 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             ch.compressor
                 .flush(&mut |cmd, clock| sink.command(i, cmd, clock));
         }
+    }
+
+    /// Print time before which every step is due has gone to the sink, s
+    /// (compression may put a step up to `max_error` before its time).
+    pub fn sent_until(&self) -> f64 {
+        self.channels
+            .iter()
+            .map(|ch| ch.solver.generated_until() - COMPRESS_LAG)
+            .fold(f64::INFINITY, f64::min)
+            - self.max_error_time
     }
 
     /// Steppers' positions at their last step, mm (as [`Machine::steppers`]).

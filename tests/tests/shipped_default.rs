@@ -36,6 +36,11 @@ fn the_shipped_default_plans_cleanly() {
         s.replies,
         [(21, "X:122.500 Y:117.500 Z:10.000 E:6.860".to_string())]
     );
+    // Every stepper moved, and nothing shut down; X and Y end where homing
+    // and the moves put them relative to where they started.
+    assert_eq!(s.shutdown, None);
+    let steps: Vec<usize> = s.steppers.iter().map(|st| st.steps).collect();
+    assert!(steps.iter().all(|&n| n > 0), "{steps:?}");
     // Z homes at Klipper's default 5 mm/s from 1.5 x its travel: ~75 s.
     assert!(
         s.print_time > 100.0 && s.print_time < 110.0,
