@@ -299,10 +299,12 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         mcu_freq: freq,
     };
     let mut assembler = LineAssembler::<MAX_LINE>::new();
-    for &byte in program.iter().chain(b"\n") {
+    let mut progress = Progress::new(program.len());
+    for (at, &byte) in program.iter().chain(b"\n").enumerate() {
         let Some(event) = assembler.push(byte) else {
             continue;
         };
+        progress.note(at, printer.print_time() - origin);
         summary.lines += 1;
         let text = match event {
             Line::Complete(bytes) => String::from_utf8_lossy(bytes).into_owned(),
@@ -359,6 +361,36 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         }
     }
     Ok(summary)
+}
+
+/// G-code files at least this long report progress, bytes.
+const PROGRESS_MIN_BYTES: usize = 256 * 1024;
+
+/// Reports how far a long run is, on stderr, every tenth of the file.
+struct Progress {
+    len: usize,
+    next_tenth: usize,
+}
+
+impl Progress {
+    fn new(len: usize) -> Self {
+        Self {
+            len,
+            next_tenth: if len >= PROGRESS_MIN_BYTES { 1 } else { 11 },
+        }
+    }
+
+    /// Notes that `at` bytes are read and `print_time` s are planned.
+    fn note(&mut self, at: usize, print_time: f64) {
+        if self.next_tenth <= 10 && at * 10 >= self.len * self.next_tenth {
+            eprintln!(
+                "progress: {}% of the G-code, {:.0} s of print planned",
+                self.next_tenth * 10,
+                print_time
+            );
+            self.next_tenth += 1;
+        }
+    }
 }
 
 /// MCU clock at print time `t` (s), ticks (0 before the start).

@@ -5,6 +5,10 @@
 //! base address, stepper interrupt vector) and writes `firmware.bin` next to
 //! it, ready for the board's SD-card bootloader. Exits non-zero on any
 //! violation, with the reason.
+//!
+//! `cargo xtask hour-print DIR` writes an SD folder for the host build's
+//! speed benchmark: the golden cartesian machine and a one-hour print made
+//! of the golden extrusion case's body repeated (`time cargo sim DIR`).
 
 mod budget;
 mod elf_image;
@@ -19,7 +23,11 @@ fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.first().map(String::as_str) {
         Some("image") => image(args.get(1).map_or(DEFAULT_ELF, String::as_str)),
-        _ => Err("usage: cargo xtask image [ELF]".into()),
+        Some("hour-print") => match args.get(1) {
+            Some(dir) => hour_print(Path::new(dir)),
+            None => Err("usage: cargo xtask hour-print DIR".into()),
+        },
+        _ => Err("usage: cargo xtask image [ELF] | cargo xtask hour-print DIR".into()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -28,6 +36,35 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Repetitions of the golden extrusion body (15.4 s of print each) in the
+/// one-hour print.
+const HOUR_REPEATS: usize = 234;
+
+/// Writes the one-hour benchmark print into `dir` (printer.cfg and
+/// hour.gcode), from the golden data next to the workspace.
+fn hour_print(dir: &Path) -> Result<(), String> {
+    let golden = workspace_root().join("../shared/golden");
+    let read =
+        |p: PathBuf| std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()));
+    let config = read(golden.join("configs/cartesian.cfg"))?;
+    let gcode = read(golden.join("gcode/cart_extrude.gcode"))?;
+    // The prologue (position, modes) once, then the body over and over.
+    let lines: Vec<&str> = gcode.lines().collect();
+    let (prologue, body) = lines.split_at(5.min(lines.len()));
+    let mut out = prologue.join("\n") + "\n";
+    for _ in 0..HOUR_REPEATS {
+        out += &body.join("\n");
+        out += "\n";
+    }
+    let write = |name: &str, text: &str| {
+        let path = dir.join(name);
+        std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
+    };
+    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    write("printer.cfg", &config)?;
+    write("hour.gcode", &out)
 }
 
 /// Checks the firmware image and writes firmware.bin beside the ELF.
