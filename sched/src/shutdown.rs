@@ -17,8 +17,9 @@ pub enum Shutdown {
     TimerTooClose,
     /// An ADC reading left its configured range.
     AdcOutOfRange,
-    /// A digital output stayed on past its max_duration.
-    DigitalOutMaxDuration,
+    /// A digital output stayed away from its default past max_duration
+    /// without a refresh.
+    DigitalOutExpired,
 }
 
 impl Shutdown {
@@ -29,7 +30,7 @@ impl Shutdown {
             Self::StepperTooFarInPast => "Stepper too far in past",
             Self::TimerTooClose => "Timer too close",
             Self::AdcOutOfRange => "ADC out of range",
-            Self::DigitalOutMaxDuration => "Scheduled digital out event will exceed max_duration",
+            Self::DigitalOutExpired => "Missed scheduling of next digital out event",
         }
     }
 }
