@@ -30,11 +30,10 @@ impl<const N: usize> Printer<N> {
         }
     }
 
-    /// The same printer with its print time starting `origin` s after the
-    /// MCU's clock did (a printer powered on long before the print).
-    pub fn with_time_origin(mut self, origin: f64) -> Self {
-        self.toolhead = self.toolhead.with_time_origin(origin);
-        self
+    /// Starts print time `origin` s after the MCU's clock did (a printer
+    /// powered on long before the print).
+    pub fn set_time_origin(&mut self, origin: f64) {
+        self.toolhead.set_time_origin(origin);
     }
 
     /// Runs one line of G-code; replies other than `ok` go to `out`.

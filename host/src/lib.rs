@@ -270,8 +270,8 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let program = read(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
-    let mut printer: Box<Printer<LOOKAHEAD>> =
-        Box::new(Printer::new(&machine).with_time_origin(origin));
+    let mut printer: Box<Printer<LOOKAHEAD>> = Box::new(Printer::new(&machine));
+    printer.set_time_origin(origin);
     let mut tally = Tally::default();
     let max_error = (MAX_STEP_ERROR * freq) as u32;
     let mut motion: Box<Motion<MOTION_QUEUE, COMPRESS_QUEUE>> =

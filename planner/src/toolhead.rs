@@ -440,9 +440,15 @@ impl<const N: usize> Toolhead<N> {
     /// Starts the clock at `origin` s instead of 0, as when printing begins
     /// long after the MCU started (print times then count from there).
     pub fn with_time_origin(mut self, origin: f64) -> Self {
+        self.set_time_origin(origin);
+        self
+    }
+
+    /// [`Self::with_time_origin`] in place (a toolhead with a long
+    /// lookahead is large to move).
+    pub fn set_time_origin(&mut self, origin: f64) {
         self.time_origin = origin;
         self.print_time = self.print_time.max(origin);
-        self
     }
 
     /// What klippy's priming timer does when it expires (0.1 s after the
