@@ -14,13 +14,14 @@ pub mod virtual_mcu;
 use onechip_app::line::{Line, LineAssembler};
 use onechip_app::printer::Printer;
 use onechip_planner::config::{Config, ConfigFile};
+use onechip_planner::homing::HomingMove;
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use onechip_stepgen::motion::Motion;
 use std::fmt;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use virtual_mcu::VirtualMcu;
+use virtual_mcu::{Physics, VirtualMcu};
 
 /// Longest G-code line accepted, in bytes (as on the board's USB console).
 pub const MAX_LINE: usize = 256;
@@ -47,6 +48,21 @@ pub struct Options {
     pub mcu_freq: f64,
     /// MCU clock at print time 0, ticks (to start near the 32-bit wrap).
     pub clock_origin: u64,
+    /// Where the toolhead really is at power-on, which decides where
+    /// homing moves meet their endstops.
+    pub start: Start,
+}
+
+/// Where the toolhead really is at power-on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Start {
+    /// Mid-travel on every rail; endstops stop homing moves.
+    MidTravel,
+    /// At this toolhead position, mm; endstops stop homing moves.
+    At([f64; 3]),
+    /// Unknown: homing moves run to their end, as in klippy's batch mode
+    /// (no endstops), which the golden data follows.
+    Ideal,
 }
 
 impl Default for Options {
@@ -56,6 +72,7 @@ impl Default for Options {
             steps_dir: None,
             mcu_freq: BOARD_CLOCK,
             clock_origin: 0,
+            start: Start::MidTravel,
         }
     }
 }
@@ -110,6 +127,12 @@ pub struct Summary {
     pub shutdown: Option<String>,
     /// MCU clock frequency, Hz.
     pub mcu_freq: f64,
+    /// Endstop triggers while homing: axis, the toolhead's real position
+    /// when the steppers stopped (mm), print time (s).
+    pub endstops: Vec<(usize, [f64; 3], f64)>,
+    /// Where the toolhead really is at the end, mm (when the power-on
+    /// position is known, see [`Start`]).
+    pub real_position: Option<[f64; 3]>,
 }
 
 impl fmt::Display for Summary {
@@ -167,6 +190,16 @@ impl fmt::Display for Summary {
         }
         if let Some(last) = self.steppers.iter().filter_map(|s| s.last_step).max() {
             writeln!(f, "last step:    {:.6} s", last as f64 / self.mcu_freq)?;
+        }
+        for (axis, real, time) in &self.endstops {
+            writeln!(
+                f,
+                "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}",
+                ["x", "y", "z"].get(*axis).unwrap_or(&"?"),
+                real[0],
+                real[1],
+                real[2]
+            )?;
         }
         if let Some(reason) = &self.shutdown {
             writeln!(f, "SHUTDOWN:     {reason}")?;
@@ -250,6 +283,9 @@ impl<S: MoveSink> MoveSink for Planned<'_, S> {
     fn set_position(&mut self, pos: [f64; 3]) {
         self.motion.set_position(pos);
     }
+    fn homing_move_end(&mut self, homing: &HomingMove) -> [f64; 3] {
+        self.motion.homing_move_end(homing)
+    }
 }
 
 /// Runs the firmware logic on the SD folder `sd` as `options` say.
@@ -277,6 +313,9 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let mut motion: Box<Motion<MOTION_QUEUE, COMPRESS_QUEUE>> =
         Box::new(Motion::new(&machine, freq, max_error, [0.0; 3]));
     let mut mcu = VirtualMcu::new(machine.steppers.len(), options.clock_origin);
+    if let Some(physics) = physics(&machine, options.start, freq) {
+        mcu = mcu.with_physics(physics);
+    }
     let mut summary = Summary {
         config_path,
         kinematics: machine.kinematics,
@@ -297,6 +336,8 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         steppers: Vec::new(),
         shutdown: None,
         mcu_freq: freq,
+        endstops: Vec::new(),
+        real_position: None,
     };
     let mut assembler = LineAssembler::<MAX_LINE>::new();
     let mut progress = Progress::new(program.len());
@@ -348,6 +389,13 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     summary.peak_velocity = tally.peak_velocity;
     summary.print_time = printer.print_time();
     summary.final_position = printer.position();
+    summary.real_position = mcu.real_position();
+    let clock_origin = options.clock_origin;
+    summary.endstops = mcu
+        .triggers()
+        .iter()
+        .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
+        .collect();
     for (stepper, log) in machine.steppers.iter().zip(mcu.logs()) {
         summary.steppers.push(StepperSummary {
             name: stepper.name.to_string(),
@@ -391,6 +439,31 @@ impl Progress {
             self.next_tenth += 1;
         }
     }
+}
+
+/// Where the motion steppers really are, for endstops (none for a delta,
+/// which does not home yet, or with [`Start::Ideal`]).
+fn physics(machine: &Machine<'_>, start: Start, freq: f64) -> Option<Physics> {
+    let toolhead = match start {
+        Start::Ideal => return None,
+        Start::At(pos) => pos,
+        Start::MidTravel => core::array::from_fn(|k| {
+            machine
+                .steppers
+                .get(k)
+                .map_or(0.0, |s| 0.5 * (s.position_min + s.position_max))
+        }),
+    };
+    if machine.kinematics == Kinematics::Delta {
+        return None;
+    }
+    let kinematics = machine.stepper_kinematics;
+    Some(Physics {
+        kinematics,
+        step_dist: core::array::from_fn(|k| machine.steppers.get(k).map_or(1.0, |s| s.step_dist)),
+        start: core::array::from_fn(|k| kinematics[k].position(toolhead)),
+        freq,
+    })
 }
 
 /// MCU clock at print time `t` (s), ticks (0 before the start).

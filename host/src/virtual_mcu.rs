@@ -3,11 +3,42 @@
 //! which is run forward as far as step generation has committed, and every
 //! step it makes is recorded with its 64-bit clock.
 
+use onechip_planner::homing::HomingMove;
+use onechip_planner::kinematics::{StepperKinematics, calc_position};
+use onechip_planner::machine::MAX_STEPPERS;
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::stepper::{StepPins, Stepper};
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::StepSink;
 use std::collections::VecDeque;
+
+/// Endstop sampling while homing, as Klipper configures it: once a trigger
+/// is seen, this many samples this far apart must agree.
+const ENDSTOP_SAMPLE_COUNT: u32 = 4;
+const ENDSTOP_SAMPLE_TIME: f64 = 0.000_015;
+
+/// The machine as physics sees it, for endstops: where the motion steppers
+/// really are.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Physics {
+    /// How the three motion steppers follow the toolhead.
+    pub kinematics: [StepperKinematics; 3],
+    /// mm per step of each motion stepper.
+    pub step_dist: [f64; 3],
+    /// The motion steppers' positions at power-on, mm.
+    pub start: [f64; 3],
+    /// MCU clock, Hz.
+    pub freq: f64,
+}
+
+impl Physics {
+    /// The toolhead's real position after `steps` steps of each motion
+    /// stepper, mm.
+    fn toolhead(&self, steps: [i64; 3]) -> [f64; 3] {
+        let s = core::array::from_fn(|k| self.start[k] + steps[k] as f64 * self.step_dist[k]);
+        calc_position(&self.kinematics, s)
+    }
+}
 
 /// Moves each virtual stepper can hold (Klipper's STM32 builds hold 1024
 /// across all steppers; this is per stepper).
@@ -64,6 +95,14 @@ pub struct VirtualMcu {
     /// Virtual time: every step before it has happened, ticks.
     now: u64,
     shutdown: Option<Shutdown>,
+    /// With physics, homing moves stop at their endstops; without, they run
+    /// to their end (klippy's batch mode).
+    physics: Option<Physics>,
+    /// Where each endstop triggered: axis, toolhead position, clock.
+    triggers: Vec<(usize, [f64; 3], u64)>,
+    /// The homing move being watched: its start clock, the next endstop
+    /// sample's clock, and how many samples in a row saw the trigger.
+    watch: Option<(u64, u64, u32)>,
 }
 
 impl VirtualMcu {
@@ -81,7 +120,32 @@ impl VirtualMcu {
                 .collect(),
             now: start,
             shutdown: None,
+            physics: None,
+            triggers: Vec::new(),
+            watch: None,
         }
+    }
+
+    /// The same MCU with endstops where `physics` puts them.
+    pub fn with_physics(mut self, physics: Physics) -> Self {
+        self.physics = Some(physics);
+        self
+    }
+
+    /// Every endstop trigger so far: axis, the toolhead's real position
+    /// when the steppers stopped (mm), and the clock.
+    pub fn triggers(&self) -> &[(usize, [f64; 3], u64)] {
+        &self.triggers
+    }
+
+    /// The toolhead's real position now, if physics is modelled, mm.
+    pub fn real_position(&self) -> Option<[f64; 3]> {
+        let physics = self.physics.as_ref()?;
+        Some(physics.toolhead(self.motion_steps()))
+    }
+
+    fn motion_steps(&self) -> [i64; 3] {
+        core::array::from_fn(|k| self.channels.get(k).map_or(0, |c| c.log.position))
     }
 
     /// Runs every stepper up to (not including) clock `until`, and moves
@@ -181,11 +245,83 @@ impl StepSink for VirtualMcu {
         }
         match cmd {
             StepCommand::Dir(positive) => self.channels[index].engine.set_next_dir(positive),
+            StepCommand::ResetClock(at) => self.channels[index].engine.reset_clock(at as u32),
             StepCommand::Steps {
                 interval,
                 count,
                 add,
             } => self.queue(index, interval, count, add, clock),
         }
+    }
+
+    fn home(
+        &mut self,
+        homing: &HomingMove,
+        start_clock: u64,
+        until_clock: u64,
+    ) -> Option<[i64; MAX_STEPPERS]> {
+        let physics = self.physics.clone()?;
+        let freq = physics.freq;
+        // Klipper samples about once per step of the homing move, then
+        // confirms a trigger with a few quick samples.
+        let finest = physics
+            .step_dist
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        let rest = ((finest / homing.speed) * freq).max(1.0) as u64;
+        let confirm = (ENDSTOP_SAMPLE_TIME * freq).max(1.0) as u64;
+        let reached = |pos: [f64; 3]| {
+            let coord = pos[homing.axis];
+            if homing.positive_dir {
+                coord >= homing.position_endstop
+            } else {
+                coord <= homing.position_endstop
+            }
+        };
+        let (mut sample_at, mut agreeing) = match self.watch {
+            Some((start, at, n)) if start == start_clock => (at, n),
+            _ => (start_clock.max(self.now), 0),
+        };
+        loop {
+            let next_step = self
+                .channels
+                .iter()
+                .enumerate()
+                .filter_map(|(i, c)| c.next.map(|t| (t, i)))
+                .min();
+            match next_step {
+                Some((t, i)) if t < sample_at => step(&mut self.channels[i], t),
+                _ if sample_at >= until_clock => {
+                    self.watch = Some((start_clock, sample_at, agreeing));
+                    return None;
+                }
+                _ => {
+                    if reached(physics.toolhead(self.motion_steps())) {
+                        agreeing += 1;
+                        if agreeing == ENDSTOP_SAMPLE_COUNT {
+                            break;
+                        }
+                        sample_at += confirm;
+                    } else {
+                        agreeing = 0;
+                        sample_at += rest;
+                    }
+                }
+            }
+        }
+        // Triggered: the steppers stop at once, so none overshoots the
+        // trigger; their remaining steps are dropped.
+        self.watch = None;
+        for ch in &mut self.channels {
+            ch.engine.stop();
+            ch.moves.clear();
+            ch.left = 0;
+            ch.next = None;
+        }
+        self.now = self.now.max(sample_at);
+        let real = physics.toolhead(self.motion_steps());
+        self.triggers.push((homing.axis, real, sample_at));
+        Some([0; MAX_STEPPERS])
     }
 }

@@ -6,7 +6,8 @@
 //! axis retracts by `homing_retract_dist`, and a second homing move runs at
 //! `second_homing_speed`. Homing moves are "drip" moves: planned alone,
 //! starting after the endstop start delay and the step generator's scan
-//! window. With real endstops (issue #5) the trigger ends the move early.
+//! window. With real endstops the trigger ends the move early, and the
+//! sink reports where the steppers stopped ([`MoveSink::homing_move_end`]).
 
 use crate::motion::E;
 use crate::toolhead::{MoveError, MoveSink, Toolhead};
@@ -31,6 +32,25 @@ pub struct HomingInfo {
     pub retract_speed: f64,
     /// The axis' travel (position_min, position_max), mm.
     pub range: (f64, f64),
+}
+
+/// A homing move, as the step side needs it to watch the endstop.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HomingMove {
+    /// The axis homed (0 = X, 1 = Y, 2 = Z).
+    pub axis: usize,
+    /// Where the move goes: the endstop position on the homed axis, mm.
+    pub target: [f64; 3],
+    /// position_endstop, mm.
+    pub position_endstop: f64,
+    /// True if the endstop is approached in the positive direction.
+    pub positive_dir: bool,
+    /// The move's speed, mm/s.
+    pub speed: f64,
+    /// Print time the endstop is armed at (just before the move), s.
+    pub start_time: f64,
+    /// Print time at the end of the move, s.
+    pub end_time: f64,
 }
 
 impl<const N: usize> Toolhead<N> {
@@ -66,7 +86,7 @@ impl<const N: usize> Toolhead<N> {
         home[axis] = hi.position_endstop;
         self.set_position(force, sink);
         self.kinematics.set_axis_homed(axis);
-        self.homing_move(home, hi.speed, sink)?;
+        self.homing_move(axis, hi, home, hi.speed, sink)?;
         if hi.retract_dist > 0.0 {
             let mut axes_d = [0.0; 4];
             for i in 0..3 {
@@ -84,28 +104,40 @@ impl<const N: usize> Toolhead<N> {
             }
             self.move_to(retract, hi.retract_speed, sink)?;
             self.set_position(start, sink);
-            self.homing_move(home, hi.second_speed, sink)?;
+            self.homing_move(axis, hi, home, hi.second_speed, sink)?;
         }
         self.flush_step_generation(sink);
         Ok(())
     }
 
-    /// One homing move to `target`, ending where the endstop triggers.
+    /// One homing move of `axis` to `target`, ending where the endstop
+    /// triggers (the sink tells where the steppers stopped).
     fn homing_move(
         &mut self,
+        axis: usize,
+        hi: &HomingInfo,
         target: [f64; 4],
         speed: f64,
         sink: &mut impl MoveSink,
     ) -> Result<(), MoveError> {
         self.flush_step_generation(sink);
-        self.last_move_time(sink);
+        let start_time = self.last_move_time(sink);
         self.dwell(HOMING_START_DELAY, sink);
         let mut target = target;
         target[E] = self.position()[E];
         self.drip_move(target, speed, sink)?;
-        self.last_move_time(sink);
+        let end_time = self.last_move_time(sink);
         self.flush_step_generation(sink);
-        self.set_position(target, sink);
+        let halt = sink.homing_move_end(&HomingMove {
+            axis,
+            target: [target[0], target[1], target[2]],
+            position_endstop: hi.position_endstop,
+            positive_dir: hi.positive_dir,
+            speed,
+            start_time,
+            end_time,
+        });
+        self.set_position([halt[0], halt[1], halt[2], target[E]], sink);
         Ok(())
     }
 }

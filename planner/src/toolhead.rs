@@ -61,6 +61,14 @@ pub trait MoveSink {
     fn set_position(&mut self, pos: [f64; 3]) {
         let _ = pos;
     }
+    /// A homing move has been handed over entirely: the sink runs it with
+    /// the endstop armed and returns the toolhead position where the
+    /// steppers stopped, as Klipper computes it (the target, plus any
+    /// overshoot between the trigger and the stop). Sinks without
+    /// endstops let the move complete: the target.
+    fn homing_move_end(&mut self, homing: &crate::homing::HomingMove) -> [f64; 3] {
+        homing.target
+    }
 }
 
 /// Why a move was refused.

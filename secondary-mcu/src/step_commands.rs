@@ -1,6 +1,7 @@
 //! Step commands for a secondary MCU: the compressor's output as Klipper's
-//! `queue_step oid interval count add` and `set_next_step_dir oid dir`
-//! messages, encoded with that MCU's data dictionary, and decoded back.
+//! `queue_step oid interval count add`, `set_next_step_dir oid dir` and
+//! `reset_step_clock oid clock` messages, encoded with that MCU's data
+//! dictionary, and decoded back (a decoded reset carries the 32-bit clock).
 
 use onechip_protocol::codec::{EncodeError, Encoder};
 use onechip_protocol::dictionary::Dictionary;
@@ -11,6 +12,7 @@ use onechip_stepgen::compress::StepCommand;
 pub struct StepCommandEncoder<'d> {
     queue_step: Encoder<'d>,
     set_dir: Encoder<'d>,
+    reset_clock: Encoder<'d>,
     oid: u8,
     invert_dir: bool,
 }
@@ -26,6 +28,7 @@ impl<'d> StepCommandEncoder<'d> {
         Ok(Self {
             queue_step: Encoder::new(dict, "queue_step")?,
             set_dir: Encoder::new(dict, "set_next_step_dir")?,
+            reset_clock: Encoder::new(dict, "reset_step_clock")?,
             oid,
             invert_dir,
         })
@@ -41,6 +44,10 @@ impl<'d> StepCommandEncoder<'d> {
                 let dir = i64::from(positive != self.invert_dir);
                 self.set_dir.encode_ints(&[oid, dir], out)
             }
+            // The MCU's clock is 32 bits wide.
+            StepCommand::ResetClock(clock) => self
+                .reset_clock
+                .encode_ints(&[oid, i64::from(clock as u32)], out),
             StepCommand::Steps {
                 interval,
                 count,
@@ -60,7 +67,9 @@ impl<'d> StepCommandEncoder<'d> {
         if msg.int("oid")? != i64::from(self.oid) {
             return None;
         }
-        let cmd = if msg.message.id == self.set_dir.id() {
+        let cmd = if msg.message.id == self.reset_clock.id() {
+            StepCommand::ResetClock(u64::try_from(msg.int("clock")?).ok()?)
+        } else if msg.message.id == self.set_dir.id() {
             StepCommand::Dir((msg.int("dir")? != 0) != self.invert_dir)
         } else if msg.message.id == self.queue_step.id() {
             StepCommand::Steps {

@@ -113,6 +113,16 @@ fn other_messages_and_oids_are_not_step_commands() {
         ours.decode(&dict, &buf[..len]).map(|c| c.0),
         Some(StepCommand::Dir(true))
     );
+    // A reset sends the 32-bit clock and reads back as such.
+    let len = ours
+        .encode(&StepCommand::ResetClock((1 << 32) + 5), &mut buf)
+        .expect("fits");
+    let text = dict.decode(&buf[..len]).expect("decodes").0.to_string();
+    assert_eq!(text, "reset_step_clock oid=3 clock=5");
+    assert_eq!(
+        ours.decode(&dict, &buf[..len]).map(|c| c.0),
+        Some(StepCommand::ResetClock(5))
+    );
     let len = dict.encode_text("get_clock", &mut buf).expect("encodes");
     assert_eq!(ours.decode(&dict, &buf[..len]), None);
     // Too small an output buffer is an error, not a panic.

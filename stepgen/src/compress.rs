@@ -34,6 +34,9 @@ pub enum StepCommand {
         /// Change of the interval after each step.
         add: i16,
     },
+    /// The next step's interval counts from this clock (`reset_step_clock`,
+    /// after a homing move was cut short).
+    ResetClock(u64),
 }
 
 /// Acceptable range of one step, in ticks after the last compressed step:
@@ -174,6 +177,17 @@ impl<const Q: usize> Compressor<Q> {
         while self.queue.first().is_some_and(|c| c < clock) {
             self.compress_some(out);
         }
+    }
+
+    /// Forgets every step not yet sent (a homing move cut short by its
+    /// endstop) and counts the next from `clock`, which the stepper is told
+    /// with [`StepCommand::ResetClock`], also sent to `out`.
+    pub fn reset(&mut self, clock: u64, out: &mut impl FnMut(StepCommand, u64)) {
+        self.queue.drop_front(self.queue.len());
+        self.held = None;
+        self.dir = None;
+        self.last_step_clock = clock;
+        out(StepCommand::ResetClock(clock), clock);
     }
 
     /// Sends everything queued (the end of the motion, or before a pause).
@@ -353,6 +367,7 @@ pub fn expand(commands: &[StepCommand], mut emit: impl FnMut(u64, bool)) {
     for cmd in commands {
         match *cmd {
             StepCommand::Dir(d) => dir = d,
+            StepCommand::ResetClock(at) => clock = at,
             StepCommand::Steps {
                 interval,
                 count,

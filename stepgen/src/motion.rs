@@ -14,7 +14,9 @@ use crate::segment::Segment;
 use crate::shaper::StepperShaper;
 use crate::solver::{AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
 use crate::trapq::Trapq;
+use onechip_planner::homing::HomingMove;
 use onechip_planner::kinematics::StepperKinematics;
+use onechip_planner::kinematics::calc_position;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 
@@ -22,12 +24,39 @@ use onechip_planner::toolhead::{MoveSink, TrapqMove};
 /// steps that follow it, s (Klipper's STEPCOMPRESS_FLUSH_TIME).
 const COMPRESS_LAG: f64 = 0.050;
 
+/// Print time of a homing move's steps sent at a time, s (Klipper's
+/// DRIP_SEGMENT_TIME).
+const DRIP_TIME: f64 = 0.050;
+
 /// Receives each stepper's commands, in order per stepper.
 pub trait StepSink {
     /// The next command of stepper `index` (as in [`Machine::steppers`]);
     /// `clock` is the 64-bit MCU clock of its first step (see
     /// [`Compressor::append`]).
     fn command(&mut self, index: usize, cmd: StepCommand, clock: u64);
+
+    /// A homing move is running, its commands sent up to `until_clock`:
+    /// run its steps before that clock with the endstop of `homing.axis`
+    /// armed from `start_clock` (called again with later clocks as more
+    /// steps are sent). On a trigger, the steppers stop and the rest of
+    /// their queued steps is dropped; returns each stepper's steps between
+    /// the trigger and the stop. None: no trigger yet (or no endstops here).
+    fn home(
+        &mut self,
+        homing: &HomingMove,
+        start_clock: u64,
+        until_clock: u64,
+    ) -> Option<[i64; MAX_STEPPERS]> {
+        let _ = (homing, start_clock, until_clock);
+        None
+    }
+}
+
+/// Drops every command.
+struct Discard;
+
+impl StepSink for Discard {
+    fn command(&mut self, _: usize, _: StepCommand, _: u64) {}
 }
 
 /// What a stepper's position follows.
@@ -48,6 +77,8 @@ struct Channel<const Q: usize> {
     shaper: StepperShaper,
     margins: Margins,
     compressor: Compressor<Q>,
+    /// mm per step.
+    step_dist: f64,
 }
 
 impl<const Q: usize> Channel<Q> {
@@ -60,6 +91,7 @@ impl<const Q: usize> Channel<Q> {
             shaper,
             margins,
             compressor,
+            ..
         } = self;
         let mut out = |cmd, clock| sink.command(index, cmd, clock);
         let mut emit = |s: crate::solver::Step| compressor.append(s.time, s.dir, &mut out);
@@ -116,6 +148,8 @@ pub struct Motion<const N: usize, const Q: usize> {
     error: Option<MotionError>,
     /// The compressors' max_error, s.
     max_error_time: f64,
+    /// MCU clock, Hz.
+    freq: f64,
 }
 
 /// A fault of the step-generation pipeline.
@@ -179,6 +213,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 shaper,
                 margins,
                 compressor: Compressor::new(max_error, freq),
+                step_dist: stepper.step_dist,
             });
         }
         Self {
@@ -188,6 +223,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             known_until: f64::NEG_INFINITY,
             error: None,
             max_error_time: f64::from(max_error) / freq,
+            freq,
         }
     }
 
@@ -288,6 +324,59 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         }
     }
 
+    /// Runs a homing move whose steps are all generated: sends every
+    /// compressed step, lets the sink run it against the endstop, and on a
+    /// trigger restarts every stepper's step clock at the move's end and
+    /// returns where the toolhead stopped as Klipper computes it.
+    fn home(&mut self, homing: &HomingMove, sink: &mut impl StepSink) -> [f64; 3] {
+        let freq = self.freq;
+        let clock = |t: f64| (t.max(0.0) * freq) as u64;
+        let (start_clock, end_clock) = (clock(homing.start_time), clock(homing.end_time));
+        self.known_until = self.known_until.max(homing.end_time);
+        // Steps go out in short slices, as Klipper drips a homing move, so
+        // that the endstop is watched while the steps still to come are
+        // not yet queued.
+        let mut until = homing.start_time;
+        let overshoot = loop {
+            until += DRIP_TIME;
+            let last = until >= homing.end_time;
+            let sent = if last {
+                self.generate_through(sink);
+                for (i, ch) in self.channels.iter_mut().enumerate() {
+                    ch.compressor
+                        .flush(&mut |cmd, clock| sink.command(i, cmd, clock));
+                }
+                end_clock
+            } else {
+                self.generate(until, sink);
+                clock(self.sent_until())
+            };
+            if let Some(overshoot) = sink.home(homing, start_clock, sent.min(end_clock)) {
+                break overshoot;
+            }
+            if last {
+                return homing.target;
+            }
+        };
+        // The steps past the trigger never happen: generate them (the
+        // solvers move on to the move's end) but drop them.
+        self.generate_through(&mut Discard);
+        for (i, ch) in self.channels.iter_mut().enumerate() {
+            ch.compressor
+                .reset(end_clock, &mut |cmd, clock| sink.command(i, cmd, clock));
+        }
+        // The target, moved by each motion stepper's overshoot.
+        let mut kin = [StepperKinematics::Axis(0); 3];
+        let mut spos = [0.0; 3];
+        for (k, ch) in self.channels.iter().take(3).enumerate() {
+            if let Follows::Toolhead(stepper_kin) = ch.follows {
+                kin[k] = stepper_kin;
+                spos[k] = stepper_kin.position(homing.target) + overshoot[k] as f64 * ch.step_dist;
+            }
+        }
+        calc_position(&kin, spos)
+    }
+
     /// Generates through the end of all queued motion and its margins.
     fn generate_through(&mut self, sink: &mut impl StepSink) {
         let end = |q: &Trapq<N>| {
@@ -340,5 +429,9 @@ impl<const N: usize, const Q: usize, S: StepSink> MoveSink for MotionSink<'_, N,
 
     fn set_position(&mut self, pos: [f64; 3]) {
         self.motion.set_position(pos, self.steps);
+    }
+
+    fn homing_move_end(&mut self, homing: &HomingMove) -> [f64; 3] {
+        self.motion.home(homing, self.steps)
     }
 }

@@ -481,6 +481,7 @@ fn expand_64(cmds: &[(StepCommand, u64)]) -> Vec<(u64, bool)> {
     for &(cmd, first) in cmds {
         match cmd {
             StepCommand::Dir(d) => dir = d,
+            StepCommand::ResetClock(_) => {}
             StepCommand::Steps {
                 interval,
                 count,

@@ -14,7 +14,7 @@
 //! compared; their step times are checked against golden by the step
 //! generation test, which starts from klippy's planned moves.
 
-use onechip_host::Options;
+use onechip_host::{Options, Start};
 use std::path::{Path, PathBuf};
 
 fn golden_dir() -> PathBuf {
@@ -82,6 +82,9 @@ fn check(case: &str, config: &str, origin: u64, compare: Compare) {
             steps_dir: Some(out.clone()),
             mcu_freq: freq,
             clock_origin: origin,
+            // Klipper's batch mode has no endstops: homing moves run to
+            // their end.
+            start: Start::Ideal,
             ..Options::default()
         },
     )

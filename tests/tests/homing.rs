@@ -1,0 +1,81 @@
+//! Homing in virtual time: the toolhead starts somewhere the firmware does
+//! not know; each homing move runs until the endstop (at position_endstop)
+//! triggers, the steppers stop within one step of it, and the position
+//! afterwards is what Klipper sets, which is where the toolhead really is.
+
+use onechip_host::{Options, Start};
+use std::path::PathBuf;
+
+fn sd(name: &str, gcode: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("onechip-homing-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let shipped =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
+    std::fs::copy(shipped.join("printer.cfg"), dir.join("printer.cfg")).expect("cfg");
+    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+    dir
+}
+
+/// The shipped machine: endstops at X 0, Y 0, Z 0.5; 0.0125 mm per X/Y
+/// step, 0.0025 per Z step.
+const ENDSTOPS: [f64; 3] = [0.0, 0.0, 0.5];
+const STEP: [f64; 3] = [0.0125, 0.0125, 0.0025];
+
+#[test]
+fn endstops_stop_homing_moves_and_the_position_is_where_the_toolhead_is() {
+    let dir = sd("g28", "G28\nM114\nG1 X20.3 Y30.7 Z5 F3000\nM114\n");
+    let start = [50.0, 80.0, 30.0];
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            start: Start::At(start),
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert_eq!(s.errors, []);
+    assert_eq!(s.shutdown, None);
+    // Two homing moves per axis (the second after a retract), X, Y, Z.
+    let axes: Vec<usize> = s.endstops.iter().map(|e| e.0).collect();
+    assert_eq!(axes, [0, 0, 1, 1, 2, 2]);
+    for &(axis, real, time) in &s.endstops {
+        let past = (real[axis] - ENDSTOPS[axis]).abs();
+        assert!(
+            past <= STEP[axis] + 1e-9,
+            "axis {axis}: stopped {past} mm from the endstop"
+        );
+        assert!(time > 0.0);
+    }
+    // The first X trigger comes after the 50 mm from the start at the
+    // homing speed (50 mm/s), not after the whole (352.5 mm) move.
+    let first_x = s.endstops[0].2;
+    assert!(first_x > 1.0 && first_x < 1.5, "{first_x}");
+    // After homing, M114 reports the endstop positions; at the end the
+    // firmware's position and the real one agree within a step.
+    assert_eq!(s.replies[0].1, "X:0.000 Y:0.000 Z:0.500 E:0.000");
+    let real = s.real_position.expect("known start");
+    for k in 0..3 {
+        assert!(
+            (real[k] - s.final_position[k]).abs() <= STEP[k],
+            "axis {k}: real {real:?} vs {:?}",
+            s.final_position
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn without_a_known_start_homing_runs_to_the_end_as_in_klippy_batch_mode() {
+    let dir = sd("ideal", "G28 X\n");
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            start: Start::Ideal,
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert_eq!(s.endstops, []);
+    assert_eq!(s.real_position, None);
+    std::fs::remove_dir_all(&dir).ok();
+}
