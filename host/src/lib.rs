@@ -9,6 +9,7 @@
 //! position, and any errors; optionally every step's clock, in the format
 //! of Klipper's golden `steps-*.txt`.
 
+pub mod plot;
 pub mod virtual_mcu;
 
 use onechip_app::line::{Line, LineAssembler};
@@ -51,6 +52,9 @@ pub struct Options {
     /// Where the toolhead really is at power-on, which decides where
     /// homing moves meet their endstops.
     pub start: Start,
+    /// If set, an SVG of toolhead velocity and step rates over the window
+    /// is written to the path.
+    pub plot: Option<(PathBuf, plot::Window)>,
 }
 
 /// Where the toolhead really is at power-on.
@@ -73,6 +77,7 @@ impl Default for Options {
             mcu_freq: BOARD_CLOCK,
             clock_origin: 0,
             start: Start::MidTravel,
+            plot: None,
         }
     }
 }
@@ -235,18 +240,26 @@ impl fmt::Display for RunError {
 
 impl std::error::Error for RunError {}
 
-/// Counts planned moves.
+/// Counts planned moves, and keeps those in the plot window.
 #[derive(Default)]
 struct Tally {
     toolhead: usize,
     extruder: usize,
     peak_velocity: f64,
+    window: Option<plot::Window>,
+    plotted: Vec<TrapqMove>,
 }
 
 impl MoveSink for Tally {
     fn toolhead(&mut self, m: &TrapqMove) {
         self.toolhead += 1;
         self.peak_velocity = self.peak_velocity.max(m.cruise_v);
+        if let Some(w) = self.window {
+            let end = m.print_time + m.accel_t + m.cruise_t + m.decel_t;
+            if end >= w.from && m.print_time <= w.to {
+                self.plotted.push(*m);
+            }
+        }
     }
     fn extruder(&mut self, _: &TrapqMove) {
         self.extruder += 1;
@@ -308,7 +321,13 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let origin = options.clock_origin as f64 / freq;
     let mut printer: Box<Printer<LOOKAHEAD>> = Box::new(Printer::new(&machine));
     printer.set_time_origin(origin);
-    let mut tally = Tally::default();
+    let mut tally = Tally {
+        window: options.plot.as_ref().map(|(_, w)| plot::Window {
+            from: w.from + origin,
+            to: w.to + origin,
+        }),
+        ..Tally::default()
+    };
     let max_error = (MAX_STEP_ERROR * freq) as u32;
     let mut motion: Box<Motion<MOTION_QUEUE, COMPRESS_QUEUE>> =
         Box::new(Motion::new(&machine, freq, max_error, [0.0; 3]));
@@ -407,6 +426,32 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         if let Some(dir) = &options.steps_dir {
             write_steps(dir, stepper.name, &log.steps)?;
         }
+    }
+    if let Some((path, window)) = &options.plot {
+        // Plotted in print time from the start of the print.
+        let steppers: Vec<(&str, Vec<f64>)> = machine
+            .steppers
+            .iter()
+            .zip(mcu.logs())
+            .map(|(st, log)| {
+                let times = log
+                    .steps
+                    .iter()
+                    .map(|s| s.0 as f64 / freq - origin)
+                    .collect();
+                (st.name, times)
+            })
+            .collect();
+        let moves: Vec<TrapqMove> = tally
+            .plotted
+            .iter()
+            .map(|m| TrapqMove {
+                print_time: m.print_time - origin,
+                ..*m
+            })
+            .collect();
+        let svg = plot::svg(&moves, &steppers, *window);
+        std::fs::write(path, svg).map_err(|e| RunError::Read(path.clone(), e))?;
     }
     Ok(summary)
 }

@@ -141,3 +141,26 @@ fn a_missing_gcode_file_is_a_clear_error() {
     assert!(err.to_string().contains("missing.gcode"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_plot_of_a_window_is_written_as_svg() {
+    let out = std::env::temp_dir().join(format!("onechip-plot-{}.svg", std::process::id()));
+    let window = onechip_host::plot::Window {
+        from: 95.0,
+        to: 104.5,
+    };
+    let s = onechip_host::run_with(
+        &shipped_default(),
+        &onechip_host::Options {
+            plot: Some((out.clone(), window)),
+            ..onechip_host::Options::default()
+        },
+    )
+    .expect("runs");
+    let svg = std::fs::read_to_string(&out).expect("plot written");
+    assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    // The velocity line and one per stepper.
+    assert_eq!(svg.matches("<polyline").count(), 1 + s.steppers.len());
+    assert!(s.steppers.iter().all(|st| svg.contains(&st.name)));
+    std::fs::remove_file(&out).ok();
+}
