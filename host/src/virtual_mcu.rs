@@ -6,6 +6,7 @@
 use onechip_planner::homing::HomingMove;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
+use onechip_sched::endstop::{Check, Endstop};
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::stepper::{StepPins, Stepper};
 use onechip_stepgen::compress::StepCommand;
@@ -14,7 +15,7 @@ use std::collections::VecDeque;
 
 /// Endstop sampling while homing, as Klipper configures it: once a trigger
 /// is seen, this many samples this far apart must agree.
-const ENDSTOP_SAMPLE_COUNT: u32 = 4;
+const ENDSTOP_SAMPLE_COUNT: u8 = 4;
 const ENDSTOP_SAMPLE_TIME: f64 = 0.000_015;
 
 /// The machine as physics sees it, for endstops: where the motion steppers
@@ -100,9 +101,9 @@ pub struct VirtualMcu {
     physics: Option<Physics>,
     /// Where each endstop triggered: axis, toolhead position, clock.
     triggers: Vec<(usize, [f64; 3], u64)>,
-    /// The homing move being watched: its start clock, the next endstop
-    /// sample's clock, and how many samples in a row saw the trigger.
-    watch: Option<(u64, u64, u32)>,
+    /// The homing move being watched: its start clock, and its endstop
+    /// with the 64-bit clock of its next reading.
+    watch: Option<(u64, Endstop, u64)>,
 }
 
 impl VirtualMcu {
@@ -269,8 +270,8 @@ impl StepSink for VirtualMcu {
             .iter()
             .copied()
             .fold(f64::INFINITY, f64::min);
-        let rest = ((finest / homing.speed) * freq).max(1.0) as u64;
-        let confirm = (ENDSTOP_SAMPLE_TIME * freq).max(1.0) as u64;
+        let rest = ((finest / homing.speed) * freq).max(1.0) as u32;
+        let confirm = (ENDSTOP_SAMPLE_TIME * freq).max(1.0) as u32;
         let reached = |pos: [f64; 3]| {
             let coord = pos[homing.axis];
             if homing.positive_dir {
@@ -279,11 +280,15 @@ impl StepSink for VirtualMcu {
                 coord <= homing.position_endstop
             }
         };
-        let (mut sample_at, mut agreeing) = match self.watch {
-            Some((start, at, n)) if start == start_clock => (at, n),
-            _ => (start_clock.max(self.now), 0),
+        let (mut endstop, mut read_at) = match self.watch {
+            Some((start, endstop, at)) if start == start_clock => (endstop, at),
+            _ => {
+                let at = start_clock.max(self.now);
+                let endstop = Endstop::home(at as u32, confirm, ENDSTOP_SAMPLE_COUNT, rest);
+                (endstop, at)
+            }
         };
-        loop {
+        let triggered_at = loop {
             let next_step = self
                 .channels
                 .iter()
@@ -291,25 +296,17 @@ impl StepSink for VirtualMcu {
                 .filter_map(|(i, c)| c.next.map(|t| (t, i)))
                 .min();
             match next_step {
-                Some((t, i)) if t < sample_at => step(&mut self.channels[i], t),
-                _ if sample_at >= until_clock => {
-                    self.watch = Some((start_clock, sample_at, agreeing));
+                Some((t, i)) if t < read_at => step(&mut self.channels[i], t),
+                _ if read_at >= until_clock => {
+                    self.watch = Some((start_clock, endstop, read_at));
                     return None;
                 }
-                _ => {
-                    if reached(physics.toolhead(self.motion_steps())) {
-                        agreeing += 1;
-                        if agreeing == ENDSTOP_SAMPLE_COUNT {
-                            break;
-                        }
-                        sample_at += confirm;
-                    } else {
-                        agreeing = 0;
-                        sample_at += rest;
-                    }
-                }
+                _ => match endstop.read(reached(physics.toolhead(self.motion_steps()))) {
+                    Check::Triggered(_) => break read_at,
+                    Check::At(next) => read_at += u64::from(next.wrapping_sub(read_at as u32)),
+                },
             }
-        }
+        };
         // Triggered: the steppers stop at once, so none overshoots the
         // trigger; their remaining steps are dropped.
         self.watch = None;
@@ -319,9 +316,9 @@ impl StepSink for VirtualMcu {
             ch.left = 0;
             ch.next = None;
         }
-        self.now = self.now.max(sample_at);
+        self.now = self.now.max(triggered_at);
         let real = physics.toolhead(self.motion_steps());
-        self.triggers.push((homing.axis, real, sample_at));
+        self.triggers.push((homing.axis, real, triggered_at));
         Some([0; MAX_STEPPERS])
     }
 }

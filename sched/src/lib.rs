@@ -7,12 +7,14 @@
 //!   which everything else here is built on;
 //! - [`stepper`]: the stepper engine, executing queued moves from a timer;
 //! - [`timer`]: which timer fires next;
+//! - [`endstop`]: endstop checking during homing;
 //! - [`outputs`]: digital outputs with max_duration, ADC range checks;
 //! - [`mcu`]: all of them together, and shutdown that stops everything;
 //! - [`shutdown`]: why everything stopped, in Klipper's words.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod clock;
+pub mod endstop;
 pub mod mcu;
 pub mod outputs;
 pub mod shutdown;
