@@ -9,6 +9,7 @@
 //! - [`timer`]: which timer fires next;
 //! - [`endstop`]: endstop checking during homing;
 //! - [`outputs`]: digital outputs with max_duration, ADC range checks;
+//! - [`pwm`]: hardware and software PWM with max_duration;
 //! - [`mcu`]: all of them together, and shutdown that stops everything;
 //! - [`shutdown`]: why everything stopped, in Klipper's words.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -17,6 +18,7 @@ pub mod clock;
 pub mod endstop;
 pub mod mcu;
 pub mod outputs;
+pub mod pwm;
 pub mod shutdown;
 pub mod stepper;
 pub mod timer;

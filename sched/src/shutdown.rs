@@ -20,6 +20,9 @@ pub enum Shutdown {
     /// A digital output stayed away from its default past max_duration
     /// without a refresh.
     DigitalOutExpired,
+    /// A PWM output stayed away from its default past max_duration
+    /// without a refresh.
+    PwmExpired,
 }
 
 impl Shutdown {
@@ -31,6 +34,7 @@ impl Shutdown {
             Self::TimerTooClose => "Timer too close",
             Self::AdcOutOfRange => "ADC out of range",
             Self::DigitalOutExpired => "Missed scheduling of next digital out event",
+            Self::PwmExpired => "Missed scheduling of next hard pwm event",
         }
     }
 }
