@@ -53,6 +53,8 @@ struct Window {
 #[derive(Debug, Clone)]
 struct Ring<const Q: usize> {
     clocks: [u64; Q],
+    /// Each step's allowed error given the step before it, ticks.
+    errors: [u32; Q],
     head: usize,
     len: usize,
 }
@@ -61,6 +63,7 @@ impl<const Q: usize> Ring<Q> {
     const fn new() -> Self {
         Self {
             clocks: [0; Q],
+            errors: [0; Q],
             head: 0,
             len: 0,
         }
@@ -78,10 +81,20 @@ impl<const Q: usize> Ring<Q> {
         self.len == Q
     }
 
+    fn slot(&self, i: usize) -> usize {
+        let at = self.head + i;
+        if at >= Q { at - Q } else { at }
+    }
+
     /// The `i`-th clock from the front; `i < len`.
     fn get(&self, i: usize) -> u64 {
-        let at = self.head + i;
-        self.clocks[if at >= Q { at - Q } else { at }]
+        self.clocks[self.slot(i)]
+    }
+
+    /// The `i`-th clock and its error from the front; `i < len`.
+    fn get_with_error(&self, i: usize) -> (u64, u32) {
+        let at = self.slot(i);
+        (self.clocks[at], self.errors[at])
     }
 
     fn first(&self) -> Option<u64> {
@@ -93,10 +106,11 @@ impl<const Q: usize> Ring<Q> {
     }
 
     /// Appends unless full.
-    fn push(&mut self, clock: u64) {
+    fn push(&mut self, clock: u64, error: u32) {
         if !self.is_full() {
-            let at = self.head + self.len;
-            self.clocks[if at >= Q { at - Q } else { at }] = clock;
+            let at = self.slot(self.len);
+            self.clocks[at] = clock;
+            self.errors[at] = error;
             self.len += 1;
         }
     }
@@ -221,8 +235,13 @@ impl<const Q: usize> Compressor<Q> {
         if self.queue.is_full() {
             self.compress_some(out);
         }
-        // There is room now: compress_some consumed at least one step.
-        self.queue.push(clock);
+        // There is room now: compress_some consumed at least one step. The
+        // error a step allows is half its gap to the step before, at most
+        // max_error (for the first queued step it is worked out later,
+        // from the last compressed step).
+        let last_queued = self.queue.last().unwrap_or(self.last_step_clock);
+        let error = ((clock.wrapping_sub(last_queued) as u32) / 2).min(self.max_error);
+        self.queue.push(clock, error);
     }
 
     fn compress_all(&mut self, out: &mut impl FnMut(StepCommand, u64)) {
@@ -255,13 +274,13 @@ impl<const Q: usize> Compressor<Q> {
 
     /// The acceptable window of queued step `i`.
     fn window(&self, i: usize) -> Window {
-        let point = self.queue.get(i).wrapping_sub(self.last_step_clock) as u32;
-        let prev = if i > 0 {
-            self.queue.get(i - 1).wrapping_sub(self.last_step_clock) as u32
+        let (clock, error) = self.queue.get_with_error(i);
+        let point = clock.wrapping_sub(self.last_step_clock) as u32;
+        let error = if i > 0 {
+            error
         } else {
-            0
+            (point / 2).min(self.max_error)
         };
-        let error = ((point - prev) / 2).min(self.max_error);
         Window {
             min: (point - error) as i32,
             max: point as i32,
