@@ -603,3 +603,26 @@ fn streamed_through_small_queues() {
     let homing = planned_events("cart_move_g28", "cartesian.cfg");
     check_motion("cart_move_g28", "cartesian.cfg", &homing);
 }
+
+#[test]
+fn a_queue_too_small_for_the_shaper_window_is_an_error_not_a_panic() {
+    let cfg =
+        std::fs::read_to_string(golden_dir().join("configs/cartesian_shaper.cfg")).expect("config");
+    let config = Config::parse("cartesian_shaper.cfg", &cfg).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    // 12 segments cannot hold the shaper's ~30 ms look-back of 1 ms moves.
+    let mut motion = Motion::<12, 64>::new(&machine, 180e6, 4500, [100.0, 100.0, 10.0]);
+    let mut commands = Commands(vec![Vec::new(); machine.steppers.len()]);
+    let mut sink = motion.sink(&mut commands);
+    for event in time_ordered(golden_events("shaper_circle")) {
+        match event {
+            Event::Toolhead(m) => sink.toolhead(&m),
+            Event::Extruder(m) => sink.extruder(&m),
+            Event::SetPosition(pos) => sink.set_position(pos),
+        }
+    }
+    assert_eq!(
+        motion.error(),
+        Some(onechip_stepgen::motion::MotionError::QueueTooSmall)
+    );
+}
