@@ -48,10 +48,12 @@ struct Window {
     max: i32,
 }
 
-/// Step clocks waiting for compression: a ring of `Q`, so that sending a
-/// sequence from the front moves nothing.
+/// Step clocks waiting for compression, contiguous in a buffer of `Q`
+/// that holds at most `Q / 2`: sending a sequence from the front moves
+/// nothing, and the queue slides back to the buffer's start only when it
+/// reaches the end (at most once per `Q / 2` steps appended).
 #[derive(Debug, Clone)]
-struct Ring<const Q: usize> {
+struct Steps<const Q: usize> {
     clocks: [u64; Q],
     /// Each step's allowed error given the step before it, ticks.
     errors: [u32; Q],
@@ -59,7 +61,7 @@ struct Ring<const Q: usize> {
     len: usize,
 }
 
-impl<const Q: usize> Ring<Q> {
+impl<const Q: usize> Steps<Q> {
     const fn new() -> Self {
         Self {
             clocks: [0; Q],
@@ -78,48 +80,48 @@ impl<const Q: usize> Ring<Q> {
     }
 
     fn is_full(&self) -> bool {
-        self.len == Q
+        self.len >= Q / 2
     }
 
-    fn slot(&self, i: usize) -> usize {
-        let at = self.head + i;
-        if at >= Q { at - Q } else { at }
-    }
-
-    /// The `i`-th clock from the front; `i < len`.
-    fn get(&self, i: usize) -> u64 {
-        self.clocks[self.slot(i)]
-    }
-
-    /// The `i`-th clock and its error from the front; `i < len`.
-    fn get_with_error(&self, i: usize) -> (u64, u32) {
-        let at = self.slot(i);
-        (self.clocks[at], self.errors[at])
+    /// The queued clocks and their errors, front first.
+    fn queued(&self) -> (&[u64], &[u32]) {
+        let range = self.head..self.head + self.len;
+        (&self.clocks[range.clone()], &self.errors[range])
     }
 
     fn first(&self) -> Option<u64> {
-        (!self.is_empty()).then(|| self.get(0))
+        self.queued().0.first().copied()
     }
 
     fn last(&self) -> Option<u64> {
-        (!self.is_empty()).then(|| self.get(self.len - 1))
+        self.queued().0.last().copied()
     }
 
     /// Appends unless full.
     fn push(&mut self, clock: u64, error: u32) {
-        if !self.is_full() {
-            let at = self.slot(self.len);
-            self.clocks[at] = clock;
-            self.errors[at] = error;
-            self.len += 1;
+        if self.is_full() {
+            return;
         }
+        if self.head + self.len == Q {
+            let range = self.head..Q;
+            self.clocks.copy_within(range.clone(), 0);
+            self.errors.copy_within(range, 0);
+            self.head = 0;
+        }
+        let at = self.head + self.len;
+        self.clocks[at] = clock;
+        self.errors[at] = error;
+        self.len += 1;
     }
 
     /// Removes `count` clocks (at most all) from the front.
     fn drop_front(&mut self, count: usize) {
         let count = count.min(self.len);
-        self.head = (self.head + count) % Q;
+        self.head += count;
         self.len -= count;
+        if self.len == 0 {
+            self.head = 0;
+        }
     }
 }
 
@@ -131,7 +133,7 @@ pub struct Compressor<const Q: usize> {
     /// Steps closer than this many ticks to a reversed one are filtered.
     sds_ticks: u64,
     last_step_clock: u64,
-    queue: Ring<Q>,
+    queue: Steps<Q>,
     dir: Option<bool>,
     /// The newest step, held back until the next shows it is not reversed.
     held: Option<(u64, bool)>,
@@ -153,7 +155,7 @@ impl<const Q: usize> Compressor<Q> {
             freq,
             sds_ticks,
             last_step_clock: 0,
-            queue: Ring::new(),
+            queue: Steps::new(),
             dir: None,
             held: None,
         }
@@ -253,6 +255,7 @@ impl<const Q: usize> Compressor<Q> {
     /// Emits one sequence from the front of the queue.
     fn compress_some(&mut self, out: &mut impl FnMut(StepCommand, u64)) {
         let (interval, count, add) = self.best_sequence();
+        let count = count.max(1);
         let first = self
             .last_step_clock
             .wrapping_add(u64::from(interval as u32));
@@ -272,15 +275,10 @@ impl<const Q: usize> Compressor<Q> {
         self.queue.drop_front(count as usize);
     }
 
-    /// The acceptable window of queued step `i`.
-    fn window(&self, i: usize) -> Window {
-        let (clock, error) = self.queue.get_with_error(i);
+    /// The acceptable window of the first queued step.
+    fn first_window(&self, clock: u64) -> Window {
         let point = clock.wrapping_sub(self.last_step_clock) as u32;
-        let error = if i > 0 {
-            error
-        } else {
-            (point / 2).min(self.max_error)
-        };
+        let error = (point / 2).min(self.max_error);
         Window {
             min: (point - error) as i32,
             max: point as i32,
@@ -289,8 +287,22 @@ impl<const Q: usize> Compressor<Q> {
 
     /// The longest `(interval, count, add)` run from the front of the queue.
     fn best_sequence(&self) -> (i32, i32, i32) {
-        let len = self.queue.len().min(MAX_COUNT);
-        let first = self.window(0);
+        let (clocks, errors) = self.queue.queued();
+        let len = clocks.len().min(MAX_COUNT);
+        let (clocks, errors) = (&clocks[..len], &errors[..len]);
+        let base = self.last_step_clock;
+        // The acceptable window of a queued step after the first.
+        let window = |clock: u64, error: u32| {
+            let point = clock.wrapping_sub(base) as u32;
+            Window {
+                min: (point - error) as i32,
+                max: point as i32,
+            }
+        };
+        let Some(&front) = clocks.first() else {
+            return (0, 0, 0);
+        };
+        let first = self.first_window(front);
         let (mut outer_min, mut outer_max) = (first.min, first.max);
         let (mut add, mut min_add, mut max_add) = (0i32, -0x8000i32, 0x7fffi32);
         let (mut best_interval, mut best_count, mut best_add, mut best_reach) =
@@ -301,13 +313,13 @@ impl<const Q: usize> Compressor<Q> {
             let (mut next_min, mut next_max) = (outer_min, outer_max);
             let mut interval = next_max;
             let mut next_count = 1i32;
-            let next_window = loop {
+            // add · n(n-1)/2 for the step being tried.
+            let mut c = 0i32;
+            let mut stopped = None;
+            for (&clock, &error) in clocks.iter().zip(errors).skip(1) {
+                c += add * next_count;
                 next_count += 1;
-                if next_count as usize > len {
-                    return (interval, next_count - 1, add);
-                }
-                let w = self.window(next_count as usize - 1);
-                let c = add * (next_count * (next_count - 1) / 2);
+                let w = window(clock, error);
                 if next_min * next_count < w.min - c {
                     // C's round-up division (truncating toward zero).
                     next_min = (w.min - c + next_count - 1) / next_count;
@@ -316,9 +328,13 @@ impl<const Q: usize> Compressor<Q> {
                     next_max = (w.max - c) / next_count;
                 }
                 if next_min > next_max {
-                    break w;
+                    stopped = Some(w);
+                    break;
                 }
                 interval = next_max;
+            }
+            let Some(next_window) = stopped else {
+                return (interval, next_count, add);
             };
             let count = next_count - 1;
             let reach = add * (count * (count - 1) / 2) + interval * count;
