@@ -5,7 +5,9 @@
 //! Available now:
 //! - [`clock`]: rollover-safe arithmetic on the 32-bit hardware clock,
 //!   which everything else here is built on;
-//! - [`stepper`]: the stepper engine, executing queued moves from a timer;
+//! - [`stepper`]: one stepper's engine, executing queued moves from a timer;
+//! - [`engine`]: the stepper interrupt's work for all steppers, with far
+//!   steps held back until the 32-bit clock can place them;
 //! - [`timer`]: which timer fires next;
 //! - [`endstop`]: endstop checking during homing;
 //! - [`outputs`]: digital outputs with max_duration, ADC range checks;
@@ -16,6 +18,7 @@
 
 pub mod clock;
 pub mod endstop;
+pub mod engine;
 pub mod mcu;
 pub mod outputs;
 pub mod pwm;
