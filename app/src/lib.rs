@@ -5,11 +5,13 @@
 //! - [`line`]: bounded assembly of G-code lines from a byte stream;
 //! - [`console`]: what the firmware answers to each line;
 //! - [`printer`]: G-code lines through the planner to planned moves;
+//! - [`pins`]: MCU pin names as printer.cfg writes them;
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod console;
 pub mod line;
+pub mod pins;
 pub mod printer;
 pub mod sdcard;
 

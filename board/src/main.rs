@@ -1,10 +1,10 @@
 //! onechip firmware for the BTT Octopus Pro v1.1 (STM32H723ZG at 520 MHz).
 //!
 //! Boot: clocks, interrupt priorities, the stepper timer; then read
-//! `printer.cfg` from the SD card, build the printer from it, and serve the
-//! USB console, whose G-code lines the printer plans. Step generation and
-//! the stepper engine (issues #4, #5) plug in behind the planner and the
-//! stepper timer.
+//! `printer.cfg` from the SD card, build the printer and its step
+//! generation from it, configure the stepper pins it names and hand them
+//! to the stepper engine in TIM5's interrupt, and serve the USB console,
+//! whose G-code lines are planned, turned into steps and executed.
 #![no_std]
 #![no_main]
 
@@ -12,6 +12,7 @@ mod clocks;
 mod octopus_pro_v1_1;
 mod priority;
 mod sd_card;
+mod step_pins;
 mod step_timer;
 mod usb_console;
 
@@ -23,8 +24,9 @@ use octopus_pro_v1_1::Board;
 use onechip_app::printer::Printer;
 use onechip_planner::config::Config;
 use onechip_planner::machine::Machine;
+use onechip_stepgen::motion::Motion;
 use panic_probe as _;
-use static_cell::StaticCell;
+use static_cell::{ConstStaticCell, StaticCell};
 
 /// Largest printer.cfg accepted, in bytes.
 const MAX_PRINTER_CFG: usize = 32 * 1024;
@@ -83,6 +85,9 @@ async fn load_printer_cfg(pins: octopus_pro_v1_1::SdPins) -> Option<&'static str
 fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
     static CONFIG: StaticCell<Config<'static>> = StaticCell::new();
     static PRINTER: StaticCell<Printer<{ usb_console::LOOKAHEAD }>> = StaticCell::new();
+    // Built in place: too large to pass through the stack.
+    static MOTION: ConstStaticCell<usb_console::BoardMotion> =
+        ConstStaticCell::new(Motion::empty());
     let config = match Config::parse("printer.cfg", text) {
         Ok(config) => CONFIG.init(config),
         Err(e) => {
@@ -95,13 +100,46 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
             for section in &machine.unsupported {
                 defmt::info!("[{}] is not supported yet, ignored", section);
             }
-            Some(PRINTER.init_with(|| Printer::new(&machine)))
+            install_engine(&machine)?;
+            // Steps within Klipper's 25 µs, on the stepper timer's clock.
+            let max_error = (0.000_025 * step_timer::TIMER_HZ) as u32;
+            let motion = MOTION.take();
+            motion.setup(&machine, step_timer::TIMER_HZ, max_error, [0.0; 3]);
+            Some(usb_console::Machinery {
+                printer: PRINTER.init_with(|| Printer::new(&machine)),
+                motion,
+            })
         }
         Err(e) => {
             defmt::warn!("{}", defmt::Display2Format(&e));
             None
         }
     }
+}
+
+/// Configures every stepper's step, direction and enable pins (drivers
+/// enabled) and hands them to the stepper engine; None (logged) if a pin
+/// name is not a GPIO.
+fn install_engine(machine: &Machine<'_>) -> Option<()> {
+    let mut slots = [step_pins::Slot::default(); step_timer::STEPPERS];
+    for (slot, stepper) in slots.iter_mut().zip(&machine.steppers) {
+        let pins = step_pins::StepperPins::new(stepper.step_pin, stepper.dir_pin);
+        let enable = stepper.enable_pin.map(step_pins::OutPin::new).transpose();
+        match (pins, enable) {
+            (Ok(pins), Ok(enable)) => {
+                if let Some(enable) = enable {
+                    enable.set(true);
+                }
+                *slot = step_pins::Slot(Some(pins));
+            }
+            (Err(e), _) | (_, Err(e)) => {
+                defmt::warn!("[{}]: {}", stepper.name, defmt::Display2Format(&e));
+                return None;
+            }
+        }
+    }
+    step_timer::install(step_timer::BoardEngine::new(slots));
+    Some(())
 }
 
 #[embassy_executor::task]

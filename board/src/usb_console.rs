@@ -17,7 +17,9 @@ use onechip_app::console::error_text;
 use onechip_app::line::{Line, LineAssembler};
 use onechip_app::printer::{PRIMING_TIME, Printer};
 use onechip_planner::gcode_move::CommandError;
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_sched::engine::Command;
+use onechip_stepgen::compress::StepCommand;
+use onechip_stepgen::motion::{Motion, StepSink};
 use static_cell::StaticCell;
 
 bind_interrupts!(struct Irqs {
@@ -38,8 +40,53 @@ type UsbDriver = Driver<'static, peripherals::USB_OTG_HS>;
 /// are released lazily (about 117 KB of RAM).
 pub const LOOKAHEAD: usize = 384;
 
+/// Motion queue of the board, in segments.
+pub const MOTION_QUEUE: usize = 128;
+/// Steps each stepper's compressor holds.
+pub const COMPRESS_QUEUE: usize = 256;
+
+/// The board's step generation.
+pub type BoardMotion = Motion<MOTION_QUEUE, COMPRESS_QUEUE>;
+
+/// The printer and its step generation (both live in statics).
+pub struct Machinery {
+    /// G-code to planned moves.
+    pub printer: &'static mut Printer<LOOKAHEAD>,
+    /// Planned moves to step commands for the engine.
+    pub motion: &'static mut BoardMotion,
+}
+
 /// The printer the console drives (None if printer.cfg did not load).
-pub type BoardPrinter = Option<&'static mut Printer<LOOKAHEAD>>;
+pub type BoardPrinter = Option<Machinery>;
+
+/// Hands step commands to the stepper engine, waiting while its outbox
+/// for that stepper is full (its interrupt makes room).
+struct EngineSteps;
+
+impl StepSink for EngineSteps {
+    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
+        let cmd = match cmd {
+            StepCommand::Dir(positive) => Command::Dir(positive),
+            StepCommand::Steps {
+                interval,
+                count,
+                add,
+            } => Command::Steps {
+                interval,
+                count,
+                add,
+            },
+            // The MCU's clock is 32 bits wide.
+            StepCommand::ResetClock(at) => Command::ResetClock(at as u32),
+        };
+        while crate::step_timer::push(index, cmd, clock).is_err() {
+            if crate::step_timer::shutdown_reason().is_some() {
+                return;
+            }
+            cortex_m::asm::nop();
+        }
+    }
+}
 
 /// Why a line could not run.
 enum RunError<'l> {
@@ -55,22 +102,6 @@ impl fmt::Display for RunError<'_> {
             Self::NoConfig => f.write_str("no valid printer.cfg on the SD card"),
             Self::Command(e) => write!(f, "{e}"),
         }
-    }
-}
-
-/// Planned moves, counted until step generation (issue #4) consumes them.
-#[derive(Default)]
-struct PlannedMoves {
-    toolhead: u32,
-    extruder: u32,
-}
-
-impl MoveSink for PlannedMoves {
-    fn toolhead(&mut self, _: &TrapqMove) {
-        self.toolhead += 1;
-    }
-    fn extruder(&mut self, _: &TrapqMove) {
-        self.extruder += 1;
     }
 }
 
@@ -126,11 +157,10 @@ pub fn build(pins: crate::octopus_pro_v1_1::UsbPins) -> Console {
 /// Serves the console forever: one connection after another.
 pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>, mut printer: BoardPrinter) -> ! {
     let mut lines = LineAssembler::<MAX_LINE>::new();
-    let mut planned = PlannedMoves::default();
     loop {
         class.wait_connection().await;
         defmt::info!("usb console connected");
-        match answer_lines(class, &mut lines, &mut printer, &mut planned).await {
+        match answer_lines(class, &mut lines, &mut printer).await {
             Ok(never) => match never {},
             Err(EndpointError::Disabled) => defmt::info!("usb console disconnected"),
             Err(EndpointError::BufferOverflow) => defmt::warn!("usb packet overflow"),
@@ -145,7 +175,6 @@ async fn answer_lines(
     class: &mut CdcAcmClass<'static, UsbDriver>,
     lines: &mut LineAssembler<MAX_LINE>,
     printer: &mut BoardPrinter,
-    planned: &mut PlannedMoves,
 ) -> Result<core::convert::Infallible, EndpointError> {
     let mut packet = [0u8; PACKET];
     let idle = Duration::from_micros((PRIMING_TIME * 1e6) as u64);
@@ -153,8 +182,10 @@ async fn answer_lines(
         let n = match select(class.read_packet(&mut packet), Timer::after(idle)).await {
             Either::First(read) => read?,
             Either::Second(()) => {
-                if let Some(p) = printer.as_deref_mut() {
-                    p.priming_timeout(planned);
+                if let Some(m) = printer.as_mut() {
+                    m.printer
+                        .priming_timeout(&mut m.motion.sink(&mut EngineSteps));
+                    m.motion.generate(f64::INFINITY, &mut EngineSteps);
                 }
                 continue;
             }
@@ -162,12 +193,19 @@ async fn answer_lines(
         for &byte in &packet[..n] {
             if let Some(event) = lines.push(byte) {
                 let mut reply = heapless::String::<MAX_REPLY>::new();
-                let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer
-                    .as_deref_mut()
+                let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer.as_mut()
                 {
-                    Some(p) => p
-                        .execute(text, planned, out)
-                        .map_err(|e| error_text(&RunError::Command(e))),
+                    Some(m) => {
+                        // An idle printer starts its next move from now.
+                        let now = crate::step_timer::now64() as f64 / crate::step_timer::TIMER_HZ;
+                        m.printer.set_time_origin(now);
+                        let result = m
+                            .printer
+                            .execute(text, &mut m.motion.sink(&mut EngineSteps), out)
+                            .map_err(|e| error_text(&RunError::Command(e)));
+                        m.motion.generate(f64::INFINITY, &mut EngineSteps);
+                        result
+                    }
                     None => Err(error_text(&RunError::NoConfig)),
                 };
                 if onechip_app::console::answer(&event, &mut reply, run).is_err() {

@@ -36,6 +36,8 @@ pub struct Stepper<'a> {
     pub step_pin: &'a str,
     /// Direction pin name as written.
     pub dir_pin: &'a str,
+    /// Driver enable pin name as written, if any.
+    pub enable_pin: Option<&'a str>,
     /// Distance per full step times microsteps: mm per step.
     pub step_dist: f64,
     /// position_min, mm (rails).
@@ -286,6 +288,7 @@ fn read_stepper<'c, 'a>(
 ) -> Result<Stepper<'a>, ConfigError<'c>> {
     let step_pin = section.get("step_pin")?;
     let dir_pin = section.get("dir_pin")?;
+    let enable_pin = section.get_opt("enable_pin");
     let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
@@ -326,6 +329,7 @@ fn read_stepper<'c, 'a>(
         name: section.name_in_file(),
         step_pin,
         dir_pin,
+        enable_pin,
         step_dist,
         position_min,
         position_max,

@@ -74,6 +74,12 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         outbox.push_back((cmd, first_clock)).map_err(|_| Full)
     }
 
+    /// The 64-bit clock at timer count `now` (call at least once per
+    /// wrap of the 32-bit timer).
+    pub fn clock(&mut self, now: u32) -> u64 {
+        self.clock.extend(now)
+    }
+
     /// Why the engine shut down, if it did.
     pub fn shutdown_reason(&self) -> Option<Shutdown> {
         self.shutdown

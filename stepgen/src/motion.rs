@@ -175,7 +175,35 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     /// Step generation for `machine`'s steppers, with an MCU clock of `freq`
     /// Hz and steps within `max_error` ticks; the toolhead starts at `pos`.
     pub fn new(machine: &Machine<'_>, freq: f64, max_error: u32, pos: [f64; 3]) -> Self {
-        let mut channels = heapless::Vec::new();
+        let mut motion = Self::empty();
+        motion.setup(machine, freq, max_error, pos);
+        motion
+    }
+
+    /// Step generation for no stepper: a value for a static, to be
+    /// [`Self::setup`] in place (the queues are large to move).
+    pub const fn empty() -> Self {
+        Self {
+            toolhead: Trapq::new(),
+            extruder: Trapq::new(),
+            channels: heapless::Vec::new(),
+            known_until: f64::NEG_INFINITY,
+            error: None,
+            max_error_time: 0.0,
+            freq: 1.0,
+        }
+    }
+
+    /// Sets this up in place as [`Self::new`] would build it (any queued
+    /// motion is dropped).
+    pub fn setup(&mut self, machine: &Machine<'_>, freq: f64, max_error: u32, pos: [f64; 3]) {
+        self.toolhead.clear();
+        self.extruder.clear();
+        self.channels.clear();
+        self.known_until = f64::NEG_INFINITY;
+        self.error = None;
+        self.max_error_time = f64::from(max_error) / freq;
+        self.freq = freq;
         for (i, stepper) in machine.steppers.iter().enumerate() {
             let (kin, follows, shaper, margins) = match machine.stepper_kinematics.get(i) {
                 Some(&kin) => {
@@ -207,7 +235,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 Follows::Extruder(_) => [0.0; 3],
             };
             // Machine holds at most MAX_STEPPERS steppers.
-            let _ = channels.push(Channel {
+            let _ = self.channels.push(Channel {
                 solver: StepSolver::new(kin, stepper.step_dist, start),
                 follows,
                 shaper,
@@ -215,15 +243,6 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 compressor: Compressor::new(max_error, freq),
                 step_dist: stepper.step_dist,
             });
-        }
-        Self {
-            toolhead: Trapq::new(),
-            extruder: Trapq::new(),
-            channels,
-            known_until: f64::NEG_INFINITY,
-            error: None,
-            max_error_time: f64::from(max_error) / freq,
-            freq,
         }
     }
 

@@ -47,6 +47,11 @@ impl<const N: usize> Trapq<N> {
         }
     }
 
+    /// Empties the queue.
+    pub fn clear(&mut self) {
+        self.segs.clear();
+    }
+
     /// The queued segments, the open tail last.
     pub fn segments(&self) -> &[Segment] {
         &self.segs
