@@ -48,6 +48,8 @@ pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
     next: [Option<u32>; S],
     clock: Extender,
     shutdown: Option<Shutdown>,
+    /// True when an outbox may hold a command ready for release.
+    check_outboxes: bool,
 }
 
 impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M, O> {
@@ -60,6 +62,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             next: [None; S],
             clock: Extender::new(0),
             shutdown: None,
+            check_outboxes: false,
         }
     }
 
@@ -71,7 +74,9 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             // Everything stopped: accept and drop.
             return Ok(());
         }
-        outbox.push_back((cmd, first_clock)).map_err(|_| Full)
+        outbox.push_back((cmd, first_clock)).map_err(|_| Full)?;
+        self.check_outboxes = true;
+        Ok(())
     }
 
     /// The 64-bit clock at timer count `now` (call at least once per
@@ -92,40 +97,65 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
 
     /// The interrupt's work at timer count `now`: releases the commands
     /// now close enough, makes every step due, and returns the clock to
-    /// wake at next (None: nothing queued).
+    /// wake at next (None: nothing queued). Outboxes are looked at only
+    /// after a push, when a stepper's queue gains room, or on a wake that
+    /// makes no step (the heartbeat, or a far command's release time), so
+    /// that a step costs little more than the step itself.
     pub fn run(&mut self, now: u32) -> Option<u32> {
         let now64 = self.clock.extend(now);
-        for i in 0..S {
-            self.release(i, now, now64);
-            while let Some(at) = self.next[i] {
-                if is_before(now, at) {
-                    break;
-                }
-                self.next[i] = self.steppers[i].step(&mut self.pins[i]);
+        if self.check_outboxes {
+            self.check_outboxes = false;
+            for i in 0..S {
+                self.release(i, now, now64);
             }
         }
-        let earliest = self
-            .next
-            .iter()
-            .flatten()
-            .min_by_key(|&&t| t.wrapping_sub(now) as i32);
+        let mut stepped = false;
+        let (mut earliest, mut soonest) = (None, i32::MAX);
+        for i in 0..S {
+            let Some(mut at) = self.next[i] else {
+                continue;
+            };
+            while !is_before(now, at) {
+                stepped = true;
+                match self.steppers[i].step(&mut self.pins[i]) {
+                    Some(following) => at = following,
+                    None => {
+                        self.next[i] = None;
+                        self.check_outboxes |= !self.outboxes[i].is_empty();
+                        break;
+                    }
+                }
+            }
+            if self.next[i].is_none() {
+                continue;
+            }
+            self.next[i] = Some(at);
+            if self.steppers[i].free() > 0 && !self.outboxes[i].is_empty() {
+                self.check_outboxes = true;
+            }
+            let ahead = at.wrapping_sub(now) as i32;
+            if ahead < soonest {
+                (earliest, soonest) = (Some(at), ahead);
+            }
+        }
+        if !stepped {
+            // Not a step's wake: far commands may be due for release.
+            self.check_outboxes = true;
+        }
+        if earliest.is_some() {
+            return earliest;
+        }
+        // Only commands far ahead: wake when the first can be released.
         let waiting = self
             .outboxes
             .iter()
             .filter_map(|o| o.front())
             .map(|&(_, c)| c)
-            .min();
-        match (earliest.copied(), waiting) {
-            (Some(t), _) => Some(t),
-            // Only commands far ahead: wake when the first can be released.
-            (None, Some(c)) => {
-                let wait = c
-                    .saturating_sub(now64 + RELEASE_AHEAD)
-                    .min(u64::from(u32::MAX >> 2));
-                Some(now.wrapping_add(wait as u32))
-            }
-            (None, None) => None,
-        }
+            .min()?;
+        let wait = waiting
+            .saturating_sub(now64 + RELEASE_AHEAD)
+            .min(u64::from(u32::MAX >> 2));
+        Some(now.wrapping_add(wait as u32))
     }
 
     /// Moves stepper `i`'s due commands from its outbox to its queue.

@@ -1,23 +1,26 @@
 //! Instructions per step on the stepper interrupt's common path on a
-//! Cortex-M7: the engine's step (pulse, position, next interval) plus the
-//! GPIO writes of the pulse and the timer compare write for the next step,
-//! over long queued moves (the path taken by all but a move's last step).
+//! Cortex-M7: what the board's TIM5 handler runs for each wake —
+//! [`Engine::run`] over 4 steppers (one stepping, three idle) making the
+//! step due (pulse, position, next interval) and finding the next wake,
+//! plus the timer compare write — over long queued moves (the path of all
+//! but a move's last step).
 #![no_std]
 #![no_main]
 
 use cortex_m_rt::entry;
 use onechip_m7bench::{exit, measure, report};
-use onechip_sched::stepper::{StepPins, Stepper};
+use onechip_sched::engine::{Command, Engine};
+use onechip_sched::stepper::StepPins;
 
-/// Stands in for the GPIO set/reset register and the timer compare register.
-struct Registers {
+/// Stands in for a GPIO set/reset register.
+#[derive(Default)]
+struct Pins {
     bsrr: u32,
-    compare: u32,
 }
 
-impl StepPins for &mut Registers {
+impl StepPins for Pins {
     fn set_dir(&mut self, positive: bool) {
-        // SAFETY: a write to a local, kept by the volatile access.
+        // SAFETY: a write to a field, kept by the volatile access.
         unsafe {
             core::ptr::write_volatile(&mut self.bsrr, if positive { 1 << 4 } else { 1 << 20 })
         }
@@ -25,8 +28,7 @@ impl StepPins for &mut Registers {
 
     #[inline(always)]
     fn step(&mut self) {
-        // Step pin high, then low: the pulse (min width is met by the
-        // instructions between the writes on a 520 MHz part).
+        // Step pin high, then low.
         // SAFETY: as above.
         unsafe {
             core::ptr::write_volatile(&mut self.bsrr, 1 << 3);
@@ -39,37 +41,39 @@ const STEPS: u32 = 10_000;
 
 #[entry]
 fn main() -> ! {
-    let mut stepper = Stepper::<4>::new();
-    stepper.set_next_dir(true);
-    let mut regs = Registers {
-        bsrr: 0,
-        compare: 0,
+    let mut engine = Engine::<Pins, 4, 64, 32>::new(Default::default());
+    // Accelerating: the interval shrinks by 1 tick a step, from 30000.
+    let steps = Command::Steps {
+        interval: 30_000,
+        count: 10_000,
+        add: -1,
     };
-    // Long moves with a changing interval, as accelerations produce.
-    for _ in 0..2 {
-        if stepper.queue(2000, 60_000, -1, 0).is_err() {
-            panic!("queue");
+    for cmd in [Command::Dir(true), steps, steps] {
+        if engine.push(0, cmd, 30_000).is_err() {
+            panic!("push")
         }
     }
-    // Load the first move (the uncommon path), outside the measurement.
-    let Some(first) = stepper.next_step() else {
+    // Release the moves and arm the first step (outside the measurement).
+    let Some(mut wake) = engine.run(0) else {
         panic!("no step")
     };
-    regs.compare = first;
+    let mut compare = 0u32;
     measure(0, || 0u32);
     measure(1, || {
         for _ in 0..STEPS {
-            let mut pins = &mut regs;
-            match stepper.step(&mut pins) {
-                // SAFETY: as above.
-                Some(next) => unsafe { core::ptr::write_volatile(&mut regs.compare, next) },
+            match engine.run(wake) {
+                Some(next) => {
+                    wake = next;
+                    // SAFETY: a write to a local, as to the compare register.
+                    unsafe { core::ptr::write_volatile(&mut compare, next) };
+                }
                 None => break,
             }
         }
     });
     report(format_args!(
-        "stepper_isr: region 1 makes {STEPS} steps (position {})",
-        stepper.position()
+        "stepper_isr: region 1 makes {STEPS} steps (position {:?})",
+        engine.position(0)
     ));
     exit()
 }
