@@ -110,29 +110,16 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             }
         }
         let mut stepped = false;
-        let (mut earliest, mut soonest) = (None, i32::MAX);
         for i in 0..S {
-            let Some(mut at) = self.next[i] else {
-                continue;
-            };
-            while !is_before(now, at) {
+            if let Some(at) = self.next[i]
+                && !is_before(now, at)
+            {
                 stepped = true;
-                match self.steppers[i].step(&mut self.pins[i]) {
-                    Some(following) => at = following,
-                    None => {
-                        self.next[i] = None;
-                        self.check_outboxes |= !self.outboxes[i].is_empty();
-                        break;
-                    }
-                }
+                self.next[i] = self.step_due(i, now);
             }
-            if self.next[i].is_none() {
-                continue;
-            }
-            self.next[i] = Some(at);
-            if self.steppers[i].free() > 0 && !self.outboxes[i].is_empty() {
-                self.check_outboxes = true;
-            }
+        }
+        let (mut earliest, mut soonest) = (None, i32::MAX);
+        for &at in self.next.iter().flatten() {
             let ahead = at.wrapping_sub(now) as i32;
             if ahead < soonest {
                 (earliest, soonest) = (Some(at), ahead);
@@ -156,6 +143,23 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             .saturating_sub(now64 + RELEASE_AHEAD)
             .min(u64::from(u32::MAX >> 2));
         Some(now.wrapping_add(wait as u32))
+    }
+
+    /// Makes stepper `i`'s steps due at `now`; returns its next step.
+    fn step_due(&mut self, i: usize, now: u32) -> Option<u32> {
+        let loads = self.steppers[i].loads();
+        let mut next = None;
+        while let Some(at) = self.steppers[i].step(&mut self.pins[i]) {
+            if is_before(now, at) {
+                next = Some(at);
+                break;
+            }
+        }
+        // A finished move leaves room for a command waiting in the outbox.
+        if self.steppers[i].loads() != loads && !self.outboxes[i].is_empty() {
+            self.check_outboxes = true;
+        }
+        next
     }
 
     /// Moves stepper `i`'s due commands from its outbox to its queue.

@@ -46,6 +46,8 @@ pub struct Stepper<const M: usize> {
     dir: Option<bool>,
     /// Position in steps (+1 per positive step).
     position: i64,
+    /// Moves started so far (wrapping).
+    loads: u32,
 }
 
 impl<const M: usize> Default for Stepper<M> {
@@ -67,6 +69,7 @@ impl<const M: usize> Stepper<M> {
             active_dir: false,
             dir: None,
             position: 0,
+            loads: 0,
         }
     }
 
@@ -142,6 +145,12 @@ impl<const M: usize> Stepper<M> {
         self.next_step()
     }
 
+    /// Moves started so far (wrapping): a change means the queue gained
+    /// room.
+    pub fn loads(&self) -> u32 {
+        self.loads
+    }
+
     /// Position in steps since start (+1 per positive step).
     pub fn position(&self) -> i64 {
         self.position
@@ -161,6 +170,7 @@ impl<const M: usize> Stepper<M> {
     /// Makes the next queued move the active one.
     fn load(&mut self) -> Option<()> {
         let m = self.queue.pop_front()?;
+        self.loads = self.loads.wrapping_add(1);
         self.count = u32::from(m.count);
         self.interval = m.interval;
         self.add = i32::from(m.add);
