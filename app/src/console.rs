@@ -59,7 +59,7 @@ pub fn answer<W: Write>(
 }
 
 /// The first word of a G-code line, after an optional `N<number>` line number.
-fn command_word(line: &[u8]) -> &[u8] {
+pub fn command_word(line: &[u8]) -> &[u8] {
     let mut words = line
         .split(|b| b.is_ascii_whitespace())
         .filter(|w| !w.is_empty());

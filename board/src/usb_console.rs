@@ -92,6 +92,9 @@ impl StepSink for EngineSteps {
 enum RunError<'l> {
     /// No valid printer.cfg, so no printer.
     NoConfig,
+    /// Homing needs endstop checking, which the board does not do yet: a
+    /// homing move would run its whole length into the endstop.
+    NoEndstops,
     /// The printer refused the command.
     Command(CommandError<'l>),
 }
@@ -100,6 +103,9 @@ impl fmt::Display for RunError<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::NoConfig => f.write_str("no valid printer.cfg on the SD card"),
+            Self::NoEndstops => f.write_str(
+                "G28: endstops are not checked on this board yet; set the position with SET_KINEMATIC_POSITION",
+            ),
             Self::Command(e) => write!(f, "{e}"),
         }
     }
@@ -195,6 +201,12 @@ async fn answer_lines(
                 let mut reply = heapless::String::<MAX_REPLY>::new();
                 let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer.as_mut()
                 {
+                    Some(_)
+                        if onechip_app::console::command_word(text.as_bytes())
+                            .eq_ignore_ascii_case(b"G28") =>
+                    {
+                        Err(error_text(&RunError::NoEndstops))
+                    }
                     Some(m) => {
                         // An idle printer starts its next move from now.
                         let now = crate::step_timer::now64() as f64 / crate::step_timer::TIMER_HZ;
