@@ -24,6 +24,10 @@ use onechip_planner::toolhead::{MoveSink, TrapqMove};
 /// steps that follow it, s (Klipper's STEPCOMPRESS_FLUSH_TIME).
 const COMPRESS_LAG: f64 = 0.050;
 
+/// Print time all steppers are generated through before any goes further,
+/// s.
+const GENERATION_SLICE: f64 = 0.050;
+
 /// Print time of a homing move's steps sent at a time, s (Klipper's
 /// DRIP_SEGMENT_TIME).
 const DRIP_TIME: f64 = 0.050;
@@ -259,13 +263,30 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     /// as the queued motion is final, in whole generation windows.
     pub fn generate(&mut self, until: f64, sink: &mut impl StepSink) {
         let limit = until.min(self.known_until);
-        for (i, ch) in self.channels.iter_mut().enumerate() {
-            let queue = match ch.follows {
-                Follows::Toolhead(..) => &self.toolhead,
-                Follows::Extruder(_) => &self.extruder,
-            };
-            let to = window_floor(limit - ch.margins.before);
-            ch.generate(i, queue.segments(), to, sink);
+        // All steppers advance together, a slice at a time, so that a long
+        // stretch of one stepper's commands never waits for room ahead of
+        // another stepper's earlier ones.
+        let mut upto = self
+            .channels
+            .iter()
+            .map(|ch| ch.solver.generated_until())
+            .fold(f64::INFINITY, f64::min);
+        if !upto.is_finite() || !limit.is_finite() {
+            upto = limit;
+        }
+        loop {
+            upto = (upto + GENERATION_SLICE).min(limit);
+            for (i, ch) in self.channels.iter_mut().enumerate() {
+                let queue = match ch.follows {
+                    Follows::Toolhead(..) => &self.toolhead,
+                    Follows::Extruder(_) => &self.extruder,
+                };
+                let to = window_floor(upto.min(limit - ch.margins.before));
+                ch.generate(i, queue.segments(), to, sink);
+            }
+            if upto >= limit {
+                break;
+            }
         }
         self.retire();
     }
