@@ -1,17 +1,22 @@
-//! The MCU role in virtual time: each stepper's commands go into the same
-//! stepper engine the board runs ([`onechip_sched::stepper::Stepper`]),
-//! which is run forward as far as step generation has committed, and every
-//! step it makes is recorded with its 64-bit clock.
+//! The MCU role in virtual time: every stepper's commands go into the
+//! same engine the board runs from its timer interrupt
+//! ([`onechip_sched::engine::Engine`]), which is run forward as far as
+//! step generation has committed, each step recorded with its 64-bit
+//! clock. Homing moves stop at simulated endstops.
 
 use onechip_planner::homing::HomingMove;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
 use onechip_sched::endstop::{Check, Endstop};
+use onechip_sched::engine::{Command, Engine};
 use onechip_sched::shutdown::Shutdown;
-use onechip_sched::stepper::{StepPins, Stepper};
+use onechip_sched::stepper::StepPins;
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::StepSink;
-use std::collections::VecDeque;
+
+/// Moves each virtual stepper's queue holds, and commands its outbox holds.
+pub const MOVE_QUEUE: usize = 256;
+const OUTBOX: usize = 64;
 
 /// Endstop sampling while homing, as Klipper configures it: once a trigger
 /// is seen, this many samples this far apart must agree.
@@ -41,10 +46,6 @@ impl Physics {
     }
 }
 
-/// Moves each virtual stepper can hold (Klipper's STM32 builds hold 1024
-/// across all steppers; this is per stepper).
-pub const MOVE_QUEUE: usize = 256;
-
 /// The steps one stepper made.
 #[derive(Debug, Clone, Default)]
 pub struct StepLog {
@@ -56,14 +57,15 @@ pub struct StepLog {
     pub min_interval: Option<u64>,
 }
 
-/// Records the pins' activity at a known clock.
-struct Pins<'a> {
-    log: &'a mut StepLog,
+/// A stepper's pins, recording each step at the clock the engine runs at.
+#[derive(Debug, Default)]
+struct Recorder {
     clock: u64,
     dir: bool,
+    log: StepLog,
 }
 
-impl StepPins for Pins<'_> {
+impl StepPins for Recorder {
     fn set_dir(&mut self, positive: bool) {
         self.dir = positive;
     }
@@ -78,24 +80,16 @@ impl StepPins for Pins<'_> {
     }
 }
 
-/// One stepper: the engine, and the 64-bit clocks of its queued moves.
-struct Channel {
-    engine: Stepper<MOVE_QUEUE>,
-    /// First-step clock and step count of each queued move.
-    moves: VecDeque<(u64, u32)>,
-    /// Steps left in the move being executed.
-    left: u32,
-    /// 64-bit clock of the next step, if any.
-    next: Option<u64>,
-    log: StepLog,
-}
-
 /// The virtual MCU.
 pub struct VirtualMcu {
-    channels: Vec<Channel>,
-    /// Virtual time: every step before it has happened, ticks.
+    engine: Box<Engine<Recorder, MAX_STEPPERS, MOVE_QUEUE, OUTBOX>>,
+    steppers: usize,
+    /// Virtual time: the engine has run up to here, ticks.
     now: u64,
-    shutdown: Option<Shutdown>,
+    /// When the engine wants to run next (stale while `pushed`).
+    wake: Option<u64>,
+    /// Commands were pushed since the engine last ran.
+    pushed: bool,
     /// With physics, homing moves stop at their endstops; without, they run
     /// to their end (klippy's batch mode).
     physics: Option<Physics>,
@@ -109,28 +103,49 @@ pub struct VirtualMcu {
 impl VirtualMcu {
     /// An MCU with `steppers` idle steppers, at clock `start`.
     pub fn new(steppers: usize, start: u64) -> Self {
-        Self {
-            channels: (0..steppers)
-                .map(|_| Channel {
-                    engine: Stepper::new(),
-                    moves: VecDeque::new(),
-                    left: 0,
-                    next: None,
-                    log: StepLog::default(),
-                })
-                .collect(),
-            now: start,
-            shutdown: None,
+        let mut mcu = Self {
+            engine: Box::new(Engine::new(Default::default())),
+            steppers: steppers.min(MAX_STEPPERS),
+            now: 0,
+            wake: None,
+            pushed: false,
             physics: None,
             triggers: Vec::new(),
             watch: None,
-        }
+        };
+        mcu.advance_clock(start);
+        mcu
     }
 
     /// The same MCU with endstops where `physics` puts them.
     pub fn with_physics(mut self, physics: Physics) -> Self {
         self.physics = Some(physics);
         self
+    }
+
+    /// Runs every step before clock `until`, and moves virtual time there.
+    pub fn run_until(&mut self, until: u64) {
+        self.refresh();
+        while let Some(at) = self.wake.filter(|&w| w < until) {
+            self.run_at(at);
+        }
+        if until != u64::MAX {
+            self.advance_clock(until);
+        }
+    }
+
+    /// Why the MCU shut down, if it did.
+    pub fn shutdown(&self) -> Option<Shutdown> {
+        self.engine.shutdown_reason()
+    }
+
+    /// The steps each stepper made.
+    pub fn logs(&self) -> impl Iterator<Item = &StepLog> {
+        self.engine
+            .pins()
+            .iter()
+            .take(self.steppers)
+            .map(|r| &r.log)
     }
 
     /// Every endstop trigger so far: axis, the toolhead's real position
@@ -146,113 +161,69 @@ impl VirtualMcu {
     }
 
     fn motion_steps(&self) -> [i64; 3] {
-        core::array::from_fn(|k| self.channels.get(k).map_or(0, |c| c.log.position))
+        core::array::from_fn(|k| self.engine.position(k).unwrap_or(0))
     }
 
-    /// Runs every stepper up to (not including) clock `until`, and moves
-    /// virtual time there.
-    pub fn run_until(&mut self, until: u64) {
-        for i in 0..self.channels.len() {
-            self.run_stepper(i, until);
+    /// The engine's timer interrupt at clock `at`.
+    fn run_at(&mut self, at: u64) {
+        for pins in self.engine.pins_mut() {
+            pins.clock = at;
         }
-        self.now = self.now.max(until);
+        self.now = self.now.max(at);
+        let next = self.engine.run(at as u32);
+        self.wake = next.map(|n| at + u64::from(n.wrapping_sub(at as u32)));
+        self.pushed = false;
     }
 
-    /// Why the MCU shut down, if it did.
-    pub fn shutdown(&self) -> Option<Shutdown> {
-        self.shutdown
-    }
-
-    /// The steps each stepper made.
-    pub fn logs(&self) -> impl Iterator<Item = &StepLog> {
-        self.channels.iter().map(|c| &c.log)
-    }
-
-    /// Runs stepper `i` before clock `until`.
-    fn run_stepper(&mut self, i: usize, until: u64) {
-        let ch = &mut self.channels[i];
-        while let Some(clock) = ch.next.filter(|&c| c < until) {
-            step(ch, clock);
+    /// Lets the engine see commands pushed since it last ran.
+    fn refresh(&mut self) {
+        if self.pushed {
+            self.run_at(self.now);
         }
     }
 
-    /// Runs stepper `i` until its move queue has room.
-    fn make_room(&mut self, i: usize) {
-        let ch = &mut self.channels[i];
-        while ch.engine.free() == 0 {
-            let Some(clock) = ch.next else { break };
-            step(ch, clock);
+    /// Moves virtual time to `until` with nothing due before it, running
+    /// the engine there (as its heartbeat would) so its clock follows.
+    fn advance_clock(&mut self, until: u64) {
+        if until > self.now {
+            // The 32-bit clock must be read at least once a wrap.
+            while until - self.now > u64::from(u32::MAX >> 1) {
+                let step = self.now + u64::from(u32::MAX >> 1);
+                self.run_at(step);
+            }
+            self.run_at(until);
         }
     }
-
-    fn queue(&mut self, i: usize, interval: u32, count: u16, add: i16, first: u64) {
-        self.make_room(i);
-        // Like klippy, send a step far in the future only when the MCU's
-        // 32-bit clock can tell when it is due.
-        let now = self.now.max(first.saturating_sub(1 << 30)) as u32;
-        let ch = &mut self.channels[i];
-        if let Err(reason) = ch.engine.queue(interval, count, add, now) {
-            self.stop(reason);
-            return;
-        }
-        ch.moves.push_back((first, u32::from(count)));
-        if ch.next.is_none() {
-            ch.next = ch.engine.next_step().map(|low| next_clock(ch, first, low));
-        }
-    }
-
-    fn stop(&mut self, reason: Shutdown) {
-        if self.shutdown.is_none() {
-            self.shutdown = Some(reason);
-        }
-        for ch in &mut self.channels {
-            ch.engine.stop();
-            ch.moves.clear();
-            ch.next = None;
-        }
-    }
-}
-
-/// Makes the step due at `clock` and finds the next.
-fn step(ch: &mut Channel, clock: u64) {
-    let dir = ch.log.steps.last().is_some_and(|s| s.1);
-    let mut pins = Pins {
-        log: &mut ch.log,
-        clock,
-        dir,
-    };
-    let following = ch.engine.step(&mut pins);
-    ch.left = ch.left.saturating_sub(1);
-    ch.next = following.map(|low| next_clock(ch, clock, low));
-}
-
-/// The 64-bit clock of a step whose low 32 bits are `low`: a new move's
-/// first step is where step generation put it; within a move, steps follow
-/// the previous one (`prev`) by less than 2^32 ticks.
-fn next_clock(ch: &mut Channel, prev: u64, low: u32) -> u64 {
-    if ch.left == 0
-        && let Some((first, count)) = ch.moves.pop_front()
-    {
-        ch.left = count;
-        return first;
-    }
-    prev + u64::from(low.wrapping_sub(prev as u32))
 }
 
 impl StepSink for VirtualMcu {
     fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
-        if self.shutdown.is_some() {
+        if index >= self.steppers || self.shutdown().is_some() {
             return;
         }
-        match cmd {
-            StepCommand::Dir(positive) => self.channels[index].engine.set_next_dir(positive),
-            StepCommand::ResetClock(at) => self.channels[index].engine.reset_clock(at as u32),
+        let cmd = match cmd {
+            StepCommand::Dir(positive) => Command::Dir(positive),
             StepCommand::Steps {
                 interval,
                 count,
                 add,
-            } => self.queue(index, interval, count, add, clock),
+            } => Command::Steps {
+                interval,
+                count,
+                add,
+            },
+            // The MCU's clock is 32 bits wide.
+            StepCommand::ResetClock(at) => Command::ResetClock(at as u32),
+        };
+        while self.engine.push(index, cmd, clock).is_err() {
+            // Outbox full: time runs on until the engine makes room.
+            self.refresh();
+            match self.wake {
+                Some(at) => self.run_at(at),
+                None => return,
+            }
         }
+        self.pushed = true;
     }
 
     fn home(
@@ -288,15 +259,10 @@ impl StepSink for VirtualMcu {
                 (endstop, at)
             }
         };
+        self.refresh();
         let triggered_at = loop {
-            let next_step = self
-                .channels
-                .iter()
-                .enumerate()
-                .filter_map(|(i, c)| c.next.map(|t| (t, i)))
-                .min();
-            match next_step {
-                Some((t, i)) if t < read_at => step(&mut self.channels[i], t),
+            match self.wake {
+                Some(at) if at < read_at => self.run_at(at),
                 _ if read_at >= until_clock => {
                     self.watch = Some((start_clock, endstop, read_at));
                     return None;
@@ -310,13 +276,9 @@ impl StepSink for VirtualMcu {
         // Triggered: the steppers stop at once, so none overshoots the
         // trigger; their remaining steps are dropped.
         self.watch = None;
-        for ch in &mut self.channels {
-            ch.engine.stop();
-            ch.moves.clear();
-            ch.left = 0;
-            ch.next = None;
-        }
-        self.now = self.now.max(triggered_at);
+        self.engine.halt();
+        self.wake = None;
+        self.advance_clock(triggered_at);
         let real = physics.toolhead(self.motion_steps());
         self.triggers.push((homing.axis, real, triggered_at));
         Some([0; MAX_STEPPERS])

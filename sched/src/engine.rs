@@ -15,6 +15,12 @@ use crate::stepper::{StepPins, Stepper};
 /// of the 32-bit clock's range, so comparisons stay unambiguous).
 pub const RELEASE_AHEAD: u64 = 1 << 30;
 
+/// The first 64-bit clock at which a command whose first step is at
+/// `clock` may be released.
+fn release_time(clock: u64) -> u64 {
+    (clock + 1).saturating_sub(RELEASE_AHEAD)
+}
+
 /// A step command for one stepper, as on the wire.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Command {
@@ -50,6 +56,8 @@ pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
     shutdown: Option<Shutdown>,
     /// True when an outbox may hold a command ready for release.
     check_outboxes: bool,
+    /// When a held command may next be released, 64-bit ticks.
+    release_at: Option<u64>,
 }
 
 impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M, O> {
@@ -63,6 +71,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             clock: Extender::new(0),
             shutdown: None,
             check_outboxes: false,
+            release_at: None,
         }
     }
 
@@ -103,11 +112,18 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// that a step costs little more than the step itself.
     pub fn run(&mut self, now: u32) -> Option<u32> {
         let now64 = self.clock.extend(now);
-        if self.check_outboxes {
+        if self.check_outboxes || self.release_at.is_some_and(|at| now64 >= at) {
             self.check_outboxes = false;
             for i in 0..S {
                 self.release(i, now, now64);
             }
+            // The next time a held command may go, for steppers with room
+            // (a full queue signals room itself, by finishing a move).
+            self.release_at = (0..S)
+                .filter(|&i| self.steppers[i].free() > 0)
+                .filter_map(|i| self.outboxes[i].front())
+                .map(|&(_, clock)| release_time(clock))
+                .min();
         }
         let mut stepped = false;
         for i in 0..S {
@@ -126,23 +142,17 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             }
         }
         if !stepped {
-            // Not a step's wake: far commands may be due for release.
+            // Not a step's wake (a heartbeat): look at the outboxes.
             self.check_outboxes = true;
         }
-        if earliest.is_some() {
-            return earliest;
+        // Also wake when a held command may be released.
+        if let Some(at) = self.release_at {
+            let wait = at.saturating_sub(now64).min(u64::from(u32::MAX >> 2)) as u32;
+            if (wait as i32) < soonest {
+                earliest = Some(now.wrapping_add(wait));
+            }
         }
-        // Only commands far ahead: wake when the first can be released.
-        let waiting = self
-            .outboxes
-            .iter()
-            .filter_map(|o| o.front())
-            .map(|&(_, c)| c)
-            .min()?;
-        let wait = waiting
-            .saturating_sub(now64 + RELEASE_AHEAD)
-            .min(u64::from(u32::MAX >> 2));
-        Some(now.wrapping_add(wait as u32))
+        earliest
     }
 
     /// Makes stepper `i`'s steps due at `now`; returns its next step.
@@ -165,7 +175,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// Moves stepper `i`'s due commands from its outbox to its queue.
     fn release(&mut self, i: usize, now: u32, now64: u64) {
         while let Some(&(cmd, clock)) = self.outboxes[i].front() {
-            if clock >= now64 + RELEASE_AHEAD || self.steppers[i].free() == 0 {
+            if now64 < release_time(clock) || self.steppers[i].free() == 0 {
                 return;
             }
             self.outboxes[i].pop_front();
@@ -198,11 +208,27 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// Stops every stepper and drops every command; the first reason stays.
     pub fn stop(&mut self, reason: Shutdown) {
         self.shutdown.get_or_insert(reason);
+        self.halt();
+    }
+
+    /// Stops every stepper at once and drops their commands, without a
+    /// fault (an endstop ended a homing move).
+    pub fn halt(&mut self) {
         for (stepper, outbox) in self.steppers.iter_mut().zip(&mut self.outboxes) {
             stepper.stop();
             outbox.clear();
         }
         self.next = [None; S];
+    }
+
+    /// The steppers' pins.
+    pub fn pins(&self) -> &[P; S] {
+        &self.pins
+    }
+
+    /// The steppers' pins, to change (a simulation sets its clock there).
+    pub fn pins_mut(&mut self) -> &mut [P; S] {
+        &mut self.pins
     }
 }
 

@@ -265,30 +265,55 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         let limit = until.min(self.known_until);
         // All steppers advance together, a slice at a time, so that a long
         // stretch of one stepper's commands never waits for room ahead of
-        // another stepper's earlier ones.
+        // another stepper's earlier ones: from where the laggard stands
+        // (before any generation: the first queued move) to the limit, or
+        // with no limit to past the last move's end (where the queues'
+        // open stationary tails start) by every look-back.
+        let queues = [&self.toolhead, &self.extruder];
+        let first_move = queues
+            .iter()
+            .filter_map(|q| q.segments().first())
+            .map(|s| s.print_time)
+            .fold(f64::INFINITY, f64::min);
+        let motion_end = queues
+            .iter()
+            .filter_map(|q| q.segments().last())
+            .map(|s| s.print_time)
+            .fold(f64::NEG_INFINITY, f64::max);
+        let look_back = self
+            .channels
+            .iter()
+            .map(Channel::look_back)
+            .fold(0.0, f64::max);
+        let sliced = limit.min(motion_end + look_back + GENERATION_SLICE);
         let mut upto = self
             .channels
             .iter()
-            .map(|ch| ch.solver.generated_until())
+            .map(|ch| {
+                ch.solver
+                    .generated_until()
+                    .max(first_move - GENERATION_SLICE)
+            })
             .fold(f64::INFINITY, f64::min);
-        if !upto.is_finite() || !limit.is_finite() {
-            upto = limit;
+        while upto.is_finite() && upto < sliced {
+            upto = (upto + GENERATION_SLICE).min(sliced);
+            self.generate_slice(upto, limit, sink);
         }
-        loop {
-            upto = (upto + GENERATION_SLICE).min(limit);
-            for (i, ch) in self.channels.iter_mut().enumerate() {
-                let queue = match ch.follows {
-                    Follows::Toolhead(..) => &self.toolhead,
-                    Follows::Extruder(_) => &self.extruder,
-                };
-                let to = window_floor(upto.min(limit - ch.margins.before));
-                ch.generate(i, queue.segments(), to, sink);
-            }
-            if upto >= limit {
-                break;
-            }
-        }
+        self.generate_slice(limit, limit, sink);
         self.retire();
+    }
+
+    /// Generates every stepper up to `upto` (s), each as far as its
+    /// look-ahead allows within `limit`.
+    fn generate_slice(&mut self, upto: f64, limit: f64, sink: &mut impl StepSink) {
+        for (i, ch) in self.channels.iter_mut().enumerate() {
+            let queue = match ch.follows {
+                Follows::Toolhead(..) => &self.toolhead,
+                Follows::Extruder(_) => &self.extruder,
+            };
+            let to = window_floor(upto.min(limit - ch.margins.before));
+            ch.generate(i, queue.segments(), to, sink);
+        }
     }
 
     /// Generates and sends every remaining step (the end of the motion).
