@@ -121,7 +121,7 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
 /// enabled) and hands them to the stepper engine; None (logged) if a pin
 /// name is not a GPIO.
 fn install_engine(machine: &Machine<'_>) -> Option<()> {
-    let mut slots = [step_pins::Slot::default(); step_timer::STEPPERS];
+    let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
     for (slot, stepper) in slots.iter_mut().zip(&machine.steppers) {
         let pins = step_pins::StepperPins::new(stepper.step_pin, stepper.dir_pin);
         let enable = stepper.enable_pin.map(step_pins::OutPin::new).transpose();
@@ -130,7 +130,7 @@ fn install_engine(machine: &Machine<'_>) -> Option<()> {
                 if let Some(enable) = enable {
                     enable.set(true);
                 }
-                *slot = step_pins::Slot(Some(pins));
+                *slot = pins;
             }
             (Err(e), _) | (_, Err(e)) => {
                 defmt::warn!("[{}]: {}", stepper.name, defmt::Display2Format(&e));
@@ -152,16 +152,12 @@ async fn usb_device(
     device.run().await
 }
 
-/// Logs the stepper timer's progress once a second (a liveness check over RTT).
+/// Logs the stepper clock once a second (a liveness check over RTT).
 #[embassy_executor::task]
 async fn heartbeat() -> ! {
     let mut ticker = Ticker::every(Duration::from_secs(1));
     loop {
         ticker.next().await;
-        defmt::info!(
-            "stepper timer at {}, {} interrupts",
-            step_timer::now(),
-            step_timer::irq_count()
-        );
+        defmt::info!("stepper clock at {} ticks", step_timer::now64());
     }
 }

@@ -6,12 +6,13 @@ use embassy_stm32::pac::gpio::vals;
 use onechip_app::pins::{BadPin, PinName};
 use onechip_sched::stepper::StepPins;
 
-/// A push-pull output pin.
+/// A push-pull output pin, as the two set/reset register words that
+/// drive it active and inactive (inversion already applied).
 #[derive(Clone, Copy)]
 pub struct OutPin {
     port: pac::gpio::Gpio,
-    number: usize,
-    inverted: bool,
+    active: u32,
+    inactive: u32,
 }
 
 impl OutPin {
@@ -25,32 +26,41 @@ impl OutPin {
             ..
         } = onechip_app::pins::parse(name)?;
         let port = gpio(port).ok_or(BadPin(name))?;
+        let number = usize::from(number);
+        if number > 15 {
+            return Err(BadPin(name));
+        }
+        let (high, low) = (1 << number, 1 << (number + 16));
+        let (active, inactive) = if inverted { (low, high) } else { (high, low) };
         let pin = Self {
             port,
-            number: usize::from(number),
-            inverted,
+            active,
+            inactive,
         };
         pin.set(false);
         port.otyper()
-            .modify(|w| w.set_ot(pin.number, vals::Ot::PUSH_PULL));
+            .modify(|w| w.set_ot(number, vals::Ot::PUSH_PULL));
         port.ospeedr()
-            .modify(|w| w.set_ospeedr(pin.number, vals::Ospeedr::VERY_HIGH_SPEED));
+            .modify(|w| w.set_ospeedr(number, vals::Ospeedr::VERY_HIGH_SPEED));
         port.moder()
-            .modify(|w| w.set_moder(pin.number, vals::Moder::OUTPUT));
+            .modify(|w| w.set_moder(number, vals::Moder::OUTPUT));
         Ok(pin)
     }
 
-    /// Drives the signal active (`true`) or inactive.
+    /// A pin that drives nothing (its writes change no output).
+    const fn none() -> Self {
+        Self {
+            port: pac::GPIOA,
+            active: 0,
+            inactive: 0,
+        }
+    }
+
+    /// Drives the signal active (`true`) or inactive: one store.
     #[inline(always)]
     pub fn set(&self, active: bool) {
-        let high = active != self.inverted;
-        self.port.bsrr().write(|w| {
-            if high {
-                w.set_bs(self.number, true);
-            } else {
-                w.set_br(self.number, true);
-            }
-        });
+        let word = if active { self.active } else { self.inactive };
+        self.port.bsrr().write_value(pac::gpio::regs::Bsrr(word));
     }
 }
 
@@ -69,11 +79,21 @@ fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
     })
 }
 
-/// One stepper's step and direction pins.
+/// One stepper's step and direction pins; the default drives nothing
+/// (an unused slot of the engine).
 #[derive(Clone, Copy)]
 pub struct StepperPins {
     step: OutPin,
     dir: OutPin,
+}
+
+impl Default for StepperPins {
+    fn default() -> Self {
+        Self {
+            step: OutPin::none(),
+            dir: OutPin::none(),
+        }
+    }
 }
 
 impl StepperPins {
@@ -100,25 +120,5 @@ impl StepPins for StepperPins {
         self.step.set(true);
         cortex_m::asm::delay(PULSE_CYCLES);
         self.step.set(false);
-    }
-}
-
-/// A stepper slot of the engine: the pins of a configured stepper, or
-/// nothing for an unused slot.
-#[derive(Clone, Copy, Default)]
-pub struct Slot(pub Option<StepperPins>);
-
-impl StepPins for Slot {
-    fn set_dir(&mut self, positive: bool) {
-        if let Some(pins) = &mut self.0 {
-            pins.set_dir(positive);
-        }
-    }
-
-    #[inline(always)]
-    fn step(&mut self) {
-        if let Some(pins) = &mut self.0 {
-            pins.step();
-        }
     }
 }

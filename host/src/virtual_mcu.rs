@@ -141,11 +141,7 @@ impl VirtualMcu {
 
     /// The steps each stepper made.
     pub fn logs(&self) -> impl Iterator<Item = &StepLog> {
-        self.engine
-            .pins()
-            .iter()
-            .take(self.steppers)
-            .map(|r| &r.log)
+        self.engine.pins().take(self.steppers).map(|r| &r.log)
     }
 
     /// Every endstop trigger so far: axis, the toolhead's real position

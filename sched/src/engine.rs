@@ -6,6 +6,12 @@
 //! The board calls [`Engine::run`] from its timer interrupt with the
 //! timer's count and re-arms the timer for the clock it returns; thread
 //! code fills the outboxes with [`Engine::push`].
+//!
+//! Like Klipper's MCU, the engine keeps a list of timers in wake order:
+//! one per stepper with a step coming, and a housekeeping timer that
+//! releases commands and keeps the 64-bit clock. A step costs the pulse,
+//! the next interval and one comparison to keep the list in order;
+//! everything else happens once per move or in housekeeping.
 
 use crate::clock::{Extender, is_before};
 use crate::shutdown::Shutdown;
@@ -14,6 +20,61 @@ use crate::stepper::{StepPins, Stepper};
 /// How far ahead a command is released to its stepper, ticks (a quarter
 /// of the 32-bit clock's range, so comparisons stay unambiguous).
 pub const RELEASE_AHEAD: u64 = 1 << 30;
+
+/// Longest wait between housekeeping runs, ticks (the 64-bit clock needs
+/// a reading at least once per wrap of the 32-bit one).
+const HOUSEKEEPING_EVERY: u64 = 1 << 30;
+
+/// Timer slots: up to 15 steppers and the housekeeping timer.
+const TIMERS: usize = 16;
+
+/// A timer's number: stepper `i` is timer `i`, housekeeping is timer `S`.
+/// Its type keeps it below [`TIMERS`], so the step path indexes the timer
+/// tables without checks.
+#[rustfmt::skip]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+enum Timer { T0, T1, T2, T3, T4, T5, T6, T7, T8, T9, T10, T11, T12, T13, T14, T15 }
+
+impl Timer {
+    #[rustfmt::skip]
+    const ALL: [Timer; TIMERS] = {
+        use Timer::*;
+        [T0, T1, T2, T3, T4, T5, T6, T7, T8, T9, T10, T11, T12, T13, T14, T15]
+    };
+
+    /// Timer `index` (below [`TIMERS`]).
+    fn new(index: usize) -> Self {
+        Self::ALL[index % TIMERS]
+    }
+
+    fn index(self) -> usize {
+        usize::from(self as u8)
+    }
+}
+
+/// Longest an idle engine leaves its timer unarmed, ticks (a push raises
+/// the interrupt; housekeeping needs a run at least this often).
+const IDLE_WAKE: u32 = 1 << 30;
+
+/// The hardware timer the stepper interrupt runs from: a free-running
+/// 32-bit counter with a compare that raises the interrupt.
+pub trait StepTimer {
+    /// Ticks within which a compare could be passed before it is set:
+    /// wakes closer than this are served at once.
+    const MIN_AHEAD: u32;
+    /// The counter now, ticks.
+    fn count(&self) -> u32;
+    /// Raises the next interrupt at count `at`.
+    fn set_compare(&mut self, at: u32);
+}
+
+/// True if a compare set now (at count `now`) for `at` cannot be passed
+/// before it is set.
+#[inline(always)]
+fn far_enough<T: StepTimer>(at: u32, now: u32) -> bool {
+    at.wrapping_sub(now) as i32 >= T::MIN_AHEAD as i32
+}
 
 /// The first 64-bit clock at which a command whose first step is at
 /// `clock` may be released.
@@ -43,35 +104,54 @@ pub enum Command {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Full;
 
-/// `S` steppers with move queues of `M` and outboxes of `O` commands.
+/// A stepper and the pins it drives.
 #[derive(Debug)]
+#[repr(C)]
+struct Slot<P, const M: usize> {
+    stepper: Stepper<M>,
+    pins: P,
+}
+
+/// `S` steppers (at most 15) with move queues of `M` and outboxes of `O`
+/// commands.
+///
+/// The fields the step path reads come first, at small offsets.
+#[derive(Debug)]
+#[repr(C)]
 pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
-    steppers: [Stepper<M>; S],
-    pins: [P; S],
+    /// Each queued timer's wake clock (a stepper's: its coming step).
+    wakes: [u32; TIMERS],
+    /// Timers in wake order, `order[..queued]`: each stepper with a step
+    /// coming (its index) and housekeeping (`S`), which is always there.
+    order: [Timer; TIMERS],
+    queued: usize,
+    slots: [Slot<P, M>; S],
     /// Commands not yet released, with their first step's 64-bit clock.
     outboxes: [heapless::Deque<(Command, u64), O>; S],
-    /// Clock of each stepper's next step.
-    next: [Option<u32>; S],
     clock: Extender,
+    /// The timer count when housekeeping last ran.
+    housekept: u32,
     shutdown: Option<Shutdown>,
-    /// True when an outbox may hold a command ready for release.
-    check_outboxes: bool,
-    /// When a held command may next be released, 64-bit ticks.
-    release_at: Option<u64>,
 }
 
 impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M, O> {
     /// Idle steppers driving `pins`, the clock starting at 0.
     pub fn new(pins: [P; S]) -> Self {
+        const { assert!(S < TIMERS, "at most 15 steppers") };
+        let mut order = [Timer::T0; TIMERS];
+        order[0] = Timer::new(S);
         Self {
-            steppers: core::array::from_fn(|_| Stepper::new()),
-            pins,
+            slots: pins.map(|pins| Slot {
+                stepper: Stepper::new(),
+                pins,
+            }),
             outboxes: core::array::from_fn(|_| heapless::Deque::new()),
-            next: [None; S],
+            order,
+            queued: 1,
+            wakes: [0; TIMERS],
             clock: Extender::new(0),
+            housekept: 0,
             shutdown: None,
-            check_outboxes: false,
-            release_at: None,
         }
     }
 
@@ -84,7 +164,8 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             return Ok(());
         }
         outbox.push_back((cmd, first_clock)).map_err(|_| Full)?;
-        self.check_outboxes = true;
+        // Housekeeping is due (it last ran no later than now).
+        self.schedule(S, self.housekept);
         Ok(())
     }
 
@@ -101,85 +182,178 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
 
     /// Position of stepper `index` in steps.
     pub fn position(&self, index: usize) -> Option<i64> {
-        self.steppers.get(index).map(Stepper::position)
+        self.slots.get(index).map(|slot| slot.stepper.position())
     }
 
-    /// The interrupt's work at timer count `now`: releases the commands
-    /// now close enough, makes every step due, and returns the clock to
-    /// wake at next (None: nothing queued). Outboxes are looked at only
-    /// after a push, when a stepper's queue gains room, or on a wake that
-    /// makes no step (the heartbeat, or a far command's release time), so
-    /// that a step costs little more than the step itself.
+    /// The timer interrupt's work: runs the engine until its next wake is
+    /// far enough ahead to arm `timer`'s compare for it.
+    #[inline(always)]
+    pub fn on_timer<T: StepTimer>(&mut self, timer: &mut T) {
+        // The common case, straight through: one step, and the next wake
+        // far enough ahead.
+        if let Some(at) = self.run(timer.count())
+            && far_enough::<T>(at, timer.count())
+        {
+            timer.set_compare(at);
+            return;
+        }
+        self.on_timer_rest(timer);
+    }
+
+    /// [`Self::on_timer`] when a wake was close or the engine idle.
+    #[cold]
+    #[inline(never)]
+    fn on_timer_rest<T: StepTimer>(&mut self, timer: &mut T) {
+        loop {
+            let now = timer.count();
+            let at = self.run(now).unwrap_or(now.wrapping_add(IDLE_WAKE));
+            if far_enough::<T>(at, timer.count()) {
+                timer.set_compare(at);
+                return;
+            }
+        }
+    }
+
+    /// The interrupt's work at timer count `now`: the timers due, in wake
+    /// order. Returns the clock to wake at next (None: nothing queued or
+    /// held); when a step leaves its stepper first in line, that step's
+    /// next clock, which may be due already: then call again at once.
+    /// Call it at least once per 2^31 ticks.
+    #[inline(always)]
     pub fn run(&mut self, now: u32) -> Option<u32> {
-        let now64 = self.clock.extend(now);
-        if self.check_outboxes || self.release_at.is_some_and(|at| now64 >= at) {
-            self.check_outboxes = false;
-            for i in 0..S {
-                self.release(i, now, now64);
-            }
-            // The next time a held command may go, for steppers with room
-            // (a full queue signals room itself, by finishing a move).
-            self.release_at = (0..S)
-                .filter(|&i| self.steppers[i].free() > 0)
-                .filter_map(|i| self.outboxes[i].front())
-                .map(|&(_, clock)| release_time(clock))
-                .min();
+        // The common case, one step that leaves its stepper first in
+        // line, is kept apart from the rest so that it needs few registers.
+        match self.run_front(now) {
+            Ok(wake) => wake,
+            Err((timer, clock)) => self.run_on(now, timer, clock),
         }
-        let mut stepped = false;
-        for i in 0..S {
-            if let Some(at) = self.next[i]
-                && !is_before(now, at)
-            {
-                stepped = true;
-                self.next[i] = self.step_due(i, now);
-            }
-        }
-        let (mut earliest, mut soonest) = (None, i32::MAX);
-        for &at in self.next.iter().flatten() {
-            let ahead = at.wrapping_sub(now) as i32;
-            if ahead < soonest {
-                (earliest, soonest) = (Some(at), ahead);
-            }
-        }
-        if !stepped {
-            // Not a step's wake (a heartbeat): look at the outboxes.
-            self.check_outboxes = true;
-        }
-        // Also wake when a held command may be released.
-        if let Some(at) = self.release_at {
-            let wait = at.saturating_sub(now64).min(u64::from(u32::MAX >> 2)) as u32;
-            if (wait as i32) < soonest {
-                earliest = Some(now.wrapping_add(wait));
-            }
-        }
-        earliest
     }
 
-    /// Makes stepper `i`'s steps due at `now`; returns its next step.
-    fn step_due(&mut self, i: usize, now: u32) -> Option<u32> {
-        let loads = self.steppers[i].loads();
-        let mut next = None;
-        while let Some(at) = self.steppers[i].step(&mut self.pins[i]) {
-            if is_before(now, at) {
-                next = Some(at);
-                break;
+    /// [`Self::run`] from the slow part of timer `timer`'s work on:
+    /// housekeeping; or for a stepper whose step at `clock` ended its
+    /// move, the next move; or for one whose next step at `clock` is not
+    /// first in line, its place in the list.
+    #[cold]
+    #[inline(never)]
+    fn run_on(&mut self, now: u32, mut timer: usize, mut clock: u32) -> Option<u32> {
+        loop {
+            match self.slots.get(timer) {
+                None => {
+                    if self.housekeeping(now) {
+                        return None;
+                    }
+                }
+                Some(slot) if slot.stepper.in_move() => self.schedule(timer, clock),
+                Some(_) => self.move_ended(timer, clock),
             }
+            (timer, clock) = match self.run_front(now) {
+                Ok(wake) => return wake,
+                Err(work) => work,
+            };
         }
-        // A finished move leaves room for a command waiting in the outbox.
-        if self.steppers[i].loads() != loads && !self.outboxes[i].is_empty() {
-            self.check_outboxes = true;
+    }
+
+    /// Runs the front timer if it is due at `now`: Ok with the wake to
+    /// return, or Err with what [`Self::run_on`] needs for the rest.
+    #[inline(always)]
+    fn run_front(&mut self, now: u32) -> Result<Option<u32>, (usize, u32)> {
+        let timer = self.order[0].index();
+        let at = self.wakes[timer];
+        if is_before(now, at) {
+            return Ok(Some(at));
         }
-        next
+        let Some(slot) = self.slots.get_mut(timer) else {
+            return Err((timer, at));
+        };
+        let Some(next) = slot.stepper.step(&mut slot.pins, at) else {
+            return Err((timer, at));
+        };
+        self.wakes[timer] = next;
+        // The second place is always taken while a stepper is queued (by
+        // another stepper or by housekeeping): if that is not due first,
+        // this stepper stays at the front.
+        if is_before(next, self.wakes[self.order[1].index()]) {
+            // Even if it is due already: the caller comes back at once.
+            return Ok(Some(next));
+        }
+        Err((timer, next))
+    }
+
+    /// Stepper `index`, at the front, made the last step of its move at
+    /// clock `at`: it goes on with its next move or leaves the list, and
+    /// as its queue now has room, housekeeping may release more.
+    #[inline(never)]
+    fn move_ended(&mut self, index: usize, at: u32) {
+        let slot = &mut self.slots[index];
+        match slot.stepper.load(&mut slot.pins, at) {
+            Some(first) => self.schedule(index, first),
+            None => self.unqueue(index),
+        }
+        if !self.outboxes[index].is_empty() {
+            self.schedule(S, at);
+        }
+    }
+
+    /// Puts timer `timer` in the list at wake `at`, in order.
+    #[inline(never)]
+    fn schedule(&mut self, timer: usize, at: u32) {
+        self.unqueue(timer);
+        let at_k = self.order[..self.queued]
+            .iter()
+            .position(|&t| is_before(at, self.wakes[t.index()]))
+            .unwrap_or(self.queued);
+        self.order.copy_within(at_k..self.queued, at_k + 1);
+        let timer = Timer::new(timer);
+        self.order[at_k] = timer;
+        self.wakes[timer.index()] = at;
+        self.queued += 1;
+    }
+
+    /// Takes timer `timer` out of the list, if it is there.
+    fn unqueue(&mut self, timer: usize) {
+        if let Some(k) = self.order[..self.queued]
+            .iter()
+            .position(|&t| t.index() == timer)
+        {
+            self.order.copy_within(k + 1..self.queued, k);
+            self.queued -= 1;
+        }
+    }
+
+    /// Housekeeping at timer count `now`: extends the clock, releases the
+    /// commands now close enough to steppers with room, and schedules
+    /// itself for the next release or the clock's next reading. Returns
+    /// true when nothing is queued or held.
+    #[inline(never)]
+    fn housekeeping(&mut self, now: u32) -> bool {
+        let now64 = self.clock.extend(now);
+        self.housekept = now;
+        for i in 0..S {
+            self.release(i, now, now64);
+        }
+        // A full queue signals room itself, when a move ends.
+        let release_at = (0..S)
+            .filter(|&i| self.slots[i].stepper.free() > 0)
+            .filter_map(|i| self.outboxes[i].front())
+            .map(|&(_, clock)| release_time(clock))
+            .min();
+        let next = release_at
+            .unwrap_or(u64::MAX)
+            .min(now64 + HOUSEKEEPING_EVERY)
+            .max(now64 + 1);
+        self.schedule(S, next as u32);
+        self.queued == 1 && self.outboxes.iter().all(|o| o.is_empty())
     }
 
     /// Moves stepper `i`'s due commands from its outbox to its queue.
     fn release(&mut self, i: usize, now: u32, now64: u64) {
         while let Some(&(cmd, clock)) = self.outboxes[i].front() {
-            if now64 < release_time(clock) || self.steppers[i].free() == 0 {
+            if now64 < release_time(clock) || self.slots[i].stepper.free() == 0 {
                 return;
             }
             self.outboxes[i].pop_front();
-            let stepper = &mut self.steppers[i];
+            let Slot { stepper, pins } = &mut self.slots[i];
+            let was_idle = stepper.is_idle();
             let result = match cmd {
                 Command::Dir(positive) => {
                     stepper.set_next_dir(positive);
@@ -199,8 +373,8 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
                 self.stop(reason);
                 return;
             }
-            if self.next[i].is_none() {
-                self.next[i] = stepper.next_step();
+            if was_idle && let Some(first) = stepper.start(pins) {
+                self.schedule(i, first);
             }
         }
     }
@@ -214,21 +388,23 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// Stops every stepper at once and drops their commands, without a
     /// fault (an endstop ended a homing move).
     pub fn halt(&mut self) {
-        for (stepper, outbox) in self.steppers.iter_mut().zip(&mut self.outboxes) {
-            stepper.stop();
+        for (slot, outbox) in self.slots.iter_mut().zip(&mut self.outboxes) {
+            slot.stepper.stop();
             outbox.clear();
         }
-        self.next = [None; S];
+        for i in 0..S {
+            self.unqueue(i);
+        }
     }
 
-    /// The steppers' pins.
-    pub fn pins(&self) -> &[P; S] {
-        &self.pins
+    /// The steppers' pins, in stepper order.
+    pub fn pins(&self) -> impl Iterator<Item = &P> {
+        self.slots.iter().map(|slot| &slot.pins)
     }
 
     /// The steppers' pins, to change (a simulation sets its clock there).
-    pub fn pins_mut(&mut self) -> &mut [P; S] {
-        &mut self.pins
+    pub fn pins_mut(&mut self) -> impl Iterator<Item = &mut P> {
+        self.slots.iter_mut().map(|slot| &mut slot.pins)
     }
 }
 
@@ -256,15 +432,16 @@ mod tests {
     }
 
     /// Runs the engine like a timer interrupt until `end`; returns steps.
-    fn run_until(e: &mut Engine<Pins, 2, 8, 8>, end: u64) {
+    fn run_until<const S: usize>(e: &mut Engine<Pins, S, 8, 8>, end: u64) {
         let mut now64 = 0u64;
         while now64 < end {
-            for p in &mut e.pins {
+            for p in e.pins_mut() {
                 p.now = now64 as u32;
             }
             let wake = e.run(now64 as u32);
             now64 = match wake {
-                Some(at) => now64 + u64::from(at.wrapping_sub(now64 as u32)).max(1),
+                // A wake already due: run again at once.
+                Some(at) => now64 + (at.wrapping_sub(now64 as u32) as i32).max(0) as u64,
                 None => end,
             };
         }
@@ -296,8 +473,11 @@ mod tests {
         )
         .expect("room");
         run_until(&mut e, 10_000);
-        assert_eq!(e.pins[0].steps, [(100, true), (200, true), (300, true)]);
-        assert_eq!(e.pins[1].steps, [(150, false), (310, false)]);
+        assert_eq!(
+            e.slots[0].pins.steps,
+            [(100, true), (200, true), (300, true)]
+        );
+        assert_eq!(e.slots[1].pins.steps, [(150, false), (310, false)]);
         assert_eq!((e.position(0), e.position(1)), (Some(3), Some(-2)));
     }
 
@@ -329,7 +509,7 @@ mod tests {
         .expect("room");
         run_until(&mut e, far + 10_000);
         let expect = [(far as u32, true), ((far + 1000) as u32, true)];
-        assert_eq!(e.pins[0].steps, expect);
+        assert_eq!(e.slots[0].pins.steps, expect);
         assert_eq!(e.shutdown_reason(), None);
     }
 
@@ -348,7 +528,7 @@ mod tests {
         .expect("room");
         e.run(5000);
         assert_eq!(e.shutdown_reason(), Some(Shutdown::StepperTooFarInPast));
-        assert!(e.pins[1].steps.is_empty());
+        assert!(e.slots[1].pins.steps.is_empty());
         // Afterwards everything is dropped.
         e.push(
             0,
@@ -360,6 +540,85 @@ mod tests {
             5100,
         )
         .expect("accepted");
-        assert_eq!(e.run(5200), None);
+        let heartbeat = e.run(5200).expect("housekeeping");
+        assert_eq!(e.run(heartbeat), None, "idle");
+        assert!(e.pins().all(|p| p.steps.is_empty()));
+    }
+
+    #[test]
+    fn random_moves_of_four_steppers_step_exactly_across_clock_wraps() {
+        let mut rng = 0x2545_f491u32;
+        let mut next = move |n: u32| {
+            rng ^= rng << 13;
+            rng ^= rng >> 17;
+            rng ^= rng << 5;
+            rng % n
+        };
+        // Each stepper's commands with their first step's 64-bit clock,
+        // and the steps they must make.
+        let mut plans: Vec<Vec<(Command, u64)>> = Vec::new();
+        let mut expected: Vec<Vec<(u32, bool)>> = Vec::new();
+        for _ in 0..4 {
+            let (mut cmds, mut steps) = (Vec::new(), Vec::new());
+            let (mut last, mut dir) = (0u64, false);
+            for _ in 0..60 {
+                if next(3) == 0 {
+                    dir = !dir;
+                    cmds.push((Command::Dir(dir), last));
+                }
+                let (interval, count) = (200 + next(2_000_000), 1 + next(200) as u16);
+                let add = next(41) as i16 - 20;
+                let mut clock = last + u64::from(interval);
+                cmds.push((
+                    Command::Steps {
+                        interval,
+                        count,
+                        add,
+                    },
+                    clock,
+                ));
+                let mut step = interval;
+                for k in 0..count {
+                    if k > 0 {
+                        step = step.wrapping_add(add as u32);
+                        clock += u64::from(step);
+                    }
+                    steps.push((clock as u32, dir));
+                }
+                last = clock;
+            }
+            plans.push(cmds);
+            expected.push(steps);
+        }
+        assert!(expected.iter().any(|s| s.len() > 4000), "crosses wraps");
+        let mut e = Engine::<Pins, 4, 8, 8>::new(Default::default());
+        let mut sent = [0usize; 4];
+        let mut now64 = 0u64;
+        loop {
+            // Fill the outboxes as thread code does, in time order.
+            for (i, plan) in plans.iter().enumerate() {
+                while let Some(&(cmd, clock)) = plan.get(sent[i]) {
+                    if e.push(i, cmd, clock).is_err() {
+                        break;
+                    }
+                    sent[i] += 1;
+                }
+            }
+            for p in e.pins_mut() {
+                p.now = now64 as u32;
+            }
+            match e.run(now64 as u32) {
+                Some(at) => now64 += (at.wrapping_sub(now64 as u32) as i32).max(0) as u64,
+                None if sent.iter().zip(&plans).all(|(&n, p)| n == p.len()) => break,
+                None => {}
+            }
+        }
+        assert_eq!(e.shutdown_reason(), None);
+        assert!(now64 > 1 << 32, "ran across a clock wrap");
+        for (i, steps) in expected.iter().enumerate() {
+            assert_eq!(e.slots[i].pins.steps, *steps, "stepper {i}");
+            let position: i64 = steps.iter().map(|s| if s.1 { 1 } else { -1 }).sum();
+            assert_eq!(e.position(i), Some(position));
+        }
     }
 }

@@ -29,25 +29,32 @@ pub trait StepPins {
 }
 
 /// One stepper's engine with a queue of `M` moves.
+///
+/// Only [`Self::step`] runs for every step: it pulses the pin and works
+/// out the next step's clock. Everything else a move needs (direction
+/// pin, position) is done once, by [`Self::load`]. The caller keeps the
+/// clock of the coming step (its timer's wake time).
+///
+/// The fields the step path uses come first.
 #[derive(Debug, Clone)]
+#[repr(C)]
 pub struct Stepper<const M: usize> {
+    /// Steps left in the active move, the coming one included (0: idle).
+    count: u32,
+    /// Ticks from the coming step to the one after it.
+    interval: u32,
+    /// Change of the interval after each step, ticks (two's complement).
+    add: u32,
+    /// Clock of the last step of the previous move (or of the reset),
+    /// ticks: the next move's first interval counts from here.
+    last: u32,
     queue: heapless::Deque<Move, M>,
     /// Direction for moves queued from now on.
     next_dir: bool,
-    /// Clock of the last step (or of the reset), ticks.
-    last_step: u32,
-    /// The move being executed: steps left, its interval, add and
-    /// direction.
-    count: u32,
-    interval: u32,
-    add: i32,
-    active_dir: bool,
-    /// The pin's current direction.
+    /// The direction pin's state (None before the first move).
     dir: Option<bool>,
-    /// Position in steps (+1 per positive step).
-    position: i64,
-    /// Moves started so far (wrapping).
-    loads: u32,
+    /// Position when the active move ends, steps (+1 per positive step).
+    end_position: i64,
 }
 
 impl<const M: usize> Default for Stepper<M> {
@@ -60,16 +67,14 @@ impl<const M: usize> Stepper<M> {
     /// An idle stepper whose step clock is 0.
     pub const fn new() -> Self {
         Self {
-            queue: heapless::Deque::new(),
-            next_dir: false,
-            last_step: 0,
             count: 0,
             interval: 0,
             add: 0,
-            active_dir: false,
+            last: 0,
+            queue: heapless::Deque::new(),
+            next_dir: false,
             dir: None,
-            position: 0,
-            loads: 0,
+            end_position: 0,
         }
     }
 
@@ -81,8 +86,8 @@ impl<const M: usize> Stepper<M> {
     /// `reset_step_clock`: the next move's first interval counts from
     /// `clock`. Only while idle.
     pub fn reset_clock(&mut self, clock: u32) {
-        if self.count == 0 && self.queue.is_empty() {
-            self.last_step = clock;
+        if self.is_idle() {
+            self.last = clock;
         }
     }
 
@@ -93,20 +98,16 @@ impl<const M: usize> Stepper<M> {
         if count == 0 {
             return Ok(());
         }
-        let m = Move {
-            interval,
-            count,
-            add,
-            dir: self.next_dir,
-        };
-        if self.count == 0 && self.queue.is_empty() {
-            let first = self.last_step.wrapping_add(interval);
-            if is_before(first, now) {
-                return Err(Shutdown::StepperTooFarInPast);
-            }
+        if self.is_idle() && is_before(self.last.wrapping_add(interval), now) {
+            return Err(Shutdown::StepperTooFarInPast);
         }
         self.queue
-            .push_back(m)
+            .push_back(Move {
+                interval,
+                count,
+                add,
+                dir: self.next_dir,
+            })
             .map_err(|_| Shutdown::MoveQueueOverflow)
     }
 
@@ -115,45 +116,62 @@ impl<const M: usize> Stepper<M> {
         M - self.queue.len()
     }
 
-    /// The clock of the next step, if any is queued.
-    pub fn next_step(&mut self) -> Option<u32> {
-        if self.count == 0 {
-            self.load()?;
-        }
-        Some(self.last_step.wrapping_add(self.interval))
-    }
-
-    /// The timer's work at the clock [`Self::next_step`] returned: one step.
-    /// Returns the clock of the following step, if any.
-    #[inline]
-    pub fn step(&mut self, pins: &mut impl StepPins) -> Option<u32> {
-        if self.count == 0 {
-            self.load()?;
-        }
-        if self.dir != Some(self.active_dir) {
-            self.dir = Some(self.active_dir);
-            pins.set_dir(self.active_dir);
-        }
-        pins.step();
-        self.last_step = self.last_step.wrapping_add(self.interval);
-        self.position += if self.active_dir { 1 } else { -1 };
-        self.count -= 1;
+    /// Starts an idle stepper on its first queued move: the clock of its
+    /// first step, or None if nothing is queued (or a move is active).
+    pub fn start(&mut self, pins: &mut impl StepPins) -> Option<u32> {
         if self.count > 0 {
-            self.interval = self.interval.wrapping_add(self.add as u32);
-            return Some(self.last_step.wrapping_add(self.interval));
+            return None;
         }
-        self.next_step()
+        self.load(pins, self.last)
     }
 
-    /// Moves started so far (wrapping): a change means the queue gained
-    /// room.
-    pub fn loads(&self) -> u32 {
-        self.loads
+    /// The timer's work at `at`, the clock of the coming step: one step.
+    /// Returns the clock of the following step of the same move; None
+    /// when the move is done (then [`Self::load`] the next).
+    #[inline(always)]
+    pub fn step(&mut self, pins: &mut impl StepPins, at: u32) -> Option<u32> {
+        pins.step();
+        self.count -= 1;
+        if self.count == 0 {
+            return None;
+        }
+        let next = at.wrapping_add(self.interval);
+        self.interval = self.interval.wrapping_add(self.add);
+        Some(next)
+    }
+
+    /// After the move's last step at clock `last`: makes the next queued
+    /// move the active one, sets the direction pin if it changes, and
+    /// returns the move's first step clock (None: idle).
+    #[inline(never)]
+    pub fn load(&mut self, pins: &mut impl StepPins, last: u32) -> Option<u32> {
+        self.last = last;
+        let m = self.queue.pop_front()?;
+        if self.dir != Some(m.dir) {
+            self.dir = Some(m.dir);
+            pins.set_dir(m.dir);
+        }
+        let add = i32::from(m.add) as u32;
+        self.count = u32::from(m.count);
+        self.interval = m.interval.wrapping_add(add);
+        self.add = add;
+        let count = i64::from(m.count);
+        self.end_position += if m.dir { count } else { -count };
+        Some(last.wrapping_add(m.interval))
+    }
+
+    /// True while a move has steps left.
+    pub fn in_move(&self) -> bool {
+        self.count > 0
     }
 
     /// Position in steps since start (+1 per positive step).
     pub fn position(&self) -> i64 {
-        self.position
+        let left = i64::from(self.count);
+        match self.dir {
+            Some(true) => self.end_position - left,
+            _ => self.end_position + left,
+        }
     }
 
     /// True when no step is queued or in progress.
@@ -161,21 +179,12 @@ impl<const M: usize> Stepper<M> {
         self.count == 0 && self.queue.is_empty()
     }
 
-    /// Drops every queued move (shutdown).
+    /// Drops every queued move (shutdown); the position stays where the
+    /// last step left it.
     pub fn stop(&mut self) {
+        self.end_position = self.position();
         self.queue.clear();
         self.count = 0;
-    }
-
-    /// Makes the next queued move the active one.
-    fn load(&mut self) -> Option<()> {
-        let m = self.queue.pop_front()?;
-        self.loads = self.loads.wrapping_add(1);
-        self.count = u32::from(m.count);
-        self.interval = m.interval;
-        self.add = i32::from(m.add);
-        self.active_dir = m.dir;
-        Some(())
     }
 }
 
@@ -207,10 +216,12 @@ mod tests {
             clock: 0,
             steps: Vec::new(),
         };
-        let mut next = s.next_step();
+        let mut next = s.start(&mut pins);
         while let Some(clock) = next {
             pins.clock = clock;
-            next = s.step(&mut pins);
+            next = s
+                .step(&mut pins, clock)
+                .or_else(|| s.load(&mut pins, clock));
         }
         pins.steps
     }
