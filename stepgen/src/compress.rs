@@ -312,14 +312,17 @@ impl<const Q: usize> Compressor<Q> {
             // The longest run with this add.
             let (mut next_min, mut next_max) = (outer_min, outer_max);
             let mut interval = next_max;
+            // Steps in the run if the one being tried joins it.
             let mut next_count = 1i32;
             // add · n(n-1)/2 for the step being tried.
             let mut c = 0i32;
             let mut stopped = None;
-            for (&clock, &error) in clocks.iter().zip(errors).skip(1) {
-                c += add * next_count;
-                next_count += 1;
-                let w = window(clock, error);
+            // Step k joins as the run's (k+1)th: k < len <= 65535, so the
+            // divisions below are by 2..=65535.
+            for k in 1..len {
+                c += add * k as i32;
+                next_count = k as i32 + 1;
+                let w = window(clocks[k], errors[k]);
                 if next_min * next_count < w.min - c {
                     // C's round-up division (truncating toward zero).
                     next_min = (w.min - c + next_count - 1) / next_count;
@@ -334,7 +337,8 @@ impl<const Q: usize> Compressor<Q> {
                 interval = next_max;
             }
             let Some(next_window) = stopped else {
-                return (interval, next_count, add);
+                // Every queued step joined.
+                return (interval, len as i32, add);
             };
             let count = next_count - 1;
             let reach = add * (count * (count - 1) / 2) + interval * count;

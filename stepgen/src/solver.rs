@@ -10,6 +10,7 @@
 
 use crate::segment::Segment;
 use onechip_planner::kinematics::StepperKinematics;
+use onechip_planner::math::sqrt;
 
 /// Time resolution of the crossing search, s.
 const TIME_EPSILON: f64 = 0.000_000_001;
@@ -46,6 +47,12 @@ impl Margins {
 pub trait PositionFn {
     /// The position at `t`.
     fn at(&self, t: f64) -> f64;
+
+    /// The time in `low..=high` where the position is `target`, if it can
+    /// be solved for directly; None leaves it to the search.
+    fn crossing(&self, _low: f64, _high: f64, _target: f64) -> Option<f64> {
+        None
+    }
 }
 
 impl<F: Fn(f64) -> f64> PositionFn for F {
@@ -72,6 +79,24 @@ pub struct AlongSegment {
 impl PositionFn for AlongSegment {
     fn at(&self, t: f64) -> f64 {
         self.base + self.ratio * ((self.start_v + self.half_accel * t) * t)
+    }
+
+    /// A root of `half_accel·t² + start_v·t = (target − base) / ratio`,
+    /// exact where the search would stop within a nanosecond of it.
+    fn crossing(&self, low: f64, high: f64, target: f64) -> Option<f64> {
+        let (a, v) = (self.half_accel, self.start_v);
+        let d = (target - self.base) / self.ratio;
+        let in_window = |t: f64| (low..=high).contains(&t).then_some(t);
+        if a == 0.0 {
+            return in_window(d / v);
+        }
+        let disc = v * v + 4.0 * a * d;
+        if disc < 0.0 {
+            return None;
+        }
+        // The two roots without cancellation: q / a and -d / q.
+        let q = -0.5 * (v + sqrt(disc).copysign(v));
+        in_window(q / a).or_else(|| in_window(-d / q))
     }
 }
 
@@ -374,6 +399,12 @@ fn find_crossing(position: &impl PositionFn, low: TimePos, high: TimePos, target
         return TimePos {
             t: low.t,
             pos: target,
+        };
+    }
+    if let Some(t) = position.crossing(low.t, high.t, target) {
+        return TimePos {
+            t,
+            pos: position.at(t),
         };
     }
     loop {
