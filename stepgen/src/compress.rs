@@ -59,6 +59,8 @@ struct Steps<const Q: usize> {
     errors: [u32; Q],
     head: usize,
     len: usize,
+    /// The newest queued clock (while `len > 0`).
+    newest: u64,
 }
 
 impl<const Q: usize> Steps<Q> {
@@ -68,6 +70,7 @@ impl<const Q: usize> Steps<Q> {
             errors: [0; Q],
             head: 0,
             len: 0,
+            newest: 0,
         }
     }
 
@@ -94,7 +97,7 @@ impl<const Q: usize> Steps<Q> {
     }
 
     fn last(&self) -> Option<u64> {
-        self.queued().0.last().copied()
+        (self.len > 0).then_some(self.newest)
     }
 
     /// Appends unless full.
@@ -102,16 +105,18 @@ impl<const Q: usize> Steps<Q> {
         if self.is_full() {
             return;
         }
-        if self.head + self.len == Q {
+        if self.head + self.len >= Q {
             let range = self.head..Q;
             self.clocks.copy_within(range.clone(), 0);
             self.errors.copy_within(range, 0);
             self.head = 0;
         }
         let at = self.head + self.len;
-        self.clocks[at] = clock;
-        self.errors[at] = error;
-        self.len += 1;
+        if let (Some(c), Some(e)) = (self.clocks.get_mut(at), self.errors.get_mut(at)) {
+            (*c, *e) = (clock, error);
+            self.len += 1;
+            self.newest = clock;
+        }
     }
 
     /// Removes `count` clocks (at most all) from the front.

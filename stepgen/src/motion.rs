@@ -465,7 +465,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
 /// times stay as they are.
 fn window_floor(t: f64) -> f64 {
     if t.is_finite() {
-        let floor = ((t / GENERATION_WINDOW) as i64) as f64 * GENERATION_WINDOW;
+        let floor = crate::solver::trunc(t / GENERATION_WINDOW) * GENERATION_WINDOW;
         if floor > t {
             floor - GENERATION_WINDOW
         } else {

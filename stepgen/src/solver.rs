@@ -436,13 +436,31 @@ fn find_crossing(position: &impl PositionFn, low: TimePos, high: TimePos, target
 /// [`GENERATION_WINDOW`], always later than `t`.
 fn next_window_start(t: f64) -> f64 {
     // Print times are never negative, so truncation is the floor.
-    let next = (((t / GENERATION_WINDOW) as i64) as f64 + 1.0) * GENERATION_WINDOW;
+    let next = (trunc(t / GENERATION_WINDOW) + 1.0) * GENERATION_WINDOW;
     if next > t {
         next
     } else {
         // Rounding put `t` on the boundary itself.
         next + GENERATION_WINDOW
     }
+}
+
+/// `x` rounded toward zero, as `x as i64 as f64` gives it (within the
+/// range of i64) but without the 64-bit integer conversions, which are
+/// library calls on a 32-bit MCU.
+pub(crate) fn trunc(x: f64) -> f64 {
+    // From 2^52 on, every f64 is a whole number.
+    const WHOLE: f64 = 4_503_599_627_370_496.0;
+    let a = x.abs();
+    if a >= WHOLE || a.is_nan() {
+        return x;
+    }
+    // Adding and removing 2^52 rounds to a whole number (to nearest).
+    let mut r = (a + WHOLE) - WHOLE;
+    if r > a {
+        r -= 1.0;
+    }
+    r.copysign(x)
 }
 
 #[cfg(test)]
@@ -460,6 +478,24 @@ mod tests {
             start_pos: [from, 0.0, 0.0],
             axes_r: [v.signum(), 0.0, 0.0],
         }
+    }
+
+    #[test]
+    fn trunc_matches_the_integer_round_trip() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..100_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            // Magnitudes from 1e-3 to ~1e12, both signs, and near-integers.
+            let v = (x % 1_000_000_007) as f64 * 10f64.powi((x >> 40) as i32 % 7 - 3);
+            for v in [v, -v, v.round(), v.round() - 1e-9, v + 0.5] {
+                assert_eq!(trunc(v).to_bits(), ((v as i64) as f64).to_bits(), "{v}");
+            }
+        }
+        assert_eq!(trunc(f64::INFINITY), f64::INFINITY);
+        assert!(trunc(f64::NAN).is_nan());
+        assert_eq!(trunc(-0.5).to_bits(), (-0.0f64).to_bits());
     }
 
     #[test]
