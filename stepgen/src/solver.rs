@@ -81,22 +81,40 @@ impl PositionFn for AlongSegment {
         self.base + self.ratio * ((self.start_v + self.half_accel * t) * t)
     }
 
-    /// A root of `half_accel·t² + start_v·t = (target − base) / ratio`,
-    /// exact where the search would stop within a nanosecond of it.
     fn crossing(&self, low: f64, high: f64, target: f64) -> Option<f64> {
-        let (a, v) = (self.half_accel, self.start_v);
-        let d = (target - self.base) / self.ratio;
+        let r = self.ratio;
+        Quadratic([self.base, r * self.start_v, r * self.half_accel]).crossing(low, high, target)
+    }
+}
+
+/// `c[0] + c[1]·t + c[2]·t²`: a position (mm) at time `t` (s) along
+/// constant-acceleration motion.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Quadratic(pub [f64; 3]);
+
+impl Quadratic {
+    /// The value at `t`.
+    pub fn at(&self, t: f64) -> f64 {
+        let [c, b, a] = self.0;
+        c + (b + a * t) * t
+    }
+
+    /// The time in `low..=high` where the value is `target`, if there is
+    /// one: exact where the search would stop within a nanosecond of it.
+    pub fn crossing(&self, low: f64, high: f64, target: f64) -> Option<f64> {
+        let [c, b, a] = self.0;
+        let c = c - target;
         let in_window = |t: f64| (low..=high).contains(&t).then_some(t);
         if a == 0.0 {
-            return in_window(d / v);
+            return in_window(-c / b);
         }
-        let disc = v * v + 4.0 * a * d;
+        let disc = b * b - 4.0 * a * c;
         if disc < 0.0 {
             return None;
         }
-        // The two roots without cancellation: q / a and -d / q.
-        let q = -0.5 * (v + sqrt(disc).copysign(v));
-        in_window(q / a).or_else(|| in_window(-d / q))
+        // The two roots without cancellation: q / a and c / q.
+        let q = -0.5 * (b + sqrt(disc).copysign(b));
+        in_window(q / a).or_else(|| in_window(c / q))
     }
 }
 
