@@ -14,6 +14,7 @@
 //! everything else happens once per move or in housekeeping.
 
 use crate::clock::{Extender, is_before};
+use crate::endstop::{Check, Endstop};
 use crate::shutdown::Shutdown;
 use crate::stepper::{StepPins, Stepper};
 
@@ -25,10 +26,11 @@ pub const RELEASE_AHEAD: u64 = 1 << 30;
 /// a reading at least once per wrap of the 32-bit one).
 const HOUSEKEEPING_EVERY: u64 = 1 << 30;
 
-/// Timer slots: up to 15 steppers and the housekeeping timer.
+/// Timer slots: up to 14 steppers, housekeeping and the endstop check.
 const TIMERS: usize = 16;
 
-/// A timer's number: stepper `i` is timer `i`, housekeeping is timer `S`.
+/// A timer's number: stepper `i` is timer `i`, housekeeping is timer `S`,
+/// the endstop check `S + 1`.
 /// Its type keeps it below [`TIMERS`], so the step path indexes the timer
 /// tables without checks.
 #[rustfmt::skip]
@@ -112,7 +114,17 @@ struct Slot<P, const M: usize> {
     pins: P,
 }
 
-/// `S` steppers (at most 15) with move queues of `M` and outboxes of `O`
+/// An endstop watched while homing.
+#[derive(Debug, Clone, Copy)]
+struct Watch {
+    /// The stepper whose pins read it.
+    stepper: usize,
+    endstop: Endstop,
+    /// The steppers it stops (bit `i`: stepper `i`).
+    stops: u32,
+}
+
+/// `S` steppers (at most 14) with move queues of `M` and outboxes of `O`
 /// commands.
 ///
 /// The fields the step path reads come first, at small offsets.
@@ -132,12 +144,15 @@ pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
     /// The timer count when housekeeping last ran.
     housekept: u32,
     shutdown: Option<Shutdown>,
+    watch: Option<Watch>,
+    /// Clock of the last endstop trigger not yet taken.
+    trigger: Option<u32>,
 }
 
 impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M, O> {
     /// Idle steppers driving `pins`, the clock starting at 0.
     pub fn new(pins: [P; S]) -> Self {
-        const { assert!(S < TIMERS, "at most 15 steppers") };
+        const { assert!(S + 2 <= TIMERS, "at most 14 steppers") };
         let mut order = [Timer::T0; TIMERS];
         order[0] = Timer::new(S);
         Self {
@@ -152,7 +167,39 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             clock: Extender::new(0),
             housekept: 0,
             shutdown: None,
+            watch: None,
+            trigger: None,
         }
+    }
+
+    /// Homing (Klipper's `endstop_home` with a trsync): reads the endstop
+    /// on stepper `stepper`'s pins as `endstop` says; when it triggers,
+    /// every stepper in `stops` (bit `i`: stepper `i`) stops at once, its
+    /// queued and held commands dropped, and the trigger's clock is kept
+    /// for [`Self::take_trigger`].
+    pub fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
+        self.watch = Some(Watch {
+            stepper,
+            endstop,
+            stops,
+        });
+        self.schedule(S + 1, endstop.next());
+    }
+
+    /// Stops watching the endstop (the homing move ended untriggered).
+    pub fn stop_watching(&mut self) {
+        self.watch = None;
+        self.unqueue(S + 1);
+    }
+
+    /// True while an endstop is watched.
+    pub fn is_watching(&self) -> bool {
+        self.watch.is_some()
+    }
+
+    /// The clock of the endstop trigger since the last call, if any.
+    pub fn take_trigger(&mut self) -> Option<u32> {
+        self.trigger.take()
     }
 
     /// Queues `cmd` for stepper `index`; `first_clock` is its first step's
@@ -238,11 +285,12 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     fn run_on(&mut self, now: u32, mut timer: usize, mut clock: u32) -> Option<u32> {
         loop {
             match self.slots.get(timer) {
-                None => {
+                None if timer == S => {
                     if self.housekeeping(now) {
                         return None;
                     }
                 }
+                None => self.check_endstop(),
                 Some(slot) if slot.stepper.in_move() => self.schedule(timer, clock),
                 Some(_) => self.move_ended(timer, clock),
             }
@@ -345,6 +393,41 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         self.queued == 1 && self.outboxes.iter().all(|o| o.is_empty())
     }
 
+    /// Reads the watched endstop (its check is due): on a trigger the
+    /// steppers it stops stop, otherwise the next reading is scheduled.
+    fn check_endstop(&mut self) {
+        let Some(mut watch) = self.watch else {
+            self.unqueue(S + 1);
+            return;
+        };
+        let pressed = self
+            .slots
+            .get_mut(watch.stepper)
+            .is_some_and(|slot| slot.pins.endstop_triggered());
+        match watch.endstop.read(pressed) {
+            Check::At(next) => {
+                self.watch = Some(watch);
+                self.schedule(S + 1, next);
+            }
+            Check::Triggered(at) => {
+                self.stop_watching();
+                self.trigger = Some(at);
+                for i in (0..S).filter(|i| watch.stops & (1 << i) != 0) {
+                    self.stop_stepper(i);
+                }
+            }
+        }
+    }
+
+    /// Stops stepper `i` at once and drops its commands.
+    fn stop_stepper(&mut self, i: usize) {
+        if let (Some(slot), Some(outbox)) = (self.slots.get_mut(i), self.outboxes.get_mut(i)) {
+            slot.stepper.stop();
+            outbox.clear();
+            self.unqueue(i);
+        }
+    }
+
     /// Moves stepper `i`'s due commands from its outbox to its queue.
     fn release(&mut self, i: usize, now: u32, now64: u64) {
         while let Some(&(cmd, clock)) = self.outboxes[i].front() {
@@ -382,18 +465,15 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// Stops every stepper and drops every command; the first reason stays.
     pub fn stop(&mut self, reason: Shutdown) {
         self.shutdown.get_or_insert(reason);
+        self.stop_watching();
         self.halt();
     }
 
     /// Stops every stepper at once and drops their commands, without a
     /// fault (an endstop ended a homing move).
     pub fn halt(&mut self) {
-        for (slot, outbox) in self.slots.iter_mut().zip(&mut self.outboxes) {
-            slot.stepper.stop();
-            outbox.clear();
-        }
         for i in 0..S {
-            self.unqueue(i);
+            self.stop_stepper(i);
         }
     }
 
@@ -414,12 +494,14 @@ mod tests {
     use super::*;
     use std::vec::Vec;
 
-    /// Records steps with the clock the test sets before each run.
+    /// Records steps with the clock the test sets before each run; its
+    /// endstop reads pressed from the `endstop_at`th step on.
     #[derive(Default)]
     struct Pins {
         now: u32,
         dir: bool,
         steps: Vec<(u32, bool)>,
+        endstop_at: Option<usize>,
     }
 
     impl StepPins for Pins {
@@ -428,6 +510,9 @@ mod tests {
         }
         fn step(&mut self) {
             self.steps.push((self.now, self.dir));
+        }
+        fn endstop_triggered(&mut self) -> bool {
+            self.endstop_at.is_some_and(|n| self.steps.len() >= n)
         }
     }
 
@@ -620,5 +705,58 @@ mod tests {
             let position: i64 = steps.iter().map(|s| if s.1 { 1 } else { -1 }).sum();
             assert_eq!(e.position(i), Some(position));
         }
+    }
+
+    #[test]
+    fn an_endstop_stops_the_steppers_of_its_homing_move_only() {
+        let mut e = Engine::<Pins, 3, 8, 8>::new(Default::default());
+        // Steppers 0 and 1 home together (a corexy X), at 1000 ticks a
+        // step; stepper 2 moves on its own.
+        for i in 0..3 {
+            e.push(i, Command::Dir(true), 0).expect("room");
+            let steps = Command::Steps {
+                interval: 1000,
+                count: 500,
+                add: 0,
+            };
+            e.push(i, steps, 1000).expect("room");
+        }
+        e.slots[0].pins.endstop_at = Some(120);
+        // Read every 700 ticks; a press must be seen 3 times, 50 apart.
+        e.watch_endstop(0, Endstop::home(0, 50, 3, 700), 0b011);
+        run_until(&mut e, 1_000_000);
+        let trigger = e.take_trigger().expect("triggered");
+        assert_eq!(e.take_trigger(), None, "taken once");
+        assert!(!e.is_watching());
+        // Pressed at the 120th step (clock 120000): the next reading and
+        // two confirmations 50 ticks apart.
+        assert!((120_000..=120_800).contains(&trigger), "{trigger}");
+        for i in 0..2 {
+            let made = e.slots[i].pins.steps.len();
+            assert!((120..=121).contains(&made), "stepper {i} made {made}");
+            assert!(e.slots[i].pins.steps.iter().all(|s| s.0 <= trigger));
+            assert_eq!(e.position(i), Some(made as i64));
+        }
+        assert_eq!(e.slots[2].pins.steps.len(), 500, "not in the homing move");
+        assert_eq!(e.shutdown_reason(), None);
+    }
+
+    #[test]
+    fn an_endstop_never_pressed_leaves_the_move_whole() {
+        let mut e = Engine::<Pins, 2, 8, 8>::new(Default::default());
+        e.push(0, Command::Dir(false), 0).expect("room");
+        let steps = Command::Steps {
+            interval: 1000,
+            count: 300,
+            add: 0,
+        };
+        e.push(0, steps, 1000).expect("room");
+        e.watch_endstop(0, Endstop::home(0, 50, 3, 700), 0b01);
+        run_until(&mut e, 400_000);
+        assert_eq!(e.slots[0].pins.steps.len(), 300);
+        assert_eq!(e.take_trigger(), None);
+        assert!(e.is_watching());
+        e.stop_watching();
+        assert!(!e.is_watching());
     }
 }

@@ -26,6 +26,11 @@ pub trait StepPins {
     fn set_dir(&mut self, positive: bool);
     /// Pulses the step pin, at the step's clock.
     fn step(&mut self);
+    /// True while the endstop of this stepper's rail reads pressed (read
+    /// only while homing; a stepper without one never triggers).
+    fn endstop_triggered(&mut self) -> bool {
+        false
+    }
 }
 
 /// One stepper's engine with a queue of `M` moves.
