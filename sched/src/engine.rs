@@ -419,10 +419,11 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         }
     }
 
-    /// Stops stepper `i` at once and drops its commands.
+    /// Stops stepper `i` at once and drops its commands, and those that
+    /// come until its step clock is reset.
     fn stop_stepper(&mut self, i: usize) {
         if let (Some(slot), Some(outbox)) = (self.slots.get_mut(i), self.outboxes.get_mut(i)) {
-            slot.stepper.stop();
+            slot.stepper.stop_until_reset();
             outbox.clear();
             self.unqueue(i);
         }
@@ -469,8 +470,9 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         self.halt();
     }
 
-    /// Stops every stepper at once and drops their commands, without a
-    /// fault (an endstop ended a homing move).
+    /// Stops every stepper at once and drops their commands, and those
+    /// that come until each one's step clock is reset, without a fault (an
+    /// endstop ended a homing move).
     pub fn halt(&mut self) {
         for i in 0..S {
             self.stop_stepper(i);

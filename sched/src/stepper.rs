@@ -60,6 +60,9 @@ pub struct Stepper<const M: usize> {
     dir: Option<bool>,
     /// Position when the active move ends, steps (+1 per positive step).
     end_position: i64,
+    /// Stopped by an endstop: moves are dropped until the step clock is
+    /// reset (those sent before the stop was known are void).
+    needs_reset: bool,
 }
 
 impl<const M: usize> Default for Stepper<M> {
@@ -80,6 +83,7 @@ impl<const M: usize> Stepper<M> {
             next_dir: false,
             dir: None,
             end_position: 0,
+            needs_reset: false,
         }
     }
 
@@ -93,6 +97,7 @@ impl<const M: usize> Stepper<M> {
     pub fn reset_clock(&mut self, clock: u32) {
         if self.is_idle() {
             self.last = clock;
+            self.needs_reset = false;
         }
     }
 
@@ -100,7 +105,7 @@ impl<const M: usize> Stepper<M> {
     /// that starts an idle stepper with its first step already past means
     /// step generation fell behind.
     pub fn queue(&mut self, interval: u32, count: u16, add: i16, now: u32) -> Result<(), Shutdown> {
-        if count == 0 {
+        if count == 0 || self.needs_reset {
             return Ok(());
         }
         if self.is_idle() && is_before(self.last.wrapping_add(interval), now) {
@@ -191,6 +196,13 @@ impl<const M: usize> Stepper<M> {
         self.queue.clear();
         self.count = 0;
     }
+
+    /// Stops as an endstop stops it: as [`Self::stop`], and the moves that
+    /// come before the next [`Self::reset_clock`] are dropped.
+    pub fn stop_until_reset(&mut self) {
+        self.stop();
+        self.needs_reset = true;
+    }
 }
 
 #[cfg(test)]
@@ -272,5 +284,19 @@ mod tests {
         s.queue(1000, 1, 0, 500).expect("room");
         s.queue(1000, 1, 0, 500).expect("room");
         assert_eq!(s.queue(1000, 1, 0, 500), Err(Shutdown::MoveQueueOverflow));
+    }
+
+    #[test]
+    fn after_an_endstop_stop_moves_wait_for_a_clock_reset() {
+        let mut s = Stepper::<8>::new();
+        s.set_next_dir(true);
+        s.queue(100, 5, 0, 0).expect("room");
+        s.stop_until_reset();
+        // Sent before the stop was known: void.
+        s.queue(100, 5, 0, 0).expect("accepted");
+        assert!(s.is_idle());
+        s.reset_clock(10_000);
+        s.queue(100, 2, 0, 10_000).expect("room");
+        assert_eq!(run(&mut s), [(10_100, true), (10_200, true)]);
     }
 }
