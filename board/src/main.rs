@@ -100,7 +100,7 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
             for section in &machine.unsupported {
                 defmt::info!("[{}] is not supported yet, ignored", section);
             }
-            install_engine(&machine)?;
+            let homing = install_engine(&machine)?;
             // Steps within Klipper's 25 µs, on the stepper timer's clock.
             let max_error = (0.000_025 * step_timer::TIMER_HZ) as u32;
             let motion = MOTION.take();
@@ -108,6 +108,7 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
             Some(usb_console::Machinery {
                 printer: PRINTER.init_with(|| Printer::new(&machine)),
                 motion,
+                homing,
             })
         }
         Err(e) => {
@@ -118,11 +119,18 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
 }
 
 /// Configures every stepper's step, direction and enable pins (drivers
-/// enabled) and hands them to the stepper engine; None (logged) if a pin
-/// name is not a GPIO.
-fn install_engine(machine: &Machine<'_>) -> Option<()> {
+/// enabled) and its endstop input, and hands them to the stepper engine;
+/// returns what homing needs, or None (logged) if a step, direction or
+/// enable pin is not a GPIO.
+fn install_engine(machine: &Machine<'_>) -> Option<usb_console::HomingSetup> {
     let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
-    for (slot, stepper) in slots.iter_mut().zip(&machine.steppers) {
+    let rails = machine.stepper_kinematics.len().min(3);
+    let mut homing = usb_console::HomingSetup {
+        endstops: [false; 3],
+        rails: (1 << rails) - 1,
+        finest_step: f64::INFINITY,
+    };
+    for (i, (slot, stepper)) in slots.iter_mut().zip(&machine.steppers).enumerate() {
         let pins = step_pins::StepperPins::new(stepper.step_pin, stepper.dir_pin);
         let enable = stepper.enable_pin.map(step_pins::OutPin::new).transpose();
         match (pins, enable) {
@@ -137,9 +145,24 @@ fn install_engine(machine: &Machine<'_>) -> Option<()> {
                 return None;
             }
         }
+        if i < rails {
+            homing.finest_step = homing.finest_step.min(stepper.step_dist);
+            match stepper.endstop_pin.map(step_pins::InPin::new) {
+                Some(Ok(endstop)) => {
+                    *slot = slot.with_endstop(endstop);
+                    homing.endstops[i] = true;
+                }
+                Some(Err(e)) => defmt::warn!(
+                    "[{}]: endstop {} (G28 refused)",
+                    stepper.name,
+                    defmt::Display2Format(&e)
+                ),
+                None => {}
+            }
+        }
     }
     step_timer::install(step_timer::BoardEngine::new(slots));
-    Some(())
+    Some(homing)
 }
 
 #[embassy_executor::task]

@@ -64,6 +64,60 @@ impl OutPin {
     }
 }
 
+/// An input pin (an endstop), as its port's input register bit.
+#[derive(Clone, Copy)]
+pub struct InPin {
+    port: pac::gpio::Gpio,
+    mask: u32,
+    inverted: bool,
+}
+
+impl InPin {
+    /// Configures the pin named `name` as an input, with its pull-up if
+    /// the name asks for one (`^`).
+    pub fn new(name: &str) -> Result<Self, BadPin<'_>> {
+        let PinName {
+            port,
+            number,
+            inverted,
+            pull_up,
+        } = onechip_app::pins::parse(name)?;
+        let port = gpio(port).ok_or(BadPin(name))?;
+        let number = usize::from(number);
+        if number > 15 {
+            return Err(BadPin(name));
+        }
+        let pull = if pull_up {
+            vals::Pupdr::PULL_UP
+        } else {
+            vals::Pupdr::FLOATING
+        };
+        port.pupdr().modify(|w| w.set_pupdr(number, pull));
+        port.moder()
+            .modify(|w| w.set_moder(number, vals::Moder::INPUT));
+        Ok(Self {
+            port,
+            mask: 1 << number,
+            inverted,
+        })
+    }
+
+    /// A pin that never reads active.
+    const fn none() -> Self {
+        Self {
+            port: pac::GPIOA,
+            mask: 0,
+            inverted: false,
+        }
+    }
+
+    /// True while the signal is active (high, or low if inverted `!`).
+    #[inline(always)]
+    pub fn is_active(&self) -> bool {
+        (self.port.idr().read().0 & self.mask != 0) != self.inverted
+    }
+}
+
 /// The GPIO port with index `port` (0 = A).
 fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
     Some(match port {
@@ -79,12 +133,14 @@ fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
     })
 }
 
-/// One stepper's step and direction pins; the default drives nothing
-/// (an unused slot of the engine).
+/// One stepper's step and direction pins and its rail's endstop; the
+/// default drives nothing and never triggers (an unused slot of the
+/// engine).
 #[derive(Clone, Copy)]
 pub struct StepperPins {
     step: OutPin,
     dir: OutPin,
+    endstop: InPin,
 }
 
 impl Default for StepperPins {
@@ -92,6 +148,7 @@ impl Default for StepperPins {
         Self {
             step: OutPin::none(),
             dir: OutPin::none(),
+            endstop: InPin::none(),
         }
     }
 }
@@ -102,7 +159,13 @@ impl StepperPins {
         Ok(Self {
             step: OutPin::new(step)?,
             dir: OutPin::new(dir)?,
+            endstop: InPin::none(),
         })
+    }
+
+    /// The same pins with `endstop` as the rail's endstop.
+    pub fn with_endstop(self, endstop: InPin) -> Self {
+        Self { endstop, ..self }
     }
 }
 
@@ -120,5 +183,9 @@ impl StepPins for StepperPins {
         self.step.set(true);
         cortex_m::asm::delay(PULSE_CYCLES);
         self.step.set(false);
+    }
+
+    fn endstop_triggered(&mut self) -> bool {
+        self.endstop.is_active()
     }
 }

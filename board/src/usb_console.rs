@@ -17,6 +17,9 @@ use onechip_app::console::error_text;
 use onechip_app::line::{Line, LineAssembler};
 use onechip_app::printer::{PRIMING_TIME, Printer};
 use onechip_planner::gcode_move::CommandError;
+use onechip_planner::homing::HomingMove;
+use onechip_planner::machine::MAX_STEPPERS;
+use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Command;
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::{Motion, StepSink};
@@ -54,16 +57,43 @@ pub struct Machinery {
     pub printer: &'static mut Printer<LOOKAHEAD>,
     /// Planned moves to step commands for the engine.
     pub motion: &'static mut BoardMotion,
+    /// What homing needs.
+    pub homing: HomingSetup,
+}
+
+/// What homing needs on this board.
+#[derive(Debug, Clone, Copy)]
+pub struct HomingSetup {
+    /// Axes (0 = X) whose stepper has an endstop on a GPIO input.
+    pub endstops: [bool; 3],
+    /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
+    pub rails: u32,
+    /// The finest of their step distances, mm.
+    pub finest_step: f64,
 }
 
 /// The printer the console drives (None if printer.cfg did not load).
 pub type BoardPrinter = Option<Machinery>;
 
 /// Hands step commands to the stepper engine, waiting while its outbox
-/// for that stepper is full (its interrupt makes room).
-struct EngineSteps;
+/// for that stepper is full (its interrupt makes room), and runs homing
+/// moves against the endstops.
+struct EngineSteps<'h> {
+    homing: &'h HomingSetup,
+    /// The start clock of the homing move whose endstop is watched.
+    watching: Option<u64>,
+}
 
-impl StepSink for EngineSteps {
+impl<'h> EngineSteps<'h> {
+    fn new(homing: &'h HomingSetup) -> Self {
+        Self {
+            homing,
+            watching: None,
+        }
+    }
+}
+
+impl StepSink for EngineSteps<'_> {
     fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
         let cmd = match cmd {
             StepCommand::Dir(positive) => Command::Dir(positive),
@@ -86,13 +116,49 @@ impl StepSink for EngineSteps {
             cortex_m::asm::nop();
         }
     }
+
+    /// Watches the homed axis' endstop from the move's start and waits
+    /// until the steps sent so far have run or the endstop triggered
+    /// (which stopped every motion stepper at once). The wait holds the
+    /// console (a homing move's slices are 50 ms apart).
+    fn home(
+        &mut self,
+        homing: &HomingMove,
+        start_clock: u64,
+        until_clock: u64,
+    ) -> Option<[i64; MAX_STEPPERS]> {
+        use crate::step_timer;
+        if self.watching != Some(start_clock) {
+            let endstop = Endstop::for_homing(
+                start_clock as u32,
+                step_timer::TIMER_HZ,
+                homing.speed,
+                self.homing.finest_step,
+            );
+            step_timer::watch_endstop(homing.axis, endstop, self.homing.rails);
+            self.watching = Some(start_clock);
+        }
+        while step_timer::now64() < until_clock && step_timer::shutdown_reason().is_none() {
+            if step_timer::take_trigger().is_some() {
+                self.watching = None;
+                // Stopped at once: no step past the trigger.
+                return Some([0; MAX_STEPPERS]);
+            }
+        }
+        if until_clock as f64 >= homing.end_time * step_timer::TIMER_HZ {
+            // The whole move ran without a trigger.
+            step_timer::stop_watching();
+            self.watching = None;
+        }
+        None
+    }
 }
 
 /// Why a line could not run.
 enum RunError<'l> {
     /// No valid printer.cfg, so no printer.
     NoConfig,
-    /// Homing needs endstop checking, which the board does not do yet: a
+    /// Homing needs every axis' endstop on a GPIO input: without one, a
     /// homing move would run its whole length into the endstop.
     NoEndstops,
     /// The printer refused the command.
@@ -104,7 +170,7 @@ impl fmt::Display for RunError<'_> {
         match self {
             Self::NoConfig => f.write_str("no valid printer.cfg on the SD card"),
             Self::NoEndstops => f.write_str(
-                "G28: endstops are not checked on this board yet; set the position with SET_KINEMATIC_POSITION",
+                "G28: an axis has no endstop_pin on a GPIO of this board; set the position with SET_KINEMATIC_POSITION",
             ),
             Self::Command(e) => write!(f, "{e}"),
         }
@@ -190,8 +256,9 @@ async fn answer_lines(
             Either::Second(()) => {
                 if let Some(m) = printer.as_mut() {
                     m.printer
-                        .priming_timeout(&mut m.motion.sink(&mut EngineSteps));
-                    m.motion.generate(f64::INFINITY, &mut EngineSteps);
+                        .priming_timeout(&mut m.motion.sink(&mut EngineSteps::new(&m.homing)));
+                    m.motion
+                        .generate(f64::INFINITY, &mut EngineSteps::new(&m.homing));
                 }
                 continue;
             }
@@ -201,9 +268,10 @@ async fn answer_lines(
                 let mut reply = heapless::String::<MAX_REPLY>::new();
                 let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer.as_mut()
                 {
-                    Some(_)
-                        if onechip_app::console::command_word(text.as_bytes())
-                            .eq_ignore_ascii_case(b"G28") =>
+                    Some(m)
+                        if !m.homing.endstops.iter().all(|&e| e)
+                            && onechip_app::console::command_word(text.as_bytes())
+                                .eq_ignore_ascii_case(b"G28") =>
                     {
                         Err(error_text(&RunError::NoEndstops))
                     }
@@ -211,11 +279,12 @@ async fn answer_lines(
                         // An idle printer starts its next move from now.
                         let now = crate::step_timer::now64() as f64 / crate::step_timer::TIMER_HZ;
                         m.printer.set_time_origin(now);
+                        let mut steps = EngineSteps::new(&m.homing);
                         let result = m
                             .printer
-                            .execute(text, &mut m.motion.sink(&mut EngineSteps), out)
+                            .execute(text, &mut m.motion.sink(&mut steps), out)
                             .map_err(|e| error_text(&RunError::Command(e)));
-                        m.motion.generate(f64::INFINITY, &mut EngineSteps);
+                        m.motion.generate(f64::INFINITY, &mut steps);
                         result
                     }
                     None => Err(error_text(&RunError::NoConfig)),

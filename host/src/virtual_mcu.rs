@@ -18,11 +18,6 @@ use onechip_stepgen::motion::StepSink;
 pub const MOVE_QUEUE: usize = 256;
 const OUTBOX: usize = 64;
 
-/// Endstop sampling while homing, as Klipper configures it: once a trigger
-/// is seen, this many samples this far apart must agree.
-const ENDSTOP_SAMPLE_COUNT: u8 = 4;
-const ENDSTOP_SAMPLE_TIME: f64 = 0.000_015;
-
 /// The machine as physics sees it, for endstops: where the motion steppers
 /// really are.
 #[derive(Debug, Clone, PartialEq)]
@@ -230,15 +225,12 @@ impl StepSink for VirtualMcu {
     ) -> Option<[i64; MAX_STEPPERS]> {
         let physics = self.physics.clone()?;
         let freq = physics.freq;
-        // Klipper samples about once per step of the homing move, then
-        // confirms a trigger with a few quick samples.
+        // Sampled about once per step of the homing move's finest stepper.
         let finest = physics
             .step_dist
             .iter()
             .copied()
             .fold(f64::INFINITY, f64::min);
-        let rest = ((finest / homing.speed) * freq).max(1.0) as u32;
-        let confirm = (ENDSTOP_SAMPLE_TIME * freq).max(1.0) as u32;
         let reached = |pos: [f64; 3]| {
             let coord = pos[homing.axis];
             if homing.positive_dir {
@@ -251,7 +243,7 @@ impl StepSink for VirtualMcu {
             Some((start, endstop, at)) if start == start_clock => (endstop, at),
             _ => {
                 let at = start_clock.max(self.now);
-                let endstop = Endstop::home(at as u32, confirm, ENDSTOP_SAMPLE_COUNT, rest);
+                let endstop = Endstop::for_homing(at as u32, freq, homing.speed, finest);
                 (endstop, at)
             }
         };

@@ -38,6 +38,9 @@ pub struct Stepper<'a> {
     pub dir_pin: &'a str,
     /// Driver enable pin name as written, if any.
     pub enable_pin: Option<&'a str>,
+    /// Endstop pin name as written (`^PG6`, `probe:z_virtual_endstop`), if
+    /// any (rails and towers).
+    pub endstop_pin: Option<&'a str>,
     /// Distance per full step times microsteps: mm per step.
     pub step_dist: f64,
     /// position_min, mm (rails).
@@ -289,6 +292,10 @@ fn read_stepper<'c, 'a>(
     let step_pin = section.get("step_pin")?;
     let dir_pin = section.get("dir_pin")?;
     let enable_pin = section.get_opt("enable_pin");
+    let endstop_pin = match kind {
+        StepperKind::Extruder => None,
+        _ => section.get_opt("endstop_pin"),
+    };
     let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
@@ -330,6 +337,7 @@ fn read_stepper<'c, 'a>(
         step_pin,
         dir_pin,
         enable_pin,
+        endstop_pin,
         step_dist,
         position_min,
         position_max,
@@ -520,6 +528,27 @@ fn parse_gear_ratio(text: &str) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pins_are_kept_as_written() {
+        let text = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+            [stepper_x]\nstep_pin: PF13\ndir_pin: !PF12\nenable_pin: !PF14\nendstop_pin: ^PG6\n\
+            microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nendstop_pin: probe:z_virtual_endstop\n\
+            microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+            [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+            position_endstop: 0\nposition_max: 200\n";
+        let config = crate::config::Config::parse("printer.cfg", text).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let x = &machine.steppers[0];
+        assert_eq!((x.step_pin, x.dir_pin), ("PF13", "!PF12"));
+        assert_eq!((x.enable_pin, x.endstop_pin), (Some("!PF14"), Some("^PG6")));
+        assert_eq!(
+            machine.steppers[1].endstop_pin,
+            Some("probe:z_virtual_endstop")
+        );
+        assert_eq!(machine.steppers[2].endstop_pin, None);
+    }
 
     #[test]
     fn gear_ratios_multiply() {

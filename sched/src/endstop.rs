@@ -28,7 +28,23 @@ pub struct Endstop {
     next: u32,
 }
 
+/// Readings that must agree on a press before it counts (Klipper's
+/// homing default).
+pub const SAMPLE_COUNT: u8 = 4;
+/// Time between those readings, s.
+pub const SAMPLE_TIME: f64 = 0.000_015;
+
 impl Endstop {
+    /// Armed from clock `start` for a homing move at `speed` mm/s whose
+    /// finest stepper moves `step_dist` mm per step, on a `freq` Hz clock:
+    /// read about once per step, a press confirmed by [`SAMPLE_COUNT`]
+    /// readings [`SAMPLE_TIME`] apart.
+    pub fn for_homing(start: u32, freq: f64, speed: f64, step_dist: f64) -> Self {
+        let rest = ((step_dist / speed) * freq).max(1.0) as u32;
+        let confirm = (SAMPLE_TIME * freq).max(1.0) as u32;
+        Self::home(start, confirm, SAMPLE_COUNT, rest)
+    }
+
     /// `endstop_home`: armed from clock `start`.
     pub const fn home(start: u32, sample_ticks: u32, sample_count: u8, rest_ticks: u32) -> Self {
         Self {
