@@ -36,6 +36,16 @@ impl<const N: usize> Printer<N> {
         self.toolhead.set_time_origin(origin);
     }
 
+    /// True while nothing is queued or moving.
+    pub fn is_idle(&self) -> bool {
+        self.toolhead.is_idle()
+    }
+
+    /// If idle, the next move starts no earlier than print time `t` s.
+    pub fn hold_until(&mut self, t: f64) {
+        self.toolhead.hold_until(t);
+    }
+
     /// Runs one line of G-code; replies other than `ok` go to `out`.
     pub fn execute<'l>(
         &mut self,
@@ -45,6 +55,12 @@ impl<const N: usize> Printer<N> {
     ) -> Result<(), CommandError<'l>> {
         let parsed = gcode::parse(line).map_err(CommandError::Gcode)?;
         self.gcode.execute(&parsed, &mut self.toolhead, sink, out)
+    }
+
+    /// If [`Self::priming_timeout`] would plan moves now: how many of them
+    /// are toolhead moves.
+    pub fn priming_moves(&self) -> Option<usize> {
+        self.toolhead.priming_moves()
     }
 
     /// To call when no input has arrived for [`PRIMING_TIME`] s: plans and

@@ -9,6 +9,7 @@
 //! position, and any errors; optionally every step's clock, in the format
 //! of Klipper's golden `steps-*.txt`.
 
+pub mod klippy_batch;
 pub mod plot;
 pub mod virtual_mcu;
 
@@ -55,6 +56,9 @@ pub struct Options {
     /// If set, an SVG of toolhead velocity and step rates over the window
     /// is written to the path.
     pub plot: Option<(PathBuf, plot::Window)>,
+    /// If set, klippy's batch-mode timing decisions are replayed (see
+    /// [`klippy_batch`]), to compare with its output step by step.
+    pub klippy_batch: Option<klippy_batch::KlippyBatch>,
 }
 
 /// Where the toolhead really is at power-on.
@@ -78,6 +82,7 @@ impl Default for Options {
             clock_origin: 0,
             start: Start::MidTravel,
             plot: None,
+            klippy_batch: None,
         }
     }
 }
@@ -361,38 +366,54 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let mut assembler = LineAssembler::<MAX_LINE>::new();
     let mut progress = Progress::new(program.len());
     for (at, &byte) in program.iter().chain(b"\n").enumerate() {
-        let Some(event) = assembler.push(byte) else {
-            continue;
-        };
-        progress.note(at, printer.print_time() - origin);
-        summary.lines += 1;
-        let text = match event {
-            Line::Complete(bytes) => String::from_utf8_lossy(bytes).into_owned(),
-            Line::TooLong { len } => {
-                summary.errors.push((
+        let mut planning = false;
+        if let Some(event) = assembler.push(byte) {
+            progress.note(at, printer.print_time() - origin);
+            summary.lines += 1;
+            match event {
+                Line::Complete(bytes) => {
+                    let text = String::from_utf8_lossy(bytes);
+                    if let Some(batch) = &options.klippy_batch {
+                        batch.hold(&mut printer, tally.toolhead, origin);
+                    }
+                    let mut reply = String::new();
+                    let mut planned = Planned {
+                        tally: &mut tally,
+                        motion: motion.sink(&mut mcu),
+                    };
+                    if let Err(e) = printer.execute(&text, &mut planned, &mut reply) {
+                        summary.errors.push((summary.lines, e.to_string()));
+                    }
+                    summary
+                        .replies
+                        .extend(reply.lines().map(|r| (summary.lines, r.to_string())));
+                    planning = true;
+                }
+                Line::TooLong { len } => summary.errors.push((
                     summary.lines,
                     format!("line too long ({len} bytes), ignored"),
-                ));
-                continue;
+                )),
             }
-        };
-        let mut reply = String::new();
-        let mut planned = Planned {
-            tally: &mut tally,
-            motion: motion.sink(&mut mcu),
-        };
-        if let Err(e) = printer.execute(&text, &mut planned, &mut reply) {
-            summary.errors.push((summary.lines, e.to_string()));
         }
-        summary
-            .replies
-            .extend(reply.lines().map(|r| (summary.lines, r.to_string())));
-        // Steps as far as the planned motion is final, executed as far as
-        // they have all been sent.
-        motion.generate(f64::INFINITY, &mut mcu);
-        mcu.run_until(clock_at(motion.sent_until(), freq));
-        if stopped(&motion, &mcu, &mut summary) {
-            break;
+        if let Some(batch) = &options.klippy_batch
+            && (at + 1) % klippy_batch::CHUNK == 0
+        {
+            let planned_moves = tally.toolhead;
+            let mut planned = Planned {
+                tally: &mut tally,
+                motion: motion.sink(&mut mcu),
+            };
+            batch.chunk_end(&mut printer, planned_moves, &mut planned);
+            planning = true;
+        }
+        if planning {
+            // Steps as far as the planned motion is final, executed as far
+            // as they have all been sent.
+            motion.generate(f64::INFINITY, &mut mcu);
+            mcu.run_until(clock_at(motion.sent_until(), freq));
+            if stopped(&motion, &mcu, &mut summary) {
+                break;
+            }
         }
     }
     let mut planned = Planned {

@@ -50,6 +50,11 @@ impl<const N: usize> LookAhead<N> {
         self.queue.last_mut()
     }
 
+    /// The queued moves, oldest first.
+    pub fn moves(&self) -> &[Move] {
+        &self.queue
+    }
+
     /// True if no move is queued.
     pub fn is_empty(&self) -> bool {
         self.queue.is_empty()

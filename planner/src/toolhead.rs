@@ -408,6 +408,9 @@ pub struct Toolhead<const N: usize> {
     state: QueueState,
     /// The MCU's print time when printing starts (0 in klippy's batch
     /// mode), s.
+    /// The next released move starts no earlier than this, s
+    /// ([`Self::hold_until`]).
+    hold: f64,
     time_origin: f64,
     /// Time up to which steps must be generated for the queued moves, s.
     need_step_gen_time: f64,
@@ -439,6 +442,7 @@ impl<const N: usize> Toolhead<N> {
             print_time: 0.0,
             state: QueueState::NeedPrime,
             time_origin: 0.0,
+            hold: f64::NEG_INFINITY,
             need_step_gen_time: 0.0,
             last_step_gen_time: 0.0,
             kin_flush_delay: scan_delay.max(SDS_CHECK_TIME),
@@ -457,6 +461,29 @@ impl<const N: usize> Toolhead<N> {
     pub fn set_time_origin(&mut self, origin: f64) {
         self.time_origin = origin;
         self.print_time = self.print_time.max(origin);
+    }
+
+    /// True while nothing is queued or flowing: the next move re-anchors
+    /// print time.
+    pub fn is_idle(&self) -> bool {
+        self.state == QueueState::NeedPrime
+    }
+
+    /// The next move of an idle toolhead starts no earlier than print time
+    /// `t` s (as klippy holds it back until its estimate of the MCU's
+    /// print time lets it).
+    pub fn hold_until(&mut self, t: f64) {
+        if self.is_idle() {
+            self.hold = t;
+        }
+    }
+
+    /// If a priming timeout would plan moves now: how many of them are
+    /// toolhead moves.
+    pub fn priming_moves(&self) -> Option<usize> {
+        let queued = self.lookahead.moves();
+        (self.state == QueueState::Priming && !queued.is_empty())
+            .then(|| queued.iter().filter(|m| m.is_kinematic).count())
     }
 
     /// What klippy's priming timer does when it expires (0.1 s after the
@@ -629,7 +656,8 @@ impl<const N: usize> Toolhead<N> {
     /// the current print time, and advances print time past them; returns
     /// the end of the last one, s.
     fn release(&mut self, count: usize, sink: &mut impl MoveSink) -> f64 {
-        let mut next_move_time = self.print_time;
+        let mut next_move_time = self.print_time.max(self.hold);
+        self.hold = f64::NEG_INFINITY;
         self.lookahead.take(count, |m| {
             emit(m, next_move_time, sink);
             // Same summation order as klippy, so times match to the last bit.

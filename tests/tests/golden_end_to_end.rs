@@ -5,15 +5,14 @@
 //! final position per stepper, every step within max_error_ticks; also with
 //! the MCU clock starting just before its 32-bit wrap.
 //!
-//! Five cases carry timing that klippy's batch mode takes from its own
-//! processing speed, not from the G-code (see the planner's golden test):
-//! in the circle cases its priming timer fired mid-file, and its flush
-//! timer delayed restarts from rest (circles, and after homing in
-//! cart_move_g28). A run of the G-code cannot reproduce those times, so for
-//! these cases the step counts, direction sequences and final positions are
-//! compared; their step times are checked against golden by the step
-//! generation test, which starts from klippy's planned moves.
+//! Klippy's batch mode took two timing decisions from its own processing
+//! speed, not from the G-code: where its priming timer had expired between
+//! input chunks (in the circle cases, mid-file) and when it restarted from
+//! rest (in the circles, and after homing in cart_move_g28). The run
+//! replays them (`KlippyBatch`), read from klippy's planned moves: which
+//! moves it ended at rest and when it started moves from rest.
 
+use onechip_host::klippy_batch::KlippyBatch;
 use onechip_host::{Options, Start};
 use std::path::{Path, PathBuf};
 
@@ -46,17 +45,32 @@ fn steps(path: &Path) -> Vec<(u64, bool)> {
         .collect()
 }
 
-/// How closely a case must match.
-#[derive(Clone, Copy, PartialEq)]
-enum Compare {
-    /// Every step's time too.
-    Times,
-    /// Counts, directions and final positions.
-    Path,
+/// Klippy's batch-mode timing decisions in `case`, from its planned
+/// toolhead moves (`moves.tsv`: print_time, accel_t, cruise_t, decel_t,
+/// start xyz, axes_r xyz, start_v, cruise_v, accel).
+fn klippy_batch(case: &str) -> KlippyBatch {
+    let text =
+        std::fs::read_to_string(golden_dir().join(case).join("moves.tsv")).expect("moves.tsv");
+    let moves: Vec<Vec<f64>> = text
+        .lines()
+        .skip(1)
+        .filter_map(|l| l.strip_prefix("toolhead\t"))
+        .map(|l| l.split('\t').map(|x| x.parse().expect("float")).collect())
+        .collect();
+    KlippyBatch {
+        // Ends at rest: cruise_v - accel * decel_t = 0.
+        stops: (0..moves.len())
+            .filter(|&i| (moves[i][11] - moves[i][12] * moves[i][3]).abs() < 1e-9)
+            .collect(),
+        starts: (0..moves.len())
+            .filter(|&i| moves[i][10] == 0.0)
+            .map(|i| (i, moves[i][0]))
+            .collect(),
+    }
 }
 
 /// Runs `case` on `config` from MCU clock `origin`; compares every stepper.
-fn check(case: &str, config: &str, origin: u64, compare: Compare) {
+fn check(case: &str, config: &str, origin: u64) {
     let work = std::env::temp_dir().join(format!(
         "onechip-e2e-{case}-{origin}-{}",
         std::process::id()
@@ -85,6 +99,7 @@ fn check(case: &str, config: &str, origin: u64, compare: Compare) {
             // Klipper's batch mode has no endstops: homing moves run to
             // their end.
             start: Start::Ideal,
+            klippy_batch: Some(klippy_batch(case)),
             ..Options::default()
         },
     )
@@ -103,9 +118,8 @@ fn check(case: &str, config: &str, origin: u64, compare: Compare) {
             "{case} {name}: final position"
         );
         for (i, (o, g)) in ours.iter().zip(&golden).enumerate() {
-            let on_time = compare == Compare::Path || o.0.abs_diff(g.0 + origin) <= max_error;
             assert!(
-                o.1 == g.1 && on_time,
+                o.1 == g.1 && o.0.abs_diff(g.0 + origin) <= max_error,
                 "{case} {name}: step {i} ours {o:?} golden {g:?} (+{origin})"
             );
         }
@@ -114,9 +128,9 @@ fn check(case: &str, config: &str, origin: u64, compare: Compare) {
 }
 
 fn both(case: &str, config: &str) {
-    check(case, config, 0, Compare::Times);
+    check(case, config, 0);
     let freq = summary_value(case, "clock_freq") as u64;
-    check(case, config, (1 << 32) - freq / 2, Compare::Times);
+    check(case, config, (1 << 32) - freq / 2);
 }
 
 #[test]
@@ -150,14 +164,14 @@ fn avr_and_h723_clocks() {
 }
 
 #[test]
-fn cases_with_klippy_batch_timing() {
-    for (case, config) in [
-        ("cart_circle", "cartesian.cfg"),
-        ("corexy_circle", "corexy.cfg"),
-        ("delta_circle", "delta.cfg"),
-        ("shaper_circle", "cartesian_shaper.cfg"),
-        ("cart_move_g28", "cartesian.cfg"),
-    ] {
-        check(case, config, 0, Compare::Path);
-    }
+fn circles() {
+    both("cart_circle", "cartesian.cfg");
+    both("corexy_circle", "corexy.cfg");
+    both("delta_circle", "delta.cfg");
+    both("shaper_circle", "cartesian_shaper.cfg");
+}
+
+#[test]
+fn homing_in_batch_mode() {
+    both("cart_move_g28", "cartesian.cfg");
 }
