@@ -406,11 +406,11 @@ pub struct Toolhead<const N: usize> {
     commanded_pos: [f64; 4],
     print_time: f64,
     state: QueueState,
-    /// The MCU's print time when printing starts (0 in klippy's batch
-    /// mode), s.
     /// The next released move starts no earlier than this, s
     /// ([`Self::hold_until`]).
     hold: f64,
+    /// The MCU's print time when printing starts (0 in klippy's batch
+    /// mode), s.
     time_origin: f64,
     /// Time up to which steps must be generated for the queued moves, s.
     need_step_gen_time: f64,

@@ -3,9 +3,9 @@
 //! their first step is close enough for the 32-bit clock to place it (as
 //! klippy holds back far steps), and every step due is made.
 //!
-//! The board calls [`Engine::run`] from its timer interrupt with the
-//! timer's count and re-arms the timer for the clock it returns; thread
-//! code fills the outboxes with [`Engine::push`].
+//! The board's timer interrupt calls [`Engine::on_timer`], which runs the
+//! engine ([`Engine::run`]) at the timer's count and re-arms the timer for
+//! the next wake; thread code fills the outboxes with [`Engine::push`].
 //!
 //! Like Klipper's MCU, the engine keeps a list of timers in wake order:
 //! one per stepper with a step coming, and a housekeeping timer that
@@ -134,7 +134,8 @@ pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
     /// Each queued timer's wake clock (a stepper's: its coming step).
     wakes: [u32; TIMERS],
     /// Timers in wake order, `order[..queued]`: each stepper with a step
-    /// coming (its index) and housekeeping (`S`), which is always there.
+    /// coming (its index), housekeeping (`S`), which is always there, and
+    /// the endstop check (`S + 1`) while homing.
     order: [Timer; TIMERS],
     queued: usize,
     slots: [Slot<P, M>; S],

@@ -213,6 +213,21 @@ impl ShapedSegment<'_> {
         Quadratic(q)
     }
 
+    /// The position at `t` (s into the segment), impulse by impulse.
+    fn summed(&self, t: f64) -> f64 {
+        let mut pos = self.segs[self.i].position(t);
+        for (axis, coord) in pos.iter_mut().enumerate() {
+            let taps = self.axis_taps(axis);
+            if !taps.is_empty() {
+                *coord = taps
+                    .iter()
+                    .map(|tap| tap.amplitude * axis_at(self.segs, tap.seg, t + tap.offset, axis))
+                    .sum();
+            }
+        }
+        self.kin.position(pos)
+    }
+
     /// The piece holding time `t` (s into the segment), if there are pieces.
     fn piece(&self, t: f64) -> Option<&Piece> {
         let pieces = &self.pieces[..self.pieces_len];
@@ -234,22 +249,6 @@ impl PositionFn for ShapedSegment<'_> {
             Some(piece) => piece.position.at(t),
             None => self.summed(t),
         }
-    }
-}
-
-impl ShapedSegment<'_> {
-    /// The position at `t` (s into the segment), impulse by impulse.
-    fn summed(&self, t: f64) -> f64 {
-        let mut pos = self.segs[self.i].position(t);
-        for (axis, taps) in self.taps.iter().enumerate() {
-            if self.lens[axis] > 0 {
-                pos[axis] = taps[..self.lens[axis]]
-                    .iter()
-                    .map(|tap| tap.amplitude * axis_at(self.segs, tap.seg, t + tap.offset, axis))
-                    .sum();
-            }
-        }
-        self.kin.position(pos)
     }
 }
 
