@@ -95,20 +95,7 @@ impl<'h> EngineSteps<'h> {
 
 impl StepSink for EngineSteps<'_> {
     fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
-        let cmd = match cmd {
-            StepCommand::Dir(positive) => Command::Dir(positive),
-            StepCommand::Steps {
-                interval,
-                count,
-                add,
-            } => Command::Steps {
-                interval,
-                count,
-                add,
-            },
-            // The MCU's clock is 32 bits wide.
-            StepCommand::ResetClock(at) => Command::ResetClock(at as u32),
-        };
+        let cmd = Command::from(cmd);
         while crate::step_timer::push(index, cmd, clock).is_err() {
             if crate::step_timer::shutdown_reason().is_some() {
                 return;

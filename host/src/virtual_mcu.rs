@@ -192,20 +192,7 @@ impl StepSink for VirtualMcu {
         if index >= self.steppers || self.shutdown().is_some() {
             return;
         }
-        let cmd = match cmd {
-            StepCommand::Dir(positive) => Command::Dir(positive),
-            StepCommand::Steps {
-                interval,
-                count,
-                add,
-            } => Command::Steps {
-                interval,
-                count,
-                add,
-            },
-            // The MCU's clock is 32 bits wide.
-            StepCommand::ResetClock(at) => Command::ResetClock(at as u32),
-        };
+        let cmd = Command::from(cmd);
         while self.engine.push(index, cmd, clock).is_err() {
             // Outbox full: time runs on until the engine makes room.
             self.refresh();

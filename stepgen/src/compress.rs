@@ -39,6 +39,26 @@ pub enum StepCommand {
     ResetClock(u64),
 }
 
+/// The command as the local stepper engine takes it (its clock is the
+/// MCU's 32-bit one).
+impl From<StepCommand> for onechip_sched::engine::Command {
+    fn from(cmd: StepCommand) -> Self {
+        match cmd {
+            StepCommand::Dir(positive) => Self::Dir(positive),
+            StepCommand::Steps {
+                interval,
+                count,
+                add,
+            } => Self::Steps {
+                interval,
+                count,
+                add,
+            },
+            StepCommand::ResetClock(at) => Self::ResetClock(at as u32),
+        }
+    }
+}
+
 /// Acceptable range of one step, in ticks after the last compressed step:
 /// 32 bits, as queued steps are less than `CLOCK_DIFF_MAX` (3·2^28) ticks
 /// apart, and 32-bit arithmetic is native on the MCU.
