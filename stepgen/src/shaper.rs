@@ -216,10 +216,9 @@ impl ShapedSegment<'_> {
     /// The position at `t` (s into the segment), impulse by impulse.
     fn summed(&self, t: f64) -> f64 {
         let mut pos = self.segs[self.i].position(t);
-        for (axis, coord) in pos.iter_mut().enumerate() {
-            let taps = self.axis_taps(axis);
-            if !taps.is_empty() {
-                *coord = taps
+        for (axis, taps) in self.taps.iter().enumerate() {
+            if self.lens[axis] > 0 {
+                pos[axis] = taps[..self.lens[axis]]
                     .iter()
                     .map(|tap| tap.amplitude * axis_at(self.segs, tap.seg, t + tap.offset, axis))
                     .sum();
