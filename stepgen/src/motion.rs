@@ -73,6 +73,20 @@ enum Follows {
     Extruder(PressureAdvance),
 }
 
+impl Follows {
+    /// The queue this follows, of the toolhead's and the extruder's.
+    fn queue<'q, const N: usize>(
+        &self,
+        toolhead: &'q Trapq<N>,
+        extruder: &'q Trapq<N>,
+    ) -> &'q Trapq<N> {
+        match self {
+            Self::Toolhead(..) => toolhead,
+            Self::Extruder(_) => extruder,
+        }
+    }
+}
+
 /// One stepper's generation and compression state.
 #[derive(Debug, Clone)]
 struct Channel<const Q: usize> {
@@ -269,17 +283,12 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         // (before any generation: the first queued move) to the limit, or
         // with no limit to past the last move's end (where the queues'
         // open stationary tails start) by every look-back.
-        let queues = [&self.toolhead, &self.extruder];
-        let first_move = queues
+        let first_move = [&self.toolhead, &self.extruder]
             .iter()
             .filter_map(|q| q.segments().first())
             .map(|s| s.print_time)
             .fold(f64::INFINITY, f64::min);
-        let motion_end = queues
-            .iter()
-            .filter_map(|q| q.segments().last())
-            .map(|s| s.print_time)
-            .fold(f64::NEG_INFINITY, f64::max);
+        let motion_end = self.motion_end();
         let look_back = self
             .channels
             .iter()
@@ -307,13 +316,20 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     /// look-ahead allows within `limit`.
     fn generate_slice(&mut self, upto: f64, limit: f64, sink: &mut impl StepSink) {
         for (i, ch) in self.channels.iter_mut().enumerate() {
-            let queue = match ch.follows {
-                Follows::Toolhead(..) => &self.toolhead,
-                Follows::Extruder(_) => &self.extruder,
-            };
+            let segs = ch.follows.queue(&self.toolhead, &self.extruder).segments();
             let to = window_floor(upto.min(limit - ch.margins.before));
-            ch.generate(i, queue.segments(), to, sink);
+            ch.generate(i, segs, to, sink);
         }
+    }
+
+    /// Where the queued motion ends (the queues' open stationary tails
+    /// start), s.
+    fn motion_end(&self) -> f64 {
+        [&self.toolhead, &self.extruder]
+            .iter()
+            .filter_map(|q| q.segments().last())
+            .map(|s| s.print_time)
+            .fold(f64::NEG_INFINITY, f64::max)
     }
 
     /// Generates and sends every remaining step (the end of the motion).
@@ -444,18 +460,10 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
 
     /// Generates through the end of all queued motion and its margins.
     fn generate_through(&mut self, sink: &mut impl StepSink) {
-        let end = |q: &Trapq<N>| {
-            q.segments()
-                .last()
-                .map_or(f64::NEG_INFINITY, |t| t.print_time)
-        };
-        let end = end(&self.toolhead).max(end(&self.extruder));
+        let end = self.motion_end();
         for (i, ch) in self.channels.iter_mut().enumerate() {
-            let queue = match ch.follows {
-                Follows::Toolhead(..) => &self.toolhead,
-                Follows::Extruder(_) => &self.extruder,
-            };
-            ch.generate(i, queue.segments(), end + ch.margins.after, sink);
+            let segs = ch.follows.queue(&self.toolhead, &self.extruder).segments();
+            ch.generate(i, segs, end + ch.margins.after, sink);
         }
         self.retire();
     }
