@@ -19,17 +19,8 @@ impl OutPin {
     /// Configures the pin named `name` as a fast push-pull output, at its
     /// inactive level.
     pub fn new(name: &str) -> Result<Self, BadPin<'_>> {
-        let PinName {
-            port,
-            number,
-            inverted,
-            ..
-        } = onechip_app::pins::parse(name)?;
-        let port = gpio(port).ok_or(BadPin(name))?;
-        let number = usize::from(number);
-        if number > 15 {
-            return Err(BadPin(name));
-        }
+        let (port, number, pin) = gpio_pin(name)?;
+        let inverted = pin.inverted;
         let (high, low) = (1 << number, 1 << (number + 16));
         let (active, inactive) = if inverted { (low, high) } else { (high, low) };
         let pin = Self {
@@ -76,18 +67,8 @@ impl InPin {
     /// Configures the pin named `name` as an input, with its pull-up if
     /// the name asks for one (`^`).
     pub fn new(name: &str) -> Result<Self, BadPin<'_>> {
-        let PinName {
-            port,
-            number,
-            inverted,
-            pull_up,
-        } = onechip_app::pins::parse(name)?;
-        let port = gpio(port).ok_or(BadPin(name))?;
-        let number = usize::from(number);
-        if number > 15 {
-            return Err(BadPin(name));
-        }
-        let pull = if pull_up {
+        let (port, number, pin) = gpio_pin(name)?;
+        let pull = if pin.pull_up {
             vals::Pupdr::PULL_UP
         } else {
             vals::Pupdr::FLOATING
@@ -98,7 +79,7 @@ impl InPin {
         Ok(Self {
             port,
             mask: 1 << number,
-            inverted,
+            inverted: pin.inverted,
         })
     }
 
@@ -116,6 +97,18 @@ impl InPin {
     pub fn is_active(&self) -> bool {
         (self.port.idr().read().0 & self.mask != 0) != self.inverted
     }
+}
+
+/// The port and pin number (0..=15) of the GPIO named `name`, with its
+/// modifiers.
+fn gpio_pin(name: &str) -> Result<(pac::gpio::Gpio, usize, PinName), BadPin<'_>> {
+    let pin = onechip_app::pins::parse(name)?;
+    let port = gpio(pin.port).ok_or(BadPin(name))?;
+    let number = usize::from(pin.number);
+    if number > 15 {
+        return Err(BadPin(name));
+    }
+    Ok((port, number, pin))
 }
 
 /// The GPIO port with index `port` (0 = A).
