@@ -19,10 +19,13 @@ impl OutPin {
     /// Configures the pin named `name` as a fast push-pull output, at its
     /// inactive level.
     pub fn new(name: &str) -> Result<Self, BadPin<'_>> {
-        let (port, number, pin) = gpio_pin(name)?;
-        let inverted = pin.inverted;
+        let (port, number, parsed) = gpio_pin(name)?;
         let (high, low) = (1 << number, 1 << (number + 16));
-        let (active, inactive) = if inverted { (low, high) } else { (high, low) };
+        let (active, inactive) = if parsed.inverted {
+            (low, high)
+        } else {
+            (high, low)
+        };
         let pin = Self {
             port,
             active,
@@ -67,8 +70,8 @@ impl InPin {
     /// Configures the pin named `name` as an input, with its pull-up if
     /// the name asks for one (`^`).
     pub fn new(name: &str) -> Result<Self, BadPin<'_>> {
-        let (port, number, pin) = gpio_pin(name)?;
-        let pull = if pin.pull_up {
+        let (port, number, parsed) = gpio_pin(name)?;
+        let pull = if parsed.pull_up {
             vals::Pupdr::PULL_UP
         } else {
             vals::Pupdr::FLOATING
@@ -79,7 +82,7 @@ impl InPin {
         Ok(Self {
             port,
             mask: 1 << number,
-            inverted: pin.inverted,
+            inverted: parsed.inverted,
         })
     }
 
