@@ -1,27 +1,26 @@
-//! The MCU role: timer scheduling, the stepper engine that executes
-//! `(interval, count, add)` queues, endstops, outputs with safety timeouts,
-//! ADC range checks and shutdown (issue #5).
+//! The MCU role: the stepper engine that executes `(interval, count, add)`
+//! queues from a timer, endstops, outputs with safety timeouts, ADC range
+//! checks and shutdown (issue #5).
 //!
-//! Available now:
 //! - [`clock`]: rollover-safe arithmetic on the 32-bit hardware clock,
 //!   which everything else here is built on;
 //! - [`stepper`]: one stepper's engine, executing queued moves from a timer;
 //! - [`engine`]: the stepper interrupt's work for all steppers, with far
 //!   steps held back until the 32-bit clock can place them;
-//! - [`timer`]: which timer fires next;
 //! - [`endstop`]: endstop checking during homing;
-//! - [`outputs`]: digital outputs with max_duration, ADC range checks;
-//! - [`pwm`]: hardware and software PWM with max_duration;
-//! - [`mcu`]: all of them together, and shutdown that stops everything;
+//! - [`outputs`]: digital outputs, software and hardware PWM, with
+//!   max_duration;
+//! - [`adc`]: ADC sampling with range checks;
+//! - [`io`]: outputs and ADC inputs run from a timer, behind the
+//!   [`io::Peripherals`] hardware trait;
 //! - [`shutdown`]: why everything stopped, in Klipper's words.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod adc;
 pub mod clock;
 pub mod endstop;
 pub mod engine;
-pub mod mcu;
+pub mod io;
 pub mod outputs;
-pub mod pwm;
 pub mod shutdown;
 pub mod stepper;
-pub mod timer;
