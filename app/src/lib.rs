@@ -10,6 +10,7 @@
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod console;
+pub mod heaters;
 pub mod line;
 pub mod pins;
 pub mod printer;

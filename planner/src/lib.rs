@@ -19,4 +19,5 @@ pub mod machine;
 pub mod math;
 pub mod motion;
 pub mod shaper_config;
+pub mod thermal;
 pub mod toolhead;

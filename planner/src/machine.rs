@@ -7,6 +7,7 @@ use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::motion::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
+use crate::thermal::{self, Fan, Heater};
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 
 /// Most steppers a machine may have.
@@ -70,6 +71,11 @@ pub struct Machine<'a> {
     pub stepper_kinematics: [StepperKinematics; 3],
     /// Input shaping ([input_shaper]), applied by step generation.
     pub input_shaper: InputShaperConfig,
+    /// The heaters: the extruder's (if it has a heater_pin), then the
+    /// bed's.
+    pub heaters: heapless::Vec<Heater<'a>, 2>,
+    /// The part-cooling fan.
+    pub fan: Option<Fan<'a>>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -88,26 +94,8 @@ const STEPPER_OTHER: [&str; 9] = [
     "position_endstop",
 ];
 
-/// Heater options of [extruder], handled by the heater code.
-const EXTRUDER_HEATER: [&str; 14] = [
-    "heater_pin",
-    "sensor_type",
-    "sensor_pin",
-    "control",
-    "pid_kp",
-    "pid_ki",
-    "pid_kd",
-    "max_delta",
-    "min_temp",
-    "max_temp",
-    "min_extrude_temp",
-    "max_power",
-    "smooth_time",
-    "pwm_cycle_time",
-];
-
 /// Sections whose options the motion pipeline reads.
-const MOTION_SECTIONS: [&str; 11] = [
+const MOTION_SECTIONS: [&str; 13] = [
     "printer",
     "stepper_x",
     "stepper_y",
@@ -119,6 +107,8 @@ const MOTION_SECTIONS: [&str; 11] = [
     "mcu",
     "force_move",
     "input_shaper",
+    "heater_bed",
+    "fan",
 ];
 
 /// Delta tower angles when not configured, degrees.
@@ -205,6 +195,7 @@ impl<'a> Machine<'a> {
         };
 
         let (mut extruder, mut pressure_advance, mut smooth_time) = (None, 0.0, 0.040);
+        let mut heaters = heapless::Vec::new();
         if let Some(section) = config.section("extruder") {
             extruder = Some(read_extruder(&section, &limits)?);
             pressure_advance =
@@ -218,13 +209,22 @@ impl<'a> Machine<'a> {
                     ..Bounds::NONE
                 },
             )?;
-            section.accept(&EXTRUDER_HEATER);
+            if section.get_opt("heater_pin").is_some() {
+                let _ = heaters.push(thermal::read_heater(&section)?);
+            }
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
         let input_shaper = match config.section("input_shaper") {
             Some(section) => shaper_config::read(&section)?,
             None => InputShaperConfig::default(),
         };
+        if let Some(section) = config.section("heater_bed") {
+            let _ = heaters.push(thermal::read_heater(&section)?);
+        }
+        let fan = config
+            .section("fan")
+            .map(|section| thermal::read_fan(&section))
+            .transpose()?;
         if let Some(section) = config.section("force_move") {
             section.get_bool("enable_force_move", false)?;
         }
@@ -247,6 +247,8 @@ impl<'a> Machine<'a> {
             steppers,
             stepper_kinematics,
             input_shaper,
+            heaters,
+            fan,
             unsupported,
         })
     }

@@ -1,0 +1,584 @@
+//! Heaters and the part-cooling fan, from printer.cfg to the MCU role's
+//! outputs: each heater is a software-PWM output with Klipper's 3 s
+//! max_duration and a thermistor ADC input sampled 8 times every 0.3 s and
+//! range-checked against min_temp/max_temp; each temperature report runs
+//! the heater's control (PID or watermark) at once, which queues the next
+//! PWM value 0.308 s after the report, as Klipper's host does.
+//!
+//! [`Heaters`] owns the MCU role's [`Io`] so that report, control and
+//! update happen in one place and in time: the board runs it from a timer
+//! interrupt, the host build in virtual time. G-code reaches it as
+//! [`ThermalCommand`]s that the printer hands out.
+
+use core::fmt::Write;
+use onechip_planner::machine::Machine;
+use onechip_planner::thermal::{Control, Fan, Heater, PWM_DELAY};
+use onechip_sched::adc::{AdcQuery, AdcReport};
+use onechip_sched::clock::is_before;
+use onechip_sched::io::{Io, Peripherals};
+use onechip_sched::outputs::{OutputConfig, OutputKind, QueueError};
+use onechip_sched::shutdown::Shutdown;
+
+/// Time between a thermistor's readings, s.
+pub const SAMPLE_TIME: f64 = 0.001;
+/// Readings per report.
+pub const SAMPLE_COUNT: u8 = 8;
+/// Time between reports, s.
+pub const REPORT_TIME: f64 = 0.300;
+/// Reports out of range in a row that shut everything down.
+pub const RANGE_CHECK_COUNT: u8 = 4;
+/// Longest a heater output may hold a value without an update, s.
+pub const MAX_HEAT_TIME: f64 = 3.0;
+/// Full scale of a hardware PWM duty.
+pub const PWM_MAX: u32 = 65_535;
+/// Delay from start-up to the first readings, s.
+pub const FIRST_REPORT: f64 = 0.2;
+/// The temperature the PID starts from, °C.
+const AMBIENT: f64 = 25.0;
+/// A PID heater is settled within this of its target, °C.
+const PID_SETTLE_DELTA: f64 = 1.0;
+/// ... and changing slower than this, °C per report.
+const PID_SETTLE_SLOPE: f64 = 0.1;
+
+/// Heaters: the extruder's and the bed's.
+pub const MAX_HEATERS: usize = 2;
+/// Outputs: the heaters and the fan.
+pub const OUTPUTS: usize = MAX_HEATERS + 1;
+
+/// What a G-code line asks of the heaters and fan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ThermalCommand {
+    /// Heater `heater` to `celsius` (0: off).
+    Target {
+        /// Index into [`Machine::heaters`].
+        heater: usize,
+        /// Target, °C.
+        celsius: f64,
+        /// Wait until it is reached (M109, M190).
+        wait: bool,
+    },
+    /// Report temperatures (M105).
+    Report,
+    /// The fan to `speed` (0..1) at print time `print_time`.
+    Fan {
+        /// Speed, 0..1 (before max_power and off_below).
+        speed: f64,
+        /// When, s of print time.
+        print_time: f64,
+    },
+}
+
+/// -1, 0 or 1.
+fn sign(x: f64) -> i8 {
+    i8::from(x > 0.0) - i8::from(x < 0.0)
+}
+
+/// A heater's control loop state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum ControlState {
+    Pid {
+        kp: f64,
+        ki: f64,
+        kd: f64,
+        prev_temp: f64,
+        prev_err: f64,
+        prev_der: f64,
+        integral: f64,
+    },
+    Watermark {
+        max_delta: f64,
+        heating: bool,
+    },
+}
+
+impl ControlState {
+    fn new(control: Control) -> Self {
+        // Klipper's gains act on 0..255; the output here is 0..1.
+        match control {
+            Control::Pid { kp, ki, kd } => Self::Pid {
+                kp: kp / 255.0,
+                ki: ki / 255.0,
+                kd: kd / 255.0,
+                prev_temp: AMBIENT,
+                prev_err: 0.0,
+                prev_der: 0.0,
+                integral: 0.0,
+            },
+            Control::Watermark { max_delta } => Self::Watermark {
+                max_delta,
+                heating: false,
+            },
+        }
+    }
+
+    /// The power (0..max_power) after a reading of `temp` (°C), with the
+    /// target `target` (°C) and readings `dt` s apart, smoothed over
+    /// `smooth_time` s.
+    fn update(&mut self, temp: f64, target: f64, max_power: f64, dt: f64, smooth: f64) -> f64 {
+        match self {
+            Self::Watermark { max_delta, heating } => {
+                if *heating && temp >= target + *max_delta {
+                    *heating = false;
+                } else if !*heating && temp <= target - *max_delta {
+                    *heating = true;
+                }
+                if *heating { max_power } else { 0.0 }
+            }
+            Self::Pid {
+                kp,
+                ki,
+                kd,
+                prev_temp,
+                prev_err,
+                prev_der,
+                integral,
+            } => {
+                let err = target - temp;
+                // Trapezoidal integral; derivative on the measurement,
+                // smoothed as a moving average over `smooth` readings.
+                let step = (*prev_err + err) * 0.5 * dt;
+                let candidate = *integral + step;
+                let der = ((smooth - 1.0) * *prev_der - (temp - *prev_temp) / dt) / smooth;
+                let out = *kp * err + *ki * candidate + *kd * der;
+                let power = out.clamp(0.0, max_power);
+                *prev_temp = temp;
+                *prev_der = der;
+                if target > 0.0 {
+                    *prev_err = err;
+                    // Integrate unless saturated the same way as the step.
+                    if out == power || sign(out) != sign(step) {
+                        *integral = candidate;
+                    }
+                } else {
+                    *prev_err = 0.0;
+                    *integral = 0.0;
+                }
+                power
+            }
+        }
+    }
+
+    /// True while the heater is still reaching its target (M109 waits).
+    fn busy(&self, smoothed: f64, target: f64) -> bool {
+        match *self {
+            Self::Watermark { max_delta, .. } => smoothed < target - max_delta,
+            Self::Pid { prev_der, .. } => {
+                (target - smoothed).abs() > PID_SETTLE_DELTA || prev_der.abs() > PID_SETTLE_SLOPE
+            }
+        }
+    }
+}
+
+/// One heater: configuration and state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct HeaterState {
+    /// `T` or `B`, as M105 reports it.
+    label: &'static str,
+    min_temp: f64,
+    max_temp: f64,
+    max_power: f64,
+    /// The PID's derivative is averaged over this many reports.
+    smooth: f64,
+    /// smooth_time, s.
+    smooth_time: f64,
+    thermistor: onechip_planner::thermal::Thermistor,
+    cycle_ticks: u32,
+    control: ControlState,
+    target: f64,
+    smoothed: f64,
+    /// Clock of the last report.
+    last_report: Option<u32>,
+    /// Last power queued (0..1), and the clock by which to repeat it.
+    last_power: f64,
+    refresh_by: u32,
+}
+
+/// The fan: configuration and last speed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct FanState {
+    config: FanSetup,
+    speed: f64,
+}
+
+/// The fan's options that matter once it runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct FanSetup {
+    max_power: f64,
+    off_below: f64,
+    kick_ticks: u32,
+    /// Full-scale value: cycle ticks (software PWM) or [`PWM_MAX`].
+    full: u32,
+}
+
+/// The MCU configuration of the heaters and fan, as Klipper sends it:
+/// outputs (in [`Heaters`] order: heaters, then fan) and ADC queries.
+#[derive(Debug, Clone, PartialEq)]
+pub struct McuSetup<'a> {
+    /// Each output's pin (as printer.cfg writes it) and configuration.
+    pub outputs: heapless::Vec<(&'a str, OutputConfig), OUTPUTS>,
+    /// Each heater's sensor pin and ADC query.
+    pub inputs: heapless::Vec<(&'a str, AdcQuery), MAX_HEATERS>,
+}
+
+/// Seconds to ticks, as Klipper's `seconds_to_clock` (truncated).
+fn ticks(seconds: f64, freq: f64) -> u32 {
+    (seconds * freq) as u32
+}
+
+impl<'a> McuSetup<'a> {
+    /// The configuration for `machine` on an MCU whose clock runs at
+    /// `freq` Hz and whose ADC reads 0..=`adc_max`; the first readings at
+    /// clock `start`.
+    pub fn new(machine: &Machine<'a>, freq: f64, adc_max: u16, start: u32) -> Self {
+        let mut setup = Self {
+            outputs: heapless::Vec::new(),
+            inputs: heapless::Vec::new(),
+        };
+        for heater in &machine.heaters {
+            let output = OutputConfig {
+                kind: OutputKind::Digital {
+                    cycle_ticks: ticks(heater.pwm_cycle_time, freq),
+                },
+                value: 0,
+                default: 0,
+                max_duration: ticks(MAX_HEAT_TIME, freq),
+            };
+            let _ = setup.outputs.push((heater.heater_pin, output));
+            let _ = setup
+                .inputs
+                .push((heater.sensor_pin, adc_query(heater, freq, adc_max, start)));
+        }
+        if let Some(fan) = &machine.fan {
+            let (kind, full) = fan_output(fan, freq);
+            let default = (fan.shutdown_speed.min(fan.max_power) * f64::from(full) + 0.5) as u32;
+            let output = OutputConfig {
+                kind,
+                value: 0,
+                default,
+                max_duration: 0,
+            };
+            let _ = setup.outputs.push((fan.pin, output));
+        }
+        setup
+    }
+}
+
+/// The fan's output kind and full-scale value.
+fn fan_output(fan: &Fan<'_>, freq: f64) -> (OutputKind, u32) {
+    if fan.hard_pwm {
+        (OutputKind::HardPwm, PWM_MAX)
+    } else {
+        let cycle_ticks = ticks(fan.cycle_time, freq);
+        (OutputKind::Digital { cycle_ticks }, cycle_ticks)
+    }
+}
+
+/// A heater's thermistor query: 8 readings 1 ms apart every 0.3 s, the
+/// sum within the readings of max_temp and min_temp.
+fn adc_query(heater: &Heater<'_>, freq: f64, adc_max: u16, start: u32) -> AdcQuery {
+    let full = f64::from(SAMPLE_COUNT) * f64::from(adc_max);
+    let low = heater.thermistor.adc(heater.max_temp);
+    let high = heater.thermistor.adc(heater.min_temp);
+    let counts = |v: f64| v.clamp(0.0, f64::from(u16::MAX)) as u16;
+    AdcQuery {
+        clock: start,
+        sample_ticks: ticks(SAMPLE_TIME, freq),
+        sample_count: SAMPLE_COUNT,
+        rest_ticks: ticks(REPORT_TIME, freq),
+        min: counts(low * full),
+        max: counts(libm::ceil(high * full)),
+        range_check_count: RANGE_CHECK_COUNT,
+    }
+}
+
+/// Why a heater command was refused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ThermalError {
+    /// No such heater.
+    NoHeater,
+    /// The target is outside min_temp..max_temp.
+    OutOfRange {
+        /// Requested, °C.
+        celsius: f64,
+        /// min_temp, °C.
+        min: f64,
+        /// max_temp, °C.
+        max: f64,
+    },
+}
+
+impl core::fmt::Display for ThermalError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::NoHeater => f.write_str("No such heater configured"),
+            Self::OutOfRange { celsius, min, max } => write!(
+                f,
+                "Requested temperature ({celsius:.1}) out of range ({min:.1}:{max:.1})"
+            ),
+        }
+    }
+}
+
+/// The heaters, the fan and the MCU role's io that drives them.
+#[derive(Debug, Clone)]
+pub struct Heaters {
+    io: Io<OUTPUTS, MAX_HEATERS>,
+    heaters: heapless::Vec<HeaterState, MAX_HEATERS>,
+    fan: Option<FanState>,
+    /// Ticks from a report to the update it causes.
+    pwm_delay: u32,
+    /// Ticks after which a heater's unchanged power is sent again.
+    refresh_ticks: u32,
+    freq: f64,
+    adc_full: f64,
+}
+
+impl Heaters {
+    /// The heaters and fan of `machine` on an MCU at `freq` Hz with ADC
+    /// range 0..=`adc_max`, configured on `hw` with the first readings at
+    /// clock `start`. Outputs: heaters, then the fan; ADC inputs: heaters.
+    pub fn new(
+        machine: &Machine<'_>,
+        freq: f64,
+        adc_max: u16,
+        start: u32,
+        hw: &mut impl Peripherals,
+    ) -> Self {
+        let setup = McuSetup::new(machine, freq, adc_max, start);
+        let mut io = Io::new();
+        for (_, config) in &setup.outputs {
+            let _ = io.add_output(*config, hw);
+        }
+        for (_, query) in &setup.inputs {
+            if let Ok(index) = io.add_input() {
+                let _ = io.query(index, *query);
+            }
+        }
+        let dt = PWM_DELAY;
+        let heaters = machine
+            .heaters
+            .iter()
+            .map(|h| HeaterState {
+                label: if h.name == "heater_bed" { "B" } else { "T" },
+                min_temp: h.min_temp,
+                max_temp: h.max_temp,
+                max_power: h.max_power,
+                smooth: 1.0 + h.smooth_time / dt,
+                smooth_time: h.smooth_time,
+                thermistor: h.thermistor,
+                cycle_ticks: ticks(h.pwm_cycle_time, freq),
+                control: ControlState::new(h.control),
+                target: 0.0,
+                smoothed: 0.0,
+                last_report: None,
+                last_power: 0.0,
+                refresh_by: start,
+            })
+            .collect();
+        let fan = machine.fan.map(|f| FanState {
+            config: FanSetup {
+                max_power: f.max_power,
+                off_below: f.off_below,
+                kick_ticks: ticks(f.kick_start_time, freq),
+                full: fan_output(&f, freq).1,
+            },
+            speed: 0.0,
+        });
+        Self {
+            io,
+            heaters,
+            fan,
+            pwm_delay: ticks(PWM_DELAY, freq),
+            refresh_ticks: ticks(0.75 * MAX_HEAT_TIME, freq),
+            freq,
+            adc_full: f64::from(SAMPLE_COUNT) * f64::from(adc_max),
+        }
+    }
+
+    /// When [`Self::run`] must run next (MCU clock), if ever.
+    pub fn next_wake(&self) -> Option<u32> {
+        self.io.next_wake()
+    }
+
+    /// The timer's work at clock `now`: outputs, readings, and each new
+    /// temperature report's control update. A fault (ADC out of range, an
+    /// output past max_duration) has shut every output down and is
+    /// returned; the caller stops the steppers too.
+    pub fn run(&mut self, now: u32, hw: &mut impl Peripherals) -> Result<(), Shutdown> {
+        self.io.run(now, hw)?;
+        for index in 0..self.heaters.len() {
+            if let Some(report) = self.io.take_report(index) {
+                self.control(index, report, now, hw)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// A heater's report: new temperature, control, and the update it
+    /// causes (Klipper's `temperature_callback` and `set_pwm`).
+    fn control(
+        &mut self,
+        index: usize,
+        report: AdcReport,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        let Some(h) = self.heaters.get_mut(index) else {
+            return Ok(());
+        };
+        let temp = h
+            .thermistor
+            .temperature(f64::from(report.value) / self.adc_full);
+        let dt = PWM_DELAY;
+        let mut power = h.control.update(temp, h.target, h.max_power, dt, h.smooth);
+        // Exponential smoothing over smooth_time (the first reading is
+        // taken as it is).
+        let weight = h.last_report.map_or(1.0, |last| {
+            let elapsed = f64::from(report.clock.wrapping_sub(last)) / self.freq;
+            (elapsed / h.smooth_time).min(1.0)
+        });
+        h.last_report = Some(report.clock);
+        h.smoothed += (temp - h.smoothed) * weight;
+        if h.target <= 0.0 {
+            power = 0.0;
+        }
+        let fresh = is_before(report.clock, h.refresh_by) && h.last_power != 0.0;
+        if (fresh || h.last_power == 0.0) && (power - h.last_power).abs() < 0.05 {
+            return Ok(());
+        }
+        let at = report.clock.wrapping_add(self.pwm_delay);
+        h.refresh_by = at.wrapping_add(self.refresh_ticks);
+        h.last_power = power;
+        let on_ticks = (power * f64::from(h.cycle_ticks) + 0.5) as u32;
+        self.queue(index, at, on_ticks, now, hw)
+    }
+
+    /// Queues an output update; a full queue drops it (the next report
+    /// repeats it), a late one has shut everything down.
+    fn queue(
+        &mut self,
+        index: usize,
+        clock: u32,
+        value: u32,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        match self.io.queue(index, clock, value, now, hw) {
+            Err(QueueError::Late) => Err(Shutdown::TimerTooClose),
+            _ => Ok(()),
+        }
+    }
+
+    /// Carries out `command` at clock `now`.
+    pub fn command(
+        &mut self,
+        command: ThermalCommand,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        match command {
+            ThermalCommand::Target {
+                heater, celsius, ..
+            } => {
+                if let Some(h) = self.heaters.get_mut(heater) {
+                    h.target = celsius;
+                }
+                Ok(())
+            }
+            ThermalCommand::Fan { speed, print_time } => {
+                let clock = (print_time * self.freq) as u64 as u32;
+                self.set_fan(speed, clock, now, hw)
+            }
+            ThermalCommand::Report => Ok(()),
+        }
+    }
+
+    /// Klipper's fan `set_speed`: off below off_below, scaled by
+    /// max_power, with a full-power kick when starting.
+    fn set_fan(
+        &mut self,
+        speed: f64,
+        clock: u32,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        let Some(fan) = self.fan else {
+            return Ok(());
+        };
+        let index = self.heaters.len();
+        let c = fan.config;
+        let speed = if speed < c.off_below { 0.0 } else { speed };
+        let speed = (speed * c.max_power).clamp(0.0, c.max_power);
+        if speed == fan.speed {
+            return Ok(());
+        }
+        // Never before now (a command may name a time already past).
+        let clock = if is_before(clock, now) { now } else { clock };
+        let value = |s: f64| (s * f64::from(c.full) + 0.5) as u32;
+        let mut at = clock;
+        if speed > 0.0 && speed < c.max_power && c.kick_ticks > 0 && speed - fan.speed > 0.5 {
+            self.queue(index, at, value(c.max_power), now, hw)?;
+            at = at.wrapping_add(c.kick_ticks);
+        }
+        self.queue(index, at, value(speed), now, hw)?;
+        if let Some(f) = &mut self.fan {
+            f.speed = speed;
+        }
+        Ok(())
+    }
+
+    /// Checks a target for heater `heater`.
+    pub fn check_target(&self, heater: usize, celsius: f64) -> Result<(), ThermalError> {
+        let h = self.heaters.get(heater).ok_or(ThermalError::NoHeater)?;
+        if celsius != 0.0 && !(h.min_temp..=h.max_temp).contains(&celsius) {
+            return Err(ThermalError::OutOfRange {
+                celsius,
+                min: h.min_temp,
+                max: h.max_temp,
+            });
+        }
+        Ok(())
+    }
+
+    /// True while heater `heater` is still reaching its target (M109 and
+    /// M190 wait for this to end).
+    pub fn busy(&self, heater: usize) -> bool {
+        self.heaters
+            .get(heater)
+            .is_some_and(|h| h.target > 0.0 && h.control.busy(h.smoothed, h.target))
+    }
+
+    /// Heater `heater`'s smoothed temperature and target, °C.
+    pub fn temperature(&self, heater: usize) -> Option<(f64, f64)> {
+        self.heaters.get(heater).map(|h| (h.smoothed, h.target))
+    }
+
+    /// The fan's speed (0..1).
+    pub fn fan_speed(&self) -> Option<f64> {
+        self.fan.map(|f| f.speed)
+    }
+
+    /// The M105 report: `T:<temp> /<target> B:<temp> /<target>`.
+    pub fn report(&self, out: &mut impl Write) -> core::fmt::Result {
+        for (i, h) in self.heaters.iter().enumerate() {
+            let sep = if i == 0 { "" } else { " " };
+            write!(out, "{sep}{}:{:.1} /{:.1}", h.label, h.smoothed, h.target)?;
+        }
+        Ok(())
+    }
+
+    /// Why the heaters shut down, if they did.
+    pub fn shutdown_reason(&self) -> Option<Shutdown> {
+        self.io.shutdown_reason()
+    }
+
+    /// Shuts every output down (the steppers faulted).
+    pub fn shutdown(&mut self, reason: Shutdown, hw: &mut impl Peripherals) {
+        self.io.shutdown(reason, hw);
+    }
+
+    /// The MCU clock frequency, Hz.
+    pub fn freq(&self) -> f64 {
+        self.freq
+    }
+}

@@ -1,0 +1,125 @@
+//! The heater's MCU configuration from each golden printer.cfg is what
+//! klippy sent (`mcu-commands.txt`): the heater pin's software PWM cycle and
+//! max_duration, and the thermistor's sampling and ADC range, which comes
+//! from the thermistor's curve at min_temp and max_temp.
+
+use onechip_app::heaters::McuSetup;
+use onechip_planner::config::Config;
+use onechip_planner::machine::Machine;
+use onechip_sched::outputs::OutputKind;
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+fn golden_dir() -> PathBuf {
+    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
+        PathBuf::from,
+    )
+}
+
+fn read(path: PathBuf) -> String {
+    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The `key=value` fields of the first line of `commands` starting with
+/// `name` and having all of `with`.
+fn command(commands: &str, name: &str, with: &[(&str, &str)]) -> HashMap<String, String> {
+    commands
+        .lines()
+        .filter_map(|l| l.strip_prefix(name).filter(|r| r.starts_with(' ')))
+        .map(|rest| {
+            rest.split_whitespace()
+                .filter_map(|kv| kv.split_once('='))
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect::<HashMap<_, _>>()
+        })
+        .find(|fields| {
+            with.iter()
+                .all(|(k, v)| fields.get(*k).map(String::as_str) == Some(*v))
+        })
+        .unwrap_or_else(|| panic!("no {name} with {with:?}"))
+}
+
+fn number(fields: &HashMap<String, String>, key: &str) -> u64 {
+    fields[key].parse().expect("number")
+}
+
+#[test]
+fn heater_and_thermistor_configuration_matches_klippy() {
+    let cases = [
+        ("cartesian", "cart_extrude", "stm32f446"),
+        ("corexy", "corexy_extrude", "stm32f446"),
+        ("delta", "delta_extrude", "stm32f446"),
+        ("cartesian_shaper", "shaper_extrude", "stm32f446"),
+        ("cartesian_avr", "avr_cart_extrude", "atmega2560"),
+        ("cartesian_h723", "h723_cart_extrude", "stm32h723"),
+    ];
+    for (config_name, case, dict) in cases {
+        let text = read(golden_dir().join(format!("configs/{config_name}.cfg")));
+        let config = Config::parse("printer.cfg", &text).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let dict = read(golden_dir().join(format!("dicts/{dict}.dict")));
+        let adc_max: u16 = dict
+            .split("\"ADC_MAX\":")
+            .nth(1)
+            .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
+            .and_then(|n| n.parse().ok())
+            .expect("ADC_MAX");
+        let summary = read(golden_dir().join(format!("{case}/summary.txt")));
+        let freq: f64 = summary
+            .lines()
+            .find_map(|l| l.strip_prefix("clock_freq "))
+            .and_then(|f| f.trim().parse().ok())
+            .expect("clock_freq");
+        let setup = McuSetup::new(&machine, freq, adc_max, 0);
+        let commands = read(golden_dir().join(format!("{case}/mcu-commands.txt")));
+
+        let (pin, heater) = setup.outputs[0];
+        let out = command(&commands, "config_digital_out", &[("pin", pin)]);
+        let oid = out["oid"].as_str();
+        let cycle = command(&commands, "set_digital_out_pwm_cycle", &[("oid", oid)]);
+        assert_eq!(
+            heater.kind,
+            OutputKind::Digital {
+                cycle_ticks: number(&cycle, "cycle_ticks") as u32
+            },
+            "{case}"
+        );
+        assert_eq!(
+            u64::from(heater.max_duration),
+            number(&out, "max_duration"),
+            "{case}"
+        );
+        assert_eq!(
+            u64::from(heater.default),
+            number(&out, "default_value"),
+            "{case}"
+        );
+
+        let (sensor, query) = setup.inputs[0];
+        let adc = command(&commands, "config_analog_in", &[("pin", sensor)]);
+        let q = command(
+            &commands,
+            "query_analog_in",
+            &[("oid", adc["oid"].as_str())],
+        );
+        let ours = [
+            u64::from(query.sample_ticks),
+            u64::from(query.sample_count),
+            u64::from(query.rest_ticks),
+            u64::from(query.min),
+            u64::from(query.max),
+            u64::from(query.range_check_count),
+        ];
+        let klippy = [
+            "sample_ticks",
+            "sample_count",
+            "rest_ticks",
+            "min_value",
+            "max_value",
+            "range_check_count",
+        ]
+        .map(|k| number(&q, k));
+        assert_eq!(ours, klippy, "{case}");
+    }
+}
