@@ -1,14 +1,57 @@
-//! The printer as both boards run it: G-code lines in, planned moves out.
+//! The printer as both boards run it: G-code lines in, planned moves and
+//! heater/fan commands out.
 //!
 //! Holds the toolhead (with a lookahead of `N` moves) and the G-code state;
 //! each line is parsed and executed, and replies follow Klipper's console
-//! conventions (`!! ` for errors, `// ` for information).
+//! conventions (`!! ` for errors, `// ` for information). Heater and fan
+//! G-codes (M104, M109, M140, M190, M106, M107, M105,
+//! SET_HEATER_TEMPERATURE, TURN_OFF_HEATERS) are checked here and handed
+//! out by [`Printer::take_thermal`] to whoever runs the heaters.
 
-use core::fmt::Write;
-use onechip_planner::gcode;
+use crate::heaters::{MAX_HEATERS, ThermalCommand, ThermalError};
+use core::fmt::{self, Write};
+use onechip_planner::gcode::{self, Command, Line};
 use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::{MoveSink, Toolhead};
+
+/// Why a line failed.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LineError<'l> {
+    /// A G-code or motion error.
+    Command(CommandError<'l>),
+    /// A heater command was refused.
+    Thermal(ThermalError),
+}
+
+impl<'l> From<CommandError<'l>> for LineError<'l> {
+    fn from(e: CommandError<'l>) -> Self {
+        Self::Command(e)
+    }
+}
+
+impl<'l> From<gcode::GcodeError<'l>> for LineError<'l> {
+    fn from(e: gcode::GcodeError<'l>) -> Self {
+        Self::Command(CommandError::Gcode(e))
+    }
+}
+
+impl fmt::Display for LineError<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Command(e) => e.fmt(f),
+            Self::Thermal(e) => e.fmt(f),
+        }
+    }
+}
+
+/// A heater as G-code names it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct HeaterName<'a> {
+    name: &'a str,
+    min_temp: f64,
+    max_temp: f64,
+}
 
 /// Idle input time after which queued moves are released, s (Klipper's
 /// priming delay).
@@ -16,17 +59,32 @@ pub const PRIMING_TIME: f64 = 0.100;
 
 /// The motion side of a printer.
 #[derive(Debug, Clone)]
-pub struct Printer<const N: usize> {
+pub struct Printer<'a, const N: usize> {
     toolhead: Toolhead<N>,
     gcode: GcodeMove,
+    heaters: heapless::Vec<HeaterName<'a>, MAX_HEATERS>,
+    has_fan: bool,
+    /// Heater and fan commands not yet taken.
+    thermal: heapless::Deque<ThermalCommand, MAX_HEATERS>,
 }
 
-impl<const N: usize> Printer<N> {
+impl<'a, const N: usize> Printer<'a, N> {
     /// A printer for `machine`, at rest at position 0.
-    pub fn new(machine: &Machine<'_>) -> Self {
+    pub fn new(machine: &Machine<'a>) -> Self {
         Self {
             toolhead: machine.toolhead(),
             gcode: GcodeMove::default(),
+            heaters: machine
+                .heaters
+                .iter()
+                .map(|h| HeaterName {
+                    name: h.name,
+                    min_temp: h.min_temp,
+                    max_temp: h.max_temp,
+                })
+                .collect(),
+            has_fan: machine.fan.is_some(),
+            thermal: heapless::Deque::new(),
         }
     }
 
@@ -52,9 +110,105 @@ impl<const N: usize> Printer<N> {
         line: &'l str,
         sink: &mut impl MoveSink,
         out: &mut impl Write,
-    ) -> Result<(), CommandError<'l>> {
+    ) -> Result<(), LineError<'l>> {
         let parsed = gcode::parse(line).map_err(CommandError::Gcode)?;
-        self.gcode.execute(&parsed, &mut self.toolhead, sink, out)
+        if self.thermal(&parsed, sink)? {
+            return Ok(());
+        }
+        Ok(self.gcode.execute(&parsed, &mut self.toolhead, sink, out)?)
+    }
+
+    /// The next heater or fan command of the lines run so far.
+    pub fn take_thermal(&mut self) -> Option<ThermalCommand> {
+        self.thermal.pop_front()
+    }
+
+    /// Handles `line` if it is a heater or fan command; false otherwise
+    /// (also for fan commands without a `[fan]`: "Unknown command", as
+    /// Klipper).
+    fn thermal<'l>(
+        &mut self,
+        line: &Line<'l>,
+        sink: &mut impl MoveSink,
+    ) -> Result<bool, LineError<'l>> {
+        let target = |printer: &Self, heater: &str, celsius: f64, wait: bool| {
+            let index = printer.heater(heater)?;
+            let h = printer.heaters[index];
+            if celsius != 0.0 && !(h.min_temp..=h.max_temp).contains(&celsius) {
+                return Err(LineError::Thermal(ThermalError::OutOfRange {
+                    celsius,
+                    min: h.min_temp,
+                    max: h.max_temp,
+                }));
+            }
+            Ok(ThermalCommand::Target {
+                heater: index,
+                celsius,
+                wait: wait && celsius > 0.0,
+            })
+        };
+        let command = match line.command {
+            Command::Traditional(t) if t.letter == b'M' && t.sub.is_none() => {
+                let s = t.float("S")?;
+                match t.number {
+                    104 | 109 => {
+                        if t.float("T")?.is_some_and(|n| n != 0.0) {
+                            return Err(LineError::Thermal(ThermalError::NoHeater));
+                        }
+                        target(self, "extruder", s.unwrap_or(0.0), t.number == 109)?
+                    }
+                    140 | 190 => target(self, "heater_bed", s.unwrap_or(0.0), t.number == 190)?,
+                    105 => ThermalCommand::Report,
+                    106 | 107 if self.has_fan => ThermalCommand::Fan {
+                        speed: if t.number == 107 {
+                            0.0
+                        } else {
+                            (s.unwrap_or(255.0) / 255.0).clamp(0.0, 1.0)
+                        },
+                        print_time: self.toolhead.print_time(),
+                    },
+                    _ => return Ok(false),
+                }
+            }
+            Command::Extended(e) if e.name.eq_ignore_ascii_case("SET_HEATER_TEMPERATURE") => {
+                let heater = e.get("HEATER")?.unwrap_or("");
+                target(self, heater, e.float("TARGET")?.unwrap_or(0.0), false)?
+            }
+            Command::Extended(e) if e.name.eq_ignore_ascii_case("TURN_OFF_HEATERS") => {
+                for heater in 0..self.heaters.len() {
+                    self.push_thermal(ThermalCommand::Target {
+                        heater,
+                        celsius: 0.0,
+                        wait: false,
+                    });
+                }
+                return Ok(true);
+            }
+            _ => return Ok(false),
+        };
+        if let ThermalCommand::Target { wait: true, .. } = command {
+            // Waiting starts once every queued move has been planned.
+            self.toolhead.wait_moves(sink);
+        }
+        self.push_thermal(command);
+        Ok(true)
+    }
+
+    /// The index of the heater named `name`.
+    fn heater<'l>(&self, name: &str) -> Result<usize, LineError<'l>> {
+        self.heaters
+            .iter()
+            .position(|h| h.name == name)
+            .ok_or(LineError::Thermal(ThermalError::NoHeater))
+    }
+
+    /// Queues a heater or fan command, dropping the oldest untaken one if
+    /// full (the caller did not take them).
+    fn push_thermal(&mut self, command: ThermalCommand) {
+        if self.thermal.is_full() {
+            self.thermal.pop_front();
+        }
+        let _ = self.thermal.push_back(command);
     }
 
     /// If [`Self::priming_timeout`] would plan moves now: how many of them

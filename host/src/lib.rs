@@ -11,8 +11,10 @@
 
 pub mod klippy_batch;
 pub mod plot;
+pub mod thermal_plant;
 pub mod virtual_mcu;
 
+use onechip_app::heaters::ThermalCommand;
 use onechip_app::line::{Line, LineAssembler};
 use onechip_app::printer::Printer;
 use onechip_planner::config::{Config, ConfigFile};
@@ -102,6 +104,24 @@ pub struct StepperSummary {
     pub last_step: Option<u64>,
 }
 
+/// What one heater did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HeaterSummary {
+    /// Section name.
+    pub name: String,
+    /// Target at the end, °C.
+    pub target: f64,
+    /// Temperature at the end as the firmware measured it (smoothed), °C.
+    pub temperature: f64,
+    /// Highest temperature the simulated heater reached, °C.
+    pub peak: f64,
+    /// Share of the run the heater output was on, 0..1.
+    pub duty: f64,
+}
+
+/// Longest a heater may take to reach its target in M109/M190, s.
+pub const MAX_HEAT_WAIT: f64 = 1800.0;
+
 /// What a run of the host build did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
@@ -143,6 +163,12 @@ pub struct Summary {
     /// Where the toolhead really is at the end, mm (when the power-on
     /// position is known, see [`Start`]).
     pub real_position: Option<[f64; 3]>,
+    /// Every heater, simulated.
+    pub heaters: Vec<HeaterSummary>,
+    /// The fan's speed at the end (0..1), if there is a fan.
+    pub fan_speed: Option<f64>,
+    /// Time spent waiting for heaters (M109, M190), s.
+    pub heat_wait: f64,
 }
 
 impl fmt::Display for Summary {
@@ -210,6 +236,23 @@ impl fmt::Display for Summary {
                 real[1],
                 real[2]
             )?;
+        }
+        for h in &self.heaters {
+            writeln!(
+                f,
+                "{:<13} {:.1} °C (target {:.1}), peak {:.1} °C, on {:.0}% of the time",
+                format!("{}:", h.name),
+                h.temperature,
+                h.target,
+                h.peak,
+                h.duty * 100.0
+            )?;
+        }
+        if let Some(speed) = self.fan_speed {
+            writeln!(f, "fan:          {:.0}% at the end", speed * 100.0)?;
+        }
+        if self.heat_wait > 0.0 {
+            writeln!(f, "heat wait:    {:.1} s", self.heat_wait)?;
         }
         if let Some(reason) = &self.shutdown {
             writeln!(f, "SHUTDOWN:     {reason}")?;
@@ -324,7 +367,7 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let program = read(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
-    let mut printer: Box<Printer<LOOKAHEAD>> = Box::new(Printer::new(&machine));
+    let mut printer: Box<Printer<'_, LOOKAHEAD>> = Box::new(Printer::new(&machine));
     printer.set_time_origin(origin);
     let mut tally = Tally {
         window: options.plot.as_ref().map(|(_, w)| plot::Window {
@@ -336,7 +379,8 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let max_error = (MAX_STEP_ERROR * freq) as u32;
     let mut motion: Box<Motion<MOTION_QUEUE, COMPRESS_QUEUE>> =
         Box::new(Motion::new(&machine, freq, max_error, [0.0; 3]));
-    let mut mcu = VirtualMcu::new(machine.steppers.len(), options.clock_origin);
+    let mut mcu =
+        VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(&machine, freq);
     if let Some(physics) = physics(&machine, options.start, freq) {
         mcu = mcu.with_physics(physics);
     }
@@ -362,6 +406,9 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         mcu_freq: freq,
         endstops: Vec::new(),
         real_position: None,
+        heaters: Vec::new(),
+        fan_speed: None,
+        heat_wait: 0.0,
     };
     let mut assembler = LineAssembler::<MAX_LINE>::new();
     let mut progress = Progress::new(program.len());
@@ -383,6 +430,19 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
                     };
                     if let Err(e) = printer.execute(&text, &mut planned, &mut reply) {
                         summary.errors.push((summary.lines, e.to_string()));
+                    }
+                    while let Some(command) = printer.take_thermal() {
+                        let waits = options.klippy_batch.is_none();
+                        let outcome = thermal(command, waits, &mut printer, &mut motion, &mut mcu);
+                        match outcome {
+                            Ok(waited) => summary.heat_wait += waited,
+                            Err(e) => summary.errors.push((summary.lines, e)),
+                        }
+                        if command == ThermalCommand::Report
+                            && let Some((heaters, _)) = mcu.thermal()
+                        {
+                            let _ = heaters.report(&mut reply);
+                        }
                     }
                     summary
                         .replies
@@ -430,6 +490,21 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     summary.print_time = printer.print_time();
     summary.final_position = printer.position();
     summary.real_position = mcu.real_position();
+    let run_ticks = mcu.now().saturating_sub(options.clock_origin).max(1) as f64;
+    if let Some((heaters, plant)) = mcu.thermal() {
+        plant.finish();
+        for (i, h) in machine.heaters.iter().enumerate() {
+            let (temperature, target) = heaters.temperature(i).unwrap_or_default();
+            summary.heaters.push(HeaterSummary {
+                name: h.name.to_string(),
+                target,
+                temperature,
+                peak: plant.temperature(i).map_or(0.0, |t| t.1),
+                duty: plant.outputs.get(i).map_or(0.0, |o| o.on_ticks / run_ticks),
+            });
+        }
+        summary.fan_speed = heaters.fan_speed();
+    }
     let clock_origin = options.clock_origin;
     summary.endstops = mcu
         .triggers()
@@ -530,6 +605,50 @@ fn physics(machine: &Machine<'_>, start: Start, freq: f64) -> Option<Physics> {
         start: core::array::from_fn(|k| kinematics[k].position(toolhead)),
         freq,
     })
+}
+
+/// Carries out a heater or fan command; a target with `waits` waits in
+/// virtual time until the heater reaches it. Returns the time waited, s.
+fn thermal<const N: usize, const Q: usize>(
+    command: ThermalCommand,
+    waits: bool,
+    printer: &mut Printer<'_, LOOKAHEAD>,
+    motion: &mut Motion<N, Q>,
+    mcu: &mut VirtualMcu,
+) -> Result<f64, String> {
+    mcu.thermal_command(command);
+    let ThermalCommand::Target {
+        heater, wait: true, ..
+    } = command
+    else {
+        return Ok(0.0);
+    };
+    let busy = |mcu: &mut VirtualMcu| {
+        mcu.shutdown().is_none() && mcu.thermal().is_some_and(|(h, _)| h.busy(heater))
+    };
+    if !waits || !busy(mcu) {
+        return Ok(0.0);
+    }
+    // Every planned move runs to its end, then time passes a second at a
+    // time (as Klipper's wait loop) until the heater has settled.
+    let freq = mcu.thermal().map_or(BOARD_CLOCK, |(h, _)| h.freq());
+    motion.settle(mcu);
+    let start = printer
+        .print_time()
+        .max(motion.sent_until())
+        .max(mcu.now() as f64 / freq);
+    let mut t = start;
+    while busy(mcu) {
+        if t - start > MAX_HEAT_WAIT {
+            return Err(format!(
+                "heater did not reach its target within {MAX_HEAT_WAIT:.0} s"
+            ));
+        }
+        t += 1.0;
+        mcu.run_until(clock_at(t, freq));
+    }
+    printer.hold_until(t);
+    Ok(t - start)
 }
 
 /// MCU clock at print time `t` (s), ticks (0 before the start).

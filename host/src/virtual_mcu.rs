@@ -2,11 +2,17 @@
 //! same engine the board runs from its timer interrupt
 //! ([`onechip_sched::engine::Engine`]), which is run forward as far as
 //! step generation has committed, each step recorded with its 64-bit
-//! clock. Homing moves stop at simulated endstops.
+//! clock. Homing moves stop at simulated endstops. The heaters and fan
+//! ([`Heaters`], the io the board runs from its second timer) run in the
+//! same virtual time against simulated physics ([`Plant`]); a fault of
+//! either shuts both down.
 
+use crate::thermal_plant::{ADC_MAX, Plant};
+use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
 use onechip_planner::homing::HomingMove;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
+use onechip_planner::machine::Machine;
 use onechip_sched::endstop::{Check, Endstop};
 use onechip_sched::engine::{Command, Engine};
 use onechip_sched::shutdown::Shutdown;
@@ -93,6 +99,8 @@ pub struct VirtualMcu {
     /// The homing move being watched: its start clock, and its endstop
     /// with the 64-bit clock of its next reading.
     watch: Option<(u64, Endstop, u64)>,
+    /// The heaters and fan, and their physics.
+    thermal: Option<(Heaters, Plant)>,
 }
 
 impl VirtualMcu {
@@ -107,9 +115,46 @@ impl VirtualMcu {
             physics: None,
             triggers: Vec::new(),
             watch: None,
+            thermal: None,
         };
         mcu.advance_clock(start);
         mcu
+    }
+
+    /// The same MCU with `machine`'s heaters and fan, simulated, on a
+    /// clock of `freq` Hz; first temperature readings 0.2 s from now.
+    pub fn with_heaters(mut self, machine: &Machine<'_>, freq: f64) -> Self {
+        let mut plant = Plant::new(machine, freq);
+        plant.now = self.now;
+        let first = self.now + (FIRST_REPORT * freq) as u64;
+        let heaters = Heaters::new(machine, freq, ADC_MAX, first as u32, &mut plant);
+        self.thermal = Some((heaters, plant));
+        self
+    }
+
+    /// The heaters and fan with their physics, if simulated.
+    pub fn thermal(&mut self) -> Option<(&Heaters, &mut Plant)> {
+        let now = self.now;
+        self.thermal.as_mut().map(|(h, p)| {
+            p.now = now;
+            (&*h, p)
+        })
+    }
+
+    /// Carries out a heater or fan command now.
+    pub fn thermal_command(&mut self, command: ThermalCommand) {
+        let now = self.now;
+        if let Some((heaters, plant)) = &mut self.thermal {
+            plant.now = now;
+            if let Err(reason) = heaters.command(command, now as u32, plant) {
+                self.engine.stop(reason);
+            }
+        }
+    }
+
+    /// The virtual time, ticks.
+    pub fn now(&self) -> u64 {
+        self.now
     }
 
     /// The same MCU with endstops where `physics` puts them.
@@ -118,20 +163,56 @@ impl VirtualMcu {
         self
     }
 
-    /// Runs every step before clock `until`, and moves virtual time there.
+    /// Runs every step and heater event before clock `until`, in time
+    /// order, and moves virtual time there (with `u64::MAX`: until the
+    /// steppers are idle).
     pub fn run_until(&mut self, until: u64) {
         self.refresh();
-        while let Some(at) = self.wake.filter(|&w| w < until) {
-            self.run_at(at);
+        loop {
+            let steps = self.wake.filter(|&w| w < until);
+            let io = self
+                .io_wake()
+                .filter(|&w| w < until && (until != u64::MAX || steps.is_some()));
+            match (steps, io) {
+                (Some(s), Some(i)) if i < s => self.run_io(i),
+                (Some(s), _) => self.run_at(s),
+                (None, Some(i)) => self.run_io(i),
+                (None, None) => break,
+            }
         }
         if until != u64::MAX {
             self.advance_clock(until);
         }
     }
 
+    /// When the heaters' io wants to run next, ticks.
+    fn io_wake(&self) -> Option<u64> {
+        let (heaters, _) = self.thermal.as_ref()?;
+        let wake = heaters.next_wake()?;
+        let ahead = wake.wrapping_sub(self.now as u32) as i32;
+        Some(self.now + u64::try_from(ahead).unwrap_or(0))
+    }
+
+    /// The heaters' timer at clock `at`; a fault stops the steppers too.
+    fn run_io(&mut self, at: u64) {
+        self.now = self.now.max(at);
+        let Some((heaters, plant)) = &mut self.thermal else {
+            return;
+        };
+        plant.now = self.now;
+        if let Err(reason) = heaters.run(self.now as u32, plant) {
+            self.engine.stop(reason);
+            self.wake = None;
+        }
+    }
+
     /// Why the MCU shut down, if it did.
     pub fn shutdown(&self) -> Option<Shutdown> {
-        self.engine.shutdown_reason()
+        self.engine.shutdown_reason().or_else(|| {
+            self.thermal
+                .as_ref()
+                .and_then(|(heaters, _)| heaters.shutdown_reason())
+        })
     }
 
     /// The steps each stepper made.
@@ -164,6 +245,13 @@ impl VirtualMcu {
         let next = self.engine.run(at as u32);
         self.wake = next.map(|n| at + u64::from(n.wrapping_sub(at as u32)));
         self.pushed = false;
+        if let Some(reason) = self.engine.shutdown_reason()
+            && let Some((heaters, plant)) = &mut self.thermal
+            && heaters.shutdown_reason().is_none()
+        {
+            plant.now = self.now;
+            heaters.shutdown(reason, plant);
+        }
     }
 
     /// Lets the engine see commands pushed since it last ran.

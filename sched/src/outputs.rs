@@ -9,7 +9,7 @@ use crate::clock::is_before;
 use crate::shutdown::Shutdown;
 
 /// Updates an output holds before [`Output::queue`] refuses more.
-pub const QUEUE: usize = 4;
+pub const QUEUE: usize = 8;
 
 /// How an output makes its level.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

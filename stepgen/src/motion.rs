@@ -336,6 +336,18 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     pub fn finish(&mut self, sink: &mut impl StepSink) {
         self.known_until = f64::INFINITY;
         self.generate(f64::INFINITY, sink);
+        self.flush_compressors(sink);
+    }
+
+    /// The toolhead stopped and waits (M109, M190): generates and sends
+    /// every step of the queued motion, so the MCU can run past its end.
+    pub fn settle(&mut self, sink: &mut impl StepSink) {
+        self.generate_through(sink);
+        self.flush_compressors(sink);
+    }
+
+    /// Sends every step the compressors hold.
+    fn flush_compressors(&mut self, sink: &mut impl StepSink) {
         for (i, ch) in self.channels.iter_mut().enumerate() {
             ch.compressor
                 .flush(&mut |cmd, clock| sink.command(i, cmd, clock));
@@ -422,11 +434,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             until += DRIP_TIME;
             let last = until >= homing.end_time;
             let sent = if last {
-                self.generate_through(sink);
-                for (i, ch) in self.channels.iter_mut().enumerate() {
-                    ch.compressor
-                        .flush(&mut |cmd, clock| sink.command(i, cmd, clock));
-                }
+                self.settle(sink);
                 end_clock
             } else {
                 self.generate(until, sink);

@@ -27,15 +27,28 @@ fn the_shipped_default_plans_cleanly() {
     assert!(s.gcode_path.ends_with("first-layer-square.gcode"));
     assert_eq!(s.kinematics, Kinematics::Cartesian);
     assert_eq!(s.errors, []);
-    assert_eq!(s.unsupported, ["heater_bed", "fan"]);
+    assert_eq!(s.unsupported, Vec::<String>::new());
     // Homing (3 moves per axis), 4 square sides, travel, z moves and the
     // final nudge; E on 7 of them.
     assert_eq!((s.toolhead_moves, s.extruder_moves), (20, 7));
     assert_eq!(s.final_position, [122.5, 117.5, 10.0, 6.86]);
+    assert_eq!(s.replies.len(), 2, "{:?}", s.replies);
+    assert!(s.replies[0].1.starts_with("T:"), "{:?}", s.replies);
     assert_eq!(
-        s.replies,
-        [(21, "X:122.500 Y:117.500 Z:10.000 E:6.860".to_string())]
+        s.replies[1],
+        (30, "X:122.500 Y:117.500 Z:10.000 E:6.860".to_string())
     );
+    // The bed (watermark, 60 °C) and the hot end (PID, 200 °C) heat while
+    // homing; M190 and M109 then wait until both have settled, and the
+    // print ends with both targets 0 and the fan off.
+    let [extruder, bed] = &s.heaters[..] else {
+        panic!("{:?}", s.heaters)
+    };
+    assert!((200.0..205.0).contains(&extruder.peak), "{extruder:?}");
+    assert!((60.0..63.0).contains(&bed.peak), "{bed:?}");
+    assert_eq!((extruder.target, bed.target), (0.0, 0.0));
+    assert!(s.heat_wait > 30.0 && s.heat_wait < 300.0, "{}", s.heat_wait);
+    assert_eq!(s.fan_speed, Some(0.0));
     // Every stepper moved, and nothing shut down; X and Y end where homing
     // and the moves put them relative to where they started.
     assert_eq!(s.shutdown, None);
@@ -43,7 +56,7 @@ fn the_shipped_default_plans_cleanly() {
     assert!(steps.iter().all(|&n| n > 0), "{steps:?}");
     // Z homes at Klipper's default 5 mm/s from 1.5 x its travel: ~75 s.
     assert!(
-        s.print_time > 100.0 && s.print_time < 110.0,
+        s.print_time - s.heat_wait > 100.0 && s.print_time - s.heat_wait < 110.0,
         "{}",
         s.print_time
     );

@@ -1,0 +1,193 @@
+//! The heaters and fan as physics, for the MCU role's io in virtual time:
+//! each heater is a lump that the heater output warms and the room cools
+//! (first order, exact between pin changes), read through its thermistor
+//! and a 12-bit ADC; every output's changes are tallied.
+
+use onechip_app::heaters::PWM_MAX;
+use onechip_planner::machine::Machine;
+use onechip_planner::thermal::Thermistor;
+use onechip_sched::io::Peripherals;
+use onechip_sched::outputs::Drive;
+
+/// Room temperature, °C.
+pub const AMBIENT: f64 = 25.0;
+/// The simulated ADC's full scale (12 bits, as the STM32H7's ADC3).
+pub const ADC_MAX: u16 = 4095;
+
+/// A heater as physics: power, heat loss and capacity.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeaterModel {
+    /// Heater power at full on, W.
+    pub watts: f64,
+    /// Heat loss to the room, W per K above it.
+    pub loss: f64,
+    /// Heat capacity, J/K.
+    pub capacity: f64,
+}
+
+impl HeaterModel {
+    /// A 40 W hot end: about 45 s from room temperature to 200 °C.
+    pub const HOTEND: Self = Self {
+        watts: 40.0,
+        loss: 40.0 / 325.0,
+        capacity: 7.4,
+    };
+    /// A 250 W bed: about 110 s to 60 °C.
+    pub const BED: Self = Self {
+        watts: 250.0,
+        loss: 250.0 / 115.0,
+        capacity: 650.0,
+    };
+}
+
+/// What one output did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct OutputLog {
+    /// Level changes (or duty changes).
+    pub changes: u64,
+    /// Ticks spent on (a digital output), or duty × ticks / full scale.
+    pub on_ticks: f64,
+    /// Its current state.
+    pub drive: Option<Drive>,
+    /// Clock of its last change, ticks.
+    pub since: u64,
+}
+
+/// A simulated heater.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Lump {
+    model: HeaterModel,
+    thermistor: Thermistor,
+    /// Temperature, °C, at clock `at`.
+    temp: f64,
+    at: u64,
+    /// Power now, 0..1.
+    power: f64,
+    /// Highest temperature reached, °C.
+    peak: f64,
+}
+
+impl Lump {
+    /// Runs the physics to clock `now` (exact for constant power).
+    fn advance(&mut self, now: u64, freq: f64) {
+        if now <= self.at {
+            return;
+        }
+        let dt = (now - self.at) as f64 / freq;
+        let settle = AMBIENT + self.power * self.model.watts / self.model.loss;
+        let decay = (-dt * self.model.loss / self.model.capacity).exp();
+        self.temp = settle + (self.temp - settle) * decay;
+        self.peak = self.peak.max(self.temp);
+        self.at = now;
+    }
+}
+
+/// The io's hardware in virtual time.
+#[derive(Debug, Clone)]
+pub struct Plant {
+    /// Virtual time, ticks: set before each run of the io.
+    pub now: u64,
+    freq: f64,
+    /// Heaters, in the machine's order (outputs and ADC inputs 0..).
+    lumps: Vec<Lump>,
+    /// Every output's log: heaters, then the fan.
+    pub outputs: Vec<OutputLog>,
+    /// From this clock on, heater `.1`'s thermistor reads as open circuit
+    /// (fault injection).
+    pub open_sensor: Option<(u64, usize)>,
+}
+
+impl Plant {
+    /// The heaters and fan of `machine` at room temperature, on an MCU
+    /// clock of `freq` Hz.
+    pub fn new(machine: &Machine<'_>, freq: f64) -> Self {
+        let lumps = machine
+            .heaters
+            .iter()
+            .map(|h| Lump {
+                model: if h.name == "heater_bed" {
+                    HeaterModel::BED
+                } else {
+                    HeaterModel::HOTEND
+                },
+                thermistor: h.thermistor,
+                temp: AMBIENT,
+                at: 0,
+                power: 0.0,
+                peak: AMBIENT,
+            })
+            .collect::<Vec<_>>();
+        let outputs = lumps.len() + usize::from(machine.fan.is_some());
+        Self {
+            now: 0,
+            freq,
+            lumps,
+            outputs: vec![OutputLog::default(); outputs],
+            open_sensor: None,
+        }
+    }
+
+    /// Heater `index`'s temperature now and the highest it reached, °C.
+    pub fn temperature(&mut self, index: usize) -> Option<(f64, f64)> {
+        let (now, freq) = (self.now, self.freq);
+        let lump = self.lumps.get_mut(index)?;
+        lump.advance(now, freq);
+        Some((lump.temp, lump.peak))
+    }
+
+    /// An output's power (0..1).
+    fn power(drive: Drive) -> f64 {
+        match drive {
+            Drive::Level(on) => f64::from(u8::from(on)),
+            Drive::Duty(d) => f64::from(d) / f64::from(PWM_MAX),
+        }
+    }
+
+    /// Ends every output's log at the current time.
+    pub fn finish(&mut self) {
+        for index in 0..self.outputs.len() {
+            if let Some(drive) = self.outputs[index].drive {
+                self.drive(index, drive);
+            }
+        }
+    }
+}
+
+impl Peripherals for Plant {
+    fn drive(&mut self, index: usize, drive: Drive) {
+        let now = self.now;
+        let Some(log) = self.outputs.get(index).copied() else {
+            return;
+        };
+        let mut log = log;
+        if let Some(before) = log.drive {
+            log.on_ticks += Self::power(before) * (now - log.since) as f64;
+            log.changes += u64::from(before != drive);
+        }
+        log.drive = Some(drive);
+        log.since = now;
+        self.outputs[index] = log;
+        let power = Self::power(drive);
+        let freq = self.freq;
+        if let Some(lump) = self.lumps.get_mut(index) {
+            lump.advance(now, freq);
+            lump.power = power;
+        }
+    }
+
+    fn read_adc(&mut self, index: usize) -> u16 {
+        let (now, freq) = (self.now, self.freq);
+        if self
+            .open_sensor
+            .is_some_and(|(from, heater)| heater == index && now >= from)
+        {
+            return ADC_MAX;
+        }
+        let Some(lump) = self.lumps.get_mut(index) else {
+            return 0;
+        };
+        lump.advance(now, freq);
+        let reading = lump.thermistor.adc(lump.temp) * f64::from(ADC_MAX);
+        reading.round().clamp(0.0, f64::from(ADC_MAX)) as u16
+    }
+}
