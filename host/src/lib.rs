@@ -21,6 +21,7 @@ use onechip_planner::config::{Config, ConfigFile};
 use onechip_planner::homing::HomingMove;
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_sched::outputs::Drive;
 use onechip_stepgen::motion::Motion;
 use std::fmt;
 use std::io::Write as _;
@@ -61,6 +62,9 @@ pub struct Options {
     /// If set, klippy's batch-mode timing decisions are replayed (see
     /// [`klippy_batch`]), to compare with its output step by step.
     pub klippy_batch: Option<klippy_batch::KlippyBatch>,
+    /// Fault injection: from print time `.0` (s) on, heater `.1`'s
+    /// thermistor reads as an open circuit.
+    pub open_sensor: Option<(f64, usize)>,
 }
 
 /// Where the toolhead really is at power-on.
@@ -85,6 +89,7 @@ impl Default for Options {
             start: Start::MidTravel,
             plot: None,
             klippy_batch: None,
+            open_sensor: None,
         }
     }
 }
@@ -117,6 +122,8 @@ pub struct HeaterSummary {
     pub peak: f64,
     /// Share of the run the heater output was on, 0..1.
     pub duty: f64,
+    /// The heater output is on at the end.
+    pub on_at_end: bool,
 }
 
 /// Longest a heater may take to reach its target in M109/M190, s.
@@ -384,6 +391,9 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     if let Some(physics) = physics(&machine, options.start, freq) {
         mcu = mcu.with_physics(physics);
     }
+    if let (Some((t, heater)), Some((_, plant))) = (options.open_sensor, mcu.thermal()) {
+        plant.open_sensor = Some((clock_at(t + origin, freq), heater));
+    }
     let mut summary = Summary {
         config_path,
         kinematics: machine.kinematics,
@@ -483,6 +493,11 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     printer.finish(&mut planned);
     motion.finish(&mut mcu);
     mcu.run_until(u64::MAX);
+    // The heaters run on to the end of the print (its last dwell).
+    let end = clock_at(printer.print_time(), freq);
+    if end > mcu.now() {
+        mcu.run_until(end);
+    }
     stopped(&motion, &mcu, &mut summary);
     summary.toolhead_moves = tally.toolhead;
     summary.extruder_moves = tally.extruder;
@@ -501,6 +516,10 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
                 temperature,
                 peak: plant.temperature(i).map_or(0.0, |t| t.1),
                 duty: plant.outputs.get(i).map_or(0.0, |o| o.on_ticks / run_ticks),
+                on_at_end: plant
+                    .outputs
+                    .get(i)
+                    .is_some_and(|o| o.drive == Some(Drive::Level(true))),
             });
         }
         summary.fan_speed = heaters.fan_speed();

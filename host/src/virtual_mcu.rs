@@ -168,20 +168,19 @@ impl VirtualMcu {
     /// steppers are idle).
     pub fn run_until(&mut self, until: u64) {
         self.refresh();
-        loop {
-            let steps = self.wake.filter(|&w| w < until);
-            let io = self
-                .io_wake()
-                .filter(|&w| w < until && (until != u64::MAX || steps.is_some()));
-            match (steps, io) {
-                (Some(s), Some(i)) if i < s => self.run_io(i),
-                (Some(s), _) => self.run_at(s),
-                (None, Some(i)) => self.run_io(i),
-                (None, None) => break,
-            }
+        while let Some(at) = self.wake.filter(|&w| w < until) {
+            self.run_at(at);
         }
         if until != u64::MAX {
+            self.run_io_before(until);
             self.advance_clock(until);
+        }
+    }
+
+    /// Runs the heaters' io at each of its wakes before clock `at`.
+    fn run_io_before(&mut self, at: u64) {
+        while let Some(wake) = self.io_wake().filter(|&w| w < at) {
+            self.run_io(wake);
         }
     }
 
@@ -236,8 +235,10 @@ impl VirtualMcu {
         core::array::from_fn(|k| self.engine.position(k).unwrap_or(0))
     }
 
-    /// The engine's timer interrupt at clock `at`.
+    /// The engine's timer interrupt at clock `at`, after the heaters'
+    /// events before it.
     fn run_at(&mut self, at: u64) {
+        self.run_io_before(at);
         for pins in self.engine.pins_mut() {
             pins.clock = at;
         }

@@ -47,7 +47,7 @@ fn the_shipped_default_plans_cleanly() {
     assert!((200.0..205.0).contains(&extruder.peak), "{extruder:?}");
     assert!((60.0..63.0).contains(&bed.peak), "{bed:?}");
     assert_eq!((extruder.target, bed.target), (0.0, 0.0));
-    assert!(s.heat_wait > 30.0 && s.heat_wait < 300.0, "{}", s.heat_wait);
+    assert!(s.heat_wait > 1.0 && s.heat_wait < 60.0, "{}", s.heat_wait);
     assert_eq!(s.fan_speed, Some(0.0));
     // Every stepper moved, and nothing shut down; X and Y end where homing
     // and the moves put them relative to where they started.
