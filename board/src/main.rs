@@ -9,6 +9,7 @@
 #![no_main]
 
 mod clocks;
+mod heater_io;
 mod octopus_pro_v1_1;
 mod priority;
 mod sd_card;
@@ -40,7 +41,7 @@ async fn main(spawner: Spawner) -> ! {
     let board = Board::take(p);
 
     let printer = match load_printer_cfg(board.sd).await {
-        Some(text) => build_printer(text),
+        Some(text) => build_printer(text, board.thermistors),
         None => None,
     };
 
@@ -82,9 +83,12 @@ async fn load_printer_cfg(pins: octopus_pro_v1_1::SdPins) -> Option<&'static str
 }
 
 /// Builds the printer described by printer.cfg; None (logged) if invalid.
-fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
+fn build_printer(
+    text: &'static str,
+    thermistors: octopus_pro_v1_1::ThermistorPins,
+) -> usb_console::BoardPrinter {
     static CONFIG: StaticCell<Config<'static>> = StaticCell::new();
-    static PRINTER: StaticCell<Printer<{ usb_console::LOOKAHEAD }>> = StaticCell::new();
+    static PRINTER: StaticCell<Printer<'static, { usb_console::LOOKAHEAD }>> = StaticCell::new();
     // Built in place: too large to pass through the stack.
     static MOTION: ConstStaticCell<usb_console::BoardMotion> =
         ConstStaticCell::new(Motion::empty());
@@ -101,6 +105,7 @@ fn build_printer(text: &'static str) -> usb_console::BoardPrinter {
                 defmt::info!("[{}] is not supported yet, ignored", section);
             }
             let homing = install_engine(&machine)?;
+            install_heaters(&machine, thermistors);
             // Steps within Klipper's 25 µs, on the stepper timer's clock.
             let max_error = (0.000_025 * step_timer::TIMER_HZ) as u32;
             let motion = MOTION.take();
@@ -163,6 +168,66 @@ fn install_engine(machine: &Machine<'_>) -> Option<usb_console::HomingSetup> {
     }
     step_timer::install(step_timer::BoardEngine::new(slots));
     Some(homing)
+}
+
+/// Configures the heaters' and fan's output pins and the thermistors'
+/// ADC channels, and hands them with the heater control to TIM2's
+/// interrupt. A pin that is not usable is logged; a heater whose output or
+/// thermistor is missing stays off (its range check shuts the printer
+/// down rather than heat blind).
+fn install_heaters(machine: &Machine<'_>, mut thermistors: octopus_pro_v1_1::ThermistorPins) {
+    if machine.heaters.is_empty() && machine.fan.is_none() {
+        return;
+    }
+    let mut machine = machine.clone();
+    if let Some(fan) = machine.fan.as_mut().filter(|f| f.hard_pwm) {
+        defmt::warn!("[fan] hard_pwm is not supported on this board yet: software PWM");
+        fan.hard_pwm = false;
+    }
+    let start = step_timer::now()
+        .wrapping_add((onechip_app::heaters::FIRST_REPORT * step_timer::TIMER_HZ) as u32);
+    let setup = onechip_app::heaters::McuSetup::new(
+        &machine,
+        step_timer::TIMER_HZ,
+        heater_io::ADC_MAX,
+        start,
+    );
+    let (mut outputs, mut channels) = (heapless::Vec::new(), heapless::Vec::new());
+    for (pin, _) in &setup.outputs {
+        match step_pins::OutPin::new(pin) {
+            Ok(out) => {
+                let _ = outputs.push(out);
+            }
+            Err(e) => {
+                defmt::warn!("heater/fan pin: {}", defmt::Display2Format(&e));
+                return;
+            }
+        }
+    }
+    for (pin, _) in &setup.inputs {
+        match thermistors.channel(pin) {
+            Some(channel) => {
+                let _ = channels.push(channel);
+            }
+            None => {
+                defmt::warn!("sensor_pin {} is not a thermistor input (PF3..PF7)", pin);
+                return;
+            }
+        }
+    }
+    let mut hw = heater_io::BoardPeripherals {
+        outputs,
+        adc: embassy_stm32::adc::Adc::new(thermistors.adc),
+        channels,
+    };
+    let heaters = onechip_app::heaters::Heaters::new(
+        &machine,
+        step_timer::TIMER_HZ,
+        heater_io::ADC_MAX,
+        start,
+        &mut hw,
+    );
+    heater_io::install(heaters, hw);
 }
 
 #[embassy_executor::task]

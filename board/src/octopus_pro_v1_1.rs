@@ -11,7 +11,10 @@
 //! dir PF12, enable !PF14) are named in `printer.cfg` and resolved at run time.
 
 use embassy_stm32::Peri;
-use embassy_stm32::peripherals::{PA11, PA12, PC8, PC9, PC10, PC11, PC12, PD2, SDMMC1, USB_OTG_HS};
+use embassy_stm32::adc::{AdcChannel, AnyAdcChannel};
+use embassy_stm32::peripherals::{
+    ADC3, PA11, PA12, PC8, PC9, PC10, PC11, PC12, PD2, PF3, PF4, PF5, PF6, PF7, SDMMC1, USB_OTG_HS,
+};
 use embassy_stm32::time::Hertz;
 
 /// Frequency of the board's crystal (HSE).
@@ -44,12 +47,46 @@ pub struct SdPins {
     ),
 }
 
+/// The thermistor inputs TB, T0..T3 (PF3..PF7, on ADC3) and ADC3.
+pub struct ThermistorPins {
+    /// The ADC that reads them.
+    pub adc: Peri<'static, ADC3>,
+    tb: Option<Peri<'static, PF3>>,
+    t0: Option<Peri<'static, PF4>>,
+    t1: Option<Peri<'static, PF5>>,
+    t2: Option<Peri<'static, PF6>>,
+    t3: Option<Peri<'static, PF7>>,
+}
+
+impl ThermistorPins {
+    /// The ADC channel of the thermistor input named `name` (`PF4`), once;
+    /// None for any other pin.
+    pub fn channel(&mut self, name: &str) -> Option<AnyAdcChannel<'static, ADC3>> {
+        let is = |pin: &str| name.trim().eq_ignore_ascii_case(pin);
+        if is("PF3") {
+            self.tb.take().map(AdcChannel::degrade_adc)
+        } else if is("PF4") {
+            self.t0.take().map(AdcChannel::degrade_adc)
+        } else if is("PF5") {
+            self.t1.take().map(AdcChannel::degrade_adc)
+        } else if is("PF6") {
+            self.t2.take().map(AdcChannel::degrade_adc)
+        } else if is("PF7") {
+            self.t3.take().map(AdcChannel::degrade_adc)
+        } else {
+            None
+        }
+    }
+}
+
 /// The board's fixed connections, taken out of the chip's peripherals.
 pub struct Board {
     /// USB console.
     pub usb: UsbPins,
     /// SD card.
     pub sd: SdPins,
+    /// Thermistor inputs.
+    pub thermistors: ThermistorPins,
 }
 
 impl Board {
@@ -66,6 +103,14 @@ impl Board {
                 clk: p.PC12,
                 cmd: p.PD2,
                 data: (p.PC8, p.PC9, p.PC10, p.PC11),
+            },
+            thermistors: ThermistorPins {
+                adc: p.ADC3,
+                tb: Some(p.PF3),
+                t0: Some(p.PF4),
+                t1: Some(p.PF5),
+                t2: Some(p.PF6),
+                t3: Some(p.PF7),
             },
         }
     }

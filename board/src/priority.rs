@@ -1,7 +1,9 @@
 //! Interrupt priorities (lower number = more urgent).
 //!
 //! The stepper engine's timer is alone at the top so that step pulses are
-//! never delayed by USB, SD card or the async executor's time driver.
+//! never delayed by USB, SD card or the async executor's time driver; the
+//! heaters' timer comes next, so that their safety rules hold however
+//! busy the rest is.
 //! embassy-time's driver enables its interrupt at priority 0 and must be
 //! lowered after `embassy_stm32::init`, which [`apply`] does.
 
@@ -9,10 +11,13 @@ use embassy_stm32::interrupt::{self, InterruptExt, Priority};
 
 /// The stepper engine's timer interrupt (TIM5).
 pub const STEPPER: Priority = Priority::P0;
+/// The heaters' and fan's timer (TIM2): output edges, thermistor
+/// readings, safety timeouts and heater control.
+pub const HEATERS: Priority = Priority::P1;
 /// embassy-time's timer (TIM4): wakes async tasks.
-pub const TIME_DRIVER: Priority = Priority::P1;
+pub const TIME_DRIVER: Priority = Priority::P2;
 /// USB, SDMMC and DMA.
-pub const PERIPHERALS: Priority = Priority::P2;
+pub const PERIPHERALS: Priority = Priority::P3;
 
 /// Sets the priorities of the interrupts that embassy enabled itself.
 pub fn apply() {

@@ -142,6 +142,11 @@ pub fn take_trigger() -> Option<u32> {
     with_engine(|e| e.take_trigger()).flatten()
 }
 
+/// Stops every stepper for `reason` (a heater fault).
+pub fn stop(reason: onechip_sched::shutdown::Shutdown) {
+    with_engine(|e| e.stop(reason));
+}
+
 /// Why the engine shut down, if it did.
 pub fn shutdown_reason() -> Option<onechip_sched::shutdown::Shutdown> {
     with_engine(|e| e.shutdown_reason()).flatten()

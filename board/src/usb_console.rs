@@ -14,9 +14,10 @@ use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
 use embassy_usb::driver::EndpointError;
 use embassy_usb::{Builder, UsbDevice};
 use onechip_app::console::error_text;
+use onechip_app::heaters::ThermalCommand;
 use onechip_app::line::{Line, LineAssembler};
+use onechip_app::printer::LineError;
 use onechip_app::printer::{PRIMING_TIME, Printer};
-use onechip_planner::gcode_move::CommandError;
 use onechip_planner::homing::HomingMove;
 use onechip_planner::machine::MAX_STEPPERS;
 use onechip_sched::endstop::Endstop;
@@ -54,7 +55,7 @@ pub type BoardMotion = Motion<MOTION_QUEUE, COMPRESS_QUEUE>;
 /// The printer and its step generation (both live in statics).
 pub struct Machinery {
     /// G-code to planned moves.
-    pub printer: &'static mut Printer<LOOKAHEAD>,
+    pub printer: &'static mut Printer<'static, LOOKAHEAD>,
     /// Planned moves to step commands for the engine.
     pub motion: &'static mut BoardMotion,
     /// What homing needs.
@@ -149,7 +150,7 @@ enum RunError<'l> {
     /// homing move would run its whole length into the endstop.
     NoEndstops,
     /// The printer refused the command.
-    Command(CommandError<'l>),
+    Command(LineError<'l>),
 }
 
 impl fmt::Display for RunError<'_> {
@@ -253,6 +254,8 @@ async fn answer_lines(
         for &byte in &packet[..n] {
             if let Some(event) = lines.push(byte) {
                 let mut reply = heapless::String::<MAX_REPLY>::new();
+                // A heater to wait for (M109, M190) before answering.
+                let mut wait = None;
                 let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer.as_mut()
                 {
                     Some(m)
@@ -272,6 +275,18 @@ async fn answer_lines(
                             .execute(text, &mut m.motion.sink(&mut steps), out)
                             .map_err(|e| error_text(&RunError::Command(e)));
                         m.motion.generate(f64::INFINITY, &mut steps);
+                        while let Some(command) = m.printer.take_thermal() {
+                            match command {
+                                ThermalCommand::Report => crate::heater_io::report(out),
+                                ThermalCommand::Target {
+                                    heater, wait: true, ..
+                                } => {
+                                    crate::heater_io::command(command);
+                                    wait = Some(heater);
+                                }
+                                _ => crate::heater_io::command(command),
+                            }
+                        }
                         result
                     }
                     None => Err(error_text(&RunError::NoConfig)),
@@ -284,10 +299,30 @@ async fn answer_lines(
                 if let Line::TooLong { len } = event {
                     defmt::warn!("dropped a {} byte line", len);
                 }
+                if let Some(heater) = wait {
+                    wait_for_heater(class, heater).await?;
+                }
                 send(class, reply.as_bytes()).await?;
             }
         }
     }
+}
+
+/// Waits until `heater` has reached its target (or everything shut
+/// down), reporting temperatures once a second as Klipper does.
+async fn wait_for_heater(
+    class: &mut CdcAcmClass<'static, UsbDriver>,
+    heater: usize,
+) -> Result<(), EndpointError> {
+    while crate::heater_io::busy(heater) {
+        Timer::after(Duration::from_secs(1)).await;
+        let mut line = heapless::String::<64>::new();
+        crate::heater_io::report(&mut line);
+        // Fits: two heaters' report is about 30 bytes.
+        let _ = line.push('\n');
+        send(class, line.as_bytes()).await?;
+    }
+    Ok(())
 }
 
 /// Sends `data` in packets; a reply that fills its last packet exactly is
