@@ -12,6 +12,19 @@ pub fn is_before(a: u32, b: u32) -> bool {
     (a.wrapping_sub(b) as i32) < 0
 }
 
+/// The earlier of two optional clocks (by wrapping order).
+pub fn earliest(a: Option<u32>, b: Option<u32>) -> Option<u32> {
+    match (a, b) {
+        (Some(a), Some(b)) => Some(if is_before(b, a) { b } else { a }),
+        (a, b) => a.or(b),
+    }
+}
+
+/// `at`, if it is due at clock `now` (not after it).
+pub fn due(at: Option<u32>, now: u32) -> Option<u32> {
+    at.filter(|&at| !is_before(now, at))
+}
+
 /// Rebuilds a monotonic 64-bit clock from 32-bit readings.
 ///
 /// Invariant: consecutive readings passed to [`Extender::extend`] are less

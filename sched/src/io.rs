@@ -10,7 +10,8 @@
 //! too.
 
 use crate::adc::{AdcQuery, AdcReport, AnalogIn};
-use crate::outputs::{Drive, Output, OutputConfig, QueueError, earliest};
+use crate::clock::{due, earliest};
+use crate::outputs::{Drive, Output, OutputConfig, QueueError};
 use crate::shutdown::Shutdown;
 
 /// The hardware behind the outputs and ADC inputs. Indices are the order
@@ -146,10 +147,7 @@ impl<const O: usize, const A: usize> Io<O, A> {
             }
         }
         for (index, input) in self.inputs.iter_mut().enumerate() {
-            while input
-                .next_event()
-                .is_some_and(|at| !crate::clock::is_before(now, at))
-            {
+            while due(input.next_event(), now).is_some() {
                 input.sample(hw.read_adc(index))?;
             }
         }

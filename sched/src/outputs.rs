@@ -5,7 +5,7 @@
 //! again within `max_duration` ticks, or everything shuts down (a heater
 //! must not stay on when the host role stops controlling it).
 
-use crate::clock::is_before;
+use crate::clock::{due, earliest, is_before};
 use crate::shutdown::Shutdown;
 
 /// Updates an output holds before [`Output::queue`] refuses more.
@@ -75,19 +75,6 @@ pub struct Output {
     expires: Option<u32>,
     /// Updates to come: clock, value; in clock order.
     queue: heapless::Deque<(u32, u32), QUEUE>,
-}
-
-/// The earlier of two optional clocks (by wrapping order).
-pub(crate) fn earliest(a: Option<u32>, b: Option<u32>) -> Option<u32> {
-    match (a, b) {
-        (Some(a), Some(b)) => Some(if is_before(b, a) { b } else { a }),
-        (a, b) => a.or(b),
-    }
-}
-
-/// `at`, if it is due at clock `now`.
-fn due(at: Option<u32>, now: u32) -> Option<u32> {
-    at.filter(|&at| !is_before(now, at))
 }
 
 impl Output {
