@@ -220,6 +220,12 @@ pub struct McuSetup<'a> {
     pub inputs: heapless::Vec<(&'a str, AdcQuery), MAX_HEATERS>,
 }
 
+/// A fraction (0..1) of an output's full scale, rounded, as Klipper's
+/// `set_pwm` computes on ticks or duty.
+fn scaled(fraction: f64, full: u32) -> u32 {
+    (fraction * f64::from(full) + 0.5) as u32
+}
+
 /// Seconds to ticks, as Klipper's `seconds_to_clock` (truncated).
 fn ticks(seconds: f64, freq: f64) -> u32 {
     (seconds * freq) as u32
@@ -250,7 +256,7 @@ impl<'a> McuSetup<'a> {
         }
         if let Some(fan) = &machine.fan {
             let (kind, full) = fan_output(fan, freq);
-            let default = (fan.shutdown_speed.min(fan.max_power) * f64::from(full) + 0.5) as u32;
+            let default = scaled(fan.shutdown_speed.min(fan.max_power), full);
             let output = OutputConfig {
                 kind,
                 value: 0,
@@ -449,7 +455,7 @@ impl Heaters {
         let at = report.clock.wrapping_add(self.pwm_delay);
         h.refresh_by = at.wrapping_add(self.refresh_ticks);
         h.last_power = power;
-        let on_ticks = (power * f64::from(h.cycle_ticks) + 0.5) as u32;
+        let on_ticks = scaled(power, h.cycle_ticks);
         self.queue(index, at, on_ticks, now, hw)
     }
 
@@ -514,13 +520,12 @@ impl Heaters {
         }
         // Never before now (a command may name a time already past).
         let clock = if is_before(clock, now) { now } else { clock };
-        let value = |s: f64| (s * f64::from(c.full) + 0.5) as u32;
         let mut at = clock;
         if speed > 0.0 && speed < c.max_power && c.kick_ticks > 0 && speed - fan.speed > 0.5 {
-            self.queue(index, at, value(c.max_power), now, hw)?;
+            self.queue(index, at, scaled(c.max_power, c.full), now, hw)?;
             at = at.wrapping_add(c.kick_ticks);
         }
-        self.queue(index, at, value(speed), now, hw)?;
+        self.queue(index, at, scaled(speed, c.full), now, hw)?;
         if let Some(f) = &mut self.fan {
             f.speed = speed;
         }
@@ -575,10 +580,5 @@ impl Heaters {
     /// Shuts every output down (the steppers faulted).
     pub fn shutdown(&mut self, reason: Shutdown, hw: &mut impl Peripherals) {
         self.io.shutdown(reason, hw);
-    }
-
-    /// The MCU clock frequency, Hz.
-    pub fn freq(&self) -> f64 {
-        self.freq
     }
 }

@@ -443,7 +443,8 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
                     }
                     while let Some(command) = printer.take_thermal() {
                         let waits = options.klippy_batch.is_none();
-                        let outcome = thermal(command, waits, &mut printer, &mut motion, &mut mcu);
+                        let outcome =
+                            thermal(command, waits, &mut printer, &mut motion, &mut mcu, freq);
                         match outcome {
                             Ok(waited) => summary.heat_wait += waited,
                             Err(e) => summary.errors.push((summary.lines, e)),
@@ -634,6 +635,7 @@ fn thermal<const N: usize, const Q: usize>(
     printer: &mut Printer<'_, LOOKAHEAD>,
     motion: &mut Motion<N, Q>,
     mcu: &mut VirtualMcu,
+    freq: f64,
 ) -> Result<f64, String> {
     mcu.thermal_command(command);
     let ThermalCommand::Target {
@@ -650,7 +652,6 @@ fn thermal<const N: usize, const Q: usize>(
     }
     // Every planned move runs to its end, then time passes a second at a
     // time (as Klipper's wait loop) until the heater has settled.
-    let freq = mcu.thermal().map_or(BOARD_CLOCK, |(h, _)| h.freq());
     motion.settle(mcu);
     let start = printer
         .print_time()

@@ -156,17 +156,15 @@ impl Plant {
 impl Peripherals for Plant {
     fn drive(&mut self, index: usize, drive: Drive) {
         let now = self.now;
-        let Some(log) = self.outputs.get(index).copied() else {
+        let Some(log) = self.outputs.get_mut(index) else {
             return;
         };
-        let mut log = log;
         if let Some(before) = log.drive {
             log.on_ticks += Self::power(before) * (now - log.since) as f64;
             log.changes += u64::from(before != drive);
         }
         log.drive = Some(drive);
         log.since = now;
-        self.outputs[index] = log;
         let power = Self::power(drive);
         let freq = self.freq;
         if let Some(lump) = self.lumps.get_mut(index) {
