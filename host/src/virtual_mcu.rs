@@ -101,6 +101,9 @@ pub struct VirtualMcu {
     watch: Option<(u64, Endstop, u64)>,
     /// The heaters and fan, and their physics.
     thermal: Option<(Heaters, Plant)>,
+    /// When the heaters' io wants to run next, ticks (kept up to date
+    /// whenever the io changes, so the engine's steps need not ask).
+    io_wake: Option<u64>,
 }
 
 impl VirtualMcu {
@@ -116,6 +119,7 @@ impl VirtualMcu {
             triggers: Vec::new(),
             watch: None,
             thermal: None,
+            io_wake: None,
         };
         mcu.advance_clock(start);
         mcu
@@ -129,6 +133,7 @@ impl VirtualMcu {
         let first = self.now + (FIRST_REPORT * freq) as u64;
         let heaters = Heaters::new(machine, freq, ADC_MAX, first as u32, &mut plant);
         self.thermal = Some((heaters, plant));
+        self.update_io_wake();
         self
     }
 
@@ -149,6 +154,7 @@ impl VirtualMcu {
             if let Err(reason) = heaters.command(command, now as u32, plant) {
                 self.engine.stop(reason);
             }
+            self.update_io_wake();
         }
     }
 
@@ -172,24 +178,24 @@ impl VirtualMcu {
             self.run_at(at);
         }
         if until != u64::MAX {
-            self.run_io_before(until);
             self.advance_clock(until);
         }
     }
 
     /// Runs the heaters' io at each of its wakes before clock `at`.
     fn run_io_before(&mut self, at: u64) {
-        while let Some(wake) = self.io_wake().filter(|&w| w < at) {
+        while let Some(wake) = self.io_wake.filter(|&w| w < at) {
             self.run_io(wake);
         }
     }
 
-    /// When the heaters' io wants to run next, ticks.
-    fn io_wake(&self) -> Option<u64> {
-        let (heaters, _) = self.thermal.as_ref()?;
-        let wake = heaters.next_wake()?;
-        let ahead = wake.wrapping_sub(self.now as u32) as i32;
-        Some(self.now + u64::try_from(ahead).unwrap_or(0))
+    /// Reads when the heaters' io wants to run next (a wake already due
+    /// counts as now).
+    fn update_io_wake(&mut self) {
+        self.io_wake = self.thermal.as_ref().and_then(|(heaters, _)| {
+            let ahead = heaters.next_wake()?.wrapping_sub(self.now as u32) as i32;
+            Some(self.now + u64::try_from(ahead).unwrap_or(0))
+        });
     }
 
     /// The heaters' timer at clock `at`; a fault stops the steppers too.
@@ -203,6 +209,7 @@ impl VirtualMcu {
             self.engine.stop(reason);
             self.wake = None;
         }
+        self.update_io_wake();
     }
 
     /// Why the MCU shut down, if it did.
@@ -252,6 +259,7 @@ impl VirtualMcu {
         {
             plant.now = self.now;
             heaters.shutdown(reason, plant);
+            self.update_io_wake();
         }
     }
 
