@@ -9,9 +9,9 @@
 //! fault stops the steppers; a stepper fault turns the heaters off.
 //! Outputs are GPIOs ([`OutPin`]); thermistors are read with ADC3.
 
+use crate::handler_cell::HandlerCell;
 use crate::step_pins::OutPin;
 use crate::step_timer;
-use core::cell::UnsafeCell;
 use embassy_stm32::adc::{Adc, AnyAdcChannel, SampleTime};
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
@@ -65,34 +65,19 @@ struct Io {
     hw: BoardPeripherals,
 }
 
-/// Invariant: only TIM2's handler touches it outside a critical section;
-/// thread code touches it only inside one; the handler does not preempt
-/// itself.
-struct IoCell(UnsafeCell<Option<Io>>);
-
-// SAFETY: by the invariant above, no two accesses ever overlap.
-unsafe impl Sync for IoCell {}
-
-static IO: IoCell = IoCell(UnsafeCell::new(None));
+/// The io, once installed; it belongs to TIM2's handler.
+static IO: HandlerCell<Io> = HandlerCell::new();
 
 /// Runs `f` on the io with interrupts masked; None before it is
 /// installed.
 fn with_io<R>(f: impl FnOnce(&mut Io) -> R) -> Option<R> {
-    critical_section::with(|_| {
-        // SAFETY: interrupts are masked, so TIM2's handler is not running
-        // and cannot start; this is the only reference (invariant above).
-        let io = unsafe { &mut *IO.0.get() };
-        io.as_mut().map(f)
-    })
+    IO.with(f)
 }
 
 /// Hands the heaters and their hardware to TIM2's interrupt and starts
 /// it.
 pub fn install(heaters: Heaters, hw: BoardPeripherals) {
-    critical_section::with(|_| {
-        // SAFETY: as in `with_io`.
-        unsafe { *IO.0.get() = Some(Io { heaters, hw }) };
-    });
+    IO.install(Io { heaters, hw });
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
     let tim = pac::TIM2;
     tim.psc().write_value(0);
@@ -103,8 +88,8 @@ pub fn install(heaters: Heaters, hw: BoardPeripherals) {
     tim.dier().write(|w| w.set_ccie(0, true));
     tim.cr1().modify(|w| w.set_cen(true));
     interrupt::TIM2.set_priority(crate::priority::HEATERS);
-    // SAFETY: the handler below touches TIM2 and the io, by the io's
-    // invariant.
+    // SAFETY: the handler below touches TIM2 and the io, as the io's
+    // `HandlerCell` allows.
     unsafe { interrupt::TIM2.enable() };
 }
 
@@ -130,8 +115,8 @@ pub fn report(out: &mut impl core::fmt::Write) {
 #[interrupt]
 fn TIM2() {
     pac::TIM2.sr().write_value(Default::default());
-    // SAFETY: this is TIM2's handler (io invariant above).
-    let Some(io) = (unsafe { &mut *IO.0.get() }) else {
+    // SAFETY: this is TIM2's handler, which owns the io.
+    let Some(io) = (unsafe { IO.in_handler() }) else {
         return;
     };
     let now = step_timer::now();

@@ -9,6 +9,7 @@
 #![no_main]
 
 mod clocks;
+mod handler_cell;
 mod heater_io;
 mod octopus_pro_v1_1;
 mod priority;

@@ -10,8 +10,8 @@
 //! to its timer interrupt: thread code reaches it only with interrupts
 //! masked, so the interrupt itself takes no lock.
 
+use crate::handler_cell::HandlerCell;
 use crate::step_pins::StepperPins;
-use core::cell::UnsafeCell;
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
 use embassy_stm32::pac;
@@ -50,28 +50,13 @@ impl StepTimer for Tim5 {
     }
 }
 
-/// The engine, once installed.
-///
-/// Invariant: only TIM5's handler touches it outside a critical section;
-/// thread code touches it only inside one (interrupts masked, so the
-/// handler cannot run meanwhile); no other interrupt touches it; the
-/// handler does not preempt itself.
-struct EngineCell(UnsafeCell<Option<BoardEngine>>);
-
-// SAFETY: by the invariant above, no two accesses ever overlap.
-unsafe impl Sync for EngineCell {}
-
-static ENGINE: EngineCell = EngineCell(UnsafeCell::new(None));
+/// The engine, once installed; it belongs to TIM5's handler.
+static ENGINE: HandlerCell<BoardEngine> = HandlerCell::new();
 
 /// Runs `f` on the engine with interrupts masked; None before it is
 /// installed.
 fn with_engine<R>(f: impl FnOnce(&mut BoardEngine) -> R) -> Option<R> {
-    critical_section::with(|_| {
-        // SAFETY: interrupts are masked, so TIM5's handler is not running
-        // and cannot start; this is the only reference (invariant above).
-        let engine = unsafe { &mut *ENGINE.0.get() };
-        engine.as_mut().map(f)
-    })
+    ENGINE.with(f)
 }
 
 /// Starts TIM5 counting from 0 and arms its first compare interrupt.
@@ -86,8 +71,8 @@ pub fn start() {
     tim.dier().write(|w| w.set_ccie(0, true));
     tim.cr1().modify(|w| w.set_cen(true));
     interrupt::TIM5.set_priority(crate::priority::STEPPER);
-    // SAFETY: the handler below touches TIM5 and the engine, by the
-    // engine's invariant.
+    // SAFETY: the handler below touches TIM5 and the engine, as the
+    // engine's `HandlerCell` allows.
     unsafe { interrupt::TIM5.enable() };
 }
 
@@ -98,10 +83,7 @@ pub fn now() -> u32 {
 
 /// Hands the engine to the interrupt.
 pub fn install(engine: BoardEngine) {
-    critical_section::with(|_| {
-        // SAFETY: as in `with_engine`.
-        unsafe { *ENGINE.0.get() = Some(engine) };
-    });
+    ENGINE.install(engine);
     raise();
 }
 
@@ -156,8 +138,8 @@ pub fn shutdown_reason() -> Option<onechip_sched::shutdown::Shutdown> {
 fn TIM5() {
     // Only the compare-1 interrupt is enabled: clear every flag.
     pac::TIM5.sr().write_value(Default::default());
-    // SAFETY: this is TIM5's handler (engine invariant above).
-    if let Some(engine) = unsafe { &mut *ENGINE.0.get() } {
+    // SAFETY: this is TIM5's handler, which owns the engine.
+    if let Some(engine) = unsafe { ENGINE.in_handler() } {
         engine.on_timer(&mut Tim5);
     }
 }
