@@ -14,25 +14,8 @@
 
 use onechip_host::klippy_batch::KlippyBatch;
 use onechip_host::{Options, Start};
-use std::path::{Path, PathBuf};
-
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
-
-fn summary_value(case: &str, key: &str) -> f64 {
-    let text =
-        std::fs::read_to_string(golden_dir().join(case).join("summary.txt")).expect("summary");
-    text.lines()
-        .find_map(|l| l.strip_prefix(&format!("{key} ")))
-        .expect("key")
-        .trim()
-        .parse()
-        .expect("number")
-}
+use onechip_tests::{golden_dir, summary_value};
+use std::path::Path;
 
 fn steps(path: &Path) -> Vec<(u64, bool)> {
     std::fs::read_to_string(path)

@@ -7,15 +7,9 @@ use onechip_app::heaters::McuSetup;
 use onechip_planner::config::Config;
 use onechip_planner::machine::Machine;
 use onechip_sched::outputs::OutputKind;
+use onechip_tests::{golden_dir, summary_value};
 use std::collections::HashMap;
 use std::path::PathBuf;
-
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
 
 fn read(path: PathBuf) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
@@ -65,12 +59,7 @@ fn heater_and_thermistor_configuration_matches_klippy() {
             .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
             .and_then(|n| n.parse().ok())
             .expect("ADC_MAX");
-        let summary = read(golden_dir().join(format!("{case}/summary.txt")));
-        let freq: f64 = summary
-            .lines()
-            .find_map(|l| l.strip_prefix("clock_freq "))
-            .and_then(|f| f.trim().parse().ok())
-            .expect("clock_freq");
+        let freq = summary_value(case, "clock_freq");
         let setup = McuSetup::new(&machine, freq, adc_max, 0);
         let commands = read(golden_dir().join(format!("{case}/mcu-commands.txt")));
 
