@@ -3,41 +3,31 @@
 
 use onechip_planner::gcode::{Command, parse};
 use std::collections::BTreeMap;
-use std::path::PathBuf;
-
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
 
 #[test]
 fn all_golden_gcode_parses() {
     let mut seen: BTreeMap<String, usize> = BTreeMap::new();
-    let mut files = 0;
-    for entry in std::fs::read_dir(golden_dir().join("gcode")).expect("golden gcode folder") {
-        let path = entry.expect("entry").path();
-        let text = std::fs::read_to_string(&path).expect("UTF-8 G-code");
-        files += 1;
+    let cases = onechip_golden::cases();
+    for case in &cases {
+        let text = onechip_golden::gcode(case);
+        let path = format!("gcode/{case}.gcode");
         for (number, line) in text.lines().enumerate() {
-            let parsed = parse(line)
-                .unwrap_or_else(|e| panic!("{}:{}: {e}: {line}", path.display(), number + 1));
+            let parsed =
+                parse(line).unwrap_or_else(|e| panic!("{path}:{}: {e}: {line}", number + 1));
             let name = match parsed.command {
                 Command::Empty => continue,
                 Command::Traditional(t) => {
                     for p in t.params() {
                         if p.key.len() == 1 && !p.value.is_empty() {
-                            t.float(p.key).unwrap_or_else(|e| {
-                                panic!("{}:{}: {e}", path.display(), number + 1)
-                            });
+                            t.float(p.key)
+                                .unwrap_or_else(|e| panic!("{path}:{}: {e}", number + 1));
                         }
                     }
                     format!("{}{}", t.letter as char, t.number)
                 }
                 Command::Extended(e) => {
                     for p in e.params() {
-                        p.unwrap_or_else(|err| panic!("{}:{}: {err}", path.display(), number + 1));
+                        p.unwrap_or_else(|err| panic!("{path}:{}: {err}", number + 1));
                     }
                     e.name.to_ascii_uppercase()
                 }
@@ -45,7 +35,7 @@ fn all_golden_gcode_parses() {
             *seen.entry(name).or_default() += 1;
         }
     }
-    assert_eq!(files, 15);
+    assert_eq!(cases.len(), 15, "{cases:?}");
     for expected in [
         "G1", "G4", "G90", "G91", "G92", "M82", "M83", "M204", "M220", "M221", "M400", "G28",
     ] {

@@ -4,40 +4,22 @@
 //! Each case also runs with the print starting 24 h in, with the same
 //! tolerances (time stamps are large then; durations must not drift).
 
+use onechip_golden::{Trapq, config, config_for, moves, trapq_moves};
 use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
-use std::path::PathBuf;
-
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
 
 #[derive(Default, Clone)]
-struct Recorder(Vec<(&'static str, TrapqMove)>);
+struct Recorder(Vec<(Trapq, TrapqMove)>);
 
 impl MoveSink for Recorder {
     fn toolhead(&mut self, m: &TrapqMove) {
-        self.0.push(("toolhead", *m));
+        self.0.push((Trapq::Toolhead, *m));
     }
     fn extruder(&mut self, m: &TrapqMove) {
-        self.0.push(("extruder", *m));
-    }
-}
-
-fn config_for(case: &str) -> &'static str {
-    match case.split('_').next() {
-        Some("corexy") => "corexy.cfg",
-        Some("delta") => "delta.cfg",
-        Some("shaper") => "cartesian_shaper.cfg",
-        Some("avr") => "cartesian_avr.cfg",
-        Some("h723") => "cartesian_h723.cfg",
-        _ => "cartesian.cfg",
+        self.0.push((Trapq::Extruder, *m));
     }
 }
 
@@ -47,17 +29,15 @@ fn config_for(case: &str) -> &'static str {
 /// own processing speed, so the timer is fired at the chunk boundaries where
 /// the golden plan stops exactly at the last move queued so far.
 /// `time_origin` starts the clock that many seconds in.
-fn plan(case: &str, time_origin: f64) -> Vec<(&'static str, TrapqMove)> {
-    let dir = golden_dir();
-    let cfg_text =
-        std::fs::read_to_string(dir.join("configs").join(config_for(case))).expect("config");
+fn plan(case: &str, time_origin: f64) -> Vec<(Trapq, TrapqMove)> {
+    let cfg_text = config(config_for(case));
     let config = Config::parse(config_for(case), &cfg_text).expect("config parses");
     let machine = Machine::from_config(&config).unwrap_or_else(|e| panic!("{case}: {e}"));
     let mut toolhead = machine.toolhead::<4096>().with_time_origin(time_origin);
     let mut gcode = GcodeMove::default();
     let mut rec = Recorder::default();
     let golden_stops = golden_stops(case);
-    let program = std::fs::read(dir.join("gcode").join(format!("{case}.gcode"))).expect("gcode");
+    let program = onechip_golden::gcode(case).into_bytes();
     let mut replies = String::new();
     let mut pending = Vec::new();
     let mut line_no = 0;
@@ -81,7 +61,7 @@ fn plan(case: &str, time_origin: f64) -> Vec<(&'static str, TrapqMove)> {
             .1
             .0
             .iter()
-            .filter(|(q, _)| *q == "toolhead")
+            .filter(|(q, _)| *q == Trapq::Toolhead)
             .count()
             .checked_sub(1);
         if trial.1.0.len() > rec.0.len()
@@ -96,32 +76,17 @@ fn plan(case: &str, time_origin: f64) -> Vec<(&'static str, TrapqMove)> {
 
 /// Indices of golden toolhead moves that end at rest.
 fn golden_stops(case: &str) -> Vec<usize> {
-    golden_moves(case)
+    trapq_moves(case, Trapq::Toolhead)
         .iter()
-        .filter(|(q, _)| q == "toolhead")
         .enumerate()
-        .filter(|(_, (_, g))| (g[11] - g[12] * g[3]).abs() < 1e-9)
+        .filter(|(_, g)| g.ends_at_rest())
         .map(|(i, _)| i)
-        .collect()
-}
-
-fn golden_moves(case: &str) -> Vec<(String, [f64; 13])> {
-    let text =
-        std::fs::read_to_string(golden_dir().join(case).join("moves.tsv")).expect("moves.tsv");
-    text.lines()
-        .skip(1)
-        .map(|l| {
-            let mut f = l.split('\t');
-            let name = f.next().expect("trapq").to_string();
-            let v: Vec<f64> = f.map(|x| x.parse().expect("float")).collect();
-            (name, v.try_into().expect("13 numbers"))
-        })
         .collect()
 }
 
 fn check_case(case: &str, time_origin: f64) {
     let mut ours = plan(case, time_origin);
-    let golden = golden_moves(case);
+    let golden = moves(case);
     assert_eq!(ours.len(), golden.len(), "{case}: number of planned moves");
     // When the queue is idle, klippy restarts only once its batch-mode step
     // flushing lets it, and that flushing runs on its reactor's schedule
@@ -132,8 +97,8 @@ fn check_case(case: &str, time_origin: f64) {
     let mut resyncs = 0;
     for (i, (_, m)) in ours.iter_mut().enumerate() {
         let planned = m.print_time - time_origin + shift;
-        let lag = golden[i].1[0] - planned;
-        let new_move = i == 0 || golden[i].1[0] != golden[i - 1].1[0];
+        let lag = golden[i].print_time - planned;
+        let new_move = i == 0 || golden[i].print_time != golden[i - 1].print_time;
         if m.start_v == 0.0 && new_move && lag > 1e-6 && lag < 0.5 {
             shift += lag;
             resyncs += 1;
@@ -144,26 +109,29 @@ fn check_case(case: &str, time_origin: f64) {
         resyncs <= 2,
         "{case}: {resyncs} restarts later than planned"
     );
-    for (i, ((name, m), (gname, g))) in ours.iter().zip(&golden).enumerate() {
-        let ctx = format!("{case} move {i} ({gname}): ours {m:?}\n golden {g:?}");
-        assert_eq!(name, gname, "{ctx}");
+    for (i, ((trapq, m), g)) in ours.iter().zip(&golden).enumerate() {
+        let ctx = format!("{case} move {i}: ours {trapq:?} {m:?}\n golden {g:?}");
+        assert_eq!(*trapq, g.trapq, "{ctx}");
         let time = |a: f64, b: f64| (a - b).abs() <= 1e-6;
         let vel = |a: f64, b: f64| (a - b).abs() <= 1e-3 || (a - b).abs() <= 1e-4 * b.abs();
         let pos = |a: f64, b: f64| (a - b).abs() <= 1e-3; // 1 µm
-        assert!(time(m.print_time, g[0]), "print_time {ctx}");
+        assert!(time(m.print_time, g.print_time), "print_time {ctx}");
         assert!(
-            time(m.accel_t, g[1]) && time(m.cruise_t, g[2]) && time(m.decel_t, g[3]),
+            time(m.accel_t, g.accel_t)
+                && time(m.cruise_t, g.cruise_t)
+                && time(m.decel_t, g.decel_t),
             "phases {ctx}"
         );
+        let (start_pos, axes_r) = (g.start_pos(), g.axes_r());
         for k in 0..3 {
-            assert!(pos(m.start_pos[k], g[4 + k]), "start_pos[{k}] {ctx}");
-            assert!((m.axes_r[k] - g[7 + k]).abs() <= 1e-9, "axes_r[{k}] {ctx}");
+            assert!(pos(m.start_pos[k], start_pos[k]), "start_pos[{k}] {ctx}");
+            assert!((m.axes_r[k] - axes_r[k]).abs() <= 1e-9, "axes_r[{k}] {ctx}");
         }
         assert!(
-            vel(m.start_v, g[10]) && vel(m.cruise_v, g[11]),
+            vel(m.start_v, g.start_v) && vel(m.cruise_v, g.cruise_v),
             "velocities {ctx}"
         );
-        assert!(vel(m.accel, g[12]), "accel {ctx}");
+        assert!(vel(m.accel, g.accel), "accel {ctx}");
     }
 }
 
@@ -213,38 +181,17 @@ golden_cases!(
 #[test]
 fn stepper_positions_match_klippy_at_the_end_of_every_case() {
     use onechip_planner::kinematics::calc_position;
-    for entry in std::fs::read_dir(golden_dir()).expect("golden folder") {
-        let dir = entry.expect("entry").path();
-        let Ok(summary) = std::fs::read_to_string(dir.join("summary.txt")) else {
-            continue;
-        };
-        let case = dir
-            .file_name()
-            .and_then(|n| n.to_str())
-            .expect("name")
-            .to_string();
-        let cfg_text =
-            std::fs::read_to_string(golden_dir().join("configs").join(config_for(&case)))
-                .expect("config");
+    let mut checked = 0;
+    for case in onechip_golden::cases() {
+        let cfg_text = config(config_for(&case));
         let config = Config::parse(config_for(&case), &cfg_text).expect("config parses");
         let machine = Machine::from_config(&config).expect("machine");
-        let field = |line: &str, key: &str| -> f64 {
-            let words: Vec<&str> = line.split_whitespace().collect();
-            let at = words.iter().position(|w| *w == key).expect("key");
-            words[at + 1].parse().expect("number")
-        };
-        let final_pos: Vec<f64> = summary
-            .lines()
-            .find_map(|l| l.strip_prefix("toolhead_final_position "))
-            .expect("final position")
-            .split_whitespace()
-            .map(|v| v.parse().expect("number"))
-            .collect();
+        let final_pos = onechip_golden::summary_values(&case, "toolhead_final_position");
         let p = [final_pos[0], final_pos[1], final_pos[2]];
-        let steppers: Vec<f64> = summary
-            .lines()
-            .filter(|l| l.starts_with("stepper ") && !l.starts_with("stepper extruder"))
-            .map(|l| field(l, "commanded_pos"))
+        let steppers: Vec<f64> = onechip_golden::summary_steppers(&case)
+            .iter()
+            .filter(|s| s.name != "extruder")
+            .map(|s| s.commanded_pos)
             .collect();
         for (i, kin) in machine.stepper_kinematics.iter().enumerate() {
             let ours = kin.position(p);
@@ -265,5 +212,7 @@ fn stepper_positions_match_klippy_at_the_end_of_every_case() {
                 "{case} axis {a}: {back:?} vs {p:?}"
             );
         }
+        checked += 1;
     }
+    assert!(checked > 0, "no golden case checked");
 }

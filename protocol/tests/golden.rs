@@ -12,11 +12,11 @@
 //! knows it: the congruent clock nearest to the latest time the stream has
 //! reached (step clocks and earlier absolute clocks).
 
+use onechip_golden::{dict, dict_for, read, read_string};
 use onechip_protocol::block;
 use onechip_protocol::codec::is_absolute_clock;
 use onechip_protocol::dictionary::Dictionary;
 use std::collections::HashMap;
-use std::path::PathBuf;
 
 /// The host's 64-bit view of MCU time, rebuilt from a command log.
 #[derive(Default)]
@@ -67,45 +67,6 @@ impl HostClock {
     }
 }
 
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
-
-fn read(path: PathBuf) -> Vec<u8> {
-    std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e} (set ONECHIP_GOLDEN)", path.display()))
-}
-
-fn dictionary_text(name: &str) -> String {
-    String::from_utf8(read(
-        golden_dir().join("dicts").join(format!("{name}.dict")),
-    ))
-    .expect("UTF-8")
-}
-
-/// The golden cases and the MCU dictionary each ran against.
-fn cases() -> Vec<(String, &'static str)> {
-    let mut cases: Vec<(String, &'static str)> = std::fs::read_dir(golden_dir())
-        .expect("golden folder")
-        .filter_map(Result::ok)
-        .filter(|e| e.path().join("klippy.serial").exists())
-        .map(|e| {
-            let name = e.file_name().to_string_lossy().into_owned();
-            let dict = match name.split('_').next() {
-                Some("avr") => "atmega2560",
-                Some("h723") => "stm32h723",
-                _ => "stm32f446",
-            };
-            (name, dict)
-        })
-        .collect();
-    cases.sort();
-    assert_eq!(cases.len(), 15, "expected the 15 golden cases");
-    cases
-}
-
 /// One golden session: its dictionary's text, the wire bytes and the log.
 struct Session {
     case: String,
@@ -114,12 +75,14 @@ struct Session {
     log: String,
 }
 
+/// Every golden case's session, with the dictionary it ran against.
 fn sessions() -> impl Iterator<Item = Session> {
-    cases().into_iter().map(|(case, dict_name)| Session {
-        dictionary: dictionary_text(dict_name),
-        wire: read(golden_dir().join(&case).join("klippy.serial")),
-        log: String::from_utf8(read(golden_dir().join(&case).join("mcu-commands.txt")))
-            .expect("UTF-8"),
+    let cases = onechip_golden::cases();
+    assert_eq!(cases.len(), 15, "expected the 15 golden cases: {cases:?}");
+    cases.into_iter().map(|case| Session {
+        dictionary: dict(dict_for(&case)),
+        wire: read(format!("{case}/klippy.serial")),
+        log: read_string(format!("{case}/mcu-commands.txt")),
         case,
     })
 }
@@ -154,7 +117,7 @@ fn every_golden_dictionary_parses_with_its_constants() {
         ("stm32h723", "stm32h723xx", 520_000_000),
         ("lpc176x", "lpc1768", 100_000_000),
     ] {
-        let text = dictionary_text(name);
+        let text = dict(name);
         let dict = Dictionary::parse(&text).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(dict.constant_int("CLOCK_FREQ"), Some(clock), "{name}");
         assert_eq!(dict.constant_str("MCU"), Some(mcu), "{name}");

@@ -4,21 +4,10 @@
 //! and the decoded stream expands to golden's step clocks (`steps-*.txt`,
 //! as the MCU's 32-bit clock sees them).
 
+use onechip_golden::{dict, dict_for, read_string};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_secondary_mcu::step_commands::StepCommandEncoder;
 use onechip_stepgen::compress::{StepCommand, expand};
-use std::path::PathBuf;
-
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
-
-fn read(path: PathBuf) -> String {
-    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
 
 /// Parses a `queue-*.txt` line: (oid, command).
 fn parse_line(line: &str) -> (u8, StepCommand) {
@@ -36,10 +25,10 @@ fn parse_line(line: &str) -> (u8, StepCommand) {
     (u8::try_from(num(1)).expect("oid"), cmd)
 }
 
-fn check(case: &str, dict_name: &str, stepper: &str) {
-    let dict_text = read(golden_dir().join("dicts").join(dict_name));
+fn check(case: &str, stepper: &str) {
+    let dict_text = dict(dict_for(case));
     let dict = Dictionary::parse(&dict_text).expect("dictionary");
-    let queue = read(golden_dir().join(case).join(format!("queue-{stepper}.txt")));
+    let queue = read_string(format!("{case}/queue-{stepper}.txt"));
     let mut decoded = Vec::new();
     let mut encoder = None;
     for line in queue.lines().filter(|l| !l.starts_with('#')) {
@@ -63,15 +52,11 @@ fn check(case: &str, dict_name: &str, stepper: &str) {
         assert_eq!((back, used), (cmd, len));
         decoded.push(back);
     }
-    let golden_steps = read(golden_dir().join(case).join(format!("steps-{stepper}.txt")));
     let mut expanded = Vec::new();
     expand(&decoded, |clock, dir| expanded.push((clock as u32, dir)));
-    let golden: Vec<(u32, bool)> = golden_steps
-        .lines()
-        .map(|l| {
-            let (c, d) = l.split_once(' ').expect("clock dir");
-            (c.parse::<u64>().expect("clock") as u32, d == "1")
-        })
+    let golden: Vec<(u32, bool)> = onechip_golden::steps(case, stepper)
+        .into_iter()
+        .map(|(clock, dir)| (clock as u32, dir))
         .collect();
     assert_eq!(expanded, golden, "{case} {stepper}");
 }
@@ -79,22 +64,22 @@ fn check(case: &str, dict_name: &str, stepper: &str) {
 #[test]
 fn stm32f446_streams_round_trip() {
     for stepper in ["stepper_x", "stepper_y", "stepper_z", "extruder"] {
-        check("cart_extrude", "stm32f446.dict", stepper);
-        check("cart_move_g28", "stm32f446.dict", stepper);
+        check("cart_extrude", stepper);
+        check("cart_move_g28", stepper);
     }
 }
 
 #[test]
 fn avr_and_h723_streams_round_trip() {
     for stepper in ["stepper_x", "stepper_y", "stepper_z", "extruder"] {
-        check("avr_cart_extrude", "atmega2560.dict", stepper);
-        check("h723_cart_extrude", "stm32h723.dict", stepper);
+        check("avr_cart_extrude", stepper);
+        check("h723_cart_extrude", stepper);
     }
 }
 
 #[test]
 fn other_messages_and_oids_are_not_step_commands() {
-    let dict_text = read(golden_dir().join("dicts").join("stm32f446.dict"));
+    let dict_text = dict("stm32f446");
     let dict = Dictionary::parse(&dict_text).expect("dictionary");
     let ours = StepCommandEncoder::new(&dict, 3, true).expect("known");
     let other = StepCommandEncoder::new(&dict, 4, true).expect("known");

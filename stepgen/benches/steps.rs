@@ -4,43 +4,21 @@
 //! second of all steppers together.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use onechip_golden::Trapq;
 use onechip_planner::config::Config;
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::{Motion, StepSink};
-use std::path::PathBuf;
 
-fn golden(path: &str) -> String {
-    let dir = std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    );
-    std::fs::read_to_string(dir.join(path)).expect("golden data (set ONECHIP_GOLDEN)")
-}
+#[path = "../tests/common/mod.rs"]
+mod common;
 
 /// A case's trapq appends in time order: (is_extruder, move).
 fn moves(case: &str) -> Vec<(bool, TrapqMove)> {
-    let mut out: Vec<(bool, TrapqMove)> = golden(&format!("{case}/moves.tsv"))
-        .lines()
-        .skip(1)
-        .map(|l| {
-            let mut f = l.split('\t');
-            let queue = f.next().expect("trapq");
-            let v: Vec<f64> = f.map(|x| x.parse().expect("float")).collect();
-            let m = TrapqMove {
-                print_time: v[0],
-                accel_t: v[1],
-                cruise_t: v[2],
-                decel_t: v[3],
-                start_pos: [v[4], v[5], v[6]],
-                axes_r: [v[7], v[8], v[9]],
-                start_v: v[10],
-                cruise_v: v[11],
-                accel: v[12],
-            };
-            (queue == "extruder", m)
-        })
+    let mut out: Vec<(bool, TrapqMove)> = onechip_golden::moves(case)
+        .iter()
+        .map(|m| (m.trapq == Trapq::Extruder, common::trapq_move(m)))
         .collect();
     out.sort_by(|a, b| a.1.print_time.total_cmp(&b.1.print_time));
     out
@@ -78,15 +56,16 @@ fn run(machine: &Machine<'_>, moves: &[(bool, TrapqMove)]) -> u64 {
 
 fn steps(c: &mut Criterion) {
     let mut group = c.benchmark_group("steps");
-    for (case, config) in [
-        ("cart_circle", "cartesian.cfg"),
-        ("corexy_circle", "corexy.cfg"),
-        ("delta_circle", "delta.cfg"),
-        ("shaper_circle", "cartesian_shaper.cfg"),
-        ("corexy_extrude", "corexy.cfg"),
+    for case in [
+        "cart_circle",
+        "corexy_circle",
+        "delta_circle",
+        "shaper_circle",
+        "corexy_extrude",
     ] {
-        let cfg = golden(&format!("configs/{config}"));
-        let config = Config::parse(config, &cfg).expect("config");
+        let name = onechip_golden::config_for(case);
+        let cfg = onechip_golden::config(name);
+        let config = Config::parse(name, &cfg).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
         let moves = moves(case);
         let total = run(&machine, &moves);

@@ -7,6 +7,7 @@
 //! from our planner's events, which include the set_positions that
 //! moves.tsv does not show.
 
+use onechip_golden::{Trapq, config_for, summary_value, trapq_moves};
 use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
@@ -19,52 +20,24 @@ use onechip_stepgen::motion::{Motion, StepSink};
 use onechip_stepgen::segment::{Segment, fill_gaps, segments};
 use onechip_stepgen::shaper::StepperShaper;
 use onechip_stepgen::solver::{Margins, PositionFn, StepSolver};
-use std::path::PathBuf;
 
-fn golden_dir() -> PathBuf {
-    std::env::var_os("ONECHIP_GOLDEN").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/golden"),
-        PathBuf::from,
-    )
-}
+mod common;
 
-/// The golden trapq entries of `queue` ("toolhead" or "extruder").
-fn moves(case: &str, queue: &str) -> Vec<TrapqMove> {
-    let text =
-        std::fs::read_to_string(golden_dir().join(case).join("moves.tsv")).expect("moves.tsv");
-    text.lines()
-        .skip(1)
-        .filter(|l| l.starts_with(&format!("{queue}\t")))
-        .map(|l| {
-            let v: Vec<f64> = l
-                .split('\t')
-                .skip(1)
-                .map(|x| x.parse().expect("float"))
-                .collect();
-            TrapqMove {
-                print_time: v[0],
-                accel_t: v[1],
-                cruise_t: v[2],
-                decel_t: v[3],
-                start_pos: [v[4], v[5], v[6]],
-                axes_r: [v[7], v[8], v[9]],
-                start_v: v[10],
-                cruise_v: v[11],
-                accel: v[12],
-            }
-        })
+/// The golden trapq entries of `trapq`.
+fn moves(case: &str, trapq: Trapq) -> Vec<TrapqMove> {
+    trapq_moves(case, trapq)
+        .iter()
+        .map(common::trapq_move)
         .collect()
 }
 
-fn summary_value(case: &str, key: &str) -> f64 {
-    let text =
-        std::fs::read_to_string(golden_dir().join(case).join("summary.txt")).expect("summary");
-    text.lines()
-        .find_map(|l| l.strip_prefix(&format!("{key} ")))
-        .expect("key")
-        .trim()
-        .parse()
-        .expect("number")
+/// The machine `case` ran on. A machine borrows its config text, which is
+/// leaked here (a few kB a call).
+fn machine(case: &str) -> Machine<'static> {
+    let name = config_for(case);
+    let text = onechip_golden::config(name).leak();
+    let config = Config::parse(name, text).unwrap_or_else(|e| panic!("{case}: {e}"));
+    Machine::from_config(&config).unwrap_or_else(|e| panic!("{case}: {e}"))
 }
 
 /// Segments moving from where the last set_position (or the start) put
@@ -156,18 +129,6 @@ fn our_steps(
     steps
 }
 
-fn golden_steps(case: &str, stepper: &str) -> Vec<(u64, bool)> {
-    let text =
-        std::fs::read_to_string(golden_dir().join(case).join(format!("steps-{stepper}.txt")))
-            .expect("steps");
-    text.lines()
-        .map(|l| {
-            let (c, d) = l.split_once(' ').expect("clock dir");
-            (c.parse().expect("clock"), d == "1")
-        })
-        .collect()
-}
-
 /// What the planner hands step generation.
 #[derive(Clone, Copy)]
 enum Event {
@@ -179,11 +140,15 @@ enum Event {
 /// The golden planned moves (klippy's trapq appends) as events. They carry
 /// no set_position: only for cases whose only one is the prologue's.
 fn golden_events(case: &str) -> Vec<Event> {
-    let mut events: Vec<Event> = moves(case, "toolhead")
+    let mut events: Vec<Event> = moves(case, Trapq::Toolhead)
         .into_iter()
         .map(Event::Toolhead)
         .collect();
-    events.extend(moves(case, "extruder").into_iter().map(Event::Extruder));
+    events.extend(
+        moves(case, Trapq::Extruder)
+            .into_iter()
+            .map(Event::Extruder),
+    );
     events
 }
 
@@ -205,16 +170,13 @@ impl MoveSink for Planned {
 /// each move's start time taken from golden: klippy's batch-mode flushing
 /// can delay a restart from rest (the planner's golden test explains and
 /// bounds this); durations and positions must match.
-fn planned_events(case: &str, config: &str) -> Vec<Event> {
-    let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
-    let config = Config::parse(config, &cfg).expect("config");
-    let machine = Machine::from_config(&config).expect("machine");
+fn planned_events(case: &str) -> Vec<Event> {
+    let machine = machine(case);
     let mut toolhead = machine.toolhead::<4096>();
     let mut gcode = GcodeMove::default();
     let mut planned = Planned(Vec::new());
     let mut replies = String::new();
-    let program = std::fs::read_to_string(golden_dir().join("gcode").join(format!("{case}.gcode")))
-        .expect("gcode");
+    let program = onechip_golden::gcode(case);
     for (n, line) in program.lines().enumerate() {
         let parsed = parse(line).unwrap_or_else(|e| panic!("{case}:{}: {e}", n + 1));
         gcode
@@ -223,8 +185,8 @@ fn planned_events(case: &str, config: &str) -> Vec<Event> {
     }
     gcode.finish(&mut toolhead, &mut planned);
     let (mut golden_toolhead, mut golden_extruder) = (
-        moves(case, "toolhead").into_iter(),
-        moves(case, "extruder").into_iter(),
+        moves(case, Trapq::Toolhead).into_iter(),
+        moves(case, Trapq::Extruder).into_iter(),
     );
     for event in &mut planned.0 {
         let (m, golden) = match event {
@@ -269,14 +231,14 @@ fn split(events: &[Event]) -> (Vec<Run>, Vec<Segment>) {
     (runs, extruder)
 }
 
-fn check(case: &str, config: &str, with_extruder: bool) {
-    check_events(case, config, with_extruder, &golden_events(case));
+fn check(case: &str, with_extruder: bool) {
+    check_events(case, with_extruder, &golden_events(case));
 }
 
 /// Checks a case three times: as klippy ran it, with the print starting
 /// 24 h in, and with the MCU clock 1 s before its 32-bit wrap at the start
 /// (the print then crosses it).
-fn check_events(case: &str, config: &str, with_extruder: bool, events: &[Event]) {
+fn check_events(case: &str, with_extruder: bool, events: &[Event]) {
     let freq = summary_value(case, "clock_freq");
     let day = (86_400.0 * freq) as u64;
     let before_wrap = (1u64 << 32) - freq as u64;
@@ -296,15 +258,13 @@ fn check_events(case: &str, config: &str, with_extruder: bool, events: &[Event])
                 other => other,
             })
             .collect();
-        check_from(case, config, with_extruder, &shifted, origin_ticks);
+        check_from(case, with_extruder, &shifted, origin_ticks);
     }
 }
 
 /// Checks our steps for `events` against golden's, `origin_ticks` later.
-fn check_from(case: &str, config: &str, with_extruder: bool, events: &[Event], origin_ticks: u64) {
-    let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
-    let config = Config::parse(config, &cfg).expect("config");
-    let machine = Machine::from_config(&config).expect("machine");
+fn check_from(case: &str, with_extruder: bool, events: &[Event], origin_ticks: u64) {
+    let machine = machine(case);
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u32;
     let (mut runs, extruder_segs) = split(events);
@@ -356,7 +316,7 @@ fn check_from(case: &str, config: &str, with_extruder: bool, events: &[Event], o
         ));
     }
     for (name, ours) in steppers {
-        let golden = golden_steps(case, name);
+        let golden = onechip_golden::steps(case, name);
         assert_eq!(ours.len(), golden.len(), "{case} {name}: step count");
         let mut deviations = Vec::with_capacity(ours.len());
         for (i, (o, g)) in ours.iter().zip(&golden).enumerate() {
@@ -390,54 +350,54 @@ fn check_from(case: &str, config: &str, with_extruder: bool, events: &[Event], o
 
 #[test]
 fn cart_square() {
-    check("cart_square", "cartesian.cfg", true);
+    check("cart_square", true);
 }
 
 #[test]
 fn cart_circle() {
-    check("cart_circle", "cartesian.cfg", true);
+    check("cart_circle", true);
 }
 
 #[test]
 fn cart_extrude() {
-    check("cart_extrude", "cartesian.cfg", true);
+    check("cart_extrude", true);
 }
 
 #[test]
 fn corexy_square() {
-    check("corexy_square", "corexy.cfg", false);
+    check("corexy_square", false);
 }
 
 #[test]
 fn corexy_circle() {
-    check("corexy_circle", "corexy.cfg", false);
+    check("corexy_circle", false);
 }
 
 #[test]
 fn avr_and_h723_clocks() {
-    check("avr_cart_extrude", "cartesian_avr.cfg", true);
-    check("h723_cart_extrude", "cartesian_h723.cfg", true);
+    check("avr_cart_extrude", true);
+    check("h723_cart_extrude", true);
 }
 
 #[test]
 fn delta_square_and_circle() {
-    check("delta_square", "delta.cfg", true);
-    check("delta_circle", "delta.cfg", true);
+    check("delta_square", true);
+    check("delta_circle", true);
 }
 
 #[test]
 fn delta_and_shaperless_extrude() {
-    check("delta_extrude", "delta.cfg", true);
+    check("delta_extrude", true);
 }
 
 #[test]
 fn corexy_extrude_with_pressure_advance() {
-    check("corexy_extrude", "corexy.cfg", true);
+    check("corexy_extrude", true);
 }
 
 #[test]
 fn cart_move_g28_with_homing() {
-    let events = planned_events("cart_move_g28", "cartesian.cfg");
+    let events = planned_events("cart_move_g28");
     assert!(
         events
             .iter()
@@ -446,22 +406,22 @@ fn cart_move_g28_with_homing() {
             > 3,
         "homing sets positions"
     );
-    check_events("cart_move_g28", "cartesian.cfg", true, &events);
+    check_events("cart_move_g28", true, &events);
 }
 
 #[test]
 fn shaper_square() {
-    check("shaper_square", "cartesian_shaper.cfg", true);
+    check("shaper_square", true);
 }
 
 #[test]
 fn shaper_circle() {
-    check("shaper_circle", "cartesian_shaper.cfg", true);
+    check("shaper_circle", true);
 }
 
 #[test]
 fn shaper_extrude() {
-    check("shaper_extrude", "cartesian_shaper.cfg", true);
+    check("shaper_extrude", true);
 }
 
 /// Collects each stepper's commands with their first steps' 64-bit clocks.
@@ -505,10 +465,8 @@ fn expand_64(cmds: &[(StepCommand, u64)]) -> Vec<(u64, bool)> {
 /// order through [`Motion`] with queues of only 64 segments (so generation
 /// runs while moves arrive and the queues are pruned behind it), its
 /// commands expanded as the MCU does, against golden.
-fn check_motion(case: &str, config: &str, events: &[Event]) {
-    let cfg = std::fs::read_to_string(golden_dir().join("configs").join(config)).expect("config");
-    let config = Config::parse(config, &cfg).expect("config");
-    let machine = Machine::from_config(&config).expect("machine");
+fn check_motion(case: &str, events: &[Event]) {
+    let machine = machine(case);
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u32;
     let start = events
@@ -534,7 +492,7 @@ fn check_motion(case: &str, config: &str, events: &[Event]) {
         let mut ours = Vec::new();
         let plain: Vec<StepCommand> = cmds.iter().map(|c| c.0).collect();
         expand(&plain, |clock, dir| ours.push((clock, dir)));
-        let golden = golden_steps(case, stepper.name);
+        let golden = onechip_golden::steps(case, stepper.name);
         // The clocks given with the commands place every step exactly as
         // the 32-bit expansion does, but in 64 bits, also after far steps.
         let with_clocks = expand_64(cmds);
@@ -582,34 +540,22 @@ fn time_ordered(mut events: Vec<Event>) -> Vec<Event> {
 
 #[test]
 fn streamed_through_small_queues() {
-    for (case, config) in [
-        ("cart_square", "cartesian.cfg"),
-        ("cart_circle", "cartesian.cfg"),
-        ("cart_extrude", "cartesian.cfg"),
-        ("corexy_square", "corexy.cfg"),
-        ("corexy_circle", "corexy.cfg"),
-        ("corexy_extrude", "corexy.cfg"),
-        ("delta_square", "delta.cfg"),
-        ("delta_circle", "delta.cfg"),
-        ("delta_extrude", "delta.cfg"),
-        ("shaper_square", "cartesian_shaper.cfg"),
-        ("shaper_circle", "cartesian_shaper.cfg"),
-        ("shaper_extrude", "cartesian_shaper.cfg"),
-        ("avr_cart_extrude", "cartesian_avr.cfg"),
-        ("h723_cart_extrude", "cartesian_h723.cfg"),
-    ] {
-        check_motion(case, config, &time_ordered(golden_events(case)));
+    let cases = onechip_golden::cases();
+    for case in &cases {
+        // Homing sets positions, which only our planner's events carry.
+        let events = if case == "cart_move_g28" {
+            planned_events(case)
+        } else {
+            time_ordered(golden_events(case))
+        };
+        check_motion(case, &events);
     }
-    let homing = planned_events("cart_move_g28", "cartesian.cfg");
-    check_motion("cart_move_g28", "cartesian.cfg", &homing);
+    assert!(cases.iter().any(|c| c == "cart_move_g28"), "{cases:?}");
 }
 
 #[test]
 fn a_queue_too_small_for_the_shaper_window_is_an_error_not_a_panic() {
-    let cfg =
-        std::fs::read_to_string(golden_dir().join("configs/cartesian_shaper.cfg")).expect("config");
-    let config = Config::parse("cartesian_shaper.cfg", &cfg).expect("config");
-    let machine = Machine::from_config(&config).expect("machine");
+    let machine = machine("shaper_circle");
     // 12 segments cannot hold the shaper's ~30 ms look-back of 1 ms moves.
     let mut motion = Motion::<12, 64>::new(&machine, 180e6, 4500, [100.0, 100.0, 10.0]);
     let mut commands = Commands(vec![Vec::new(); machine.steppers.len()]);
