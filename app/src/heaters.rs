@@ -255,8 +255,8 @@ impl<'a> McuSetup<'a> {
                 .push((heater.sensor_pin, adc_query(heater, freq, adc_max, start)));
         }
         if let Some(fan) = &machine.fan {
-            let (kind, full) = fan_output(fan, freq);
-            let default = scaled(fan.shutdown_speed.min(fan.max_power), full);
+            let kind = fan_output(fan, freq);
+            let default = scaled(fan.shutdown_speed.min(fan.max_power), full_scale(kind));
             let output = OutputConfig {
                 kind,
                 value: 0,
@@ -269,20 +269,35 @@ impl<'a> McuSetup<'a> {
     }
 }
 
-/// The fan's output kind and full-scale value.
-fn fan_output(fan: &Fan<'_>, freq: f64) -> (OutputKind, u32) {
+/// The fan's output kind.
+fn fan_output(fan: &Fan<'_>, freq: f64) -> OutputKind {
     if fan.hard_pwm {
-        (OutputKind::HardPwm, PWM_MAX)
+        OutputKind::HardPwm
     } else {
-        let cycle_ticks = ticks(fan.cycle_time, freq);
-        (OutputKind::Digital { cycle_ticks }, cycle_ticks)
+        OutputKind::Digital {
+            cycle_ticks: ticks(fan.cycle_time, freq),
+        }
     }
+}
+
+/// An output's full-scale value: its cycle ticks (software PWM) or
+/// [`PWM_MAX`] (hardware PWM).
+fn full_scale(kind: OutputKind) -> u32 {
+    match kind {
+        OutputKind::Digital { cycle_ticks } => cycle_ticks,
+        OutputKind::HardPwm => PWM_MAX,
+    }
+}
+
+/// A report's full scale: the sum of its readings at 0..=`adc_max`.
+fn adc_full(adc_max: u16) -> f64 {
+    f64::from(SAMPLE_COUNT) * f64::from(adc_max)
 }
 
 /// A heater's thermistor query: 8 readings 1 ms apart every 0.3 s, the
 /// sum within the readings of max_temp and min_temp.
 fn adc_query(heater: &Heater<'_>, freq: f64, adc_max: u16, start: u32) -> AdcQuery {
-    let full = f64::from(SAMPLE_COUNT) * f64::from(adc_max);
+    let full = adc_full(adc_max);
     let low = heater.thermistor.adc(heater.max_temp);
     let high = heater.thermistor.adc(heater.min_temp);
     let counts = |v: f64| v.clamp(0.0, f64::from(u16::MAX)) as u16;
@@ -360,11 +375,14 @@ impl Heaters {
                 let _ = io.query(index, *query);
             }
         }
+        // Each output's scale comes from its MCU configuration: heaters
+        // first, then the fan.
         let dt = PWM_DELAY;
         let heaters = machine
             .heaters
             .iter()
-            .map(|h| HeaterState {
+            .zip(&setup.outputs)
+            .map(|(h, (_, output))| HeaterState {
                 label: if h.name == "heater_bed" { "B" } else { "T" },
                 min_temp: h.min_temp,
                 max_temp: h.max_temp,
@@ -372,7 +390,7 @@ impl Heaters {
                 smooth: 1.0 + h.smooth_time / dt,
                 smooth_time: h.smooth_time,
                 thermistor: h.thermistor,
-                cycle_ticks: ticks(h.pwm_cycle_time, freq),
+                cycle_ticks: full_scale(output.kind),
                 control: ControlState::new(h.control),
                 target: 0.0,
                 smoothed: 0.0,
@@ -381,15 +399,19 @@ impl Heaters {
                 refresh_by: start,
             })
             .collect();
-        let fan = machine.fan.map(|f| FanState {
-            config: FanSetup {
-                max_power: f.max_power,
-                off_below: f.off_below,
-                kick_ticks: ticks(f.kick_start_time, freq),
-                full: fan_output(&f, freq).1,
-            },
-            speed: 0.0,
-        });
+        let fan_config = setup.outputs.get(machine.heaters.len());
+        let fan = machine
+            .fan
+            .zip(fan_config)
+            .map(|(f, (_, output))| FanState {
+                config: FanSetup {
+                    max_power: f.max_power,
+                    off_below: f.off_below,
+                    kick_ticks: ticks(f.kick_start_time, freq),
+                    full: full_scale(output.kind),
+                },
+                speed: 0.0,
+            });
         Self {
             io,
             heaters,
@@ -397,7 +419,7 @@ impl Heaters {
             pwm_delay: ticks(PWM_DELAY, freq),
             refresh_ticks: ticks(0.75 * MAX_HEAT_TIME, freq),
             freq,
-            adc_full: f64::from(SAMPLE_COUNT) * f64::from(adc_max),
+            adc_full: adc_full(adc_max),
         }
     }
 
@@ -500,7 +522,8 @@ impl Heaters {
     }
 
     /// Klipper's fan `set_speed`: off below off_below, scaled by
-    /// max_power, with a full-power kick when starting.
+    /// max_power, with a full-power kick when starting from still or
+    /// rising by more than half.
     fn set_fan(
         &mut self,
         speed: f64,
@@ -521,26 +544,16 @@ impl Heaters {
         // Never before now (a command may name a time already past).
         let clock = if is_before(clock, now) { now } else { clock };
         let mut at = clock;
-        if speed > 0.0 && speed < c.max_power && c.kick_ticks > 0 && speed - fan.speed > 0.5 {
+        // Kick from standstill, or on a rise of more than half (Klipper's
+        // `not last_fan_value or value - last_fan_value > .5`).
+        let starting = fan.speed == 0.0 || speed - fan.speed > 0.5;
+        if speed > 0.0 && speed < c.max_power && c.kick_ticks > 0 && starting {
             self.queue(index, at, scaled(c.max_power, c.full), now, hw)?;
             at = at.wrapping_add(c.kick_ticks);
         }
         self.queue(index, at, scaled(speed, c.full), now, hw)?;
         if let Some(f) = &mut self.fan {
             f.speed = speed;
-        }
-        Ok(())
-    }
-
-    /// Checks a target for heater `heater`.
-    pub fn check_target(&self, heater: usize, celsius: f64) -> Result<(), ThermalError> {
-        let h = self.heaters.get(heater).ok_or(ThermalError::NoHeater)?;
-        if celsius != 0.0 && !(h.min_temp..=h.max_temp).contains(&celsius) {
-            return Err(ThermalError::OutOfRange {
-                celsius,
-                min: h.min_temp,
-                max: h.max_temp,
-            });
         }
         Ok(())
     }
@@ -580,5 +593,96 @@ impl Heaters {
     /// Shuts every output down (the steppers faulted).
     pub fn shutdown(&mut self, reason: Shutdown, hw: &mut impl Peripherals) {
         self.io.shutdown(reason, hw);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use onechip_planner::config::Config;
+    use onechip_sched::outputs::Drive;
+
+    /// MCU clock, Hz: one tick per µs.
+    const FREQ: f64 = 1_000_000.0;
+    /// A printer with the part-cooling fan only (software PWM, 0.010 s
+    /// cycle: full scale 10 000 ticks; kick_start_time 0.1 s).
+    const FAN_ONLY: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [fan]\npin: PA8\n";
+    /// The shipped printer: two heaters and the fan.
+    const SHIPPED: &str = include_str!("../../sdcard-configs/octopus-pro-h723/printer.cfg");
+
+    /// Hardware that ignores outputs and reads mid-scale.
+    struct Hw;
+
+    impl Peripherals for Hw {
+        fn drive(&mut self, _: usize, _: Drive) {}
+        fn read_adc(&mut self, _: usize) -> u16 {
+            2048
+        }
+    }
+
+    /// Sets the fan to `speed` at `seconds`, then returns its output value
+    /// at each of `at` (clock, µs).
+    fn fan_values<const K: usize>(
+        heaters: &mut Heaters,
+        speed: f64,
+        seconds: f64,
+        at: [u32; K],
+    ) -> [Option<u32>; K] {
+        let fan = ThermalCommand::Fan {
+            speed,
+            print_time: seconds,
+        };
+        heaters.command(fan, 0, &mut Hw).expect("queued");
+        at.map(|t| {
+            heaters.run(t, &mut Hw).expect("runs");
+            heaters.io.value(heaters.heaters.len())
+        })
+    }
+
+    #[test]
+    fn the_fan_kicks_when_it_starts_from_still() {
+        let config = Config::parse("printer.cfg", FAN_ONLY).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        // 0 -> 0.4: full power for kick_start_time, then 0.4.
+        let kicked = fan_values(&mut heaters, 0.4, 1.0, [1_000_000, 1_100_000]);
+        assert_eq!(kicked, [Some(10_000), Some(4_000)]);
+        // 0.4 -> 0.6: running and rising by less than half: no kick.
+        assert_eq!(
+            fan_values(&mut heaters, 0.6, 2.0, [2_000_000]),
+            [Some(6_000)]
+        );
+        // 0.1 -> 0.7: rising by more than half: a kick again.
+        assert_eq!(
+            fan_values(&mut heaters, 0.1, 3.0, [3_000_000]),
+            [Some(1_000)]
+        );
+        let kicked = fan_values(&mut heaters, 0.7, 4.0, [4_000_000, 4_100_000]);
+        assert_eq!(kicked, [Some(10_000), Some(7_000)]);
+        // Off, then on again: from still, so a kick.
+        assert_eq!(fan_values(&mut heaters, 0.0, 5.0, [5_000_000]), [Some(0)]);
+        let kicked = fan_values(&mut heaters, 0.3, 6.0, [6_000_000, 6_100_000]);
+        assert_eq!(kicked, [Some(10_000), Some(3_000)]);
+    }
+
+    #[test]
+    fn outputs_scale_as_the_mcu_setup_configures_them() {
+        let config = Config::parse("printer.cfg", SHIPPED).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let setup = McuSetup::new(&machine, FREQ, 4095, 0);
+        let heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let scales = setup.outputs.iter().map(|(_, c)| full_scale(c.kind));
+        let used = heaters.heaters.iter().map(|h| h.cycle_ticks);
+        let used = used.chain(heaters.fan.map(|f| f.config.full));
+        assert!(scales.clone().eq(used));
+        // Klipper's defaults: heaters 0.1 s cycles, the fan 0.010 s.
+        assert!(scales.eq([100_000, 100_000, 10_000]));
     }
 }

@@ -45,21 +45,57 @@ pub enum GcodeError<'a> {
 
 impl fmt::Display for GcodeError<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
+        match *self {
             Self::ChecksumMismatch { sent, computed } => {
                 write!(
                     f,
                     "checksum mismatch: line says {sent}, contents give {computed}"
                 )
             }
-            Self::BadChecksum(text) => write!(f, "invalid checksum '{text}'"),
-            Self::BadLineNumber(text) => write!(f, "invalid line number '{text}'"),
+            Self::BadChecksum(text) => write!(f, "invalid checksum '{}'", Escaped(text)),
+            Self::BadLineNumber(text) => write!(f, "invalid line number '{}'", Escaped(text)),
             Self::UnclosedComment => f.write_str("unclosed '(' comment"),
-            Self::Malformed(word) => write!(f, "malformed parameter '{word}'"),
-            Self::BadNumber { key, value } => write!(f, "unable to parse {key}={value}"),
-            Self::Missing(key) => write!(f, "missing {key}"),
+            Self::Malformed(word) => write!(f, "malformed parameter '{}'", Escaped(word)),
+            Self::BadNumber { key, value } => {
+                write!(f, "unable to parse {}={}", Escaped(key), Escaped(value))
+            }
+            Self::Missing(key) => write!(f, "missing {}", Escaped(key)),
         }
     }
+}
+
+/// Text of a G-code line as a message quotes it: tab, line feed and
+/// carriage return as `\t`, `\n`, `\r`, other ASCII control characters
+/// as `\x1b`, unprintable non-ASCII characters as `\u{85}`; printable
+/// characters (ASCII or not, quotes and backslashes too) as they are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Escaped<'a>(pub &'a str);
+
+impl fmt::Display for Escaped<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        use fmt::Write;
+        for c in self.0.chars() {
+            match c {
+                '\t' => f.write_str("\\t")?,
+                '\n' => f.write_str("\\n")?,
+                '\r' => f.write_str("\\r")?,
+                ' '..='~' => f.write_char(c)?,
+                '\0'..='\x7f' => write!(f, "\\x{:02x}", u32::from(c))?,
+                _ if printable(c) => f.write_char(c)?,
+                _ => write!(f, "{}", c.escape_unicode())?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// True if the non-ASCII `c` shows as itself where `str::escape_debug`
+/// would leave it inside a text (combining marks included).
+fn printable(c: char) -> bool {
+    let mut pair = [b' '; 5];
+    let len = 1 + c.len_utf8();
+    c.encode_utf8(&mut pair[1..]);
+    core::str::from_utf8(&pair[..len]).is_ok_and(|pair| pair.escape_debug().count() == 2)
 }
 
 /// A parsed line.
@@ -557,6 +593,40 @@ mod tests {
         assert_eq!(
             ext("SET_KINEMATIC_POSITION X=100 Y=100 Z=10").float("Z"),
             Ok(Some(10.0))
+        );
+    }
+
+    #[test]
+    fn error_messages_escape_unprintable_text() {
+        use std::string::ToString;
+        // The line's error, or the first parameter's.
+        let message = |line: &str| {
+            let error = match parse(line).map(|l| l.command) {
+                Err(e) => Some(e),
+                Ok(Command::Traditional(t)) => t.float("X").err(),
+                Ok(Command::Extended(e)) => e.get("A").err(),
+                Ok(Command::Empty) => None,
+            };
+            error.map(|e| e.to_string())
+        };
+        assert_eq!(
+            message("FOO\x1b[2J BAR=1").as_deref(),
+            Some("malformed parameter 'FOO\\x1b[2J'")
+        );
+        assert_eq!(
+            message("G1 X1\x07").as_deref(),
+            Some("unable to parse X=1\\x07")
+        );
+        assert_eq!(
+            message("SET_X A=\"\x7f\u{85}é").as_deref(),
+            Some("malformed parameter 'A=\"\\x7f\\u{85}é'")
+        );
+        // Printable text, ASCII or not, is left alone; so are combining
+        // marks after a letter.
+        let text = "a\tb\r\n\\'\"~ é e\u{301} 日本 \u{200b}\u{0}";
+        assert_eq!(
+            Escaped(text).to_string(),
+            "a\\tb\\r\\n\\'\"~ é e\u{301} 日本 \\u{200b}\\x00"
         );
     }
 

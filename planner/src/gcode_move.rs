@@ -7,7 +7,7 @@
 //! additionally scaled by the extrusion factor (M221). Speeds from F are in
 //! mm/min and scaled by M220.
 
-use crate::gcode::{Command, Extended, GcodeError, Line, Traditional};
+use crate::gcode::{Command, Escaped, Extended, GcodeError, Line, Traditional};
 use crate::motion::E;
 use crate::toolhead::{MoveError, MoveSink, Toolhead};
 use core::fmt::{self, Write};
@@ -47,7 +47,7 @@ impl fmt::Display for CommandError<'_> {
         match self {
             Self::Gcode(e) => write!(f, "{e}"),
             Self::Move(e) => write!(f, "{e}"),
-            Self::Invalid { param, rule } => write!(f, "{param} {rule}"),
+            Self::Invalid { param, rule } => write!(f, "{} {rule}", Escaped(param)),
             Self::NotSupported(what) => write!(f, "{what} is not supported by onechip yet"),
         }
     }
@@ -275,7 +275,8 @@ impl GcodeMove {
             None => match (positive("P", t.float("P")?)?, positive("T", t.float("T")?)?) {
                 (Some(p), Some(t)) => p.min(t),
                 _ => {
-                    let _ = writeln!(out, "Invalid M204 command \"M204 {}\"", t.raw_params());
+                    let params = Escaped(t.raw_params());
+                    let _ = writeln!(out, "Invalid M204 command \"M204 {params}\"");
                     return Ok(());
                 }
             },

@@ -1,0 +1,234 @@
+//! The pins printer.cfg uses, checked before any is configured: a pin
+//! named by two options is refused (Klipper: "pin … used multiple times in
+//! config"), and so is a pin the board itself uses (USB, the SD card).
+//!
+//! Pins are compared without their modifiers (`!` inverted, `^` pull-up,
+//! `~` pull-down) and ignoring case; `PF13` and `mcu:PF13` are the same
+//! pin, `probe:z_virtual_endstop` is on another chip. As in Klipper, two
+//! options may share a pin only when
+//! - both are steppers' `enable_pin` (one driver enable line for several
+//!   drivers), or
+//! - both are `endstop_pin` of one rail's steppers (`stepper_z` and
+//!   `stepper_z1`);
+//!
+//! and then only written with the same modifiers. Klipper's
+//! `[duplicate_pin_override]` is not supported.
+
+use core::fmt;
+use onechip_planner::machine::Machine;
+
+/// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
+/// `board/` wires them: USB on OTG_HS's internal full-speed PHY (PA11,
+/// PA12) and the micro-SD slot on SDMMC1 in 4-bit mode (PC8 to PC12, PD2).
+/// For [`check`]; another board has its own list.
+pub const BOARD_RESERVED: &[(&str, &str)] = &[
+    ("PA11", "USB D-"),
+    ("PA12", "USB D+"),
+    ("PC8", "SD card D0"),
+    ("PC9", "SD card D1"),
+    ("PC10", "SD card D2"),
+    ("PC11", "SD card D3"),
+    ("PC12", "SD card CLK"),
+    ("PD2", "SD card CMD"),
+];
+
+/// One option of printer.cfg naming a pin.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PinUse<'a> {
+    /// The section (`stepper_x`, `extruder`, `fan`).
+    pub section: &'a str,
+    /// The option (`step_pin`, `heater_pin`, `pin`).
+    pub option: &'static str,
+    /// The pin as written (`!PF14`, `^PG6`, `probe:z_virtual_endstop`).
+    pub pin: &'a str,
+}
+
+impl<'a> PinUse<'a> {
+    /// The pin without its modifiers (`PF14`).
+    pub fn bare_pin(&self) -> &'a str {
+        Pin::parse(self.pin).bare
+    }
+}
+
+impl fmt::Display for PinUse<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "[{}] {}", self.section, self.option)
+    }
+}
+
+/// Why the pins of printer.cfg cannot be used.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PinConflict<'a> {
+    /// Two options name the same pin.
+    Duplicate {
+        /// The option naming it first.
+        first: PinUse<'a>,
+        /// The option naming it again.
+        second: PinUse<'a>,
+    },
+    /// Two options that may share a pin write it with different
+    /// modifiers.
+    Modifiers {
+        /// The option naming it first.
+        first: PinUse<'a>,
+        /// The option naming it again.
+        second: PinUse<'a>,
+    },
+    /// The board uses the pin itself.
+    Reserved {
+        /// The option naming it.
+        used: PinUse<'a>,
+        /// What the board uses it for (`USB D-`).
+        by: &'a str,
+    },
+}
+
+impl fmt::Display for PinConflict<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Duplicate { first, second } => {
+                write!(
+                    f,
+                    "pin {} used by both {first} and {second}",
+                    first.bare_pin()
+                )
+            }
+            Self::Modifiers { first, second } => write!(
+                f,
+                "pin {} shared by {first} and {second} must have the same polarity ({} vs {})",
+                first.bare_pin(),
+                first.pin.trim(),
+                second.pin.trim()
+            ),
+            Self::Reserved { used, by } => {
+                write!(
+                    f,
+                    "pin {} of {used} is used by the board ({by})",
+                    used.bare_pin()
+                )
+            }
+        }
+    }
+}
+
+/// Checks the pins `machine` uses against each other and against the pins
+/// the board reserves, `(pin, what for)`; the first conflict found, going
+/// through the steppers (in [`Machine::steppers`] order), heaters and fan.
+pub fn check<'a>(
+    machine: &Machine<'a>,
+    reserved: &[(&'a str, &'a str)],
+) -> Result<(), PinConflict<'a>> {
+    for (i, used) in uses(machine).enumerate() {
+        let pin = Pin::parse(used.pin);
+        if let Some(&(_, by)) = reserved
+            .iter()
+            .find(|(name, _)| Pin::parse(name).same_as(&pin))
+        {
+            return Err(PinConflict::Reserved { used, by });
+        }
+        for first in uses(machine).take(i) {
+            let earlier = Pin::parse(first.pin);
+            if !earlier.same_as(&pin) {
+                continue;
+            }
+            let second = used;
+            if !may_share(&first, &second) {
+                return Err(PinConflict::Duplicate { first, second });
+            }
+            if earlier.modifiers != pin.modifiers {
+                return Err(PinConflict::Modifiers { first, second });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Every pin option of `machine`, in printer.cfg's order.
+fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 'm {
+    let steppers = machine.steppers.iter().flat_map(|s| {
+        let pins = [
+            ("step_pin", Some(s.step_pin)),
+            ("dir_pin", Some(s.dir_pin)),
+            ("enable_pin", s.enable_pin),
+            ("endstop_pin", s.endstop_pin),
+        ];
+        pins.into_iter().filter_map(move |(option, pin)| {
+            pin.map(|pin| PinUse {
+                section: s.name,
+                option,
+                pin,
+            })
+        })
+    });
+    let heaters = machine.heaters.iter().flat_map(|h| {
+        [("heater_pin", h.heater_pin), ("sensor_pin", h.sensor_pin)].map(|(option, pin)| PinUse {
+            section: h.name,
+            option,
+            pin,
+        })
+    });
+    let fan = machine.fan.iter().map(|f| PinUse {
+        section: "fan",
+        option: "pin",
+        pin: f.pin,
+    });
+    steppers.chain(heaters).chain(fan)
+}
+
+/// True if Klipper lets `a` and `b` name one pin: steppers' enable pins,
+/// or the endstop pins of one rail's steppers.
+fn may_share(a: &PinUse<'_>, b: &PinUse<'_>) -> bool {
+    a.option == b.option
+        && match a.option {
+            "enable_pin" => true,
+            "endstop_pin" => rail(a.section).eq_ignore_ascii_case(rail(b.section)),
+            _ => false,
+        }
+}
+
+/// The rail a stepper section belongs to: `stepper_z1` is `stepper_z`'s.
+fn rail(section: &str) -> &str {
+    section.trim_end_matches(|c: char| c.is_ascii_digit())
+}
+
+/// A pin as written: chip, name and modifiers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Pin<'a> {
+    /// The chip (`mcu` unless written `chip:pin`).
+    chip: &'a str,
+    /// The pin's name on its chip.
+    name: &'a str,
+    /// The pin as written without its modifiers (`PF14`, `probe:z_virtual_endstop`).
+    bare: &'a str,
+    /// Inverted (`!`), and pulled up (`^`) or down (`~`).
+    modifiers: (bool, Option<char>),
+}
+
+impl<'a> Pin<'a> {
+    fn parse(text: &'a str) -> Self {
+        let mut rest = text.trim();
+        let (mut inverted, mut pull) = (false, None);
+        while let Some(c) = rest.chars().next().filter(|c| matches!(c, '!' | '^' | '~')) {
+            if c == '!' {
+                inverted = true;
+            } else {
+                pull = Some(c);
+            }
+            rest = rest[1..].trim_start();
+        }
+        let (chip, name) = rest
+            .split_once(':')
+            .map_or(("mcu", rest), |(chip, name)| (chip.trim(), name.trim()));
+        Self {
+            chip,
+            name,
+            bare: rest,
+            modifiers: (inverted, pull),
+        }
+    }
+
+    /// True if `self` and `other` are one pin of one chip.
+    fn same_as(&self, other: &Self) -> bool {
+        self.chip.eq_ignore_ascii_case(other.chip) && self.name.eq_ignore_ascii_case(other.name)
+    }
+}

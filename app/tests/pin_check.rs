@@ -1,0 +1,178 @@
+//! printer.cfg's pins checked against each other and against the pins the
+//! board uses itself.
+
+use onechip_app::pin_check::{BOARD_RESERVED, PinConflict, PinUse, check};
+use onechip_planner::config::Config;
+use onechip_planner::machine::{Machine, Stepper};
+
+/// The printer.cfg shipped for the Octopus Pro.
+const SHIPPED: &str = include_str!("../../sdcard-configs/octopus-pro-h723/printer.cfg");
+
+/// The shipped printer.cfg with `from` replaced by `to`, checked against
+/// `reserved`: the conflict's message, if any.
+fn conflict(from: &str, to: &str, reserved: &[(&'static str, &'static str)]) -> Option<String> {
+    assert!(SHIPPED.contains(from), "{from}");
+    let text = SHIPPED.replacen(from, to, 1);
+    let config = Config::parse("printer.cfg", &text).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    check(&machine, reserved).err().map(|e| e.to_string())
+}
+
+/// Each `(from, to, message)`: the shipped printer.cfg with `from`
+/// replaced by `to` is refused with `message` (or passes, if None).
+fn expect(cases: &[(&str, &str, Option<&str>)], reserved: &[(&'static str, &'static str)]) {
+    for &(from, to, message) in cases {
+        assert_eq!(conflict(from, to, reserved).as_deref(), message, "{to}");
+    }
+}
+
+#[test]
+fn the_shipped_config_passes() {
+    let config = Config::parse("printer.cfg", SHIPPED).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    assert_eq!(check(&machine, BOARD_RESERVED), Ok(()));
+}
+
+#[test]
+fn a_pin_named_twice_is_refused_naming_both_uses() {
+    let text = SHIPPED.replacen("heater_pin: PA0", "heater_pin: PF13", 1);
+    let config = Config::parse("printer.cfg", &text).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    let e = check(&machine, &[]).expect_err("PF13 twice");
+    assert_eq!(
+        e,
+        PinConflict::Duplicate {
+            first: PinUse {
+                section: "stepper_x",
+                option: "step_pin",
+                pin: "PF13"
+            },
+            second: PinUse {
+                section: "extruder",
+                option: "heater_pin",
+                pin: "PF13"
+            },
+        }
+    );
+    assert_eq!(
+        e.to_string(),
+        "pin PF13 used by both [stepper_x] step_pin and [extruder] heater_pin"
+    );
+    // Within one section, and the fan and sensors too.
+    expect(
+        &[
+            (
+                "dir_pin: PF12",
+                "dir_pin: PF13",
+                Some("pin PF13 used by both [stepper_x] step_pin and [stepper_x] dir_pin"),
+            ),
+            (
+                "pin: PA8",
+                "pin: PF3",
+                Some("pin PF3 used by both [heater_bed] sensor_pin and [fan] pin"),
+            ),
+        ],
+        &[],
+    );
+}
+
+#[test]
+fn modifiers_and_case_do_not_make_another_pin() {
+    expect(
+        &[
+            (
+                "endstop_pin: PG9",
+                "endstop_pin: ^!pf14",
+                Some("pin PF14 used by both [stepper_x] enable_pin and [stepper_y] endstop_pin"),
+            ),
+            (
+                "endstop_pin: PG9",
+                "endstop_pin: ~ mcu:PG6",
+                Some("pin PG6 used by both [stepper_x] endstop_pin and [stepper_y] endstop_pin"),
+            ),
+            // A pin of another chip is another pin.
+            ("endstop_pin: PG10", "endstop_pin: probe:PG10", None),
+        ],
+        &[],
+    );
+}
+
+#[test]
+fn steppers_may_share_an_enable_pin_of_one_polarity() {
+    expect(
+        &[
+            ("enable_pin: !PF15", "enable_pin: !PF14", None),
+            (
+                "enable_pin: !PF15",
+                "enable_pin: PF14",
+                Some(
+                    "pin PF14 shared by [stepper_x] enable_pin and [stepper_y] enable_pin \
+                     must have the same polarity (!PF14 vs PF14)",
+                ),
+            ),
+            // Not with anything else, though.
+            (
+                "heater_pin: PA1",
+                "heater_pin: PF14",
+                Some("pin PF14 used by both [stepper_x] enable_pin and [heater_bed] heater_pin"),
+            ),
+        ],
+        &[],
+    );
+}
+
+#[test]
+fn only_one_rails_steppers_share_an_endstop_pin() {
+    let config = Config::parse("printer.cfg", SHIPPED).expect("config");
+    let mut machine = Machine::from_config(&config).expect("machine");
+    let z = machine.steppers[2];
+    assert_eq!(z.name, "stepper_z");
+    let z1 = Stepper {
+        name: "stepper_z1",
+        step_pin: "PG4",
+        dir_pin: "PC1",
+        enable_pin: Some("!PA2"),
+        endstop_pin: Some("PG10"),
+        ..z
+    };
+    machine.steppers.push(z1).expect("room");
+    assert_eq!(check(&machine, BOARD_RESERVED), Ok(()));
+    // With the same modifiers only.
+    machine.steppers[4].endstop_pin = Some("^PG10");
+    let e = check(&machine, BOARD_RESERVED).expect_err("pull-up differs");
+    assert!(matches!(e, PinConflict::Modifiers { .. }), "{e}");
+    // Another rail's endstop is another switch.
+    machine.steppers[4].name = "stepper_y1";
+    machine.steppers[4].endstop_pin = Some("PG10");
+    assert_eq!(
+        check(&machine, BOARD_RESERVED).map_err(|e| e.to_string()),
+        Err("pin PG10 used by both [stepper_z] endstop_pin and [stepper_y1] endstop_pin".into())
+    );
+}
+
+#[test]
+fn pins_the_board_uses_are_refused() {
+    expect(
+        &[
+            (
+                "step_pin: PF13",
+                "step_pin: PA11",
+                Some("pin PA11 of [stepper_x] step_pin is used by the board (USB D-)"),
+            ),
+            (
+                "heater_pin: PA1",
+                "heater_pin: !pd2",
+                Some("pin pd2 of [heater_bed] heater_pin is used by the board (SD card CMD)"),
+            ),
+        ],
+        BOARD_RESERVED,
+    );
+    for (pin, _) in BOARD_RESERVED {
+        let cfg = format!("pin: {pin}");
+        assert!(
+            conflict("pin: PA8", &cfg, BOARD_RESERVED).is_some(),
+            "{pin}"
+        );
+        assert_eq!(conflict("pin: PA8", &cfg, &[]), None, "{pin}");
+    }
+}
