@@ -9,12 +9,16 @@
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod config_files;
 pub mod console;
 pub mod heaters;
 pub mod line;
+pub mod pin_check;
 pub mod pins;
 pub mod printer;
 pub mod sdcard;
+pub mod session;
+pub mod step_pulse;
 
 /// Firmware name reported to hosts (M115).
 pub const FIRMWARE_NAME: &str = "onechip";

@@ -9,37 +9,32 @@
 //! position, and any errors; optionally every step's clock, in the format
 //! of Klipper's golden `steps-*.txt`.
 
-pub mod klippy_batch;
+pub mod files;
 pub mod plot;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
-use onechip_app::heaters::ThermalCommand;
-use onechip_app::line::{Line, LineAssembler};
-use onechip_app::printer::Printer;
-use onechip_planner::config::{Config, ConfigFile};
-use onechip_planner::homing::HomingMove;
+use onechip_app::line::LineAssembler;
+use onechip_app::session::{Session, Timing, profile};
+use onechip_planner::config::Config;
 use onechip_planner::machine::{Kinematics, Machine};
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::toolhead::TrapqMove;
 use onechip_sched::outputs::Drive;
-use onechip_stepgen::motion::Motion;
 use std::fmt;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use virtual_mcu::{Physics, VirtualMcu};
 
-/// Longest G-code line accepted, in bytes (as on the board's USB console).
-pub const MAX_LINE: usize = 256;
-/// Lookahead capacity of the host build, in moves.
-pub const LOOKAHEAD: usize = 4096;
-/// Motion queue length of the host build, in segments.
-pub const MOTION_QUEUE: usize = 1024;
-/// Steps each stepper's compressor holds.
-pub const COMPRESS_QUEUE: usize = 512;
-/// The board's MCU clock (STM32H723 at 520 MHz), Hz.
-pub const BOARD_CLOCK: f64 = 520_000_000.0;
-/// Step time error allowed to compression, s (Klipper's).
-pub const MAX_STEP_ERROR: f64 = 0.000_025;
+/// The session as the host build runs it: the board's queues, with a
+/// lookahead of `L` moves (by default the board's).
+pub type HostSession<'a, const L: usize = { profile::LOOKAHEAD }> =
+    Session<'a, L, { profile::MOTION_QUEUE }, { profile::COMPRESS_QUEUE }>;
+
+/// A lookahead as deep as klippy's needs to be for the golden cases: klippy
+/// queues moves for 2 s of their minimum time before its first flush, more
+/// than 384 in the circle cases, where the board's lookahead flushes first
+/// (so its plan, still within Klipper's limits, differs from klippy's).
+pub const KLIPPY_LOOKAHEAD: usize = 1024;
 
 /// How to run.
 #[derive(Debug, Clone, PartialEq)]
@@ -59,9 +54,6 @@ pub struct Options {
     /// If set, an SVG of toolhead velocity and step rates over the window
     /// is written to the path.
     pub plot: Option<(PathBuf, plot::Window)>,
-    /// If set, klippy's batch-mode timing decisions are replayed (see
-    /// [`klippy_batch`]), to compare with its output step by step.
-    pub klippy_batch: Option<klippy_batch::KlippyBatch>,
     /// Fault injection: from print time `.0` (s) on, heater `.1`'s
     /// thermistor reads as an open circuit.
     pub open_sensor: Option<(f64, usize)>,
@@ -84,11 +76,10 @@ impl Default for Options {
         Self {
             gcode: None,
             steps_dir: None,
-            mcu_freq: BOARD_CLOCK,
+            mcu_freq: profile::STEP_CLOCK_HZ,
             clock_origin: 0,
             start: Start::MidTravel,
             plot: None,
-            klippy_batch: None,
             open_sensor: None,
         }
     }
@@ -126,9 +117,6 @@ pub struct HeaterSummary {
     pub on_at_end: bool,
 }
 
-/// Longest a heater may take to reach its target in M109/M190, s.
-pub const MAX_HEAT_WAIT: f64 = 1800.0;
-
 /// What a run of the host build did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
@@ -154,8 +142,12 @@ pub struct Summary {
     pub print_time: f64,
     /// G-code position at the end (X, Y, Z, E), mm.
     pub final_position: [f64; 4],
-    /// Replies other than `ok` (Unknown command, M114), by line number.
+    /// Replies other than `ok` and temperature reports (M114, M115), by
+    /// line number.
     pub replies: Vec<(usize, String)>,
+    /// Temperature reports (M105, and each second of M109/M190), by line
+    /// number.
+    pub temperatures: Vec<(usize, String)>,
     /// Errors (`!!` replies), by line number.
     pub errors: Vec<(usize, String)>,
     /// Every stepper's steps.
@@ -204,6 +196,13 @@ impl fmt::Display for Summary {
         )?;
         for (line, reply) in &self.replies {
             writeln!(f, "reply:        line {line}: {reply}")?;
+        }
+        if let Some((line, last)) = self.temperatures.last() {
+            writeln!(
+                f,
+                "temperatures: {} reports, the last (line {line}): {last}",
+                self.temperatures.len()
+            )?;
         }
         for (line, error) in &self.errors {
             writeln!(f, "error:        line {line}: {error}")?;
@@ -295,32 +294,6 @@ impl fmt::Display for RunError {
 
 impl std::error::Error for RunError {}
 
-/// Counts planned moves, and keeps those in the plot window.
-#[derive(Default)]
-struct Tally {
-    toolhead: usize,
-    extruder: usize,
-    peak_velocity: f64,
-    window: Option<plot::Window>,
-    plotted: Vec<TrapqMove>,
-}
-
-impl MoveSink for Tally {
-    fn toolhead(&mut self, m: &TrapqMove) {
-        self.toolhead += 1;
-        self.peak_velocity = self.peak_velocity.max(m.cruise_v);
-        if let Some(w) = self.window {
-            let end = m.print_time + m.accel_t + m.cruise_t + m.decel_t;
-            if end >= w.from && m.print_time <= w.to {
-                self.plotted.push(*m);
-            }
-        }
-    }
-    fn extruder(&mut self, _: &TrapqMove) {
-        self.extruder += 1;
-    }
-}
-
 /// Runs the firmware logic on the SD folder `sd`, with `gcode` or else the
 /// folder's only `*.gcode` file, on the board's clock.
 pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
@@ -333,40 +306,37 @@ pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
     )
 }
 
-/// Forwards planned moves to step generation and counts them.
-struct Planned<'a, S> {
-    tally: &'a mut Tally,
-    motion: S,
-}
-
-impl<S: MoveSink> MoveSink for Planned<'_, S> {
-    fn toolhead(&mut self, m: &TrapqMove) {
-        self.tally.toolhead(m);
-        self.motion.toolhead(m);
-    }
-    fn extruder(&mut self, m: &TrapqMove) {
-        self.tally.extruder(m);
-        self.motion.extruder(m);
-    }
-    fn set_position(&mut self, pos: [f64; 3]) {
-        self.motion.set_position(pos);
-    }
-    fn homing_move_end(&mut self, homing: &HomingMove) -> [f64; 3] {
-        self.motion.homing_move_end(homing)
-    }
+/// Decisions a run takes at points of its input rather than from time:
+/// tests replay klippy's batch-mode timing with it (the session then keeps
+/// [`Timing::Batch`]).
+pub trait Replay<const L: usize> {
+    /// Before each line is run.
+    fn before_line(&mut self, session: &mut HostSession<'_, L>);
+    /// After `read` bytes of the G-code file have been read.
+    fn after_bytes(&mut self, read: usize, session: &mut HostSession<'_, L>, mcu: &mut VirtualMcu);
 }
 
 /// Runs the firmware logic on the SD folder `sd` as `options` say.
 pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
+    run_replaying::<{ profile::LOOKAHEAD }>(sd, options, None)
+}
+
+/// [`run_with`] with a lookahead of `L` moves, and `replay`'s decisions at
+/// its points of the input.
+pub fn run_replaying<const L: usize>(
+    sd: &Path,
+    options: &Options,
+    mut replay: Option<&mut dyn Replay<L>>,
+) -> Result<Summary, RunError> {
     let gcode = options.gcode.as_deref();
-    let config_path = sd.join(onechip_app::sdcard::PRINTER_CFG);
-    let texts = config_files(sd, &config_path)?;
-    let files: Vec<ConfigFile<'_>> = texts
-        .iter()
-        .map(|(name, text)| ConfigFile { name, text })
-        .collect();
-    let config = Config::parse_files(&files).map_err(|e| RunError::Config(e.to_string()))?;
+    let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
+    let mut buf = vec![0u8; files::CONFIG_BUFFER];
+    let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), &mut buf)
+        .map_err(|e| RunError::Config(e.to_string()))?;
+    let config = Config::parse_files(&texts).map_err(|e| RunError::Config(e.to_string()))?;
     let machine = Machine::from_config(&config).map_err(|e| RunError::Config(e.to_string()))?;
+    onechip_app::pin_check::check(&machine, onechip_app::pin_check::BOARD_RESERVED)
+        .map_err(|e| RunError::Config(e.to_string()))?;
     let gcode_path = match gcode {
         Some(path) => path.to_path_buf(),
         None => only_gcode_file(sd)?,
@@ -374,22 +344,25 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
     let program = read(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
-    let mut printer: Box<Printer<'_, LOOKAHEAD>> = Box::new(Printer::new(&machine));
-    printer.set_time_origin(origin);
-    let mut tally = Tally {
-        window: options.plot.as_ref().map(|(_, w)| plot::Window {
-            from: w.from + origin,
-            to: w.to + origin,
-        }),
-        ..Tally::default()
-    };
-    let max_error = (MAX_STEP_ERROR * freq) as u32;
-    let mut motion: Box<Motion<MOTION_QUEUE, COMPRESS_QUEUE>> =
-        Box::new(Motion::new(&machine, freq, max_error, [0.0; 3]));
+    let mut session = Box::new(HostSession::<L>::new(
+        &machine,
+        freq,
+        profile::MAX_STEP_ERROR,
+        options.clock_origin,
+    ));
+    if replay.is_some() {
+        session.set_timing(Timing::Batch);
+    }
     let mut mcu =
         VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(&machine, freq);
-    if let Some(physics) = physics(&machine, options.start, freq) {
+    if let Some(physics) = physics(&machine, options.start) {
         mcu = mcu.with_physics(physics);
+    }
+    if let Some((_, w)) = &options.plot {
+        mcu = mcu.with_plan(plot::Window {
+            from: w.from + origin,
+            to: w.to + origin,
+        });
     }
     if let (Some((t, heater)), Some((_, plant))) = (options.open_sensor, mcu.thermal()) {
         plant.open_sensor = Some((clock_at(t + origin, freq), heater));
@@ -410,6 +383,7 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         print_time: 0.0,
         final_position: [0.0; 4],
         replies: Vec::new(),
+        temperatures: Vec::new(),
         errors: Vec::new(),
         steppers: Vec::new(),
         shutdown: None,
@@ -420,91 +394,49 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         fan_speed: None,
         heat_wait: 0.0,
     };
-    let mut assembler = LineAssembler::<MAX_LINE>::new();
+    let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
     let mut progress = Progress::new(program.len());
     for (at, &byte) in program.iter().chain(b"\n").enumerate() {
-        let mut planning = false;
+        let mut ran = false;
         if let Some(event) = assembler.push(byte) {
-            progress.note(at, printer.print_time() - origin);
+            progress.note(at, session.printer().print_time() - origin);
             summary.lines += 1;
-            match event {
-                Line::Complete(bytes) => {
-                    let text = String::from_utf8_lossy(bytes);
-                    if let Some(batch) = &options.klippy_batch {
-                        batch.hold(&mut printer, tally.toolhead, origin);
-                    }
-                    let mut reply = String::new();
-                    let mut planned = Planned {
-                        tally: &mut tally,
-                        motion: motion.sink(&mut mcu),
-                    };
-                    if let Err(e) = printer.execute(&text, &mut planned, &mut reply) {
-                        summary.errors.push((summary.lines, e.to_string()));
-                    }
-                    while let Some(command) = printer.take_thermal() {
-                        let waits = options.klippy_batch.is_none();
-                        let outcome =
-                            thermal(command, waits, &mut printer, &mut motion, &mut mcu, freq);
-                        match outcome {
-                            Ok(waited) => summary.heat_wait += waited,
-                            Err(e) => summary.errors.push((summary.lines, e)),
-                        }
-                        if command == ThermalCommand::Report
-                            && let Some((heaters, _)) = mcu.thermal()
-                        {
-                            let _ = heaters.report(&mut reply);
-                        }
-                    }
-                    summary
-                        .replies
-                        .extend(reply.lines().map(|r| (summary.lines, r.to_string())));
-                    planning = true;
-                }
-                Line::TooLong { len } => summary.errors.push((
-                    summary.lines,
-                    format!("line too long ({len} bytes), ignored"),
-                )),
+            if let Some(replay) = replay.as_deref_mut() {
+                replay.before_line(&mut session);
             }
+            let mut reply = String::new();
+            // Writing to a String never fails.
+            let _ = session.line(&event, &mut mcu, &mut reply);
+            summary.note_reply(&reply);
+            ran = true;
         }
-        if let Some(batch) = &options.klippy_batch
-            && (at + 1) % klippy_batch::CHUNK == 0
-        {
-            let planned_moves = tally.toolhead;
-            let mut planned = Planned {
-                tally: &mut tally,
-                motion: motion.sink(&mut mcu),
-            };
-            batch.chunk_end(&mut printer, planned_moves, &mut planned);
-            planning = true;
+        if let Some(replay) = replay.as_deref_mut() {
+            replay.after_bytes(at + 1, &mut session, &mut mcu);
+            ran = true;
         }
-        if planning {
-            // Steps as far as the planned motion is final, executed as far
-            // as they have all been sent.
-            motion.generate(f64::INFINITY, &mut mcu);
-            mcu.run_until(clock_at(motion.sent_until(), freq));
-            if stopped(&motion, &mcu, &mut summary) {
+        if ran {
+            // The MCU runs the steps as far as they have all been sent.
+            mcu.run_until(clock_at(session.sent_until(), freq));
+            if stopped(&session, &mut mcu, &mut summary) {
                 break;
             }
         }
     }
-    let mut planned = Planned {
-        tally: &mut tally,
-        motion: motion.sink(&mut mcu),
-    };
-    printer.finish(&mut planned);
-    motion.finish(&mut mcu);
+    session.finish(&mut mcu);
     mcu.run_until(u64::MAX);
     // The heaters run on to the end of the print (its last dwell).
-    let end = clock_at(printer.print_time(), freq);
+    let end = clock_at(session.printer().print_time(), freq);
     if end > mcu.now() {
         mcu.run_until(end);
     }
-    stopped(&motion, &mcu, &mut summary);
-    summary.toolhead_moves = tally.toolhead;
-    summary.extruder_moves = tally.extruder;
-    summary.peak_velocity = tally.peak_velocity;
-    summary.print_time = printer.print_time();
-    summary.final_position = printer.position();
+    stopped(&session, &mut mcu, &mut summary);
+    let planned = session.planned();
+    summary.toolhead_moves = planned.toolhead_moves;
+    summary.extruder_moves = planned.extruder_moves;
+    summary.peak_velocity = planned.peak_velocity;
+    summary.heat_wait = session.heat_wait();
+    summary.print_time = session.printer().print_time();
+    summary.final_position = session.printer().position();
     summary.real_position = mcu.real_position();
     let run_ticks = mcu.now().saturating_sub(options.clock_origin).max(1) as f64;
     if let Some((heaters, plant)) = mcu.thermal() {
@@ -558,8 +490,8 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
                 (st.name, times)
             })
             .collect();
-        let moves: Vec<TrapqMove> = tally
-            .plotted
+        let moves: Vec<TrapqMove> = mcu
+            .plan()
             .iter()
             .map(|m| TrapqMove {
                 print_time: m.print_time - origin,
@@ -570,6 +502,23 @@ pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
         std::fs::write(path, svg).map_err(|e| RunError::Read(path.clone(), e))?;
     }
     Ok(summary)
+}
+
+impl Summary {
+    /// Files the console's answer to the last line: `!!` lines as errors,
+    /// temperature reports apart, other text as replies, `ok` dropped.
+    fn note_reply(&mut self, reply: &str) {
+        for line in reply.lines().filter(|l| *l != "ok") {
+            let entry = |text: &str| (self.lines, text.to_string());
+            if let Some(error) = line.strip_prefix("!! ") {
+                self.errors.push(entry(error));
+            } else if line.starts_with("T:") || line.starts_with("B:") {
+                self.temperatures.push(entry(line));
+            } else {
+                self.replies.push(entry(line));
+            }
+        }
+    }
 }
 
 /// G-code files at least this long report progress, bytes.
@@ -602,9 +551,9 @@ impl Progress {
     }
 }
 
-/// Where the motion steppers really are, for endstops (none for a delta,
-/// which does not home yet, or with [`Start::Ideal`]).
-fn physics(machine: &Machine<'_>, start: Start, freq: f64) -> Option<Physics> {
+/// Where the motion steppers really are, and their endstops (none for a
+/// delta, which does not home yet, or with [`Start::Ideal`]).
+fn physics(machine: &Machine<'_>, start: Start) -> Option<Physics> {
     let toolhead = match start {
         Start::Ideal => return None,
         Start::At(pos) => pos,
@@ -623,52 +572,11 @@ fn physics(machine: &Machine<'_>, start: Start, freq: f64) -> Option<Physics> {
         kinematics,
         step_dist: core::array::from_fn(|k| machine.steppers.get(k).map_or(1.0, |s| s.step_dist)),
         start: core::array::from_fn(|k| kinematics[k].position(toolhead)),
-        freq,
+        endstops: core::array::from_fn(|axis| {
+            let info = machine.travel.homing_info(axis)?;
+            Some((info.position_endstop, info.positive_dir))
+        }),
     })
-}
-
-/// Carries out a heater or fan command; a target with `waits` waits in
-/// virtual time until the heater reaches it. Returns the time waited, s.
-fn thermal<const N: usize, const Q: usize>(
-    command: ThermalCommand,
-    waits: bool,
-    printer: &mut Printer<'_, LOOKAHEAD>,
-    motion: &mut Motion<N, Q>,
-    mcu: &mut VirtualMcu,
-    freq: f64,
-) -> Result<f64, String> {
-    mcu.thermal_command(command);
-    let ThermalCommand::Target {
-        heater, wait: true, ..
-    } = command
-    else {
-        return Ok(0.0);
-    };
-    let busy = |mcu: &mut VirtualMcu| {
-        mcu.shutdown().is_none() && mcu.thermal().is_some_and(|(h, _)| h.busy(heater))
-    };
-    if !waits || !busy(mcu) {
-        return Ok(0.0);
-    }
-    // Every planned move runs to its end, then time passes a second at a
-    // time (as Klipper's wait loop) until the heater has settled.
-    motion.settle(mcu);
-    let start = printer
-        .print_time()
-        .max(motion.sent_until())
-        .max(mcu.now() as f64 / freq);
-    let mut t = start;
-    while busy(mcu) {
-        if t - start > MAX_HEAT_WAIT {
-            return Err(format!(
-                "heater did not reach its target within {MAX_HEAT_WAIT:.0} s"
-            ));
-        }
-        t += 1.0;
-        mcu.run_until(clock_at(t, freq));
-    }
-    printer.hold_until(t);
-    Ok(t - start)
 }
 
 /// MCU clock at print time `t` (s), ticks (0 before the start).
@@ -684,14 +592,10 @@ fn clock_at(t: f64, freq: f64) -> u64 {
 
 /// Notes a fault of step generation or the MCU role; true if the run
 /// must stop.
-fn stopped<const N: usize, const Q: usize>(
-    motion: &Motion<N, Q>,
-    mcu: &VirtualMcu,
-    summary: &mut Summary,
-) -> bool {
+fn stopped<const L: usize>(session: &HostSession<'_, L>, mcu: &mut VirtualMcu, summary: &mut Summary) -> bool {
     if summary.shutdown.is_none() {
-        summary.shutdown = motion
-            .error()
+        summary.shutdown = session
+            .motion_error()
             .map(|e| e.to_string())
             .or_else(|| mcu.shutdown().map(|s| s.to_string()));
     }
@@ -709,27 +613,6 @@ fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), RunE
         writeln!(out, "{clock} {}", u8::from(positive)).map_err(io)?;
     }
     out.flush().map_err(io)
-}
-
-/// printer.cfg (first) and every other `.cfg` file under the SD folder,
-/// named relative to it, for `[include]` to choose from.
-fn config_files(sd: &Path, printer_cfg: &Path) -> Result<Vec<(String, String)>, RunError> {
-    let text = |path: &Path| read(path).map(|bytes| String::from_utf8_lossy(&bytes).into_owned());
-    let mut files = vec![(printer_cfg.display().to_string(), text(printer_cfg)?)];
-    let mut folders = vec![(sd.to_path_buf(), String::new())];
-    while let Some((dir, prefix)) = folders.pop() {
-        let entries = std::fs::read_dir(&dir).map_err(|e| RunError::Read(dir.clone(), e))?;
-        for entry in entries.filter_map(Result::ok) {
-            let path = entry.path();
-            let name = format!("{prefix}{}", entry.file_name().to_string_lossy());
-            if path.is_dir() && prefix.matches('/').count() < 3 {
-                folders.push((path, format!("{name}/")));
-            } else if path.extension().is_some_and(|x| x == "cfg") && path != printer_cfg {
-                files.push((name, text(&path)?));
-            }
-        }
-    }
-    Ok(files)
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, RunError> {

@@ -2,30 +2,33 @@
 //! same engine the board runs from its timer interrupt
 //! ([`onechip_sched::engine::Engine`]), which is run forward as far as
 //! step generation has committed, each step recorded with its 64-bit
-//! clock. Homing moves stop at simulated endstops. The heaters and fan
-//! ([`Heaters`], the io the board runs from its second timer) run in the
-//! same virtual time against simulated physics ([`Plant`]); a fault of
-//! either shuts both down.
+//! clock. The engine's endstop check reads simulated endstops
+//! ([`Physics`]) through the step pins, as the board's interrupt reads its
+//! GPIOs. The heaters and fan ([`Heaters`], the io the board runs from its
+//! second timer) run in the same virtual time against simulated physics
+//! ([`Plant`]); a fault of either shuts both down. It is the session's
+//! [`Mcu`]: a wait runs the next timer event.
 
 use crate::thermal_plant::{ADC_MAX, Plant};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
-use onechip_planner::homing::HomingMove;
+use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
 use onechip_planner::machine::Machine;
-use onechip_sched::endstop::{Check, Endstop};
-use onechip_sched::engine::{Command, Engine};
+use onechip_planner::toolhead::TrapqMove;
+use onechip_sched::endstop::Endstop;
+use onechip_sched::engine::{Command, Engine, Full};
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::stepper::StepPins;
-use onechip_stepgen::compress::StepCommand;
-use onechip_stepgen::motion::StepSink;
+use std::cell::Cell;
+use std::rc::Rc;
 
 /// Moves each virtual stepper's queue holds, and commands its outbox holds.
 pub const MOVE_QUEUE: usize = 256;
 const OUTBOX: usize = 64;
 
 /// The machine as physics sees it, for endstops: where the motion steppers
-/// really are.
+/// really are, and where each rail's endstop switch is.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Physics {
     /// How the three motion steppers follow the toolhead.
@@ -34,8 +37,9 @@ pub struct Physics {
     pub step_dist: [f64; 3],
     /// The motion steppers' positions at power-on, mm.
     pub start: [f64; 3],
-    /// MCU clock, Hz.
-    pub freq: f64,
+    /// Each rail's endstop: the toolhead coordinate it is pressed at (mm)
+    /// and whether it is pressed above (true) or below it.
+    pub endstops: [Option<(f64, bool)>; 3],
 }
 
 impl Physics {
@@ -44,6 +48,25 @@ impl Physics {
     fn toolhead(&self, steps: [i64; 3]) -> [f64; 3] {
         let s = core::array::from_fn(|k| self.start[k] + steps[k] as f64 * self.step_dist[k]);
         calc_position(&self.kinematics, s)
+    }
+}
+
+/// The motion steppers' positions, shared by their pins so that an
+/// endstop sees where the toolhead really is.
+#[derive(Debug)]
+struct Rails {
+    physics: Physics,
+    steps: Cell<[i64; 3]>,
+}
+
+impl Rails {
+    /// True while rail `axis`'s endstop is pressed.
+    fn pressed(&self, axis: usize) -> bool {
+        let Some(Some((at, above))) = self.physics.endstops.get(axis).copied() else {
+            return false;
+        };
+        let coord = self.physics.toolhead(self.steps.get())[axis];
+        if above { coord >= at } else { coord <= at }
     }
 }
 
@@ -58,12 +81,15 @@ pub struct StepLog {
     pub min_interval: Option<u64>,
 }
 
-/// A stepper's pins, recording each step at the clock the engine runs at.
+/// A stepper's pins, recording each step at the clock the engine runs at;
+/// a motion stepper's also read its rail's simulated endstop.
 #[derive(Debug, Default)]
 struct Recorder {
     clock: u64,
     dir: bool,
     log: StepLog,
+    /// Which motion stepper this is, and the rails it shares.
+    rail: Option<(usize, Rc<Rails>)>,
 }
 
 impl StepPins for Recorder {
@@ -78,6 +104,17 @@ impl StepPins for Recorder {
         }
         self.log.steps.push((self.clock, self.dir));
         self.log.position += if self.dir { 1 } else { -1 };
+        if let Some((k, rails)) = &self.rail {
+            let mut steps = rails.steps.get();
+            steps[*k] = self.log.position;
+            rails.steps.set(steps);
+        }
+    }
+
+    fn endstop_triggered(&mut self) -> bool {
+        self.rail
+            .as_ref()
+            .is_some_and(|(k, rails)| rails.pressed(*k))
     }
 }
 
@@ -93,12 +130,14 @@ pub struct VirtualMcu {
     pushed: bool,
     /// With physics, homing moves stop at their endstops; without, they run
     /// to their end (klippy's batch mode).
-    physics: Option<Physics>,
+    rails: Option<Rc<Rails>>,
     /// Where each endstop triggered: axis, toolhead position, clock.
     triggers: Vec<(usize, [f64; 3], u64)>,
-    /// The homing move being watched: its start clock, and its endstop
-    /// with the 64-bit clock of its next reading.
-    watch: Option<(u64, Endstop, u64)>,
+    /// The axis whose endstop is watched.
+    watched: usize,
+    /// Planned moves kept for a plot, and the print-time window they
+    /// must touch (s).
+    plan: Option<(crate::plot::Window, Vec<TrapqMove>)>,
     /// The heaters and fan, and their physics.
     thermal: Option<(Heaters, Plant)>,
     /// When the heaters' io wants to run next, ticks (kept up to date
@@ -115,9 +154,10 @@ impl VirtualMcu {
             now: 0,
             wake: None,
             pushed: false,
-            physics: None,
+            rails: None,
             triggers: Vec::new(),
-            watch: None,
+            watched: 0,
+            plan: None,
             thermal: None,
             io_wake: None,
         };
@@ -165,8 +205,27 @@ impl VirtualMcu {
 
     /// The same MCU with endstops where `physics` puts them.
     pub fn with_physics(mut self, physics: Physics) -> Self {
-        self.physics = Some(physics);
+        let rails = Rc::new(Rails {
+            physics,
+            steps: Cell::new([0; 3]),
+        });
+        for (k, pins) in self.engine.pins_mut().take(3).enumerate() {
+            pins.rail = Some((k, Rc::clone(&rails)));
+        }
+        self.rails = Some(rails);
         self
+    }
+
+    /// The same MCU keeping the planned moves that touch print-time
+    /// `window` (s), for a plot.
+    pub fn with_plan(mut self, window: crate::plot::Window) -> Self {
+        self.plan = Some((window, Vec::new()));
+        self
+    }
+
+    /// The planned moves kept for the plot.
+    pub fn plan(&self) -> &[TrapqMove] {
+        self.plan.as_ref().map_or(&[], |(_, moves)| moves)
     }
 
     /// Runs every step and heater event before clock `until`, in time
@@ -234,12 +293,8 @@ impl VirtualMcu {
 
     /// The toolhead's real position now, if physics is modelled, mm.
     pub fn real_position(&self) -> Option<[f64; 3]> {
-        let physics = self.physics.as_ref()?;
-        Some(physics.toolhead(self.motion_steps()))
-    }
-
-    fn motion_steps(&self) -> [i64; 3] {
-        core::array::from_fn(|k| self.engine.position(k).unwrap_or(0))
+        let rails = self.rails.as_ref()?;
+        Some(rails.physics.toolhead(rails.steps.get()))
     }
 
     /// The engine's timer interrupt at clock `at`, after the heaters'
@@ -284,75 +339,84 @@ impl VirtualMcu {
     }
 }
 
-impl StepSink for VirtualMcu {
-    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
-        if index >= self.steppers || self.shutdown().is_some() {
-            return;
+impl Mcu for VirtualMcu {
+    fn now(&mut self) -> u64 {
+        self.now
+    }
+
+    fn push(&mut self, stepper: usize, cmd: Command, clock: u64) -> Result<(), Full> {
+        if stepper >= self.steppers {
+            // A stepper the engine does not drive here: dropped.
+            return Ok(());
         }
-        let cmd = Command::from(cmd);
-        while self.engine.push(index, cmd, clock).is_err() {
-            // Outbox full: time runs on until the engine makes room.
-            self.refresh();
-            match self.wake {
-                Some(at) => self.run_at(at),
-                None => return,
-            }
+        self.engine.push(stepper, cmd, clock)?;
+        self.pushed = true;
+        Ok(())
+    }
+
+    /// Runs the next timer event (the engine's or the heaters'), if it
+    /// comes before `until`; else moves time to `until`.
+    fn wait(&mut self, until: u64) {
+        self.refresh();
+        let next = match (self.wake, self.io_wake) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        match next {
+            Some(at) if at < until && self.wake == Some(at) => self.run_at(at),
+            Some(at) if at < until => self.run_io(at),
+            _ if until != u64::MAX => self.advance_clock(until),
+            _ => {}
         }
+    }
+
+    fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
+        self.watched = stepper;
+        self.engine.watch_endstop(stepper, endstop, stops);
         self.pushed = true;
     }
 
-    fn home(
-        &mut self,
-        homing: &HomingMove,
-        start_clock: u64,
-        until_clock: u64,
-    ) -> Option<[i64; MAX_STEPPERS]> {
-        let physics = self.physics.clone()?;
-        let freq = physics.freq;
-        // Sampled about once per step of the homing move's finest stepper.
-        let finest = physics
-            .step_dist
-            .iter()
-            .copied()
-            .fold(f64::INFINITY, f64::min);
-        let reached = |pos: [f64; 3]| {
-            let coord = pos[homing.axis];
-            if homing.positive_dir {
-                coord >= homing.position_endstop
-            } else {
-                coord <= homing.position_endstop
+    fn stop_watching(&mut self) {
+        self.engine.stop_watching();
+        self.pushed = true;
+    }
+
+    fn take_trigger(&mut self) -> Option<u32> {
+        let trigger = self.engine.take_trigger()?;
+        let ago = u64::from((self.now as u32).wrapping_sub(trigger));
+        let real = self.real_position().unwrap_or_default();
+        self.triggers
+            .push((self.watched, real, self.now.saturating_sub(ago)));
+        Some(trigger)
+    }
+
+    fn thermal(&mut self, command: ThermalCommand) {
+        self.thermal_command(command);
+    }
+
+    fn heater_busy(&mut self, heater: usize) -> bool {
+        self.thermal.as_ref().is_some_and(|(h, _)| h.busy(heater))
+    }
+
+    fn report_temperatures(&mut self, out: &mut impl std::fmt::Write) -> std::fmt::Result {
+        match &self.thermal {
+            Some((heaters, _)) => heaters.report(out),
+            None => Ok(()),
+        }
+    }
+
+    fn shutdown_reason(&mut self) -> Option<Shutdown> {
+        self.shutdown()
+    }
+
+    fn planned(&mut self, m: &TrapqMove, extruder: bool) {
+        if let Some((w, moves)) = &mut self.plan
+            && !extruder
+        {
+            let end = m.print_time + m.accel_t + m.cruise_t + m.decel_t;
+            if end >= w.from && m.print_time <= w.to {
+                moves.push(*m);
             }
-        };
-        let (mut endstop, mut read_at) = match self.watch {
-            Some((start, endstop, at)) if start == start_clock => (endstop, at),
-            _ => {
-                let at = start_clock.max(self.now);
-                let endstop = Endstop::for_homing(at as u32, freq, homing.speed, finest);
-                (endstop, at)
-            }
-        };
-        self.refresh();
-        let triggered_at = loop {
-            match self.wake {
-                Some(at) if at < read_at => self.run_at(at),
-                _ if read_at >= until_clock => {
-                    self.watch = Some((start_clock, endstop, read_at));
-                    return None;
-                }
-                _ => match endstop.read(reached(physics.toolhead(self.motion_steps()))) {
-                    Check::Triggered(_) => break read_at,
-                    Check::At(next) => read_at += u64::from(next.wrapping_sub(read_at as u32)),
-                },
-            }
-        };
-        // Triggered: the steppers stop at once, so none overshoots the
-        // trigger; their remaining steps are dropped.
-        self.watch = None;
-        self.engine.halt();
-        self.wake = None;
-        self.advance_clock(triggered_at);
-        let real = physics.toolhead(self.motion_steps());
-        self.triggers.push((homing.axis, real, triggered_at));
-        Some([0; MAX_STEPPERS])
+        }
     }
 }

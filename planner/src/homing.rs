@@ -6,14 +6,26 @@
 //! axis retracts by `homing_retract_dist`, and a second homing move runs at
 //! `second_homing_speed`. Homing moves are "drip" moves: planned alone,
 //! starting after the endstop start delay and the step generator's scan
-//! window. With real endstops the trigger ends the move early, and the
-//! sink reports where the steppers stopped ([`MoveSink::homing_move_end`]).
+//! window. With real endstops the trigger ends the move early: the sink
+//! reports where and when the steppers stopped
+//! ([`MoveSink::homing_move_end`]), and print time goes on from the stop.
 
 use crate::motion::E;
 use crate::toolhead::{MoveError, MoveSink, Toolhead};
 
 /// Delay between arming endstops and starting a homing move, s.
 pub const HOMING_START_DELAY: f64 = 0.001;
+
+/// Where and when a homing move ended, as the step side reports it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HomingEnd {
+    /// The toolhead position where the steppers stopped, as Klipper
+    /// computes it (the target, plus any overshoot past the trigger), mm.
+    pub position: [f64; 3],
+    /// Print time the steppers stopped at, s: None if the move ran to its
+    /// end (no endstop triggered, or none is modelled).
+    pub stopped_at: Option<f64>,
+}
 
 /// How one axis homes (from its stepper section).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -128,7 +140,7 @@ impl<const N: usize> Toolhead<N> {
         self.drip_move(target, speed, sink)?;
         let end_time = self.last_move_time(sink);
         self.flush_step_generation(sink);
-        let halt = sink.homing_move_end(&HomingMove {
+        let end = sink.homing_move_end(&HomingMove {
             axis,
             target: [target[0], target[1], target[2]],
             position_endstop: hi.position_endstop,
@@ -137,6 +149,11 @@ impl<const N: usize> Toolhead<N> {
             start_time,
             end_time,
         });
+        if let Some(t) = end.stopped_at {
+            // The rest of the move never ran: time goes on from the stop.
+            self.rewind_to(t);
+        }
+        let halt = end.position;
         self.set_position([halt[0], halt[1], halt[2], target[E]], sink);
         Ok(())
     }

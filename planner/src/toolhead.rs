@@ -62,12 +62,14 @@ pub trait MoveSink {
         let _ = pos;
     }
     /// A homing move has been handed over entirely: the sink runs it with
-    /// the endstop armed and returns the toolhead position where the
-    /// steppers stopped, as Klipper computes it (the target, plus any
-    /// overshoot between the trigger and the stop). Sinks without
-    /// endstops let the move complete: the target.
-    fn homing_move_end(&mut self, homing: &crate::homing::HomingMove) -> [f64; 3] {
-        homing.target
+    /// the endstop armed and returns where and when the steppers stopped.
+    /// Sinks without endstops let the move complete: at the target, at
+    /// its end.
+    fn homing_move_end(&mut self, homing: &crate::homing::HomingMove) -> crate::homing::HomingEnd {
+        crate::homing::HomingEnd {
+            position: homing.target,
+            stopped_at: None,
+        }
     }
 }
 
@@ -572,11 +574,6 @@ impl<const N: usize> Toolhead<N> {
         sink.set_position([pos[0], pos[1], pos[2]]);
     }
 
-    /// Sets only the extruder's position.
-    pub fn set_extruder_position(&mut self, e: f64) {
-        self.commanded_pos[E] = e;
-    }
-
     /// Flushes the lookahead and returns the print time after the queued
     /// moves, s (re-anchoring it if the queue was idle).
     pub fn last_move_time(&mut self, sink: &mut impl MoveSink) -> f64 {
@@ -624,6 +621,15 @@ impl<const N: usize> Toolhead<N> {
         self.last_step_gen_time = self.last_step_gen_time.max(through);
         self.flush_step_generation(sink);
         Ok(())
+    }
+
+    /// Every queued move has run and the motion stopped at print time `t`
+    /// s, before the planned end (a homing move cut short by its endstop):
+    /// print time and step generation go on from `t`.
+    pub(crate) fn rewind_to(&mut self, t: f64) {
+        self.print_time = t;
+        self.need_step_gen_time = t;
+        self.last_step_gen_time = t;
     }
 
     pub(crate) fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {

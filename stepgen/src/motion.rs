@@ -14,7 +14,7 @@ use crate::segment::Segment;
 use crate::shaper::StepperShaper;
 use crate::solver::{AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
 use crate::trapq::Trapq;
-use onechip_planner::homing::HomingMove;
+use onechip_planner::homing::{HomingEnd, HomingMove};
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::kinematics::calc_position;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
@@ -43,24 +43,26 @@ pub trait StepSink {
     /// run its steps before that clock with the endstop of `homing.axis`
     /// armed from `start_clock` (called again with later clocks as more
     /// steps are sent). On a trigger, the steppers stop and the rest of
-    /// their queued steps is dropped; returns each stepper's steps between
-    /// the trigger and the stop. None: no trigger yet (or no endstops here).
+    /// their queued steps is dropped; returns when and how they stopped.
+    /// None: no trigger yet (or no endstops here).
     fn home(
         &mut self,
         homing: &HomingMove,
         start_clock: u64,
         until_clock: u64,
-    ) -> Option<[i64; MAX_STEPPERS]> {
+    ) -> Option<HomingStop> {
         let _ = (homing, start_clock, until_clock);
         None
     }
 }
 
-/// Drops every command.
-struct Discard;
-
-impl StepSink for Discard {
-    fn command(&mut self, _: usize, _: StepCommand, _: u64) {}
+/// How a homing move's steppers stopped at their endstop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HomingStop {
+    /// 64-bit MCU clock the steppers stopped at, ticks.
+    pub clock: u64,
+    /// Each stepper's steps between the trigger and the stop.
+    pub overshoot: [i64; MAX_STEPPERS],
 }
 
 /// What a stepper's position follows.
@@ -364,11 +366,6 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             - self.max_error_time
     }
 
-    /// Steppers' positions at their last step, mm (as [`Machine::steppers`]).
-    pub fn commanded_positions(&self) -> impl Iterator<Item = f64> + '_ {
-        self.channels.iter().map(|ch| ch.solver.commanded_pos())
-    }
-
     /// Drops the queued segments every stepper has passed.
     fn retire(&mut self) {
         let passed = |toolhead: bool| {
@@ -417,11 +414,12 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         }
     }
 
-    /// Runs a homing move whose steps are all generated: sends every
-    /// compressed step, lets the sink run it against the endstop, and on a
-    /// trigger restarts every stepper's step clock at the move's end and
-    /// returns where the toolhead stopped as Klipper computes it.
-    fn home(&mut self, homing: &HomingMove, sink: &mut impl StepSink) -> [f64; 3] {
+    /// Runs a homing move whose steps are all generated: sends its
+    /// compressed steps in drips, lets the sink run them against the
+    /// endstop, and on a trigger drops the rest of the move, restarts every
+    /// stepper at the stop and returns where the toolhead stopped, as
+    /// Klipper computes it, with the stop's print time.
+    fn home(&mut self, homing: &HomingMove, sink: &mut impl StepSink) -> HomingEnd {
         let freq = self.freq;
         let clock = |t: f64| (t.max(0.0) * freq) as u64;
         let (start_clock, end_clock) = (clock(homing.start_time), clock(homing.end_time));
@@ -430,7 +428,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         // that the endstop is watched while the steps still to come are
         // not yet queued.
         let mut until = homing.start_time;
-        let overshoot = loop {
+        let stop = loop {
             until += DRIP_TIME;
             let last = until >= homing.end_time;
             let sent = if last {
@@ -440,30 +438,51 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 self.generate(until, sink);
                 clock(self.sent_until())
             };
-            if let Some(overshoot) = sink.home(homing, start_clock, sent.min(end_clock)) {
-                break overshoot;
+            if let Some(stop) = sink.home(homing, start_clock, sent.min(end_clock)) {
+                break stop;
             }
             if last {
-                return homing.target;
+                return HomingEnd {
+                    position: homing.target,
+                    stopped_at: None,
+                };
             }
         };
-        // The steps past the trigger never happen: generate them (the
-        // solvers move on to the move's end) but drop them.
-        self.generate_through(&mut Discard);
-        for (i, ch) in self.channels.iter_mut().enumerate() {
-            ch.compressor
-                .reset(end_clock, &mut |cmd, clock| sink.command(i, cmd, clock));
-        }
+        let stopped_at = stop.clock as f64 / freq;
+        self.restart(stop.clock, sink);
         // The target, moved by each motion stepper's overshoot.
         let mut kin = [StepperKinematics::Axis(0); 3];
         let mut spos = [0.0; 3];
         for (k, ch) in self.channels.iter().take(3).enumerate() {
             if let Follows::Toolhead(stepper_kin) = ch.follows {
                 kin[k] = stepper_kin;
-                spos[k] = stepper_kin.position(homing.target) + overshoot[k] as f64 * ch.step_dist;
+                spos[k] =
+                    stepper_kin.position(homing.target) + stop.overshoot[k] as f64 * ch.step_dist;
             }
         }
-        calc_position(&kin, spos)
+        HomingEnd {
+            position: calc_position(&kin, spos),
+            stopped_at: Some(stopped_at),
+        }
+    }
+
+    /// The motion stopped at 64-bit clock `clock` (a homing move's
+    /// trigger): the queued motion is dropped, the motion steppers' unsent
+    /// steps too (their step clocks restart there), the extruder's are
+    /// sent (it stood still), and generation goes on from the stop.
+    fn restart(&mut self, clock: u64, sink: &mut impl StepSink) {
+        let at = clock as f64 / self.freq;
+        self.toolhead.clear();
+        self.extruder.clear();
+        self.known_until = at;
+        for (i, ch) in self.channels.iter_mut().enumerate() {
+            let mut out = |cmd, clock| sink.command(i, cmd, clock);
+            match ch.follows {
+                Follows::Toolhead(..) => ch.compressor.reset(clock, &mut out),
+                Follows::Extruder(_) => ch.compressor.flush(&mut out),
+            }
+            ch.solver.restart(at);
+        }
     }
 
     /// Generates through the end of all queued motion and its margins.
@@ -512,7 +531,7 @@ impl<const N: usize, const Q: usize, S: StepSink> MoveSink for MotionSink<'_, N,
         self.motion.set_position(pos, self.steps);
     }
 
-    fn homing_move_end(&mut self, homing: &HomingMove) -> [f64; 3] {
+    fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
         self.motion.home(homing, self.steps)
     }
 }

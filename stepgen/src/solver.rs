@@ -170,6 +170,13 @@ impl StepSolver {
         self.commanded_pos = self.kin.position(pos);
     }
 
+    /// Steps resume from print time `at` s (the motion was cut short
+    /// there; nothing after it was generated or will be).
+    pub fn restart(&mut self, at: f64) {
+        self.generated_until = at;
+        self.last_active_end = self.last_active_end.min(at);
+    }
+
     /// The stepper's position at its last step, mm.
     pub fn commanded_pos(&self) -> f64 {
         self.commanded_pos

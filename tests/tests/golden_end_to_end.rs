@@ -12,7 +12,9 @@
 //! replays them (`KlippyBatch`), read from klippy's planned moves: which
 //! moves it ended at rest and when it started moves from rest.
 
-use onechip_host::klippy_batch::KlippyBatch;
+mod klippy_batch;
+
+use klippy_batch::KlippyBatch;
 use onechip_host::{Options, Start};
 use onechip_tests::{golden_dir, summary_value};
 use std::path::Path;
@@ -29,26 +31,19 @@ fn steps(path: &Path) -> Vec<(u64, bool)> {
 }
 
 /// Klippy's batch-mode timing decisions in `case`, from its planned
-/// toolhead moves (`moves.tsv`: print_time, accel_t, cruise_t, decel_t,
-/// start xyz, axes_r xyz, start_v, cruise_v, accel).
-fn klippy_batch(case: &str) -> KlippyBatch {
-    let text =
-        std::fs::read_to_string(golden_dir().join(case).join("moves.tsv")).expect("moves.tsv");
-    let moves: Vec<Vec<f64>> = text
-        .lines()
-        .skip(1)
-        .filter_map(|l| l.strip_prefix("toolhead\t"))
-        .map(|l| l.split('\t').map(|x| x.parse().expect("float")).collect())
-        .collect();
+/// toolhead moves (`moves.tsv`).
+fn klippy_batch(case: &str, origin: f64) -> KlippyBatch {
+    let moves = onechip_golden::trapq_moves(case, onechip_golden::Trapq::Toolhead);
     KlippyBatch {
         // Ends at rest: cruise_v - accel * decel_t = 0.
         stops: (0..moves.len())
-            .filter(|&i| (moves[i][11] - moves[i][12] * moves[i][3]).abs() < 1e-9)
+            .filter(|&i| moves[i].ends_at_rest())
             .collect(),
         starts: (0..moves.len())
-            .filter(|&i| moves[i][10] == 0.0)
-            .map(|i| (i, moves[i][0]))
+            .filter(|&i| moves[i].start_v == 0.0)
+            .map(|i| (i, moves[i].print_time))
             .collect(),
+        origin,
     }
 }
 
@@ -73,7 +68,8 @@ fn check(case: &str, config: &str, origin: u64) {
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u64;
     let out = work.join("steps");
-    let summary = onechip_host::run_with(
+    let mut replay = klippy_batch(case, origin as f64 / freq);
+    let summary = onechip_host::run_replaying::<{ onechip_host::KLIPPY_LOOKAHEAD }>(
         &sd,
         &Options {
             steps_dir: Some(out.clone()),
@@ -82,9 +78,9 @@ fn check(case: &str, config: &str, origin: u64) {
             // Klipper's batch mode has no endstops: homing moves run to
             // their end.
             start: Start::Ideal,
-            klippy_batch: Some(klippy_batch(case)),
             ..Options::default()
         },
+        Some(&mut replay),
     )
     .expect("runs");
     assert_eq!(summary.shutdown, None, "{case}");

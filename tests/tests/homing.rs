@@ -79,3 +79,47 @@ fn without_a_known_start_homing_runs_to_the_end_as_in_klippy_batch_mode() {
     assert_eq!(s.real_position, None);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Steps of `stepper` written by a run with `steps_dir`: clock, direction.
+fn steps(dir: &std::path::Path, stepper: &str) -> Vec<(u64, bool)> {
+    onechip_golden::steps_file(&dir.join(format!("steps-{stepper}.txt")))
+}
+
+#[test]
+fn homing_from_mid_travel_ends_at_each_trigger_as_in_klipper() {
+    let dir = sd("mid", "G28\n");
+    let out = dir.join("steps");
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            steps_dir: Some(out.clone()),
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert_eq!((s.errors.len(), s.shutdown.as_ref()), (0, None));
+    assert_eq!(s.endstops.len(), 6);
+    // Klipper needs about 34 s from mid-travel (Z: 125 mm at 5 mm/s);
+    // with the rest of each planned homing move idled away it was 96 s.
+    assert!(s.print_time <= 36.0, "G28 took {:.1} s", s.print_time);
+    // After each trigger the homed axis moves again (the retract, the
+    // second approach, or the next axis) within 50 ms, not after the rest
+    // of the planned move (the last trigger ends G28).
+    let freq = s.mcu_freq;
+    let names = ["stepper_x", "stepper_y", "stepper_z"];
+    for (i, pair) in s.endstops.windows(2).enumerate() {
+        let ((axis, _, at), next_axis) = (pair[0], pair[1].0);
+        let moved = [axis, next_axis].map(|a| {
+            steps(&out, names[a])
+                .into_iter()
+                .map(|(clock, _)| clock as f64 / freq)
+                .find(|&t| t > at)
+        });
+        let next = moved.iter().flatten().copied().fold(f64::INFINITY, f64::min);
+        assert!(
+            next - at < 0.050,
+            "trigger {i} (axis {axis}) at {at:.3} s: next step at {next:.3} s"
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

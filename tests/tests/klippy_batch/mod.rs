@@ -5,10 +5,11 @@
 //! the last at rest), and when it restarted from rest (its estimate of
 //! the MCU's print time). Given what klippy did (from its planned moves),
 //! a run makes the same decisions at the same points, so that its steps
-//! can be compared with klippy's one by one.
+//! can be compared with klippy's one by one. Used by tests only: the
+//! product keeps print time from the MCU's clock.
 
-use onechip_app::printer::Printer;
-use onechip_planner::toolhead::MoveSink;
+use onechip_host::virtual_mcu::VirtualMcu;
+use onechip_host::{HostSession, KLIPPY_LOOKAHEAD, Replay};
 
 /// Bytes klippy reads from its input at a time.
 pub const CHUNK: usize = 4096;
@@ -22,35 +23,37 @@ pub struct KlippyBatch {
     /// The moves klippy started from rest, and their print times (s from
     /// print time 0).
     pub starts: Vec<(usize, f64)>,
+    /// Print time 0, s (the run's clock origin).
+    pub origin: f64,
 }
 
-impl KlippyBatch {
-    /// Before a line: an idle printer whose next toolhead move is
-    /// `next_move` starts it no earlier than klippy did; `origin` is print
-    /// time 0, s.
-    pub fn hold<const N: usize>(&self, printer: &mut Printer<N>, next_move: usize, origin: f64) {
+impl Replay<KLIPPY_LOOKAHEAD> for KlippyBatch {
+    /// An idle printer whose next toolhead move is one klippy started
+    /// from rest starts it no earlier than klippy did.
+    fn before_line(&mut self, session: &mut HostSession<'_, KLIPPY_LOOKAHEAD>) {
+        let next_move = session.planned().toolhead_moves;
+        let printer = session.printer();
         if printer.is_idle()
             && let Some(&(_, at)) = self.starts.iter().find(|s| s.0 == next_move)
         {
-            printer.hold_until(origin + at);
+            printer.hold_until(self.origin + at);
         }
     }
 
-    /// At the end of an input chunk, `planned` toolhead moves planned so
-    /// far: fires the priming timer if klippy's had expired there, which
-    /// shows as its plan ending at rest on the last move queued.
-    pub fn chunk_end<const N: usize>(
-        &self,
-        printer: &mut Printer<N>,
-        planned: usize,
-        sink: &mut impl MoveSink,
-    ) {
-        let Some(toolhead_moves) = printer.priming_moves() else {
+    /// At the end of an input chunk: fires the priming timer if klippy's
+    /// had expired there, which shows as its plan ending at rest on the
+    /// last move queued.
+    fn after_bytes(&mut self, read: usize, session: &mut HostSession<'_, KLIPPY_LOOKAHEAD>, mcu: &mut VirtualMcu) {
+        if !read.is_multiple_of(CHUNK) {
+            return;
+        }
+        let planned = session.planned().toolhead_moves;
+        let Some(toolhead_moves) = session.printer().priming_moves() else {
             return;
         };
         let last = (planned + toolhead_moves).checked_sub(1);
         if last.is_some_and(|m| self.stops.contains(&m)) {
-            printer.priming_timeout(sink);
+            session.idle(mcu);
         }
     }
 }

@@ -1,0 +1,489 @@
+//! The printer as both builds run it: one session takes console and file
+//! lines, plans them ([`Printer`]), generates their steps ([`Motion`]) and
+//! hands them to the MCU role, runs homing moves against its endstops,
+//! carries out heater and fan commands and waits for heaters.
+//!
+//! The MCU role is behind [`Mcu`]: the board implements it with its
+//! stepper and heater interrupts (a wait sleeps until an interrupt has
+//! run), the host build in virtual time (a wait runs the next timer event).
+//! Everything a user can observe is decided here, once, for both.
+
+use crate::console::{self, ErrorText, error_text};
+use crate::heaters::ThermalCommand;
+use crate::line::Line;
+use crate::printer::{LineError, Printer};
+use core::fmt::{self, Write};
+use onechip_planner::homing::{HomingEnd, HomingMove};
+use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_sched::endstop::Endstop;
+use onechip_sched::engine::{Command, Full};
+use onechip_sched::shutdown::Shutdown;
+use onechip_stepgen::compress::StepCommand;
+use onechip_stepgen::motion::{HomingStop, Motion, StepSink};
+
+/// The board's profile: queue sizes, step clock, step accuracy and line
+/// length, shared by the firmware and (by default) the host build.
+pub mod profile {
+    /// Lookahead capacity, in moves: more than the 0.25 s lazy-flush
+    /// window of 1 ms segments, so long runs of tiny moves are released
+    /// lazily (about 117 KB of RAM).
+    pub const LOOKAHEAD: usize = 384;
+    /// Motion queue (trapq) length, in segments.
+    pub const MOTION_QUEUE: usize = 128;
+    /// Steps each stepper's compressor holds.
+    pub const COMPRESS_QUEUE: usize = 256;
+    /// The step timer's clock (TIM5 on the STM32H723: APB1 timers at
+    /// twice the 130 MHz bus clock), Hz.
+    pub const STEP_CLOCK_HZ: f64 = 260_000_000.0;
+    /// Step time error allowed to compression, s (Klipper's 25 µs).
+    pub const MAX_STEP_ERROR: f64 = 0.000_025;
+    /// Longest console or file line accepted, in bytes.
+    pub const MAX_LINE: usize = 256;
+}
+
+/// Longest a heater may take to reach its target in M109/M190, s.
+pub const MAX_HEAT_WAIT: f64 = 1800.0;
+/// Time between temperature reports while waiting for a heater, s
+/// (Klipper's).
+pub const HEAT_REPORT_TIME: f64 = 1.0;
+
+/// The MCU role as the session drives it: the stepper engine with its
+/// endstop check, and the heaters' io.
+pub trait Mcu {
+    /// The 64-bit step clock now, ticks.
+    fn now(&mut self) -> u64;
+    /// Queues `cmd` for stepper `stepper`, its first step at 64-bit clock
+    /// `clock`; [`Full`] while that stepper's outbox is full.
+    fn push(&mut self, stepper: usize, cmd: Command, clock: u64) -> Result<(), Full>;
+    /// Sleeps until the MCU role has made progress (a timer event ran: a
+    /// step, an endstop reading, a heater event) or the clock reached
+    /// `until`; may return early. Never spins.
+    fn wait(&mut self, until: u64);
+    /// Arms the endstop read on stepper `stepper`'s pins; its trigger stops
+    /// the steppers in `stops` (bit `i`: stepper `i`) at once.
+    fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32);
+    /// Disarms the endstop.
+    fn stop_watching(&mut self);
+    /// The 32-bit clock of an endstop trigger not yet taken.
+    fn take_trigger(&mut self) -> Option<u32>;
+    /// Carries out a heater or fan command now.
+    fn thermal(&mut self, command: ThermalCommand);
+    /// True while heater `heater` is still reaching its target.
+    fn heater_busy(&mut self, heater: usize) -> bool;
+    /// Writes the temperature report (`T:… /… B:… /…`), no line end.
+    fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
+    /// Why the MCU role shut down, if it did.
+    fn shutdown_reason(&mut self) -> Option<Shutdown>;
+    /// A move was planned (toolhead, or extruder if `extruder`); for
+    /// simulators that report the plan.
+    fn planned(&mut self, m: &TrapqMove, extruder: bool) {
+        let _ = (m, extruder);
+    }
+}
+
+/// How the session keeps print time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Timing {
+    /// As a printer: an idle toolhead's next move starts from the MCU's
+    /// clock now, and M109/M190 wait for their heater.
+    RealTime,
+    /// As klippy's batch mode (to compare with its output): print time
+    /// counts from the start and heater waits take no time.
+    Batch,
+}
+
+/// What homing needs to know of the machine.
+#[derive(Debug, Clone, Copy)]
+struct HomingSetup {
+    /// Axes (0 = X) whose rail has an endstop pin.
+    endstops: [bool; 3],
+    /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
+    rails: u32,
+    /// The finest of their step distances, mm.
+    finest_step: f64,
+}
+
+impl HomingSetup {
+    fn new(machine: &Machine<'_>) -> Self {
+        let rails = machine.stepper_kinematics.len().min(machine.steppers.len());
+        let mut setup = Self {
+            endstops: [false; 3],
+            rails: (1 << rails) - 1,
+            finest_step: f64::INFINITY,
+        };
+        for (i, stepper) in machine.steppers.iter().take(rails).enumerate() {
+            setup.endstops[i] = stepper.endstop_pin.is_some();
+            setup.finest_step = setup.finest_step.min(stepper.step_dist);
+        }
+        setup
+    }
+}
+
+/// Counts of what was planned.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Planned {
+    /// Toolhead (XYZ) moves.
+    pub toolhead_moves: usize,
+    /// Extruder moves.
+    pub extruder_moves: usize,
+    /// Highest cruise speed, mm/s.
+    pub peak_velocity: f64,
+}
+
+/// Why a line could not run (besides the printer's own errors).
+#[derive(Debug)]
+enum RunError<'l> {
+    /// Homing needs every axis' endstop: without one, a homing move would
+    /// run its whole length into the frame.
+    NoEndstops,
+    /// A heater did not settle in time.
+    HeatTimeout,
+    /// The MCU role shut down: nothing moves or heats until a restart.
+    Shutdown(Shutdown),
+    /// The printer refused the command.
+    Command(LineError<'l>),
+}
+
+impl fmt::Display for RunError<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::NoEndstops => f.write_str(
+                "G28: an axis has no endstop_pin; set the position with SET_KINEMATIC_POSITION",
+            ),
+            Self::HeatTimeout => write!(
+                f,
+                "heater did not reach its target within {MAX_HEAT_WAIT:.0} s"
+            ),
+            Self::Shutdown(reason) => write!(f, "MCU shutdown: {reason}"),
+            Self::Command(e) => e.fmt(f),
+        }
+    }
+}
+
+/// One printer: G-code lines in, steps and heater commands to the MCU
+/// role, replies out. `L` moves of lookahead, motion queues of `N`
+/// segments, compressors of `Q` steps.
+pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
+    printer: Printer<'a, L>,
+    motion: Motion<N, Q>,
+    homing: HomingSetup,
+    /// Step clock, Hz.
+    freq: f64,
+    timing: Timing,
+    /// The start clock of the homing move whose endstop is watched.
+    watching: Option<u64>,
+    planned: Planned,
+    /// Time spent waiting for heaters, s.
+    heat_wait: f64,
+}
+
+/// The session with the board's queue sizes.
+pub type BoardSession<'a> =
+    Session<'a, { profile::LOOKAHEAD }, { profile::MOTION_QUEUE }, { profile::COMPRESS_QUEUE }>;
+
+impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
+    /// A session for `machine` on a step clock of `freq` Hz, steps within
+    /// `max_error` s, print time starting at clock `start` (ticks).
+    pub fn new(machine: &Machine<'a>, freq: f64, max_error: f64, start: u64) -> Self {
+        let mut printer = Printer::new(machine);
+        printer.set_time_origin(start as f64 / freq);
+        Self {
+            printer,
+            motion: Motion::new(machine, freq, (max_error * freq) as u32, [0.0; 3]),
+            homing: HomingSetup::new(machine),
+            freq,
+            timing: Timing::RealTime,
+            watching: None,
+            planned: Planned::default(),
+            heat_wait: 0.0,
+        }
+    }
+
+    /// Sets how print time is kept (default: [`Timing::RealTime`]).
+    pub fn set_timing(&mut self, timing: Timing) {
+        self.timing = timing;
+    }
+
+    /// Answers one console or file event: the line runs, its replies and
+    /// then `ok` go to `out` (errors as `!! ` lines, as Klipper).
+    pub fn line(&mut self, event: &Line<'_>, mcu: &mut impl Mcu, out: &mut impl Write) -> fmt::Result {
+        console::answer(event, out, |text, out| self.run(text, mcu, out))
+    }
+
+    /// Runs one line of G-code; replies other than `ok` go to `out`.
+    fn run(&mut self, text: &str, mcu: &mut impl Mcu, out: &mut impl Write) -> Result<(), ErrorText> {
+        if let Some(reason) = mcu.shutdown_reason() {
+            return Err(error_text(&RunError::Shutdown(reason)));
+        }
+        if !self.homing.endstops.iter().all(|&e| e)
+            && console::command_word(text.as_bytes()).eq_ignore_ascii_case(b"G28")
+        {
+            return Err(error_text(&RunError::NoEndstops));
+        }
+        if self.timing == Timing::RealTime && self.printer.is_idle() {
+            // An idle printer starts its next move from now.
+            let now = mcu.now() as f64 / self.freq;
+            self.printer.set_time_origin(now);
+        }
+        let Self {
+            printer,
+            motion,
+            homing,
+            watching,
+            planned,
+            freq,
+            ..
+        } = self;
+        let mut steps = EngineSteps {
+            mcu: &mut *mcu,
+            homing,
+            watching,
+            freq: *freq,
+        };
+        let result = printer
+            .execute(
+                text,
+                &mut Planning {
+                    motion: &mut *motion,
+                    steps: &mut steps,
+                    planned,
+                },
+                out,
+            )
+            .map_err(|e| error_text(&RunError::Command(e)));
+        motion.generate(f64::INFINITY, &mut steps);
+        let thermal = self.thermal(mcu, out);
+        result.and(thermal)
+    }
+
+    /// Carries out the heater and fan commands of the line just run.
+    fn thermal(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) -> Result<(), ErrorText> {
+        while let Some(command) = self.printer.take_thermal() {
+            match command {
+                ThermalCommand::Report => {
+                    let _ = mcu.report_temperatures(out);
+                    let _ = out.write_char('\n');
+                }
+                ThermalCommand::Target {
+                    heater, wait: true, ..
+                } => {
+                    mcu.thermal(command);
+                    if self.timing == Timing::RealTime {
+                        self.wait_for_heater(heater, mcu, out)?;
+                    }
+                }
+                _ => mcu.thermal(command),
+            }
+        }
+        Ok(())
+    }
+
+    /// Waits until `heater` has settled (or the MCU shut down), once every
+    /// queued move has run, reporting temperatures every second as
+    /// Klipper does; the next move starts after the wait.
+    fn wait_for_heater<M: Mcu>(
+        &mut self,
+        heater: usize,
+        mcu: &mut M,
+        out: &mut impl Write,
+    ) -> Result<(), ErrorText> {
+        let busy = |mcu: &mut M| mcu.shutdown_reason().is_none() && mcu.heater_busy(heater);
+        if !busy(mcu) {
+            return Ok(());
+        }
+        let freq = self.freq;
+        let clock = |t: f64| (t.max(0.0) * freq) as u64;
+        let mut steps = EngineSteps {
+            mcu: &mut *mcu,
+            homing: &self.homing,
+            watching: &mut self.watching,
+            freq,
+        };
+        self.motion.settle(&mut steps);
+        let start = mcu.now();
+        let report_every = clock(HEAT_REPORT_TIME);
+        let deadline = start + clock(MAX_HEAT_WAIT);
+        let mut next_report = start + report_every;
+        while busy(mcu) {
+            let now = mcu.now();
+            if now >= deadline {
+                return Err(error_text(&RunError::HeatTimeout));
+            }
+            if now >= next_report {
+                let _ = mcu.report_temperatures(out);
+                let _ = out.write_char('\n');
+                next_report += report_every;
+            }
+            mcu.wait(next_report);
+        }
+        let end = mcu.now();
+        self.heat_wait += end.saturating_sub(start) as f64 / freq;
+        self.printer.hold_until(end as f64 / freq);
+        Ok(())
+    }
+
+    /// To call when no input has arrived for
+    /// [`crate::printer::PRIMING_TIME`]: releases the moves still waiting
+    /// for the lookahead to fill, and generates their steps.
+    pub fn idle(&mut self, mcu: &mut impl Mcu) {
+        self.with_planning(mcu, |printer, planning| printer.priming_timeout(planning));
+    }
+
+    /// The end of the input: every queued move is planned and its steps
+    /// sent (after klippy's 0.5 s dwell).
+    pub fn finish(&mut self, mcu: &mut impl Mcu) {
+        self.with_planning(mcu, |printer, planning| printer.finish(planning));
+        let mut steps = EngineSteps {
+            mcu,
+            homing: &self.homing,
+            watching: &mut self.watching,
+            freq: self.freq,
+        };
+        self.motion.finish(&mut steps);
+    }
+
+    /// Runs `f` on the printer with the planning sink, then generates
+    /// steps as far as the plan is final.
+    fn with_planning<M: Mcu>(
+        &mut self,
+        mcu: &mut M,
+        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>),
+    ) {
+        let mut steps = EngineSteps {
+            mcu,
+            homing: &self.homing,
+            watching: &mut self.watching,
+            freq: self.freq,
+        };
+        f(
+            &mut self.printer,
+            &mut Planning {
+                motion: &mut self.motion,
+                steps: &mut steps,
+                planned: &mut self.planned,
+            },
+        );
+        self.motion.generate(f64::INFINITY, &mut steps);
+    }
+
+    /// The printer (G-code state and toolhead).
+    pub fn printer(&mut self) -> &mut Printer<'a, L> {
+        &mut self.printer
+    }
+
+    /// What has been planned so far.
+    pub fn planned(&self) -> Planned {
+        self.planned
+    }
+
+    /// Time spent waiting for heaters so far, s.
+    pub fn heat_wait(&self) -> f64 {
+        self.heat_wait
+    }
+
+    /// Print time before which every step has gone to the MCU, s.
+    pub fn sent_until(&self) -> f64 {
+        self.motion.sent_until()
+    }
+
+    /// Why step generation stopped, if it did (the printer must stop).
+    pub fn motion_error(&self) -> Option<onechip_stepgen::motion::MotionError> {
+        self.motion.error()
+    }
+}
+
+/// The planner's sink: moves into step generation, counted.
+struct Planning<'p, 'm, M, const N: usize, const Q: usize> {
+    motion: &'p mut Motion<N, Q>,
+    steps: &'p mut EngineSteps<'m, M>,
+    planned: &'p mut Planned,
+}
+
+impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N, Q> {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        self.planned.toolhead_moves += 1;
+        self.planned.peak_velocity = self.planned.peak_velocity.max(m.cruise_v);
+        self.steps.mcu.planned(m, false);
+        self.motion.sink(self.steps).toolhead(m);
+    }
+
+    fn extruder(&mut self, m: &TrapqMove) {
+        self.planned.extruder_moves += 1;
+        self.steps.mcu.planned(m, true);
+        self.motion.sink(self.steps).extruder(m);
+    }
+
+    fn set_position(&mut self, pos: [f64; 3]) {
+        self.motion.sink(self.steps).set_position(pos);
+    }
+
+    fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
+        self.motion.sink(self.steps).homing_move_end(homing)
+    }
+}
+
+/// Step commands into the MCU role's engine, waiting (asleep) while a
+/// stepper's outbox is full; homing moves run against the endstops.
+struct EngineSteps<'m, M> {
+    mcu: &'m mut M,
+    homing: &'m HomingSetup,
+    /// The start clock of the homing move whose endstop is watched.
+    watching: &'m mut Option<u64>,
+    /// Step clock, Hz.
+    freq: f64,
+}
+
+impl<M: Mcu> StepSink for EngineSteps<'_, M> {
+    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
+        let cmd = Command::from(cmd);
+        while self.mcu.push(index, cmd, clock).is_err() {
+            if self.mcu.shutdown_reason().is_some() {
+                return;
+            }
+            // The engine makes room as its steps run.
+            self.mcu.wait(u64::MAX);
+        }
+    }
+
+    /// Watches the homed axis' endstop from the move's start and waits
+    /// until the steps sent so far have run or the endstop triggered
+    /// (which stopped every motion stepper at once).
+    fn home(&mut self, homing: &HomingMove, start_clock: u64, until_clock: u64) -> Option<HomingStop> {
+        if *self.watching != Some(start_clock) {
+            let endstop = Endstop::for_homing(
+                start_clock as u32,
+                self.freq,
+                homing.speed,
+                self.homing.finest_step,
+            );
+            self.mcu
+                .watch_endstop(homing.axis, endstop, self.homing.rails);
+            *self.watching = Some(start_clock);
+        }
+        loop {
+            if let Some(trigger) = self.mcu.take_trigger() {
+                *self.watching = None;
+                // The 64-bit clock of the trigger, which lies before now.
+                let now = self.mcu.now();
+                let ago = i64::from((now as u32).wrapping_sub(trigger) as i32);
+                let clock = now.saturating_add_signed(-ago);
+                // Stopped at once: no step past the trigger.
+                return Some(HomingStop {
+                    clock,
+                    overshoot: [0; MAX_STEPPERS],
+                });
+            }
+            if self.mcu.now() >= until_clock || self.mcu.shutdown_reason().is_some() {
+                break;
+            }
+            self.mcu.wait(until_clock);
+        }
+        if until_clock >= (homing.end_time.max(0.0) * self.freq) as u64 {
+            // The whole move ran without a trigger.
+            self.mcu.stop_watching();
+            *self.watching = None;
+        }
+        None
+    }
+}
