@@ -1,44 +1,74 @@
 //! State that belongs to one interrupt handler, as the stepper engine
 //! belongs to TIM5's and the heaters to TIM2's: the handler uses it
-//! without a lock, thread code only with interrupts masked.
+//! without a lock, other code only while that handler is masked.
+//!
+//! The lock masks no more than it must: a cell owned by a handler below
+//! the top priority ([`HandlerCell::masking`]) raises BASEPRI to the
+//! owner's priority, which holds off the owner and everything at or below
+//! it while interrupts above it (the stepper timer) keep running; a cell
+//! owned by a top-priority handler ([`HandlerCell::new`]) masks every
+//! interrupt (BASEPRI cannot mask priority 0). The STM32H7's Cortex-M7 is
+//! r1p1 or later, so BASEPRI needs no erratum 837070 workaround.
 
 use core::cell::UnsafeCell;
+use core::sync::atomic::{Ordering, compiler_fence};
+use cortex_m::peripheral::{NVIC, SCB};
+use embassy_stm32::interrupt::Priority;
 
 /// A value owned by one interrupt handler, once installed.
 ///
-/// Invariant: only its handler touches it outside a critical section
-/// (through [`Self::in_handler`]); thread code and other handlers touch it
-/// only inside one (interrupts masked, so the handler cannot run
-/// meanwhile); the handler does not preempt itself.
-pub struct HandlerCell<T>(UnsafeCell<Option<T>>);
+/// Invariant: only its handler touches it outside the cell's lock (through
+/// [`Self::in_handler`]); other code touches it only inside the lock
+/// ([`Self::with`], [`Self::snapshot_of`]), which holds the handler off, and
+/// only from thread mode or a handler that the owner cannot preempt
+/// (priority at or below the owner's; checked); the handler does not
+/// preempt itself.
+pub struct HandlerCell<T> {
+    value: UnsafeCell<Option<T>>,
+    /// The owner's priority as BASEPRI writes it; 0: mask every interrupt.
+    mask: u8,
+}
 
 // SAFETY: by the invariant above, no two accesses ever overlap.
 unsafe impl<T> Sync for HandlerCell<T> {}
 
 impl<T> HandlerCell<T> {
-    /// Empty until [`Self::install`].
+    /// Empty until [`Self::install`]; for a handler at the top priority,
+    /// so the lock masks every interrupt.
     pub const fn new() -> Self {
-        Self(UnsafeCell::new(None))
+        Self {
+            value: UnsafeCell::new(None),
+            mask: 0,
+        }
+    }
+
+    /// Empty until [`Self::install`]; for a handler at `owner` priority,
+    /// so the lock masks that priority and below only.
+    pub const fn masking(owner: Priority) -> Self {
+        Self {
+            value: UnsafeCell::new(None),
+            mask: owner as u8,
+        }
     }
 
     /// Puts `value` in the cell (replacing any earlier one).
     pub fn install(&self, value: T) {
-        critical_section::with(|_| {
-            // SAFETY: interrupts are masked (invariant above).
-            unsafe { *self.0.get() = Some(value) };
-        });
+        self.lock(|slot| *slot = Some(value));
     }
 
-    /// Runs `f` on the value with interrupts masked; None before it is
-    /// installed.
+    /// Runs `f` on the value with the owner masked; None before it is
+    /// installed. Keep `f` short: it delays the owner and everything
+    /// below it.
     pub fn with<R>(&self, f: impl FnOnce(&mut T) -> R) -> Option<R> {
-        critical_section::with(|_| {
-            // SAFETY: interrupts are masked, so the handler is not running
-            // and cannot start; this is the only reference (invariant
-            // above).
-            let value = unsafe { &mut *self.0.get() };
-            value.as_mut().map(f)
-        })
+        self.lock(|slot| slot.as_mut().map(f))
+    }
+
+    /// A copy of the part of the value `part` picks, taken with the owner
+    /// masked, for work that must not happen under the lock (formatting a
+    /// report): the lock covers the copy only. None before the value is
+    /// installed.
+    pub fn snapshot_of<U: Clone>(&self, part: impl FnOnce(&T) -> &U) -> Option<U> {
+        self.lock(|slot| slot.as_ref().map(|value| part(value).clone()))
     }
 
     /// The handler's own access, without a lock.
@@ -51,6 +81,53 @@ impl<T> HandlerCell<T> {
     pub unsafe fn in_handler(&self) -> Option<&mut T> {
         // SAFETY: the caller is the owning handler, which nothing else
         // runs during (invariant above).
-        unsafe { &mut *self.0.get() }.as_mut()
+        unsafe { &mut *self.value.get() }.as_mut()
+    }
+
+    /// Runs `f` on the slot with the owner held off.
+    fn lock<R>(&self, f: impl FnOnce(&mut Option<T>) -> R) -> R {
+        assert!(
+            caller_below(self.mask),
+            "HandlerCell locked from above its owner's priority"
+        );
+        if self.mask == 0 {
+            critical_section::with(|_| {
+                // SAFETY: interrupts are masked, so the owner is not
+                // running and cannot start; this is the only reference
+                // (invariant above).
+                f(unsafe { &mut *self.value.get() })
+            })
+        } else {
+            let before = cortex_m::register::basepri::read();
+            // Raises the mask only (never lowers one already stricter).
+            cortex_m::register::basepri_max::write(self.mask);
+            compiler_fence(Ordering::SeqCst);
+            // SAFETY: BASEPRI masks the owner's priority, the caller runs
+            // at or below it (checked above), so the owner is not running
+            // and cannot start; this is the only reference (invariant
+            // above).
+            let result = f(unsafe { &mut *self.value.get() });
+            compiler_fence(Ordering::SeqCst);
+            // SAFETY: restores the mask this function found.
+            unsafe { cortex_m::register::basepri::write(before) };
+            result
+        }
+    }
+}
+
+/// True if the code running now cannot be preempted by a handler at
+/// priority `mask` (0: the top priority): thread mode, or an interrupt at
+/// that priority or below. System exceptions (faults, NMI) never lock.
+fn caller_below(mask: u8) -> bool {
+    // SAFETY: a read of ICSR, which has no side effects.
+    let active = unsafe { (*SCB::PTR).icsr.read() } & 0x1ff;
+    match active {
+        0 => true,
+        1..=15 => false,
+        vector => {
+            // SAFETY: a read of the interrupt's priority byte.
+            let priority = unsafe { (*NVIC::PTR).ipr[(vector - 16) as usize].read() };
+            priority >= mask
+        }
     }
 }

@@ -6,13 +6,20 @@
 //! The interrupt does every output edge, thermistor reading and timeout
 //! due, and each report's control update, so heaters keep their safety
 //! rules however busy thread code is (planning, a homing wait). A heater
-//! fault stops the steppers; a stepper fault turns the heaters off.
-//! Outputs are GPIOs ([`OutPin`]); thermistors are read with ADC3.
+//! fault stops the steppers; a stepper fault turns the heaters off. The
+//! outputs are GPIOs ([`OutPin`]), registered with the panic and fault
+//! handlers to be turned off ([`crate::safety`]); the thermistors are read
+//! with ADC3 ([`Adc3`]).
+//!
+//! Thread code reaches the io with TIM2's priority masked (BASEPRI), not
+//! every interrupt: the stepper interrupt keeps running. The M105 report
+//! copies the heaters under that lock and formats the copy after it.
 
 use crate::handler_cell::HandlerCell;
 use crate::step_pins::OutPin;
 use crate::step_timer;
-use embassy_stm32::adc::{Adc, AnyAdcChannel, SampleTime};
+use embassy_stm32::Peri;
+use embassy_stm32::adc::AnyAdcChannel;
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
 use embassy_stm32::pac;
@@ -35,9 +42,126 @@ pub struct BoardPeripherals {
     /// Heaters, then the fan, as [`Heaters`] numbers them.
     pub outputs: heapless::Vec<OutPin, OUTPUTS>,
     /// ADC3.
-    pub adc: Adc<'static, ADC3>,
+    pub adc: Adc3,
     /// Each heater's thermistor channel.
     pub channels: heapless::Vec<AnyAdcChannel<'static, ADC3>, MAX_HEATERS>,
+}
+
+/// ADC3 of the STM32H72x, which is not ADC1/2: a 12-bit ADC laid out like
+/// the STM32G4's (RM0468, "ADC3"). embassy-stm32 0.6 drives it as the
+/// 16-bit ADC1/2 and writes bits it does not have (CR.BOOST, CR.ADCALLIN,
+/// the PCSEL register) and sample-time codes that mean something else
+/// here; this driver writes ADC3's own fields only, as raw words, and
+/// nothing else of embassy's ADC driver is linked (`cargo xtask image`).
+///
+/// Its clock is [`crate::clocks::ADC3_HZ`]; each conversion samples for
+/// 640.5 ADC clock cycles, as Klipper does on this ADC
+/// (`ADC_ATICKS_H723_ADC3`), for 653 cycles in all: 26 µs.
+pub struct Adc3 {
+    _adc: Peri<'static, ADC3>,
+}
+
+/// ADC3's register fields (RM0468, ADC3 registers).
+mod adc3 {
+    /// CR: enable.
+    pub const CR_ADEN: u32 = 1 << 0;
+    /// CR: start a regular conversion.
+    pub const CR_ADSTART: u32 = 1 << 2;
+    /// CR: voltage regulator on (DEEPPWD, bit 29, left 0: out of deep
+    /// power-down).
+    pub const CR_ADVREGEN: u32 = 1 << 28;
+    /// CR: calibrate (ADCALDIF, bit 30, left 0: single-ended).
+    pub const CR_ADCAL: u32 = 1 << 31;
+    /// ISR: ready.
+    pub const ISR_ADRDY: u32 = 1 << 0;
+    /// ISR: end of conversion.
+    pub const ISR_EOC: u32 = 1 << 2;
+    /// ISR: end of sequence.
+    pub const ISR_EOS: u32 = 1 << 3;
+    /// ISR: overrun.
+    pub const ISR_OVR: u32 = 1 << 4;
+    /// SQR1: the first conversion's channel (L, bits 0..3, left 0: one
+    /// conversion).
+    pub const SQR1_SQ1_SHIFT: u32 = 6;
+    /// SMPRx field: 640.5 ADC clock cycles.
+    pub const SMP_640_5: u32 = 0b111;
+    /// SMPR1 holds channels 0..=9, SMPR2 channels 10..=18, three bits each.
+    pub const LAST_CHANNEL: u8 = 18;
+    /// Common CCR: CKMODE (bits 16..17, 0: the kernel clock) and PRESC
+    /// (bits 18..21).
+    pub const CCR_CLOCK_MASK: u32 = 0x3f << 16;
+    /// Common CCR: PRESC's position.
+    pub const CCR_PRESC_SHIFT: u32 = 18;
+    /// DR: the 12-bit result, right-aligned (CFGR.RES and ALIGN at reset).
+    pub const DR_MASK: u32 = 0xfff;
+}
+
+/// Polls of an ADC3 status bit before giving up (each poll is several
+/// CPU cycles: far beyond the 26 µs a conversion takes).
+const ADC3_POLLS: u32 = 20_000;
+
+impl Adc3 {
+    /// Resets ADC3, powers it up, calibrates it and enables it, with every
+    /// channel's sample time at 640.5 cycles. A step that does not finish
+    /// is logged; the readings are then out of range and shut the heaters
+    /// down.
+    pub fn new(adc: Peri<'static, ADC3>) -> Self {
+        use adc3::*;
+        use pac::adc::regs::{Cr, Isr, Smpr};
+        embassy_stm32::rcc::enable_and_reset::<ADC3>();
+        pac::ADC3_COMMON.ccr().modify(|w| {
+            w.0 = (w.0 & !CCR_CLOCK_MASK) | crate::clocks::ADC3_PRESC << CCR_PRESC_SHIFT;
+        });
+        let regs = pac::ADC3;
+        let us = crate::clocks::SYSCLK_HZ / 1_000_000;
+        regs.cr().write_value(Cr(CR_ADVREGEN));
+        // The regulator's start-up time (Klipper waits 20 µs).
+        cortex_m::asm::delay(20 * us);
+        regs.cr().write_value(Cr(CR_ADVREGEN | CR_ADCAL));
+        let calibrated = poll(|| regs.cr().read().0 & CR_ADCAL == 0);
+        // ADEN may be set 4 ADC clock cycles after ADCAL clears.
+        cortex_m::asm::delay(us);
+        regs.isr().write_value(Isr(ISR_ADRDY));
+        regs.cr().write_value(Cr(CR_ADVREGEN | CR_ADEN));
+        let ready = poll(|| regs.isr().read().0 & ISR_ADRDY != 0);
+        let every = |channels: u32| (0..channels).fold(0, |w, ch| w | SMP_640_5 << (3 * ch));
+        regs.smpr(0).write_value(Smpr(every(10)));
+        regs.smpr(1)
+            .write_value(Smpr(every(u32::from(LAST_CHANNEL) - 9)));
+        if !(calibrated && ready) {
+            defmt::error!(
+                "ADC3 did not start (calibrated: {}, ready: {})",
+                calibrated,
+                ready
+            );
+        }
+        Self { _adc: adc }
+    }
+
+    /// One conversion of ADC3 channel `channel`, 0..=4095; None if there
+    /// is no such channel or the conversion does not end.
+    pub fn read(&mut self, channel: u8) -> Option<u16> {
+        use adc3::*;
+        use pac::adc::regs::{Isr, Sqr1};
+        if channel > LAST_CHANNEL {
+            return None;
+        }
+        let regs = pac::ADC3;
+        regs.sqr1()
+            .write_value(Sqr1(u32::from(channel) << SQR1_SQ1_SHIFT));
+        regs.isr().write_value(Isr(ISR_EOC | ISR_EOS | ISR_OVR));
+        regs.cr().modify(|w| w.0 |= CR_ADSTART);
+        if !poll(|| regs.isr().read().0 & ISR_EOC != 0) {
+            return None;
+        }
+        // Reading DR clears EOC.
+        Some((regs.dr().read().0 & DR_MASK) as u16)
+    }
+}
+
+/// Polls `done` up to [`ADC3_POLLS`] times; true once it is.
+fn poll(mut done: impl FnMut() -> bool) -> bool {
+    (0..ADC3_POLLS).any(|_| done())
 }
 
 impl Peripherals for BoardPeripherals {
@@ -50,12 +174,12 @@ impl Peripherals for BoardPeripherals {
     }
 
     fn read_adc(&mut self, index: usize) -> u16 {
-        match self.channels.get_mut(index) {
-            Some(channel) => self.adc.blocking_read(channel, SampleTime::CYCLES64_5),
-            // No channel: reads as an open thermistor, which the range
-            // check turns into a shutdown.
-            None => ADC_MAX,
-        }
+        // No channel, or a failed conversion: reads as an open thermistor,
+        // which the range check turns into a shutdown.
+        self.channels
+            .get(index)
+            .and_then(|channel| self.adc.read(channel.get_hw_channel()))
+            .unwrap_or(ADC_MAX)
     }
 }
 
@@ -65,18 +189,26 @@ struct Io {
     hw: BoardPeripherals,
 }
 
-/// The io, once installed; it belongs to TIM2's handler.
-static IO: HandlerCell<Io> = HandlerCell::new();
+/// The io, once installed; it belongs to TIM2's handler, and thread code
+/// reaches it with TIM2's priority masked.
+static IO: HandlerCell<Io> = HandlerCell::masking(crate::priority::HEATERS);
 
-/// Runs `f` on the io with interrupts masked; None before it is
-/// installed.
+/// Runs `f` on the io with TIM2 (and everything below it) masked; None
+/// before it is installed.
 fn with_io<R>(f: impl FnOnce(&mut Io) -> R) -> Option<R> {
     IO.with(f)
 }
 
 /// Hands the heaters and their hardware to TIM2's interrupt and starts
-/// it.
+/// it. Every output is registered to be turned off by the panic and fault
+/// handlers, and the watchdog from now on resets the chip if TIM2's
+/// interrupt stops running.
 pub fn install(heaters: Heaters, hw: BoardPeripherals) {
+    for pin in &hw.outputs {
+        if let Err(e) = pin.register_safe_off() {
+            defmt::error!("heater/fan output not turned off on a fault: {}", e);
+        }
+    }
     IO.install(Io { heaters, hw });
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
     let tim = pac::TIM2;
@@ -91,6 +223,7 @@ pub fn install(heaters: Heaters, hw: BoardPeripherals) {
     // SAFETY: the handler below touches TIM2 and the io, as the io's
     // `HandlerCell` allows.
     unsafe { interrupt::TIM2.enable() };
+    crate::safety::watch_heaters();
 }
 
 /// Carries out a heater or fan command now.
@@ -107,14 +240,19 @@ pub fn busy(heater: usize) -> bool {
     with_io(|io| io.heaters.busy(heater) && io.heaters.shutdown_reason().is_none()).unwrap_or(false)
 }
 
-/// Writes the M105 report (`T:… /… B:… /…`) to `out`.
+/// Writes the M105 report (`T:… /… B:… /…`) to `out`: the heaters are
+/// copied under the lock, and the copy formatted after it (formatting
+/// floats takes far longer than the copy; TIM2 must not wait for it).
 pub fn report(out: &mut impl core::fmt::Write) {
-    with_io(|io| io.heaters.report(out));
+    if let Some(heaters) = IO.snapshot_of(|io| &io.heaters) {
+        let _ = heaters.report(out);
+    }
 }
 
 #[interrupt]
 fn TIM2() {
     pac::TIM2.sr().write_value(Default::default());
+    crate::safety::heaters_ran();
     // SAFETY: this is TIM2's handler, which owns the io.
     let Some(io) = (unsafe { IO.in_handler() }) else {
         return;

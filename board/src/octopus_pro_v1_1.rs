@@ -1,5 +1,5 @@
 //! Pin map and fixed resources of the BigTreeTech Octopus Pro v1.1 with the
-//! STM32H723ZG (the only board supported so far; one such file per board).
+//! STM32H723ZE (the only board supported so far; one such file per board).
 //!
 //! Facts of the board: 25 MHz crystal; BTT's SD-card bootloader in the first
 //! 128 KiB of flash (application at 0x0802_0000, see `memory.x`); USB-C on the

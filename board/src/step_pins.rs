@@ -1,9 +1,17 @@
 //! Step, direction and enable pins named in printer.cfg, driven through
 //! the GPIO registers (the set/reset register, so a write is one store).
+//!
+//! Each stepper's step pulse lasts its `step_pulse_duration`
+//! ([`StepperPins::with_step_pulse`], Klipper's rule in
+//! [`onechip_app::step_pulse`]); enable pins made with
+//! [`OutPin::new_safe_off`] are turned off by the panic and fault handlers
+//! ([`crate::safety`]).
 
+use crate::clocks::SYSCLK_HZ;
 use embassy_stm32::pac;
 use embassy_stm32::pac::gpio::vals;
 use onechip_app::pins::{BadPin, PinName};
+use onechip_app::step_pulse;
 use onechip_sched::stepper::StepPins;
 
 /// A push-pull output pin, as the two set/reset register words that
@@ -39,6 +47,35 @@ impl OutPin {
         port.moder()
             .modify(|w| w.set_moder(number, vals::Moder::OUTPUT));
         Ok(pin)
+    }
+
+    /// [`Self::new`], registered with the panic and fault handlers to be
+    /// driven inactive (a driver enable pin: drivers off). A pin the
+    /// handlers cannot take is logged, and configured all the same.
+    pub fn new_safe_off(name: &str) -> Result<Self, BadPin<'_>> {
+        let pin = Self::new(name)?;
+        if let Err(e) = pin.register_safe_off() {
+            defmt::error!("{}: not turned off on a fault: {}", name, e);
+        }
+        Ok(pin)
+    }
+
+    /// Registers the pin with the panic and fault handlers, which drive it
+    /// to its inactive level.
+    pub fn register_safe_off(&self) -> Result<(), crate::safety::SafePinError> {
+        // The inactive word sets bit n (drive high) or n + 16 (drive low);
+        // a pin that drives nothing has none.
+        if self.inactive == 0 {
+            return Err(crate::safety::SafePinError::NotAPin);
+        }
+        let bit = self.inactive.trailing_zeros();
+        let base = pac::GPIOA.as_ptr() as usize;
+        let port = (self.port.as_ptr() as usize).wrapping_sub(base) / GPIO_STRIDE;
+        crate::safety::register_safe_pin(
+            u8::try_from(port).unwrap_or(u8::MAX),
+            (bit % 16) as u8,
+            bit < 16,
+        )
     }
 
     /// A pin that drives nothing (its writes change no output).
@@ -114,8 +151,11 @@ fn gpio_pin(name: &str) -> Result<(pac::gpio::Gpio, usize, PinName), BadPin<'_>>
     Ok((port, number, pin))
 }
 
+/// Bytes between two GPIO ports' registers.
+const GPIO_STRIDE: usize = 0x400;
+
 /// The GPIO port with index `port` (0 = A).
-fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
+pub(crate) fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
     Some(match port {
         0 => pac::GPIOA,
         1 => pac::GPIOB,
@@ -129,13 +169,16 @@ fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
     })
 }
 
-/// One stepper's step and direction pins and its rail's endstop; the
-/// default drives nothing and never triggers (an unused slot of the
-/// engine).
+/// One stepper's step and direction pins, its step pulse and its rail's
+/// endstop; the default drives nothing and never triggers (an unused slot
+/// of the engine).
 #[derive(Clone, Copy)]
 pub struct StepperPins {
     step: OutPin,
     dir: OutPin,
+    /// CPU cycles the step pulse lasts, and the least time between a step
+    /// and a direction change.
+    pulse_cycles: u32,
     endstop: InPin,
 }
 
@@ -144,19 +187,33 @@ impl Default for StepperPins {
         Self {
             step: OutPin::none(),
             dir: OutPin::none(),
+            pulse_cycles: 0,
             endstop: InPin::none(),
         }
     }
 }
 
 impl StepperPins {
-    /// The pins named `step` and `dir`, configured as outputs.
+    /// The pins named `step` and `dir`, configured as outputs, with
+    /// Klipper's default pulse for a driver without a `[tmcXXXX]` section
+    /// (2 µs) until [`Self::with_step_pulse`] says otherwise.
     pub fn new<'a>(step: &'a str, dir: &'a str) -> Result<Self, BadPin<'a>> {
         Ok(Self {
             step: OutPin::new(step)?,
             dir: OutPin::new(dir)?,
+            pulse_cycles: pulse_cycles(step_pulse::DEFAULT),
             endstop: InPin::none(),
         })
+    }
+
+    /// The same pins with a step pulse of `seconds` (the stepper's
+    /// `step_pulse_duration`, see [`step_pulse::step_pulse_duration`]),
+    /// rounded up to whole CPU cycles.
+    pub fn with_step_pulse(self, seconds: f64) -> Self {
+        Self {
+            pulse_cycles: pulse_cycles(seconds),
+            ..self
+        }
     }
 
     /// The same pins with `endstop` as the rail's endstop.
@@ -165,19 +222,28 @@ impl StepperPins {
     }
 }
 
-/// CPU cycles the step pulse stays high (about 100 ns at 520 MHz, what
-/// Klipper gives TMC drivers).
-const PULSE_CYCLES: u32 = 52;
+/// `seconds` in CPU cycles, rounded up, at most [`step_pulse::MAX`]'s.
+fn pulse_cycles(seconds: f64) -> u32 {
+    let max = step_pulse::pulse_ticks(step_pulse::MAX, f64::from(SYSCLK_HZ));
+    step_pulse::pulse_ticks(seconds, f64::from(SYSCLK_HZ)).min(max)
+}
 
 impl StepPins for StepperPins {
+    /// Holds the direction pin for the pulse duration on both sides of the
+    /// change (Klipper: the step pulse is also the least time between a
+    /// step and a direction change); direction changes are rare.
     fn set_dir(&mut self, positive: bool) {
+        cortex_m::asm::delay(self.pulse_cycles);
         self.dir.set(positive);
+        cortex_m::asm::delay(self.pulse_cycles);
     }
 
+    /// The step pin high for at least the pulse duration (the delay loop
+    /// takes at least a cycle per count on the Cortex-M7).
     #[inline(always)]
     fn step(&mut self) {
         self.step.set(true);
-        cortex_m::asm::delay(PULSE_CYCLES);
+        cortex_m::asm::delay(self.pulse_cycles);
         self.step.set(false);
     }
 

@@ -14,6 +14,11 @@ pub struct Budget {
     pub flash_kib: u64,
     /// Static RAM budget, KiB.
     pub ram_kib: u64,
+    /// Start of the RAM bank the stack and statics live in; nothing is
+    /// mapped below it, so a stack at its bottom faults on overflow.
+    pub ram_base: u64,
+    /// Least stack, KiB, between `ram_base` and the statics.
+    pub stack_kib: u64,
     /// Address at which the bootloader places the application.
     pub app_base: u64,
     /// Symbol name of the stepper timer's interrupt handler.
@@ -22,6 +27,8 @@ pub struct Budget {
     pub stepper_irq_number: u64,
     /// Substrings of (mangled) symbol names that must occur in the ELF.
     pub required_code: Vec<String>,
+    /// Rust paths (`a::b`) no linked symbol may lie under.
+    pub forbidden_code: Vec<String>,
 }
 
 #[derive(Debug)]
@@ -62,26 +69,29 @@ impl Budget {
             int("app_base")?,
             int("stepper_irq_number")?,
         );
+        let (ram_base, stack_kib) = (int("ram_base")?, int("stack_kib")?);
         let mut string = |key: &str| match values.remove(key) {
             Some(Value::Str(s)) => Ok(s),
             Some(Value::Int(_)) => Err(format!("`{key}` must be a string")),
             None => Err(format!("`{key}` is missing")),
         };
         let stepper_irq = string("stepper_irq")?;
-        let required_code = string("required_code")?
-            .split(',')
-            .map(|s| s.trim().to_string())
-            .collect();
+        let list = |text: String| text.split(',').map(|s| s.trim().to_string()).collect();
+        let required_code = list(string("required_code")?);
+        let forbidden_code = list(string("forbidden_code")?);
         if let Some(key) = values.keys().next() {
             return Err(format!("unknown key `{key}`"));
         }
         Ok(Self {
             flash_kib,
             ram_kib,
+            ram_base,
+            stack_kib,
             app_base,
             stepper_irq,
             stepper_irq_number,
             required_code,
+            forbidden_code,
         })
     }
 }
@@ -104,9 +114,10 @@ fn parse_value(text: &str) -> Result<Value, String> {
 mod tests {
     use super::*;
 
-    const GOOD: &str = "flash_kib = 512 # comment\nram_kib = 256\napp_base = 0x0802_0000\n\
+    const GOOD: &str = "flash_kib = 384 # comment\nram_kib = 256\napp_base = 0x0802_0000\n\
+                        ram_base = 0x2400_0000\nstack_kib = 64\n\
                         stepper_irq = \"TIM5\"\nstepper_irq_number = 50\n\
-                        required_code = \"a..b, c\"\n";
+                        required_code = \"a..b, c\"\nforbidden_code = \"x::y\"\n";
 
     #[test]
     fn parses_the_shipped_layout() {
@@ -114,17 +125,21 @@ mod tests {
         assert_eq!(b.app_base, 0x0802_0000);
         assert_eq!(
             (b.flash_kib, b.ram_kib, b.stepper_irq_number),
-            (512, 256, 50)
+            (384, 256, 50)
         );
+        assert_eq!((b.ram_base, b.stack_kib), (0x2400_0000, 64));
         assert_eq!(b.stepper_irq, "TIM5");
         assert_eq!(b.required_code, ["a..b", "c"]);
+        assert_eq!(b.forbidden_code, ["x::y"]);
     }
 
     #[test]
     fn the_repository_budget_file_is_valid() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../board/budget.toml");
         let b = Budget::load(&path).expect("board/budget.toml parses");
-        assert_eq!((b.flash_kib, b.ram_kib), (512, 256));
+        // The STM32H723ZE's 512 KiB less the bootloader's 128 KiB.
+        assert_eq!((b.flash_kib, b.ram_kib), (384, 256));
+        assert_eq!(b.app_base, 0x0802_0000);
     }
 
     #[test]
@@ -136,7 +151,7 @@ mod tests {
             Budget::parse(&bad),
             Err("line 2: `lots` is neither a number nor a string".into())
         );
-        let extra = format!("{GOOD}stack_kib = 8\n");
-        assert_eq!(Budget::parse(&extra), Err("unknown key `stack_kib`".into()));
+        let extra = format!("{GOOD}heap_kib = 8\n");
+        assert_eq!(Budget::parse(&extra), Err("unknown key `heap_kib`".into()));
     }
 }

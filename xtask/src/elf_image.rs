@@ -3,7 +3,9 @@
 
 use object::elf::{PT_LOAD, SHF_ALLOC};
 use object::read::elf::{ElfFile32, FileHeader, ProgramHeader};
-use object::{Endianness, Object, ObjectSection, ObjectSymbol, SectionFlags};
+use object::{Endianness, Object, ObjectSection, ObjectSymbol, SectionFlags, SymbolKind};
+
+use crate::thumb::{self, Insn};
 
 /// STM32 flash is mapped here and above (up to 0x1fff_ffff).
 const FLASH_REGION: std::ops::Range<u64> = 0x0800_0000..0x2000_0000;
@@ -11,6 +13,29 @@ const FLASH_REGION: std::ops::Range<u64> = 0x0800_0000..0x2000_0000;
 const RAM_REGION: std::ops::Range<u64> = 0x2000_0000..0x4000_0000;
 /// Entries before the device interrupts in the Cortex-M vector table.
 const CORE_VECTORS: u64 = 16;
+
+/// A function of the image: its symbol's name, address (Thumb bit
+/// cleared) and size.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Function {
+    /// Symbol name (mangled).
+    pub name: String,
+    /// Address of the first instruction.
+    pub addr: u64,
+    /// Size in bytes (code and any literal pool).
+    pub size: u64,
+}
+
+/// A section in RAM: name, address, size.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RamSection {
+    /// Section name.
+    pub name: String,
+    /// Start address.
+    pub addr: u64,
+    /// Size in bytes.
+    pub size: u64,
+}
 
 /// One loadable piece of the image: bytes and the flash address they go to.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -25,7 +50,8 @@ pub struct Segment {
 pub struct Image<'a> {
     elf: ElfFile32<'a, Endianness>,
     segments: Vec<Segment>,
-    ram_bytes: u64,
+    ram_sections: Vec<RamSection>,
+    functions: Vec<Function>,
 }
 
 impl<'a> Image<'a> {
@@ -51,16 +77,33 @@ impl<'a> Image<'a> {
                 bytes: bytes.to_vec(),
             });
         }
-        let ram_bytes = elf
+        let ram_sections = elf
             .sections()
             .filter(|s| matches!(s.flags(), SectionFlags::Elf { sh_flags } if sh_flags & u64::from(SHF_ALLOC) != 0))
-            .filter(|s| RAM_REGION.contains(&s.address()))
-            .map(|s| s.size())
-            .sum();
+            .filter(|s| RAM_REGION.contains(&s.address()) && s.size() > 0)
+            .map(|s| RamSection {
+                name: s.name().unwrap_or("?").to_string(),
+                addr: s.address(),
+                size: s.size(),
+            })
+            .collect();
+        let mut functions: Vec<Function> = elf
+            .symbols()
+            .filter(|s| s.kind() == SymbolKind::Text && s.size() > 0)
+            .filter_map(|s| {
+                Some(Function {
+                    name: s.name().ok()?.to_string(),
+                    addr: s.address() & !1,
+                    size: s.size(),
+                })
+            })
+            .collect();
+        functions.sort_by_key(|f| f.addr);
         Ok(Self {
             elf,
             segments,
-            ram_bytes,
+            ram_sections,
+            functions,
         })
     }
 
@@ -76,7 +119,106 @@ impl<'a> Image<'a> {
 
     /// Statically allocated RAM: `.data`, `.bss`, `.uninit` and the like.
     pub fn static_ram_bytes(&self) -> u64 {
-        self.ram_bytes
+        self.ram_sections.iter().map(|s| s.size).sum()
+    }
+
+    /// The sections in RAM that take space (`.data`, `.bss`, `.uninit`).
+    pub fn ram_sections(&self) -> &[RamSection] {
+        &self.ram_sections
+    }
+
+    /// Word `index` of the vector table (0: initial stack pointer, 1:
+    /// reset, 2: NMI, 3: HardFault, ...), Thumb bit included.
+    pub fn vector(&self, index: u64) -> Result<u64, String> {
+        let table = self
+            .elf
+            .section_by_name(".vector_table")
+            .ok_or("no .vector_table section")?;
+        let data = table.data().map_err(|e| e.to_string())?;
+        let offset = (index * 4) as usize;
+        let word = data
+            .get(offset..offset + 4)
+            .ok_or_else(|| format!("vector table has no entry {index}"))?;
+        Ok(u64::from(u32::from_le_bytes([
+            word[0], word[1], word[2], word[3],
+        ])))
+    }
+
+    /// The function whose symbol is exactly `name`, or else the one whose
+    /// name ends with `name` (a mangled `…rust_begin_unwind`).
+    pub fn function(&self, name: &str) -> Result<&Function, String> {
+        self.functions
+            .iter()
+            .find(|f| f.name == name)
+            .or_else(|| self.functions.iter().find(|f| f.name.ends_with(name)))
+            .ok_or_else(|| format!("function `{name}` is not in the image"))
+    }
+
+    /// The function that starts at `addr` (the Thumb bit ignored).
+    pub fn function_at(&self, addr: u64) -> Option<&Function> {
+        let addr = addr & !1;
+        self.functions.iter().find(|f| f.addr == addr)
+    }
+
+    /// The bytes of `function`.
+    pub fn code(&self, function: &Function) -> Result<&[u8], String> {
+        let section = self
+            .elf
+            .sections()
+            .find(|s| (s.address()..s.address() + s.size()).contains(&function.addr))
+            .ok_or_else(|| format!("`{}` lies in no section", function.name))?;
+        let data = section.data().map_err(|e| e.to_string())?;
+        let start = (function.addr - section.address()) as usize;
+        data.get(start..start + function.size as usize)
+            .ok_or_else(|| format!("`{}` runs past its section", function.name))
+    }
+
+    /// The instructions of `function`, decoded from its start.
+    pub fn instructions(&self, function: &Function) -> Result<Vec<Insn>, String> {
+        Ok(thumb::decode(self.code(function)?, function.addr))
+    }
+
+    /// The 32-bit words at word-aligned addresses in `function` (its
+    /// literal pool among them).
+    pub fn words(&self, function: &Function) -> Result<Vec<u32>, String> {
+        let code = self.code(function)?;
+        let skip = ((4 - function.addr % 4) % 4) as usize;
+        Ok(code
+            .get(skip..)
+            .unwrap_or_default()
+            .chunks_exact(4)
+            .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+            .collect())
+    }
+
+    /// True if the function at `from` calls or jumps to `target` directly,
+    /// or through functions it calls, at most `depth` calls deep.
+    pub fn reaches(&self, from: u64, target: u64, depth: usize) -> bool {
+        let mut seen = vec![from & !1];
+        let mut frontier = vec![from & !1];
+        for _ in 0..depth {
+            let mut next = Vec::new();
+            for addr in frontier {
+                let Some(function) = self.function_at(addr) else {
+                    continue;
+                };
+                let Ok(insns) = self.instructions(function) else {
+                    continue;
+                };
+                for to in insns.iter().filter_map(|i| i.branch) {
+                    if to == target & !1 {
+                        return true;
+                    }
+                    // Calls into other functions only (not jumps within).
+                    if self.function_at(to).is_some() && !seen.contains(&to) {
+                        seen.push(to);
+                        next.push(to);
+                    }
+                }
+            }
+            frontier = next;
+        }
+        false
     }
 
     /// Address of a global symbol (the Thumb bit cleared).
@@ -93,6 +235,20 @@ impl<'a> Image<'a> {
         self.elf
             .symbols()
             .any(|s| s.name().is_ok_and(|n| n.contains(fragment)))
+    }
+
+    /// A symbol (mangled name) under the Rust path `path`
+    /// (`embassy_stm32::adc::_version`), if any: legacy and v0 mangling
+    /// write each path segment as its length and text, generic impl paths
+    /// write `a..b`.
+    pub fn symbol_under_path(&self, path: &str) -> Option<String> {
+        let segments: Vec<&str> = path.split("::").collect();
+        let mangled: String = segments.iter().map(|s| format!("{}{s}", s.len())).collect();
+        let dotted = segments.join("..");
+        self.elf.symbols().find_map(|s| {
+            let name = s.name().ok()?;
+            (name.contains(&mangled) || name.contains(&dotted)).then(|| name.to_string())
+        })
     }
 
     /// The handler address the vector table holds for device interrupt `irq`.

@@ -1,28 +1,34 @@
 //! Firmware image tools, run as `cargo xtask <command>`.
 //!
 //! `cargo xtask image [ELF]` checks the firmware ELF built by `cargo fw`
-//! against `board/budget.toml` (flash and static RAM budgets, application
-//! base address, stepper interrupt vector) and writes `firmware.bin` next to
-//! it, ready for the board's SD-card bootloader. Exits non-zero on any
-//! violation, with the reason.
+//! (under `$CARGO_TARGET_DIR` if set, else `target/`) against
+//! `board/budget.toml` (flash and static RAM budgets, application base
+//! address, stepper interrupt vector, linked and forbidden code) and the
+//! rules of [`checks`] (stack below the statics, start-up taking control,
+//! safe panic and fault paths), and writes `firmware.bin` next to it, ready
+//! for the board's SD-card bootloader. Exits non-zero on any violation,
+//! with the reason.
 //!
 //! `cargo xtask hour-print DIR` writes an SD folder for the host build's
 //! speed benchmark: the golden cartesian machine and a one-hour print made
 //! of the golden extrusion case's body repeated (`time cargo sim DIR`).
 
 mod budget;
+mod checks;
 mod elf_image;
+mod thumb;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-const DEFAULT_ELF: &str = "target/thumbv7em-none-eabihf/release/onechip-board";
+/// The firmware ELF under the target directory.
+const ELF_IN_TARGET: &str = "thumbv7em-none-eabihf/release/onechip-board";
 const BUDGET: &str = "board/budget.toml";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.first().map(String::as_str) {
-        Some("image") => image(args.get(1).map_or(DEFAULT_ELF, String::as_str)),
+        Some("image") => image(&args.get(1).map_or_else(default_elf, PathBuf::from)),
         Some("hour-print") => match args.get(1) {
             Some(dir) => hour_print(Path::new(dir)),
             None => Err("usage: cargo xtask hour-print DIR".into()),
@@ -67,8 +73,21 @@ fn hour_print(dir: &Path) -> Result<(), String> {
     write("hour.gcode", &out)
 }
 
+/// The ELF `cargo fw` builds: under `$CARGO_TARGET_DIR` (relative to the
+/// current directory, as cargo takes it) if set, else the workspace's
+/// `target/`.
+fn default_elf() -> PathBuf {
+    match std::env::var_os("CARGO_TARGET_DIR") {
+        Some(dir) => std::env::current_dir()
+            .unwrap_or_default()
+            .join(dir)
+            .join(ELF_IN_TARGET),
+        None => workspace_root().join("target").join(ELF_IN_TARGET),
+    }
+}
+
 /// Checks the firmware image and writes firmware.bin beside the ELF.
-fn image(elf_path: &str) -> Result<(), String> {
+fn image(elf_path: &Path) -> Result<(), String> {
     let root = workspace_root();
     let budget = budget::Budget::load(&root.join(BUDGET))?;
     let elf_path = root.join(elf_path);
@@ -127,6 +146,18 @@ fn image(elf_path: &str) -> Result<(), String> {
             println!("linked: {fragment}");
         } else {
             problems.push(format!("no code matching `{fragment}` is linked in"));
+        }
+    }
+    let rules: [(&str, checks::Check); 4] = [
+        ("stack", checks::stack),
+        ("reset", checks::reset),
+        ("forbidden", checks::forbidden),
+        ("safety", |image, _| checks::safety(image)),
+    ];
+    for (name, check) in rules {
+        match check(&image, &budget) {
+            Ok(found) => println!("{name}: {found}"),
+            Err(e) => problems.push(format!("{name}: {e}")),
         }
     }
     match image.flat_binary(budget.app_base) {
