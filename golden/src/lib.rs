@@ -125,7 +125,7 @@ pub enum Trapq {
 /// planner hands step generation. Times in seconds of print time,
 /// positions in mm, velocities in mm/s, accelerations in mm/s².
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Move {
+pub struct TrapqAppend {
     /// The trapq the move was appended to.
     pub trapq: Trapq,
     /// Start of the move (s).
@@ -157,7 +157,7 @@ pub struct Move {
     pub accel: f64,
 }
 
-impl Move {
+impl TrapqAppend {
     /// `[start_x, start_y, start_z]` (mm).
     pub fn start_pos(&self) -> [f64; 3] {
         [self.start_x, self.start_y, self.start_z]
@@ -193,7 +193,7 @@ const MOVES_HEADER: &str = "trapq\tprint_time\taccel_t\tcruise_t\tdecel_t\tstart
 ///
 /// If the file is missing, its header is not the known one, or a line does
 /// not parse (naming file and line).
-pub fn moves(case: &str) -> Vec<Move> {
+pub fn moves(case: &str) -> Vec<TrapqAppend> {
     let relative = Path::new(case).join("moves.tsv");
     let file = golden_dir().join(&relative);
     let text = read_string(&relative);
@@ -213,7 +213,7 @@ pub fn moves(case: &str) -> Vec<Move> {
 }
 
 /// The moves of `case` that went to `trapq`, in order.
-pub fn trapq_moves(case: &str, trapq: Trapq) -> Vec<Move> {
+pub fn trapq_moves(case: &str, trapq: Trapq) -> Vec<TrapqAppend> {
     moves(case)
         .into_iter()
         .filter(|m| m.trapq == trapq)
@@ -221,7 +221,7 @@ pub fn trapq_moves(case: &str, trapq: Trapq) -> Vec<Move> {
 }
 
 /// One data line of `moves.tsv`.
-fn parse_move(line: &str) -> Result<Move, String> {
+fn parse_move(line: &str) -> Result<TrapqAppend, String> {
     let mut fields = line.split('\t');
     let trapq = match fields.next() {
         Some("toolhead") => Trapq::Toolhead,
@@ -237,7 +237,7 @@ fn parse_move(line: &str) -> Result<Move, String> {
         let field = fields.next().ok_or_else(|| format!("no {name} column"))?;
         field.parse().map_err(|e| format!("{name} {field:?}: {e}"))
     };
-    let m = Move {
+    let m = TrapqAppend {
         trapq,
         print_time: column()?,
         accel_t: column()?,

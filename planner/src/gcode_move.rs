@@ -8,7 +8,7 @@
 //! mm/min and scaled by M220.
 
 use crate::gcode::{Command, Escaped, Extended, GcodeError, Line, Traditional};
-use crate::motion::E;
+use crate::planned_move::E;
 use crate::toolhead::{MoveError, MoveSink, Toolhead};
 use core::fmt::{self, Write};
 

@@ -10,7 +10,7 @@
 //! reports where and when the steppers stopped
 //! ([`MoveSink::homing_move_end`]), and print time goes on from the stop.
 
-use crate::motion::E;
+use crate::planned_move::E;
 use crate::toolhead::{MoveError, MoveSink, Toolhead};
 
 /// Delay between arming endstops and starting a homing move, s.

@@ -17,7 +17,7 @@ pub mod kinematics;
 pub mod lookahead;
 pub mod machine;
 pub mod math;
-pub mod motion;
+pub mod planned_move;
 pub mod shaper_config;
 pub mod thermal;
 pub mod toolhead;

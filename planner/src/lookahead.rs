@@ -7,7 +7,7 @@
 //! (no heap); when it is full, a lazy flush makes room, and only if none is
 //! possible does a full flush (a stop after the oldest moves) happen.
 
-use crate::motion::Move;
+use crate::planned_move::Move;
 
 /// Time of moves to queue before a lazy flush is tried, s.
 pub const LOOKAHEAD_FLUSH_TIME: f64 = 0.250;
@@ -161,7 +161,7 @@ impl<const N: usize> LookAhead<N> {
 mod tests {
     extern crate std;
     use super::*;
-    use crate::motion::Limits;
+    use crate::planned_move::Limits;
     use std::vec::Vec;
 
     fn run(points: &[[f64; 2]], speed: f64) -> Vec<Move> {

@@ -5,7 +5,7 @@ use crate::config::{Bounds, Config, ConfigError, Section};
 use crate::homing::HomingInfo;
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
-use crate::motion::Limits;
+use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::thermal::{self, Fan, Heater};
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
@@ -14,6 +14,9 @@ use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Tr
 pub const MAX_STEPPERS: usize = 8;
 /// Most unsupported sections reported.
 pub const MAX_REPORTED: usize = 32;
+/// The longest step_pulse_duration a stepper may set, s (Klipper's
+/// bound).
+pub const MAX_STEP_PULSE_DURATION: f64 = 0.001;
 
 /// The kinematics of the machine.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -48,6 +51,9 @@ pub struct Stepper<'a> {
     pub position_min: f64,
     /// position_max, mm (rails).
     pub position_max: f64,
+    /// step_pulse_duration, s, if set (0 to 0.001); without it the
+    /// driver decides (see `onechip_app::step_pulse`).
+    pub step_pulse_duration: Option<f64>,
 }
 
 /// Everything the motion pipeline needs from `printer.cfg`.
@@ -82,7 +88,7 @@ pub struct Machine<'a> {
 
 /// Options of stepper sections that belong to other parts of the firmware
 /// (pins and drivers) or to homing; read so they are not reported unknown.
-const STEPPER_OTHER: [&str; 9] = [
+const STEPPER_OTHER: [&str; 8] = [
     "enable_pin",
     "endstop_pin",
     "homing_speed",
@@ -90,7 +96,6 @@ const STEPPER_OTHER: [&str; 9] = [
     "homing_retract_speed",
     "second_homing_speed",
     "homing_positive_dir",
-    "step_pulse_duration",
     "position_endstop",
 ];
 
@@ -274,6 +279,20 @@ impl<'a> Machine<'a> {
     pub fn toolhead<const N: usize>(&self) -> Toolhead<N> {
         Toolhead::new(self.limits, self.travel, self.extruder, self.scan_delay())
     }
+
+    /// [`Self::toolhead`] built in place in `slot`; returns it.
+    pub fn toolhead_in<'t, const N: usize>(
+        &self,
+        slot: &'t mut core::mem::MaybeUninit<Toolhead<N>>,
+    ) -> &'t mut Toolhead<N> {
+        Toolhead::init_in(
+            slot,
+            self.limits,
+            self.travel,
+            self.extruder,
+            self.scan_delay(),
+        )
+    }
 }
 
 /// What a stepper section drives, which decides its options.
@@ -317,6 +336,14 @@ fn read_stepper<'c, 'a>(
         None => 1.0,
     };
     let step_dist = rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio);
+    let step_pulse_duration = section.get_float_opt(
+        "step_pulse_duration",
+        Bounds {
+            minval: Some(0.0),
+            maxval: Some(MAX_STEP_PULSE_DURATION),
+            ..Bounds::NONE
+        },
+    )?;
     let (mut position_min, mut position_max) = (0.0, 0.0);
     match kind {
         StepperKind::Rail => {
@@ -332,7 +359,7 @@ fn read_stepper<'c, 'a>(
             section.accept(&STEPPER_OTHER);
         }
         StepperKind::Tower => section.accept(&STEPPER_OTHER),
-        StepperKind::Extruder => section.accept(&["enable_pin", "step_pulse_duration"]),
+        StepperKind::Extruder => section.accept(&["enable_pin"]),
     }
     Ok(Stepper {
         name: section.name_in_file(),
@@ -343,6 +370,7 @@ fn read_stepper<'c, 'a>(
         step_dist,
         position_min,
         position_max,
+        step_pulse_duration,
     })
 }
 
@@ -529,6 +557,7 @@ fn parse_gear_ratio(text: &str) -> Option<f64> {
 
 #[cfg(test)]
 mod tests {
+    extern crate std;
     use super::*;
 
     #[test]
@@ -550,6 +579,42 @@ mod tests {
             Some("probe:z_virtual_endstop")
         );
         assert_eq!(machine.steppers[2].endstop_pin, None);
+    }
+
+    #[test]
+    fn step_pulse_duration_is_read_per_stepper() {
+        let text = |x_pulse: &str, e_pulse: &str| {
+            std::format!(
+                "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+                [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nendstop_pin: PG6\n\
+                microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+                {x_pulse}\n\
+                [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nendstop_pin: PG9\n\
+                microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+                [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nendstop_pin: PG10\nmicrosteps: 16\n\
+                rotation_distance: 8\nposition_endstop: 0\nposition_max: 200\n\
+                [extruder]\nstep_pin: PG4\ndir_pin: PC1\nmicrosteps: 16\n\
+                rotation_distance: 33.5\nnozzle_diameter: 0.4\nfilament_diameter: 1.75\n\
+                {e_pulse}\n"
+            )
+        };
+        let pulses = |x_pulse: &str, e_pulse: &str| {
+            let text = text(x_pulse, e_pulse);
+            let config = crate::config::Config::parse("printer.cfg", &text).expect("config");
+            Machine::from_config(&config)
+                .map(|m| m.steppers.iter().map(|s| s.step_pulse_duration).collect())
+                .map_err(|e| std::string::ToString::to_string(&e))
+        };
+        let read: std::vec::Vec<_> =
+            pulses("step_pulse_duration: 0.000005", "step_pulse_duration: 0").expect("machine");
+        assert_eq!(read, [Some(0.000_005), None, None, Some(0.0)]);
+        // Klipper's bounds: 0 to 1 ms.
+        for bad in ["0.0011", "-0.000001", "fast"] {
+            let e =
+                pulses(&std::format!("step_pulse_duration: {bad}"), "").expect_err("out of bounds");
+            assert!(e.contains("step_pulse_duration"), "{e}");
+        }
+        assert!(pulses("", "step_pulse_duration: 0.001").is_ok());
     }
 
     #[test]

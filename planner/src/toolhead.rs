@@ -13,7 +13,7 @@
 
 use crate::homing::HomingInfo;
 use crate::lookahead::LookAhead;
-use crate::motion::{E, Limits, Move};
+use crate::planned_move::{E, Limits, Move};
 use core::fmt;
 
 /// Time to buffer before the first move, s.
@@ -433,21 +433,41 @@ impl<const N: usize> Toolhead<N> {
         extruder: Option<ExtruderLimits>,
         scan_delay: f64,
     ) -> Self {
-        let mut lookahead = LookAhead::new();
-        lookahead.set_flush_time(BUFFER_TIME_HIGH);
-        Self {
-            limits,
-            kinematics,
-            extruder,
-            lookahead,
-            commanded_pos: [0.0; 4],
-            print_time: 0.0,
-            state: QueueState::NeedPrime,
-            time_origin: 0.0,
-            hold: f64::NEG_INFINITY,
-            need_step_gen_time: 0.0,
-            last_step_gen_time: 0.0,
-            kin_flush_delay: scan_delay.max(SDS_CHECK_TIME),
+        let mut slot = core::mem::MaybeUninit::uninit();
+        Self::init_in(&mut slot, limits, kinematics, extruder, scan_delay);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`Self::new`] built in place in `slot` (a long lookahead is too
+    /// large to pass through a small stack); returns it.
+    pub fn init_in(
+        slot: &mut core::mem::MaybeUninit<Self>,
+        limits: Limits,
+        kinematics: Travel,
+        extruder: Option<ExtruderLimits>,
+        scan_delay: f64,
+    ) -> &mut Self {
+        use core::ptr::addr_of_mut;
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; every field is written exactly
+        // once (the lookahead's storage is left uninitialised: only its
+        // length is written) before the slot is taken as initialised.
+        unsafe {
+            addr_of_mut!((*p).lookahead).write(LookAhead::new());
+            (*addr_of_mut!((*p).lookahead)).set_flush_time(BUFFER_TIME_HIGH);
+            addr_of_mut!((*p).limits).write(limits);
+            addr_of_mut!((*p).kinematics).write(kinematics);
+            addr_of_mut!((*p).extruder).write(extruder);
+            addr_of_mut!((*p).commanded_pos).write([0.0; 4]);
+            addr_of_mut!((*p).print_time).write(0.0);
+            addr_of_mut!((*p).state).write(QueueState::NeedPrime);
+            addr_of_mut!((*p).time_origin).write(0.0);
+            addr_of_mut!((*p).hold).write(f64::NEG_INFINITY);
+            addr_of_mut!((*p).need_step_gen_time).write(0.0);
+            addr_of_mut!((*p).last_step_gen_time).write(0.0);
+            addr_of_mut!((*p).kin_flush_delay).write(scan_delay.max(SDS_CHECK_TIME));
+            slot.assume_init_mut()
         }
     }
 

@@ -16,6 +16,8 @@
 use crate::clock::{Extender, is_before};
 use crate::endstop::{Check, Endstop};
 use crate::shutdown::Shutdown;
+// The commands `push` takes, re-exported for the engine's users.
+pub use crate::step_command::StepCommand;
 use crate::stepper::{StepPins, Stepper};
 
 /// How far ahead a command is released to its stepper, ticks (a quarter
@@ -84,24 +86,6 @@ fn release_time(clock: u64) -> u64 {
     (clock + 1).saturating_sub(RELEASE_AHEAD)
 }
 
-/// A step command for one stepper, as on the wire.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Command {
-    /// `set_next_step_dir`.
-    Dir(bool),
-    /// `queue_step`.
-    Steps {
-        /// Ticks to the first step.
-        interval: u32,
-        /// Number of steps.
-        count: u16,
-        /// Change of the interval after each step.
-        add: i16,
-    },
-    /// `reset_step_clock`.
-    ResetClock(u32),
-}
-
 /// The outbox is full: call again once the engine has made room.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Full;
@@ -140,7 +124,7 @@ pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
     queued: usize,
     slots: [Slot<P, M>; S],
     /// Commands not yet released, with their first step's 64-bit clock.
-    outboxes: [heapless::Deque<(Command, u64), O>; S],
+    outboxes: [heapless::Deque<(StepCommand, u64), O>; S],
     clock: Extender,
     /// The timer count when housekeeping last ran.
     housekept: u32,
@@ -205,7 +189,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
 
     /// Queues `cmd` for stepper `index`; `first_clock` is its first step's
     /// 64-bit clock (for a direction or reset: the clock it applies from).
-    pub fn push(&mut self, index: usize, cmd: Command, first_clock: u64) -> Result<(), Full> {
+    pub fn push(&mut self, index: usize, cmd: StepCommand, first_clock: u64) -> Result<(), Full> {
         let outbox = self.outboxes.get_mut(index).ok_or(Full)?;
         if self.shutdown.is_some() {
             // Everything stopped: accept and drop.
@@ -440,15 +424,15 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             let Slot { stepper, pins } = &mut self.slots[i];
             let was_idle = stepper.is_idle();
             let result = match cmd {
-                Command::Dir(positive) => {
+                StepCommand::Dir(positive) => {
                     stepper.set_next_dir(positive);
                     Ok(())
                 }
-                Command::ResetClock(at) => {
+                StepCommand::ResetClock(at) => {
                     stepper.reset_clock(at);
                     Ok(())
                 }
-                Command::Steps {
+                StepCommand::Steps {
                     interval,
                     count,
                     add,
@@ -538,10 +522,10 @@ mod tests {
     #[test]
     fn steps_of_several_steppers_come_at_their_clocks() {
         let mut e = Engine::<Pins, 2, 8, 8>::new(Default::default());
-        e.push(0, Command::Dir(true), 0).expect("room");
+        e.push(0, StepCommand::Dir(true), 0).expect("room");
         e.push(
             0,
-            Command::Steps {
+            StepCommand::Steps {
                 interval: 100,
                 count: 3,
                 add: 0,
@@ -549,10 +533,10 @@ mod tests {
             100,
         )
         .expect("room");
-        e.push(1, Command::Dir(false), 0).expect("room");
+        e.push(1, StepCommand::Dir(false), 0).expect("room");
         e.push(
             1,
-            Command::Steps {
+            StepCommand::Steps {
                 interval: 150,
                 count: 2,
                 add: 10,
@@ -574,10 +558,10 @@ mod tests {
         // 3e9 ticks ahead: more than 2^31, a wrap away for the 32-bit clock.
         let far = 3_000_000_000u64;
         let mut e = Engine::<Pins, 2, 8, 8>::new(Default::default());
-        e.push(0, Command::Dir(true), 0).expect("room");
+        e.push(0, StepCommand::Dir(true), 0).expect("room");
         e.push(
             0,
-            Command::Steps {
+            StepCommand::Steps {
                 interval: far as u32,
                 count: 1,
                 add: 0,
@@ -587,7 +571,7 @@ mod tests {
         .expect("room");
         e.push(
             0,
-            Command::Steps {
+            StepCommand::Steps {
                 interval: 1000,
                 count: 1,
                 add: 0,
@@ -606,7 +590,7 @@ mod tests {
         let mut e = Engine::<Pins, 2, 8, 8>::new(Default::default());
         e.push(
             1,
-            Command::Steps {
+            StepCommand::Steps {
                 interval: 100,
                 count: 5,
                 add: 0,
@@ -620,7 +604,7 @@ mod tests {
         // Afterwards everything is dropped.
         e.push(
             0,
-            Command::Steps {
+            StepCommand::Steps {
                 interval: 100,
                 count: 1,
                 add: 0,
@@ -644,7 +628,7 @@ mod tests {
         };
         // Each stepper's commands with their first step's 64-bit clock,
         // and the steps they must make.
-        let mut plans: Vec<Vec<(Command, u64)>> = Vec::new();
+        let mut plans: Vec<Vec<(StepCommand, u64)>> = Vec::new();
         let mut expected: Vec<Vec<(u32, bool)>> = Vec::new();
         for _ in 0..4 {
             let (mut cmds, mut steps) = (Vec::new(), Vec::new());
@@ -652,13 +636,13 @@ mod tests {
             for _ in 0..60 {
                 if next(3) == 0 {
                     dir = !dir;
-                    cmds.push((Command::Dir(dir), last));
+                    cmds.push((StepCommand::Dir(dir), last));
                 }
                 let (interval, count) = (200 + next(2_000_000), 1 + next(200) as u16);
                 let add = next(41) as i16 - 20;
                 let mut clock = last + u64::from(interval);
                 cmds.push((
-                    Command::Steps {
+                    StepCommand::Steps {
                         interval,
                         count,
                         add,
@@ -716,8 +700,8 @@ mod tests {
         // Steppers 0 and 1 home together (a corexy X), at 1000 ticks a
         // step; stepper 2 moves on its own.
         for i in 0..3 {
-            e.push(i, Command::Dir(true), 0).expect("room");
-            let steps = Command::Steps {
+            e.push(i, StepCommand::Dir(true), 0).expect("room");
+            let steps = StepCommand::Steps {
                 interval: 1000,
                 count: 500,
                 add: 0,
@@ -747,8 +731,8 @@ mod tests {
     #[test]
     fn an_endstop_never_pressed_leaves_the_move_whole() {
         let mut e = Engine::<Pins, 2, 8, 8>::new(Default::default());
-        e.push(0, Command::Dir(false), 0).expect("room");
-        let steps = Command::Steps {
+        e.push(0, StepCommand::Dir(false), 0).expect("room");
+        let steps = StepCommand::Steps {
             interval: 1000,
             count: 300,
             add: 0,

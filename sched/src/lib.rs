@@ -13,7 +13,9 @@
 //! - [`adc`]: ADC sampling with range checks;
 //! - [`io`]: outputs and ADC inputs run from a timer, behind the
 //!   [`io::Peripherals`] hardware trait;
-//! - [`shutdown`]: why everything stopped, in Klipper's words.
+//! - [`shutdown`]: why everything stopped, in Klipper's words;
+//! - [`step_command`]: the step command, as step generation produces it
+//!   and the engine executes it.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod adc;
@@ -23,4 +25,5 @@ pub mod engine;
 pub mod io;
 pub mod outputs;
 pub mod shutdown;
+pub mod step_command;
 pub mod stepper;

@@ -13,7 +13,7 @@ use crate::shutdown::Shutdown;
 
 /// One queued move (a `queue_step` command with its direction).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Move {
+struct QueuedMove {
     interval: u32,
     count: u16,
     add: i16,
@@ -53,7 +53,7 @@ pub struct Stepper<const M: usize> {
     /// Clock of the last step of the previous move (or of the reset),
     /// ticks: the next move's first interval counts from here.
     last: u32,
-    queue: heapless::Deque<Move, M>,
+    queue: heapless::Deque<QueuedMove, M>,
     /// Direction for moves queued from now on.
     next_dir: bool,
     /// The direction pin's state (None before the first move).
@@ -112,7 +112,7 @@ impl<const M: usize> Stepper<M> {
             return Err(Shutdown::StepperTooFarInPast);
         }
         self.queue
-            .push_back(Move {
+            .push_back(QueuedMove {
                 interval,
                 count,
                 add,

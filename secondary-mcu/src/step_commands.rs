@@ -1,7 +1,7 @@
 //! Step commands for a secondary MCU: the compressor's output as Klipper's
 //! `queue_step oid interval count add`, `set_next_step_dir oid dir` and
 //! `reset_step_clock oid clock` messages, encoded with that MCU's data
-//! dictionary, and decoded back (a decoded reset carries the 32-bit clock).
+//! dictionary, and decoded back.
 
 use onechip_protocol::codec::{EncodeError, Encoder};
 use onechip_protocol::dictionary::Dictionary;
@@ -44,10 +44,9 @@ impl<'d> StepCommandEncoder<'d> {
                 let dir = i64::from(positive != self.invert_dir);
                 self.set_dir.encode_ints(&[oid, dir], out)
             }
-            // The MCU's clock is 32 bits wide.
-            StepCommand::ResetClock(clock) => self
-                .reset_clock
-                .encode_ints(&[oid, i64::from(clock as u32)], out),
+            StepCommand::ResetClock(clock) => {
+                self.reset_clock.encode_ints(&[oid, i64::from(clock)], out)
+            }
             StepCommand::Steps {
                 interval,
                 count,
@@ -68,7 +67,7 @@ impl<'d> StepCommandEncoder<'d> {
             return None;
         }
         let cmd = if msg.message.id == self.reset_clock.id() {
-            StepCommand::ResetClock(u64::try_from(msg.int("clock")?).ok()?)
+            StepCommand::ResetClock(u32::try_from(msg.int("clock")?).ok()?)
         } else if msg.message.id == self.set_dir.id() {
             StepCommand::Dir((msg.int("dir")? != 0) != self.invert_dir)
         } else if msg.message.id == self.queue_step.id() {

@@ -98,15 +98,15 @@ fn other_messages_and_oids_are_not_step_commands() {
         ours.decode(&dict, &buf[..len]).map(|c| c.0),
         Some(StepCommand::Dir(true))
     );
-    // A reset sends the 32-bit clock and reads back as such.
+    // A reset sends the whole 32-bit clock and reads back as such.
     let len = ours
-        .encode(&StepCommand::ResetClock((1 << 32) + 5), &mut buf)
+        .encode(&StepCommand::ResetClock(u32::MAX), &mut buf)
         .expect("fits");
     let text = dict.decode(&buf[..len]).expect("decodes").0.to_string();
-    assert_eq!(text, "reset_step_clock oid=3 clock=5");
+    assert_eq!(text, "reset_step_clock oid=3 clock=4294967295");
     assert_eq!(
         ours.decode(&dict, &buf[..len]).map(|c| c.0),
-        Some(StepCommand::ResetClock(5))
+        Some(StepCommand::ResetClock(u32::MAX))
     );
     let len = dict.encode_text("get_clock", &mut buf).expect("encodes");
     assert_eq!(ours.decode(&dict, &buf[..len]), None);

@@ -20,44 +20,9 @@ pub const MAX_COUNT: usize = 0xffff;
 /// count²` in theory; 11 is what works in practice).
 const QUADRATIC_DEV: i32 = 11;
 
-/// What the compressor produces, in order.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum StepCommand {
-    /// The direction of the following steps (true: positive).
-    Dir(bool),
-    /// `count` steps: the first `interval` ticks after the previous step.
-    Steps {
-        /// Ticks to the first step.
-        interval: u32,
-        /// Number of steps.
-        count: u16,
-        /// Change of the interval after each step.
-        add: i16,
-    },
-    /// The next step's interval counts from this clock (`reset_step_clock`,
-    /// after a homing move was cut short).
-    ResetClock(u64),
-}
-
-/// The command as the local stepper engine takes it (its clock is the
-/// MCU's 32-bit one).
-impl From<StepCommand> for onechip_sched::engine::Command {
-    fn from(cmd: StepCommand) -> Self {
-        match cmd {
-            StepCommand::Dir(positive) => Self::Dir(positive),
-            StepCommand::Steps {
-                interval,
-                count,
-                add,
-            } => Self::Steps {
-                interval,
-                count,
-                add,
-            },
-            StepCommand::ResetClock(at) => Self::ResetClock(at as u32),
-        }
-    }
-}
+// What the compressor produces, in order (each with the 64-bit clock of
+// its first step); re-exported for the compressor's users.
+pub use onechip_sched::step_command::StepCommand;
 
 /// Acceptable range of one step, in ticks after the last compressed step:
 /// 32 bits, as queued steps are less than `CLOCK_DIFF_MAX` (3·2^28) ticks
@@ -222,13 +187,14 @@ impl<const Q: usize> Compressor<Q> {
 
     /// Forgets every step not yet sent (a homing move cut short by its
     /// endstop) and counts the next from `clock`, which the stepper is told
-    /// with [`StepCommand::ResetClock`], also sent to `out`.
+    /// with [`StepCommand::ResetClock`] (its low 32 bits, the MCU's clock),
+    /// also sent to `out` with the whole 64-bit `clock`.
     pub fn reset(&mut self, clock: u64, out: &mut impl FnMut(StepCommand, u64)) {
         self.queue.drop_front(self.queue.len());
         self.held = None;
         self.dir = None;
         self.last_step_clock = clock;
-        out(StepCommand::ResetClock(clock), clock);
+        out(StepCommand::ResetClock(clock as u32), clock);
     }
 
     /// Sends everything queued (the end of the motion, or before a pause).
@@ -425,13 +391,23 @@ fn to_clock(x: f64) -> u64 {
     (u64::from(high) << 32) | u64::from(low)
 }
 
-/// Expands commands back into step clocks and directions (the MCU's view).
+/// Expands commands back into step clocks and directions (the MCU's view,
+/// from clock 0). A reset carries the 32-bit clock: it is taken as the
+/// 64-bit clock with those low bits nearest the last step's (but not
+/// before 0).
 pub fn expand(commands: &[StepCommand], mut emit: impl FnMut(u64, bool)) {
     let (mut clock, mut dir) = (0u64, true);
     for cmd in commands {
         match *cmd {
             StepCommand::Dir(d) => dir = d,
-            StepCommand::ResetClock(at) => clock = at,
+            StepCommand::ResetClock(at) => {
+                let back = u64::from((clock as u32).wrapping_sub(at));
+                clock = if back <= i32::MAX as u64 && back <= clock {
+                    clock - back
+                } else {
+                    clock + u64::from(at.wrapping_sub(clock as u32))
+                };
+            }
             StepCommand::Steps {
                 interval,
                 count,
@@ -445,5 +421,42 @@ pub fn expand(commands: &[StepCommand], mut emit: impl FnMut(u64, bool)) {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use std::vec::Vec;
+
+    fn expanded(commands: &[StepCommand]) -> Vec<u64> {
+        let mut clocks = Vec::new();
+        expand(commands, |clock, _| clocks.push(clock));
+        clocks
+    }
+
+    #[test]
+    fn a_reset_is_placed_near_the_last_step() {
+        let step = |interval| StepCommand::Steps {
+            interval,
+            count: 1,
+            add: 0,
+        };
+        let top = u32::MAX - 9;
+        // From clock 0, forward.
+        let first = [StepCommand::ResetClock(top), step(20)];
+        assert_eq!(expanded(&first), [(1 << 32) + 10]);
+        // After steps past the 32-bit range, back a little (a homing move
+        // cut short before its last steps) and forward.
+        let back = [step(3_000_000_000), step(3_000_000_000)];
+        let last = 6_000_000_000u64;
+        let earlier = (last - 100) as u32;
+        let mut cmds = Vec::from(back);
+        cmds.extend([StepCommand::ResetClock(earlier), step(1)]);
+        assert_eq!(expanded(&cmds)[2], last - 99);
+        cmds.truncate(2);
+        cmds.extend([StepCommand::ResetClock((last + 100) as u32), step(1)]);
+        assert_eq!(expanded(&cmds)[2], last + 101);
     }
 }

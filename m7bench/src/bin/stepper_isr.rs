@@ -11,7 +11,8 @@
 
 use cortex_m_rt::entry;
 use onechip_m7bench::{exit, measure, report};
-use onechip_sched::engine::{Command, Engine, StepTimer};
+use onechip_sched::engine::{Engine, StepTimer};
+use onechip_sched::step_command::StepCommand;
 use onechip_sched::stepper::StepPins;
 
 /// Stands in for a GPIO set/reset register.
@@ -96,12 +97,12 @@ fn no_interrupt(timer: &mut Timer) {
 fn main() -> ! {
     let mut engine = BenchEngine::new(Default::default());
     // Accelerating: the interval shrinks by 1 tick a step, from 30000.
-    let steps = Command::Steps {
+    let steps = StepCommand::Steps {
         interval: 30_000,
         count: 10_000,
         add: -1,
     };
-    for cmd in [Command::Dir(true), steps, steps] {
+    for cmd in [StepCommand::Dir(true), steps, steps] {
         if engine.push(0, cmd, 30_000).is_err() {
             panic!("push")
         }

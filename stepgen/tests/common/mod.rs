@@ -1,11 +1,11 @@
 //! What the golden tests and the step benches share: klippy's planned moves
 //! as the planner hands them to step generation.
 
-use onechip_golden::Move;
+use onechip_golden::TrapqAppend;
 use onechip_planner::toolhead::TrapqMove;
 
 /// A golden move (a `moves.tsv` line) as a [`TrapqMove`].
-pub fn trapq_move(m: &Move) -> TrapqMove {
+pub fn trapq_move(m: &TrapqAppend) -> TrapqMove {
     TrapqMove {
         print_time: m.print_time,
         accel_t: m.accel_t,
