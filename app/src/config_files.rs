@@ -62,7 +62,10 @@ pub type ConfigFiles<'b> = heapless::Vec<ConfigFile<'b>, MAX_FILES>;
 /// Reads printer.cfg and, transitively, every file its `[include]`
 /// patterns match (as Klipper, patterns are relative to the root and may
 /// use `*` and `?`), each once, names and texts stored in `buf`.
-pub fn load<'b, F: Files>(fs: &mut F, buf: &'b mut [u8]) -> Result<ConfigFiles<'b>, LoadError<F::Error>> {
+pub fn load<'b, F: Files>(
+    fs: &mut F,
+    buf: &'b mut [u8],
+) -> Result<ConfigFiles<'b>, LoadError<F::Error>> {
     let mut files = ConfigFiles::new();
     let mut rest = buf;
     let mut wanted: heapless::Vec<heapless::String<MAX_PATH>, MAX_FILES> = heapless::Vec::new();
@@ -76,7 +79,10 @@ pub fn load<'b, F: Files>(fs: &mut F, buf: &'b mut [u8]) -> Result<ConfigFiles<'
             let mut failed = false;
             fs.each_file(&mut |name| {
                 let known = wanted.iter().any(|w| w.as_str() == name);
-                if !known && glob_match(pattern, name) && push_path::<F::Error>(&mut wanted, name).is_err() {
+                if !known
+                    && glob_match(pattern, name)
+                    && push_path::<F::Error>(&mut wanted, name).is_err()
+                {
                     failed = true;
                 }
             })
@@ -192,7 +198,10 @@ mod tests {
         let mut buf = [0u8; 64];
         let e = load(&mut Memory(std::vec![]), &mut buf).expect_err("no printer.cfg");
         assert_eq!(e.to_string(), "printer.cfg: file not found");
-        let mut fs = Memory(std::vec![("printer.cfg", "[printer]\nkinematics: cartesian\n")]);
+        let mut fs = Memory(std::vec![(
+            "printer.cfg",
+            "[printer]\nkinematics: cartesian\n"
+        )]);
         let mut small = [0u8; 16];
         let e = load(&mut fs, &mut small).expect_err("too small");
         assert_eq!(e.to_string(), "printer.cfg: file too large");

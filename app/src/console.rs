@@ -6,7 +6,7 @@
 //! `!!` as Klipper does. M115 is answered here; every other command goes to
 //! the runner the board supplies (the printer).
 
-use crate::line::Line;
+use crate::line::LineEvent;
 use core::fmt::{Display, Write};
 
 /// An error message from a runner, owned (the error it describes may borrow
@@ -15,8 +15,14 @@ pub type ErrorText = heapless::String<96>;
 
 /// Formats `e` as an [`ErrorText`], cutting what does not fit.
 pub fn error_text(e: &impl Display) -> ErrorText {
-    struct Cut(ErrorText);
-    impl Write for Cut {
+    cut_text(e)
+}
+
+/// Formats `e` into a string of at most `N` bytes, cutting what does not
+/// fit (at a character boundary).
+pub fn cut_text<const N: usize>(e: &impl Display) -> heapless::String<N> {
+    struct Cut<const N: usize>(heapless::String<N>);
+    impl<const N: usize> Write for Cut<N> {
         fn write_str(&mut self, s: &str) -> core::fmt::Result {
             for c in s.chars() {
                 if self.0.push(c).is_err() {
@@ -26,7 +32,7 @@ pub fn error_text(e: &impl Display) -> ErrorText {
             Ok(())
         }
     }
-    let mut cut = Cut(ErrorText::new());
+    let mut cut = Cut(heapless::String::new());
     let _ = write!(cut, "{e}");
     cut.0
 }
@@ -34,18 +40,18 @@ pub fn error_text(e: &impl Display) -> ErrorText {
 /// Answers one console event: M115 directly, other lines through `run`
 /// (which may write replies to `out`); always ends with `ok\n`.
 pub fn answer<W: Write>(
-    event: &Line<'_>,
+    event: &LineEvent<'_>,
     out: &mut W,
     run: impl FnOnce(&str, &mut W) -> Result<(), ErrorText>,
 ) -> core::fmt::Result {
     match event {
-        Line::Complete(line) if command_word(line).eq_ignore_ascii_case(b"M115") => writeln!(
+        LineEvent::Complete(line) if command_word(line).eq_ignore_ascii_case(b"M115") => writeln!(
             out,
             "FIRMWARE_NAME:{} FIRMWARE_VERSION:{}",
             crate::FIRMWARE_NAME,
             crate::FIRMWARE_VERSION
         )?,
-        Line::Complete(line) => match core::str::from_utf8(line) {
+        LineEvent::Complete(line) => match core::str::from_utf8(line) {
             Ok(text) => {
                 if let Err(e) = run(text, out) {
                     writeln!(out, "!! {e}")?;
@@ -53,7 +59,7 @@ pub fn answer<W: Write>(
             }
             Err(_) => writeln!(out, "!! line is not valid UTF-8, ignored")?,
         },
-        Line::TooLong { len } => writeln!(out, "!! line too long ({len} bytes), ignored")?,
+        LineEvent::TooLong { len } => writeln!(out, "!! line too long ({len} bytes), ignored")?,
     }
     out.write_str("ok\n")
 }
@@ -80,7 +86,7 @@ mod tests {
 
     /// Answers `event` with a runner that records the lines it is given and
     /// fails on lines containing "bad".
-    fn reply(event: Line<'_>) -> (String, Vec<String>) {
+    fn reply(event: LineEvent<'_>) -> (String, Vec<String>) {
         let mut s = String::new();
         let mut seen = Vec::new();
         answer(&event, &mut s, |text, out: &mut String| {
@@ -97,20 +103,20 @@ mod tests {
 
     #[test]
     fn m115_identifies_the_firmware_without_running_anything() {
-        let (r, seen) = reply(Line::Complete(b"M115"));
+        let (r, seen) = reply(LineEvent::Complete(b"M115"));
         assert!(
             r.starts_with("FIRMWARE_NAME:onechip FIRMWARE_VERSION:"),
             "{r}"
         );
         assert!(r.ends_with("\nok\n"), "{r}");
         assert!(seen.is_empty());
-        assert_eq!(reply(Line::Complete(b"N12 m115 *34")).0, r);
+        assert_eq!(reply(LineEvent::Complete(b"N12 m115 *34")).0, r);
     }
 
     #[test]
     fn other_lines_run_and_get_exactly_one_ok() {
         assert_eq!(
-            reply(Line::Complete(b"G1 X10")),
+            reply(LineEvent::Complete(b"G1 X10")),
             ("// ran\nok\n".into(), std::vec!["G1 X10".into()])
         );
     }
@@ -124,15 +130,15 @@ mod tests {
     #[test]
     fn failures_are_reported_and_still_acknowledged() {
         assert_eq!(
-            reply(Line::Complete(b"G1 Xbad")).0,
+            reply(LineEvent::Complete(b"G1 Xbad")).0,
             "!! unable to parse\nok\n"
         );
         assert_eq!(
-            reply(Line::Complete(b"G1 \xff")).0,
+            reply(LineEvent::Complete(b"G1 \xff")).0,
             "!! line is not valid UTF-8, ignored\nok\n"
         );
         assert_eq!(
-            reply(Line::TooLong { len: 300 }).0,
+            reply(LineEvent::TooLong { len: 300 }).0,
             "!! line too long (300 bytes), ignored\nok\n"
         );
     }

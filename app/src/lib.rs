@@ -18,6 +18,7 @@ pub mod pins;
 pub mod printer;
 pub mod sdcard;
 pub mod session;
+pub mod setup;
 pub mod step_pulse;
 
 /// Firmware name reported to hosts (M115).

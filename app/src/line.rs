@@ -2,12 +2,12 @@
 //!
 //! Lines end at `\n` or `\r` (so CRLF, LF and lone CR all work); empty lines
 //! are skipped. The buffer is fixed: a line longer than `N` bytes is reported
-//! once as [`Line::TooLong`] and the rest of it, up to its end, is dropped —
+//! once as [`LineEvent::TooLong`] and the rest of it, up to its end, is dropped —
 //! the following lines are unaffected.
 
 /// One event produced by [`LineAssembler::push`].
 #[derive(Debug, PartialEq, Eq)]
-pub enum Line<'a> {
+pub enum LineEvent<'a> {
     /// A complete line without its terminator.
     Complete(&'a [u8]),
     /// A line exceeded the buffer; `len` is how many bytes it had when it
@@ -44,15 +44,15 @@ impl<const N: usize> LineAssembler<N> {
     }
 
     /// Feeds one byte; returns an event when it ends a line.
-    pub fn push(&mut self, byte: u8) -> Option<Line<'_>> {
+    pub fn push(&mut self, byte: u8) -> Option<LineEvent<'_>> {
         if byte == b'\n' || byte == b'\r' {
             let (len, overflow) = (self.len, self.overflow);
             self.len = 0;
             self.overflow = 0;
             return match (len, overflow) {
                 (0, 0) => None,
-                (len, 0) => Some(Line::Complete(&self.buf[..len])),
-                (len, extra) => Some(Line::TooLong { len: len + extra }),
+                (len, 0) => Some(LineEvent::Complete(&self.buf[..len])),
+                (len, extra) => Some(LineEvent::TooLong { len: len + extra }),
             };
         }
         if self.len < N && self.overflow == 0 {
@@ -76,8 +76,8 @@ mod tests {
         let mut out = Vec::new();
         for &b in input {
             match asm.push(b) {
-                Some(Line::Complete(l)) => out.push(Ok(l.to_vec())),
-                Some(Line::TooLong { len }) => out.push(Err(len)),
+                Some(LineEvent::Complete(l)) => out.push(Ok(l.to_vec())),
+                Some(LineEvent::TooLong { len }) => out.push(Err(len)),
                 None => {}
             }
         }

@@ -1,6 +1,7 @@
 //! The pins printer.cfg uses, checked before any is configured: a pin
 //! named by two options is refused (Klipper: "pin … used multiple times in
-//! config"), and so is a pin the board itself uses (USB, the SD card).
+//! config"), and so is a pin the board itself uses (USB, the SD card, the
+//! crystal, the debug port).
 //!
 //! Pins are compared without their modifiers (`!` inverted, `^` pull-up,
 //! `~` pull-down) and ignoring case; `PF13` and `mcu:PF13` are the same
@@ -19,11 +20,17 @@ use onechip_planner::machine::Machine;
 
 /// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
 /// `board/` wires them: USB on OTG_HS's internal full-speed PHY (PA11,
-/// PA12) and the micro-SD slot on SDMMC1 in 4-bit mode (PC8 to PC12, PD2).
-/// For [`check`]; another board has its own list.
+/// PA12), the micro-SD slot on SDMMC1 in 4-bit mode (PC8 to PC12, PD2),
+/// the 25 MHz crystal on the HSE oscillator pins (PH0, PH1) and the SWD
+/// debug port (PA13 SWDIO, PA14 SWCLK, kept for the probe). For [`check`];
+/// another board has its own list.
 pub const BOARD_RESERVED: &[(&str, &str)] = &[
     ("PA11", "USB D-"),
     ("PA12", "USB D+"),
+    ("PA13", "SWD"),
+    ("PA14", "SWD"),
+    ("PH0", "crystal"),
+    ("PH1", "crystal"),
     ("PC8", "SD card D0"),
     ("PC9", "SD card D1"),
     ("PC10", "SD card D2"),

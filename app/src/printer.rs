@@ -10,6 +10,8 @@
 
 use crate::heaters::{MAX_HEATERS, ThermalCommand, ThermalError};
 use core::fmt::{self, Write};
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use onechip_planner::gcode::{self, Command, Line};
 use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
@@ -71,20 +73,36 @@ pub struct Printer<'a, const N: usize> {
 impl<'a, const N: usize> Printer<'a, N> {
     /// A printer for `machine`, at rest at position 0.
     pub fn new(machine: &Machine<'a>) -> Self {
-        Self {
-            toolhead: machine.toolhead(),
-            gcode: GcodeMove::default(),
-            heaters: machine
-                .heaters
-                .iter()
-                .map(|h| HeaterName {
-                    name: h.name,
-                    min_temp: h.min_temp,
-                    max_temp: h.max_temp,
-                })
-                .collect(),
-            has_fan: machine.fan.is_some(),
-            thermal: heapless::Deque::new(),
+        let mut slot = MaybeUninit::uninit();
+        Self::init_in(&mut slot, machine);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`Self::new`] built in place in `slot` (its lookahead is too large
+    /// to pass through a small stack); returns it.
+    pub fn init_in<'s>(slot: &'s mut MaybeUninit<Self>, machine: &Machine<'a>) -> &'s mut Self {
+        let heaters = machine
+            .heaters
+            .iter()
+            .map(|h| HeaterName {
+                name: h.name,
+                min_temp: h.min_temp,
+                max_temp: h.max_temp,
+            })
+            .collect();
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; every field is written exactly
+        // once (the toolhead in place) before the slot is taken as
+        // initialised.
+        unsafe {
+            let toolhead = &mut *addr_of_mut!((*p).toolhead).cast::<MaybeUninit<Toolhead<N>>>();
+            machine.toolhead_in(toolhead);
+            addr_of_mut!((*p).gcode).write(GcodeMove::default());
+            addr_of_mut!((*p).heaters).write(heaters);
+            addr_of_mut!((*p).has_fan).write(machine.fan.is_some());
+            addr_of_mut!((*p).thermal).write(heapless::Deque::new());
+            slot.assume_init_mut()
         }
     }
 

@@ -1,14 +1,22 @@
-//! Reading files from the SD card: `printer.cfg` at boot, G-code later.
+//! Reading files from the SD card: `printer.cfg` and its includes at
+//! boot, G-code later.
 //!
 //! Works on any [`BlockDevice`] (the board's SDMMC adapter, an in-memory image
 //! in tests) through embedded-sdmmc: MBR partition table, first partition,
-//! FAT16 or FAT32, 8.3 file names in the root directory.
+//! FAT16 or FAT32, 8.3 file names (seen in lower case), in the root folder
+//! and the folders just below it.
 
-use core::fmt;
-use embedded_sdmmc::{BlockDevice, Mode, TimeSource, Timestamp, VolumeIdx, VolumeManager};
+use crate::config_files::{Files, MAX_PATH};
+use core::fmt::{self, Write};
+use core::ops::ControlFlow;
+use embedded_sdmmc::{
+    BlockDevice, DirEntry, Mode, ShortFileName, TimeSource, Timestamp, VolumeIdx, VolumeManager,
+};
 
-/// Name of the printer configuration file in the card's root directory.
-pub const PRINTER_CFG: &str = "printer.cfg";
+pub use crate::config_files::PRINTER_CFG;
+
+/// Folders below the root that are searched for files.
+const MAX_FOLDERS: usize = 16;
 
 /// Why a file could not be read from the card.
 #[derive(Debug)]
@@ -24,6 +32,8 @@ pub enum ReadError<E: core::error::Error> {
     },
     /// The card, its partition table or its filesystem failed.
     Filesystem(embedded_sdmmc::Error<E>),
+    /// A path names folders more than one level deep.
+    TooDeep,
 }
 
 impl<E: core::error::Error> fmt::Display for ReadError<E> {
@@ -37,6 +47,7 @@ impl<E: core::error::Error> fmt::Display for ReadError<E> {
                 )
             }
             Self::Filesystem(e) => write!(f, "SD card: {e}"),
+            Self::TooDeep => f.write_str("only the root folder and the folders in it are read"),
         }
     }
 }
@@ -77,7 +88,22 @@ pub fn read_root_file<D: BlockDevice>(
         VolumeManager::new_with_limits(device, NoClock, 0);
     let volume = volumes.open_volume(VolumeIdx(0))?;
     let root = volume.open_root_dir()?;
-    let file = root.open_file_in_dir(name, Mode::ReadOnly)?;
+    read_in(&root, name, buf)
+}
+
+/// Reads file `name` of folder `dir` whole into `buf`.
+fn read_in<
+    D: BlockDevice,
+    T: TimeSource,
+    const DIRS: usize,
+    const FILES: usize,
+    const VOLS: usize,
+>(
+    dir: &embedded_sdmmc::Directory<'_, D, T, DIRS, FILES, VOLS>,
+    name: &str,
+    buf: &mut [u8],
+) -> Result<usize, ReadError<D::Error>> {
+    let file = dir.open_file_in_dir(name, Mode::ReadOnly)?;
     let size = file.length();
     let capacity = buf.len();
     let dest = buf
@@ -91,4 +117,78 @@ pub fn read_root_file<D: BlockDevice>(
         }
     }
     Ok(filled)
+}
+
+/// The card's files, for loading printer.cfg and the files it includes
+/// ([`Files`]): paths are lower-case 8.3 names, `name.ext` in the root or
+/// `folder/name.ext` one level down.
+pub struct SdFiles<D: BlockDevice> {
+    volumes: VolumeManager<D, NoClock, 2, 1, 1>,
+}
+
+impl<D: BlockDevice> SdFiles<D> {
+    /// The files of the card in `device`.
+    pub fn new(device: D) -> Self {
+        Self {
+            volumes: VolumeManager::new_with_limits(device, NoClock, 0),
+        }
+    }
+}
+
+/// `entry`'s name as a path below `folder` (None for the root), lower
+/// case; None for folders' own entries and names too long.
+fn entry_path(
+    folder: Option<&ShortFileName>,
+    entry: &DirEntry,
+) -> Option<heapless::String<MAX_PATH>> {
+    let mut path = heapless::String::new();
+    if let Some(folder) = folder {
+        write!(path, "{folder}/").ok()?;
+    }
+    write!(path, "{}", entry.name).ok()?;
+    path.make_ascii_lowercase();
+    Some(path)
+}
+
+impl<D: BlockDevice> Files for SdFiles<D> {
+    type Error = ReadError<D::Error>;
+
+    fn each_file(&mut self, f: &mut dyn FnMut(&str)) -> Result<(), Self::Error> {
+        let volume = self.volumes.open_volume(VolumeIdx(0))?;
+        let root = volume.open_root_dir()?;
+        let mut folders: heapless::Vec<ShortFileName, MAX_FOLDERS> = heapless::Vec::new();
+        root.iterate_dir(|entry| {
+            if entry.attributes.is_volume() || entry.name.base_name().starts_with(b".") {
+                // The volume label, `.` and `..`.
+            } else if entry.attributes.is_directory() {
+                let _ = folders.push(entry.name);
+            } else if let Some(path) = entry_path(None, entry) {
+                f(&path);
+            }
+            ControlFlow::Continue(())
+        })?;
+        for folder in &folders {
+            let dir = root.open_dir(folder)?;
+            dir.iterate_dir(|entry| {
+                if !entry.attributes.is_directory()
+                    && !entry.attributes.is_volume()
+                    && let Some(path) = entry_path(Some(folder), entry)
+                {
+                    f(&path);
+                }
+                ControlFlow::Continue(())
+            })?;
+        }
+        Ok(())
+    }
+
+    fn read(&mut self, path: &str, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let volume = self.volumes.open_volume(VolumeIdx(0))?;
+        let root = volume.open_root_dir()?;
+        match path.split_once('/') {
+            None => read_in(&root, path, buf),
+            Some((_, rest)) if rest.contains('/') => Err(ReadError::TooDeep),
+            Some((folder, name)) => read_in(&root.open_dir(folder)?, name, buf),
+        }
+    }
 }

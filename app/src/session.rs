@@ -10,16 +10,18 @@
 
 use crate::console::{self, ErrorText, error_text};
 use crate::heaters::ThermalCommand;
-use crate::line::Line;
+use crate::line::LineEvent;
 use crate::printer::{LineError, Printer};
 use core::fmt::{self, Write};
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use onechip_planner::homing::{HomingEnd, HomingMove};
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::toolhead::{MoveSink, TrapqMove};
 use onechip_sched::endstop::Endstop;
-use onechip_sched::engine::{Command, Full};
+use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
-use onechip_stepgen::compress::StepCommand;
+use onechip_sched::step_command::StepCommand;
 use onechip_stepgen::motion::{HomingStop, Motion, StepSink};
 
 /// The board's profile: queue sizes, step clock, step accuracy and line
@@ -55,7 +57,7 @@ pub trait Mcu {
     fn now(&mut self) -> u64;
     /// Queues `cmd` for stepper `stepper`, its first step at 64-bit clock
     /// `clock`; [`Full`] while that stepper's outbox is full.
-    fn push(&mut self, stepper: usize, cmd: Command, clock: u64) -> Result<(), Full>;
+    fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full>;
     /// Sleeps until the MCU role has made progress (a timer event ran: a
     /// step, an endstop reading, a heater event) or the clock reached
     /// `until`; may return early. Never spins.
@@ -133,7 +135,7 @@ pub struct Planned {
 
 /// Why a line could not run (besides the printer's own errors).
 #[derive(Debug)]
-enum RunError<'l> {
+enum SessionError<'l> {
     /// Homing needs every axis' endstop: without one, a homing move would
     /// run its whole length into the frame.
     NoEndstops,
@@ -145,7 +147,7 @@ enum RunError<'l> {
     Command(LineError<'l>),
 }
 
-impl fmt::Display for RunError<'_> {
+impl fmt::Display for SessionError<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::NoEndstops => f.write_str(
@@ -186,17 +188,38 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// A session for `machine` on a step clock of `freq` Hz, steps within
     /// `max_error` s, print time starting at clock `start` (ticks).
     pub fn new(machine: &Machine<'a>, freq: f64, max_error: f64, start: u64) -> Self {
-        let mut printer = Printer::new(machine);
-        printer.set_time_origin(start as f64 / freq);
-        Self {
-            printer,
-            motion: Motion::new(machine, freq, (max_error * freq) as u32, [0.0; 3]),
-            homing: HomingSetup::new(machine),
-            freq,
-            timing: Timing::RealTime,
-            watching: None,
-            planned: Planned::default(),
-            heat_wait: 0.0,
+        let mut slot = MaybeUninit::uninit();
+        Self::init_in(&mut slot, machine, freq, max_error, start);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`Self::new`] built in place in `slot`: the lookahead and the motion
+    /// queues are far too large to pass through a microcontroller's stack.
+    pub fn init_in<'s>(
+        slot: &'s mut MaybeUninit<Self>,
+        machine: &Machine<'a>,
+        freq: f64,
+        max_error: f64,
+        start: u64,
+    ) -> &'s mut Self {
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; every field is written exactly
+        // once (the printer in place, the motion's queues with their
+        // storage left uninitialised, then set up in place) before the slot
+        // is taken as initialised.
+        unsafe {
+            let printer = &mut *addr_of_mut!((*p).printer).cast::<MaybeUninit<Printer<'a, L>>>();
+            Printer::init_in(printer, machine).set_time_origin(start as f64 / freq);
+            addr_of_mut!((*p).motion).write(Motion::empty());
+            (*addr_of_mut!((*p).motion)).setup(machine, freq, (max_error * freq) as u32, [0.0; 3]);
+            addr_of_mut!((*p).homing).write(HomingSetup::new(machine));
+            addr_of_mut!((*p).freq).write(freq);
+            addr_of_mut!((*p).timing).write(Timing::RealTime);
+            addr_of_mut!((*p).watching).write(None);
+            addr_of_mut!((*p).planned).write(Planned::default());
+            addr_of_mut!((*p).heat_wait).write(0.0);
+            slot.assume_init_mut()
         }
     }
 
@@ -207,19 +230,29 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
 
     /// Answers one console or file event: the line runs, its replies and
     /// then `ok` go to `out` (errors as `!! ` lines, as Klipper).
-    pub fn line(&mut self, event: &Line<'_>, mcu: &mut impl Mcu, out: &mut impl Write) -> fmt::Result {
+    pub fn line(
+        &mut self,
+        event: &LineEvent<'_>,
+        mcu: &mut impl Mcu,
+        out: &mut impl Write,
+    ) -> fmt::Result {
         console::answer(event, out, |text, out| self.run(text, mcu, out))
     }
 
     /// Runs one line of G-code; replies other than `ok` go to `out`.
-    fn run(&mut self, text: &str, mcu: &mut impl Mcu, out: &mut impl Write) -> Result<(), ErrorText> {
+    fn run(
+        &mut self,
+        text: &str,
+        mcu: &mut impl Mcu,
+        out: &mut impl Write,
+    ) -> Result<(), ErrorText> {
         if let Some(reason) = mcu.shutdown_reason() {
-            return Err(error_text(&RunError::Shutdown(reason)));
+            return Err(error_text(&SessionError::Shutdown(reason)));
         }
         if !self.homing.endstops.iter().all(|&e| e)
             && console::command_word(text.as_bytes()).eq_ignore_ascii_case(b"G28")
         {
-            return Err(error_text(&RunError::NoEndstops));
+            return Err(error_text(&SessionError::NoEndstops));
         }
         if self.timing == Timing::RealTime && self.printer.is_idle() {
             // An idle printer starts its next move from now.
@@ -251,7 +284,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 },
                 out,
             )
-            .map_err(|e| error_text(&RunError::Command(e)));
+            .map_err(|e| error_text(&SessionError::Command(e)));
         motion.generate(f64::INFINITY, &mut steps);
         let thermal = self.thermal(mcu, out);
         result.and(thermal)
@@ -308,7 +341,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         while busy(mcu) {
             let now = mcu.now();
             if now >= deadline {
-                return Err(error_text(&RunError::HeatTimeout));
+                return Err(error_text(&SessionError::HeatTimeout));
             }
             if now >= next_report {
                 let _ = mcu.report_temperatures(out);
@@ -436,7 +469,6 @@ struct EngineSteps<'m, M> {
 
 impl<M: Mcu> StepSink for EngineSteps<'_, M> {
     fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
-        let cmd = Command::from(cmd);
         while self.mcu.push(index, cmd, clock).is_err() {
             if self.mcu.shutdown_reason().is_some() {
                 return;
@@ -449,7 +481,12 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
     /// Watches the homed axis' endstop from the move's start and waits
     /// until the steps sent so far have run or the endstop triggered
     /// (which stopped every motion stepper at once).
-    fn home(&mut self, homing: &HomingMove, start_clock: u64, until_clock: u64) -> Option<HomingStop> {
+    fn home(
+        &mut self,
+        homing: &HomingMove,
+        start_clock: u64,
+        until_clock: u64,
+    ) -> Option<HomingStop> {
         if *self.watching != Some(start_clock) {
             let endstop = Endstop::for_homing(
                 start_clock as u32,
@@ -485,5 +522,56 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             *self.watching = None;
         }
         None
+    }
+}
+
+/// The console loop both builds run around a session: each line is
+/// answered through it, and when no line has arrived for
+/// [`crate::printer::PRIMING_TIME`] the moves still waiting in the
+/// lookahead are released (Klipper's priming timer).
+#[derive(Debug, Clone, Default)]
+pub struct Console {
+    /// The clock of the last line, until the priming timeout has run.
+    last_line: Option<u64>,
+}
+
+impl Console {
+    /// A console with no line yet.
+    pub const fn new() -> Self {
+        Self { last_line: None }
+    }
+
+    /// Answers `event` through `session`, or without a printer (no valid
+    /// printer.cfg) with `no_printer` as the error.
+    pub fn line<const L: usize, const N: usize, const Q: usize>(
+        &mut self,
+        session: Option<&mut Session<'_, L, N, Q>>,
+        no_printer: &ErrorText,
+        event: &LineEvent<'_>,
+        mcu: &mut impl Mcu,
+        out: &mut impl Write,
+    ) -> fmt::Result {
+        let answered = match session {
+            Some(session) => session.line(event, mcu, out),
+            None => console::answer(event, out, |_, _| Err(no_printer.clone())),
+        };
+        self.last_line = Some(mcu.now());
+        answered
+    }
+
+    /// To call whenever woken without a line: runs the priming timeout
+    /// once its time has come.
+    pub fn idle<const L: usize, const N: usize, const Q: usize>(
+        &mut self,
+        session: &mut Session<'_, L, N, Q>,
+        mcu: &mut impl Mcu,
+    ) {
+        let priming = (crate::printer::PRIMING_TIME * session.freq) as u64;
+        if let Some(at) = self.last_line
+            && mcu.now().saturating_sub(at) >= priming
+        {
+            session.idle(mcu);
+            self.last_line = None;
+        }
     }
 }

@@ -14,8 +14,9 @@ pub const DEFAULT: f64 = 0.000_002;
 /// The pulse of a TMC driver in UART or SPI mode: 100 ns.
 pub const TMC_DEFAULT: f64 = 0.000_000_100;
 /// The longest `step_pulse_duration` printer.cfg may set, s (the shortest
-/// is 0).
-pub const MAX: f64 = 0.001;
+/// is 0; [`Machine::from_config`](onechip_planner::machine::Machine::from_config)
+/// refuses longer).
+pub const MAX: f64 = onechip_planner::machine::MAX_STEP_PULSE_DURATION;
 
 /// Klipper's TMC driver sections (`[tmc2209 stepper_x]`), each configured
 /// over UART or SPI.

@@ -164,6 +164,26 @@ fn pins_the_board_uses_are_refused() {
                 "heater_pin: !pd2",
                 Some("pin pd2 of [heater_bed] heater_pin is used by the board (SD card CMD)"),
             ),
+            (
+                "pin: PA8",
+                "pin: ph0",
+                Some("pin ph0 of [fan] pin is used by the board (crystal)"),
+            ),
+            (
+                "step_pin: PF13",
+                "step_pin: PH1",
+                Some("pin PH1 of [stepper_x] step_pin is used by the board (crystal)"),
+            ),
+            (
+                "endstop_pin: PG6",
+                "endstop_pin: ^PA13",
+                Some("pin PA13 of [stepper_x] endstop_pin is used by the board (SWD)"),
+            ),
+            (
+                "enable_pin: !PF14",
+                "enable_pin: !PA14",
+                Some("pin PA14 of [stepper_x] enable_pin is used by the board (SWD)"),
+            ),
         ],
         BOARD_RESERVED,
     );

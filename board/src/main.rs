@@ -1,252 +1,240 @@
 //! onechip firmware for the BTT Octopus Pro v1.1 (STM32H723ZG at 520 MHz).
 //!
-//! Boot: clocks, interrupt priorities, the stepper timer; then read
-//! `printer.cfg` from the SD card, build the printer and its step
-//! generation from it, configure the stepper pins it names and hand them
-//! to the stepper engine in TIM5's interrupt, and serve the USB console,
-//! whose G-code lines are planned, turned into steps and executed.
+//! Boot: take control from the bootloader, start the watchdog, clocks,
+//! interrupt priorities, the stepper timer and the I/O executor (USB); then
+//! read `printer.cfg` and its includes from the SD card, configure the pins
+//! it names for the stepper engine (TIM5's interrupt) and the heaters
+//! (TIM2's), and build the shared printer session. Thread code then runs
+//! the session on the console's lines, asleep whenever it waits for an
+//! interrupt.
 #![no_std]
 #![no_main]
 
+mod board_mcu;
+mod boot;
 mod clocks;
 mod handler_cell;
 mod heater_io;
 mod octopus_pro_v1_1;
 mod priority;
+mod safety;
 mod sd_card;
 mod step_pins;
 mod step_timer;
 mod usb_console;
 
 use defmt_rtt as _;
-use embassy_executor::Spawner;
+use embassy_executor::{InterruptExecutor, SendSpawner, Spawner};
+use embassy_stm32::interrupt;
+use embassy_stm32::interrupt::InterruptExt;
 use embassy_time::{Duration, Ticker};
-use embassy_usb::UsbDevice;
 use octopus_pro_v1_1::Board;
-use onechip_app::printer::Printer;
-use onechip_planner::config::Config;
-use onechip_planner::machine::Machine;
-use onechip_stepgen::motion::Motion;
-use panic_probe as _;
+use onechip_app::config_files;
+use onechip_app::console::{ErrorText, error_text};
+use onechip_app::pin_check;
+use onechip_app::session::{BoardSession, Console, Mcu, profile};
+use onechip_app::setup::PrinterSetup;
 use static_cell::{ConstStaticCell, StaticCell};
 
-/// Largest printer.cfg accepted, in bytes.
-const MAX_PRINTER_CFG: usize = 32 * 1024;
+/// Bytes of config text (printer.cfg and its includes, with their names).
+const CONFIG_BUFFER: usize = 32 * 1024;
+
+/// The I/O executor: USB, the watchdog and timers, on an otherwise unused
+/// interrupt below the stepper and heater timers.
+static IO: InterruptExecutor = InterruptExecutor::new();
+
+#[interrupt]
+unsafe fn SPI6() {
+    // SAFETY: SPI6's interrupt is the I/O executor's alone.
+    unsafe { IO.on_interrupt() }
+}
 
 #[embassy_executor::main]
-async fn main(spawner: Spawner) -> ! {
+async fn main(_spawner: Spawner) -> ! {
+    boot::take_control();
+    safety::start_watchdog();
     let p = embassy_stm32::init(clocks::config());
     priority::apply();
     step_timer::start();
     defmt::info!("onechip: core at {} Hz", clocks::SYSCLK_HZ);
     let board = Board::take(p);
-
-    let printer = match load_printer_cfg(board.sd).await {
-        Some(text) => build_printer(text, board.thermistors),
-        None => None,
-    };
-
-    let console = usb_console::build(board.usb);
-    spawner.spawn(usb_device(console.device).expect("spawned once"));
-    spawner.spawn(heartbeat().expect("spawned once"));
-    let mut class = console.class;
-    usb_console::serve(&mut class, printer).await
+    interrupt::SPI6.set_priority(priority::IO_EXECUTOR);
+    let io: SendSpawner = IO.start(interrupt::SPI6);
+    io.spawn(start_io(board.usb).expect("spawned once"));
+    let session = load_printer(board.sd, board.thermistors).await;
+    if let Err(e) = &session {
+        defmt::warn!("{}", e.as_str());
+    }
+    serve(session)
 }
 
-/// Reads printer.cfg from the SD card; None (logged) if there is none.
-async fn load_printer_cfg(pins: octopus_pro_v1_1::SdPins) -> Option<&'static str> {
-    static CFG: StaticCell<[u8; MAX_PRINTER_CFG]> = StaticCell::new();
-    let cfg = CFG.init([0; MAX_PRINTER_CFG]);
-    let mut sdmmc = sd_card::controller(pins);
-    let card = match sd_card::open(&mut sdmmc).await {
-        Ok(card) => card,
-        Err(e) => {
-            defmt::warn!("no SD card: {}", e);
-            return None;
-        }
+/// The I/O executor's first task: starts the watchdog's, USB's and the
+/// tick that wakes thread code at least every 10 ms (built here, as they
+/// stay on this executor).
+#[embassy_executor::task]
+async fn start_io(usb: octopus_pro_v1_1::UsbPins) {
+    // SAFETY: awaited in a task of the I/O executor, with the context the
+    // executor made (the one way to reach an interrupt executor's spawner).
+    let spawner = unsafe { Spawner::for_current_executor() }.await;
+    let console = usb_console::build(usb);
+    let (tx, rx) = console.class.split();
+    spawner.spawn(safety::watchdog().expect("spawned once"));
+    spawner.spawn(usb_console::device(console.device).expect("spawned once"));
+    spawner.spawn(usb_console::reader(rx).expect("spawned once"));
+    spawner.spawn(usb_console::writer(tx).expect("spawned once"));
+    spawner.spawn(tick().expect("spawned once"));
+}
+
+/// Thread code: answers console lines through the session forever,
+/// asleep between them (the console's priming timeout looks at the clock
+/// whenever woken). Without a printer (no valid printer.cfg), every line
+/// is answered with the reason.
+fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
+    let (mut session, no_printer) = match session {
+        Ok(session) => (Some(session), ErrorText::new()),
+        Err(e) => (None, e),
     };
-    match onechip_app::sdcard::read_root_file(card, onechip_app::sdcard::PRINTER_CFG, cfg) {
-        Ok(n) => match core::str::from_utf8(&cfg[..n]) {
-            Ok(text) => {
-                defmt::info!("printer.cfg: {} bytes", n);
-                Some(text)
-            }
-            Err(_) => {
-                defmt::warn!("printer.cfg is not UTF-8 text");
-                None
-            }
-        },
-        Err(e) => {
-            defmt::warn!("printer.cfg: {}", defmt::Display2Format(&e));
-            None
+    let mut mcu = board_mcu::BoardMcu;
+    let mut out = usb_console::ConsoleOut;
+    let mut console = Console::new();
+    loop {
+        if let Some(incoming) = usb_console::try_line() {
+            let event = incoming.event();
+            let _ = console.line(
+                session.as_deref_mut(),
+                &no_printer,
+                &event,
+                &mut mcu,
+                &mut out,
+            );
+            continue;
         }
+        if let Some(session) = session.as_deref_mut() {
+            console.idle(session, &mut mcu);
+        }
+        mcu.wait(u64::MAX);
     }
 }
 
-/// Builds the printer described by printer.cfg; None (logged) if invalid.
-fn build_printer(
-    text: &'static str,
+/// Reads printer.cfg and its includes from the SD card, configures the
+/// pins it names and builds the session (in place, in a static).
+async fn load_printer(
+    sd: octopus_pro_v1_1::SdPins,
     thermistors: octopus_pro_v1_1::ThermistorPins,
-) -> usb_console::BoardPrinter {
-    static CONFIG: StaticCell<Config<'static>> = StaticCell::new();
-    static PRINTER: StaticCell<Printer<'static, { usb_console::LOOKAHEAD }>> = StaticCell::new();
-    // Built in place: too large to pass through the stack.
-    static MOTION: ConstStaticCell<usb_console::BoardMotion> =
-        ConstStaticCell::new(Motion::empty());
-    let config = match Config::parse("printer.cfg", text) {
-        Ok(config) => CONFIG.init(config),
-        Err(e) => {
-            defmt::warn!("{}", defmt::Display2Format(&e));
-            return None;
-        }
-    };
-    match Machine::from_config(config) {
-        Ok(machine) => {
-            for section in &machine.unsupported {
-                defmt::info!("[{}] is not supported yet, ignored", section);
-            }
-            let homing = install_engine(&machine)?;
-            install_heaters(&machine, thermistors);
-            // Steps within Klipper's 25 µs, on the stepper timer's clock.
-            let max_error = (0.000_025 * step_timer::TIMER_HZ) as u32;
-            let motion = MOTION.take();
-            motion.setup(&machine, step_timer::TIMER_HZ, max_error, [0.0; 3]);
-            Some(usb_console::Machinery {
-                printer: PRINTER.init_with(|| Printer::new(&machine)),
-                motion,
-                homing,
-            })
-        }
-        Err(e) => {
-            defmt::warn!("{}", defmt::Display2Format(&e));
-            None
-        }
+) -> Result<&'static mut BoardSession<'static>, ErrorText> {
+    static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
+    static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
+    let mut sdmmc = sd_card::controller(sd);
+    let card = sd_card::open(&mut sdmmc)
+        .await
+        .map_err(|e| error_text(&format_args!("no SD card: {e}")))?;
+    let mut files = onechip_app::sdcard::SdFiles::new(card);
+    let texts = config_files::load(&mut files, TEXT.take()).map_err(|e| error_text(&e))?;
+    let mut setup =
+        PrinterSetup::load(&texts, pin_check::BOARD_RESERVED).map_err(|e| error_text(&e))?;
+    for section in setup.unsupported() {
+        defmt::info!("[{}] is not supported yet, ignored", section);
     }
+    install_engine(&setup)?;
+    install_heaters(&mut setup, thermistors)?;
+    let session = BoardSession::init_in(
+        SESSION.uninit(),
+        setup.machine(),
+        step_timer::TIMER_HZ,
+        profile::MAX_STEP_ERROR,
+        step_timer::now64(),
+    );
+    Ok(session)
 }
 
 /// Configures every stepper's step, direction and enable pins (drivers
-/// enabled) and its endstop input, and hands them to the stepper engine;
-/// returns what homing needs, or None (logged) if a step, direction or
-/// enable pin is not a GPIO.
-fn install_engine(machine: &Machine<'_>) -> Option<usb_console::HomingSetup> {
+/// enabled, off again on a fault) and its endstop input, and hands them to
+/// the stepper engine; a pin that is not a GPIO of this board is an error.
+fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
-    let rails = machine.stepper_kinematics.len().min(3);
-    let mut homing = usb_console::HomingSetup {
-        endstops: [false; 3],
-        rails: (1 << rails) - 1,
-        finest_step: f64::INFINITY,
-    };
-    for (i, (slot, stepper)) in slots.iter_mut().zip(&machine.steppers).enumerate() {
-        let pins = step_pins::StepperPins::new(stepper.step_pin, stepper.dir_pin);
-        let enable = stepper.enable_pin.map(step_pins::OutPin::new).transpose();
-        match (pins, enable) {
-            (Ok(pins), Ok(enable)) => {
-                if let Some(enable) = enable {
-                    enable.set(true);
-                }
-                *slot = pins;
-            }
-            (Err(e), _) | (_, Err(e)) => {
-                defmt::warn!("[{}]: {}", stepper.name, defmt::Display2Format(&e));
-                return None;
-            }
+    for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
+        let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
+        let pins =
+            step_pins::StepperPins::new(stepper.step_pin, stepper.dir_pin).map_err(|e| fail(&e))?;
+        if let Some(pin) = stepper.enable_pin {
+            step_pins::OutPin::new_safe_off(pin)
+                .map_err(|e| fail(&e))?
+                .set(true);
         }
-        if i < rails {
-            homing.finest_step = homing.finest_step.min(stepper.step_dist);
-            match stepper.endstop_pin.map(step_pins::InPin::new) {
-                Some(Ok(endstop)) => {
-                    *slot = slot.with_endstop(endstop);
-                    homing.endstops[i] = true;
-                }
-                Some(Err(e)) => defmt::warn!(
-                    "[{}]: endstop {} (G28 refused)",
-                    stepper.name,
-                    defmt::Display2Format(&e)
-                ),
-                None => {}
-            }
+        *slot = pins.with_step_pulse(stepper.step_pulse);
+        if let Some(pin) = stepper.endstop_pin {
+            let endstop = step_pins::InPin::new(pin).map_err(|e| fail(&e))?;
+            *slot = slot.with_endstop(endstop);
         }
     }
     step_timer::install(step_timer::BoardEngine::new(slots));
-    Some(homing)
+    Ok(())
 }
 
 /// Configures the heaters' and fan's output pins and the thermistors'
 /// ADC channels, and hands them with the heater control to TIM2's
-/// interrupt. A pin that is not usable is logged; a heater whose output or
-/// thermistor is missing stays off (its range check shuts the printer
-/// down rather than heat blind).
-fn install_heaters(machine: &Machine<'_>, mut thermistors: octopus_pro_v1_1::ThermistorPins) {
-    if machine.heaters.is_empty() && machine.fan.is_none() {
-        return;
+/// interrupt; a pin that is not usable is an error.
+fn install_heaters(
+    setup: &mut PrinterSetup<'_>,
+    mut thermistors: octopus_pro_v1_1::ThermistorPins,
+) -> Result<(), ErrorText> {
+    if !setup.has_thermal() {
+        return Ok(());
     }
-    let mut machine = machine.clone();
-    if let Some(fan) = machine.fan.as_mut().filter(|f| f.hard_pwm) {
+    if setup.without_hard_pwm() {
         defmt::warn!("[fan] hard_pwm is not supported on this board yet: software PWM");
-        fan.hard_pwm = false;
     }
+    let machine = setup.machine();
     let start = step_timer::now()
         .wrapping_add((onechip_app::heaters::FIRST_REPORT * step_timer::TIMER_HZ) as u32);
-    let setup = onechip_app::heaters::McuSetup::new(
-        &machine,
+    let mcu_setup = onechip_app::heaters::McuSetup::new(
+        machine,
         step_timer::TIMER_HZ,
         heater_io::ADC_MAX,
         start,
     );
     let (mut outputs, mut channels) = (heapless::Vec::new(), heapless::Vec::new());
-    for (pin, _) in &setup.outputs {
-        match step_pins::OutPin::new(pin) {
-            Ok(out) => {
-                let _ = outputs.push(out);
-            }
-            Err(e) => {
-                defmt::warn!("heater/fan pin: {}", defmt::Display2Format(&e));
-                return;
-            }
-        }
+    for (pin, _) in &mcu_setup.outputs {
+        let out = step_pins::OutPin::new(pin).map_err(|e| error_text(&e))?;
+        let _ = outputs.push(out);
     }
-    for (pin, _) in &setup.inputs {
-        match thermistors.channel(pin) {
-            Some(channel) => {
-                let _ = channels.push(channel);
-            }
-            None => {
-                defmt::warn!("sensor_pin {} is not a thermistor input (PF3..PF7)", pin);
-                return;
-            }
-        }
+    for (pin, _) in &mcu_setup.inputs {
+        let channel = thermistors.channel(pin).ok_or_else(|| {
+            error_text(&format_args!(
+                "sensor_pin {pin} is not a thermistor input of this board (PF3..PF7)"
+            ))
+        })?;
+        let _ = channels.push(channel);
     }
     let mut hw = heater_io::BoardPeripherals {
         outputs,
-        adc: embassy_stm32::adc::Adc::new(thermistors.adc),
+        adc: heater_io::Adc3::new(thermistors.adc),
         channels,
     };
     let heaters = onechip_app::heaters::Heaters::new(
-        &machine,
+        machine,
         step_timer::TIMER_HZ,
         heater_io::ADC_MAX,
         start,
         &mut hw,
     );
     heater_io::install(heaters, hw);
+    Ok(())
 }
 
+/// Wakes thread code at least every 10 ms (its priming timeout and
+/// heater waits look at the clock when woken), and logs the stepper clock
+/// once a second over RTT.
 #[embassy_executor::task]
-async fn usb_device(
-    mut device: UsbDevice<
-        'static,
-        embassy_stm32::usb::Driver<'static, embassy_stm32::peripherals::USB_OTG_HS>,
-    >,
-) -> ! {
-    device.run().await
-}
-
-/// Logs the stepper clock once a second (a liveness check over RTT).
-#[embassy_executor::task]
-async fn heartbeat() -> ! {
-    let mut ticker = Ticker::every(Duration::from_secs(1));
+async fn tick() -> ! {
+    let mut ticker = Ticker::every(Duration::from_millis(10));
+    let mut ticks = 0u32;
     loop {
         ticker.next().await;
-        defmt::info!("stepper clock at {} ticks", step_timer::now64());
+        cortex_m::asm::sev();
+        ticks = ticks.wrapping_add(1);
+        if ticks.is_multiple_of(100) {
+            defmt::info!("stepper clock at {} ticks", step_timer::now64());
+        }
     }
 }

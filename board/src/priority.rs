@@ -18,6 +18,9 @@ pub const HEATERS: Priority = Priority::P1;
 pub const TIME_DRIVER: Priority = Priority::P2;
 /// USB, SDMMC and DMA.
 pub const PERIPHERALS: Priority = Priority::P3;
+/// The I/O executor (USB console tasks, watchdog, tick): below everything
+/// above, above thread code (planning, step generation).
+pub const IO_EXECUTOR: Priority = Priority::P4;
 
 /// Sets the priorities of the interrupts that embassy enabled itself.
 pub fn apply() {

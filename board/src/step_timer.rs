@@ -15,7 +15,8 @@ use crate::step_pins::StepperPins;
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
 use embassy_stm32::pac;
-use onechip_sched::engine::{Command, Full, StepTimer};
+use onechip_sched::engine::{Full, StepTimer};
+use onechip_sched::step_command::StepCommand;
 
 /// Timer ticks to the first interrupt after start (1 ms at 260 MHz).
 const FIRST_WAKE: u32 = 260_000;
@@ -95,7 +96,7 @@ fn raise() {
 /// Queues `cmd` for stepper `index` (first step at 64-bit `clock`); Err
 /// while its outbox is full (the interrupt is making room) or before the
 /// engine is installed.
-pub fn push(index: usize, cmd: Command, clock: u64) -> Result<(), Full> {
+pub fn push(index: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
     let pushed = with_engine(|e| e.push(index, cmd, clock)).unwrap_or(Err(Full));
     raise();
     pushed

@@ -1,29 +1,22 @@
 //! The USB CDC-ACM console: G-code lines in, replies out.
 //!
-//! Packets are split into lines by the shared [`LineAssembler`]; each line is
-//! answered by [`onechip_app::console::answer`], which runs it on the
-//! printer, and the reply is sent back in packets of at most the endpoint's
-//! size.
+//! USB runs on the I/O executor (an interrupt below the stepper and heater
+//! timers), so it stays served however long thread code takes to plan,
+//! generate steps or wait for a heater. Lines go to thread code through a
+//! small channel (when it is full, reading stops and USB flow control
+//! holds the host back: no line is lost); replies come back through a
+//! pipe. Thread code never spins on either: it sleeps (`wfe`) until an
+//! interrupt, and the I/O side signals (`sev`) whenever it moved data.
 
-use core::fmt;
-use embassy_futures::select::{Either, select};
 use embassy_stm32::usb::Driver;
 use embassy_stm32::{bind_interrupts, peripherals, usb};
-use embassy_time::{Duration, Timer};
-use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
-use embassy_usb::driver::EndpointError;
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::channel::Channel;
+use embassy_sync::pipe::Pipe;
+use embassy_usb::class::cdc_acm::{CdcAcmClass, Receiver, Sender, State};
 use embassy_usb::{Builder, UsbDevice};
-use onechip_app::console::error_text;
-use onechip_app::heaters::ThermalCommand;
-use onechip_app::line::{Line, LineAssembler};
-use onechip_app::printer::LineError;
-use onechip_app::printer::{PRIMING_TIME, Printer};
-use onechip_planner::homing::HomingMove;
-use onechip_planner::machine::MAX_STEPPERS;
-use onechip_sched::endstop::Endstop;
-use onechip_sched::engine::Command;
-use onechip_stepgen::compress::StepCommand;
-use onechip_stepgen::motion::{Motion, StepSink};
+use onechip_app::line::{LineAssembler, LineEvent};
+use onechip_app::session::profile::MAX_LINE;
 use static_cell::StaticCell;
 
 bind_interrupts!(struct Irqs {
@@ -32,136 +25,56 @@ bind_interrupts!(struct Irqs {
 
 /// USB full-speed bulk packet size, in bytes.
 const PACKET: usize = 64;
-/// Longest accepted G-code line, in bytes.
-const MAX_LINE: usize = 256;
-/// Longest reply to one line, in bytes.
-const MAX_REPLY: usize = 256;
 
 type UsbDriver = Driver<'static, peripherals::USB_OTG_HS>;
 
-/// Lookahead capacity of the board's printer, in moves: more than the
-/// 0.25 s lazy-flush window of 1 ms segments, so long runs of tiny moves
-/// are released lazily (about 117 KB of RAM).
-pub const LOOKAHEAD: usize = 384;
-
-/// Motion queue of the board, in segments.
-pub const MOTION_QUEUE: usize = 128;
-/// Steps each stepper's compressor holds.
-pub const COMPRESS_QUEUE: usize = 256;
-
-/// The board's step generation.
-pub type BoardMotion = Motion<MOTION_QUEUE, COMPRESS_QUEUE>;
-
-/// The printer and its step generation (both live in statics).
-pub struct Machinery {
-    /// G-code to planned moves.
-    pub printer: &'static mut Printer<'static, LOOKAHEAD>,
-    /// Planned moves to step commands for the engine.
-    pub motion: &'static mut BoardMotion,
-    /// What homing needs.
-    pub homing: HomingSetup,
+/// One console line as thread code receives it.
+pub struct Incoming {
+    /// The line without its end (empty if it was too long).
+    bytes: heapless::Vec<u8, MAX_LINE>,
+    /// The length of a line longer than [`MAX_LINE`], which was dropped.
+    too_long: Option<usize>,
 }
 
-/// What homing needs on this board.
-#[derive(Debug, Clone, Copy)]
-pub struct HomingSetup {
-    /// Axes (0 = X) whose stepper has an endstop on a GPIO input.
-    pub endstops: [bool; 3],
-    /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
-    pub rails: u32,
-    /// The finest of their step distances, mm.
-    pub finest_step: f64,
-}
-
-/// The printer the console drives (None if printer.cfg did not load).
-pub type BoardPrinter = Option<Machinery>;
-
-/// Hands step commands to the stepper engine, waiting while its outbox
-/// for that stepper is full (its interrupt makes room), and runs homing
-/// moves against the endstops.
-struct EngineSteps<'h> {
-    homing: &'h HomingSetup,
-    /// The start clock of the homing move whose endstop is watched.
-    watching: Option<u64>,
-}
-
-impl<'h> EngineSteps<'h> {
-    fn new(homing: &'h HomingSetup) -> Self {
-        Self {
-            homing,
-            watching: None,
+impl Incoming {
+    /// The line as the session takes it.
+    pub fn event(&self) -> LineEvent<'_> {
+        match self.too_long {
+            Some(len) => LineEvent::TooLong { len },
+            None => LineEvent::Complete(&self.bytes),
         }
     }
 }
 
-impl StepSink for EngineSteps<'_> {
-    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
-        let cmd = Command::from(cmd);
-        while crate::step_timer::push(index, cmd, clock).is_err() {
-            if crate::step_timer::shutdown_reason().is_some() {
-                return;
-            }
-            cortex_m::asm::nop();
-        }
-    }
+/// Lines from the host, waiting for thread code.
+static LINES: Channel<CriticalSectionRawMutex, Incoming, 2> = Channel::new();
+/// Replies from thread code, waiting for USB.
+static REPLIES: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
 
-    /// Watches the homed axis' endstop from the move's start and waits
-    /// until the steps sent so far have run or the endstop triggered
-    /// (which stopped every motion stepper at once). The wait holds the
-    /// console (a homing move's slices are 50 ms apart).
-    fn home(
-        &mut self,
-        homing: &HomingMove,
-        start_clock: u64,
-        until_clock: u64,
-    ) -> Option<[i64; MAX_STEPPERS]> {
-        use crate::step_timer;
-        if self.watching != Some(start_clock) {
-            let endstop = Endstop::for_homing(
-                start_clock as u32,
-                step_timer::TIMER_HZ,
-                homing.speed,
-                self.homing.finest_step,
-            );
-            step_timer::watch_endstop(homing.axis, endstop, self.homing.rails);
-            self.watching = Some(start_clock);
-        }
-        while step_timer::now64() < until_clock && step_timer::shutdown_reason().is_none() {
-            if step_timer::take_trigger().is_some() {
-                self.watching = None;
-                // Stopped at once: no step past the trigger.
-                return Some([0; MAX_STEPPERS]);
+/// The next line from the host, if one has arrived (thread code).
+pub fn try_line() -> Option<Incoming> {
+    let line = LINES.try_receive().ok();
+    if line.is_some() {
+        // Room for the next line: the reader may go on.
+        cortex_m::asm::sev();
+    }
+    line
+}
+
+/// Thread code's side of the replies: writing sleeps while the pipe is
+/// full (the I/O executor empties it).
+pub struct ConsoleOut;
+
+impl core::fmt::Write for ConsoleOut {
+    fn write_str(&mut self, s: &str) -> core::fmt::Result {
+        let mut bytes = s.as_bytes();
+        while !bytes.is_empty() {
+            match REPLIES.try_write(bytes) {
+                Ok(n) => bytes = &bytes[n..],
+                Err(_) => cortex_m::asm::wfe(),
             }
         }
-        if until_clock as f64 >= homing.end_time * step_timer::TIMER_HZ {
-            // The whole move ran without a trigger.
-            step_timer::stop_watching();
-            self.watching = None;
-        }
-        None
-    }
-}
-
-/// Why a line could not run.
-enum RunError<'l> {
-    /// No valid printer.cfg, so no printer.
-    NoConfig,
-    /// Homing needs every axis' endstop on a GPIO input: without one, a
-    /// homing move would run its whole length into the endstop.
-    NoEndstops,
-    /// The printer refused the command.
-    Command(LineError<'l>),
-}
-
-impl fmt::Display for RunError<'_> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Self::NoConfig => f.write_str("no valid printer.cfg on the SD card"),
-            Self::NoEndstops => f.write_str(
-                "G28: an axis has no endstop_pin on a GPIO of this board; set the position with SET_KINEMATIC_POSITION",
-            ),
-            Self::Command(e) => write!(f, "{e}"),
-        }
+        Ok(())
     }
 }
 
@@ -214,128 +127,55 @@ pub fn build(pins: crate::octopus_pro_v1_1::UsbPins) -> Console {
     }
 }
 
-/// Serves the console forever: one connection after another.
-pub async fn serve(class: &mut CdcAcmClass<'static, UsbDriver>, mut printer: BoardPrinter) -> ! {
+/// Runs the USB device (enumeration, control transfers) forever.
+#[embassy_executor::task]
+pub async fn device(mut device: UsbDevice<'static, UsbDriver>) -> ! {
+    device.run().await
+}
+
+/// Reads packets and hands each completed line to thread code, one
+/// connection after another.
+#[embassy_executor::task]
+pub async fn reader(mut rx: Receiver<'static, UsbDriver>) -> ! {
     let mut lines = LineAssembler::<MAX_LINE>::new();
-    loop {
-        class.wait_connection().await;
-        defmt::info!("usb console connected");
-        match answer_lines(class, &mut lines, &mut printer).await {
-            Ok(never) => match never {},
-            Err(EndpointError::Disabled) => defmt::info!("usb console disconnected"),
-            Err(EndpointError::BufferOverflow) => defmt::warn!("usb packet overflow"),
-        }
-    }
-}
-
-/// Reads packets, answers every completed line; when no input arrives for
-/// the priming time, releases the moves still waiting in the lookahead.
-/// Returns only on USB errors.
-async fn answer_lines(
-    class: &mut CdcAcmClass<'static, UsbDriver>,
-    lines: &mut LineAssembler<MAX_LINE>,
-    printer: &mut BoardPrinter,
-) -> Result<core::convert::Infallible, EndpointError> {
     let mut packet = [0u8; PACKET];
-    let idle = Duration::from_micros((PRIMING_TIME * 1e6) as u64);
     loop {
-        let n = match select(class.read_packet(&mut packet), Timer::after(idle)).await {
-            Either::First(read) => read?,
-            Either::Second(()) => {
-                if let Some(m) = printer.as_mut() {
-                    m.printer
-                        .priming_timeout(&mut m.motion.sink(&mut EngineSteps::new(&m.homing)));
-                    m.motion
-                        .generate(f64::INFINITY, &mut EngineSteps::new(&m.homing));
-                }
-                continue;
-            }
-        };
-        for &byte in &packet[..n] {
-            if let Some(event) = lines.push(byte) {
-                let mut reply = heapless::String::<MAX_REPLY>::new();
-                // A heater to wait for (M109, M190) before answering.
-                let mut wait = None;
-                let run = |text: &str, out: &mut heapless::String<MAX_REPLY>| match printer.as_mut()
-                {
-                    Some(m)
-                        if !m.homing.endstops.iter().all(|&e| e)
-                            && onechip_app::console::command_word(text.as_bytes())
-                                .eq_ignore_ascii_case(b"G28") =>
-                    {
-                        Err(error_text(&RunError::NoEndstops))
-                    }
-                    Some(m) => {
-                        // An idle printer starts its next move from now.
-                        let now = crate::step_timer::now64() as f64 / crate::step_timer::TIMER_HZ;
-                        m.printer.set_time_origin(now);
-                        let mut steps = EngineSteps::new(&m.homing);
-                        let result = m
-                            .printer
-                            .execute(text, &mut m.motion.sink(&mut steps), out)
-                            .map_err(|e| error_text(&RunError::Command(e)));
-                        m.motion.generate(f64::INFINITY, &mut steps);
-                        while let Some(command) = m.printer.take_thermal() {
-                            match command {
-                                ThermalCommand::Report => crate::heater_io::report(out),
-                                ThermalCommand::Target {
-                                    heater, wait: true, ..
-                                } => {
-                                    crate::heater_io::command(command);
-                                    wait = Some(heater);
-                                }
-                                _ => crate::heater_io::command(command),
-                            }
-                        }
-                        result
-                    }
-                    None => Err(error_text(&RunError::NoConfig)),
+        rx.wait_connection().await;
+        defmt::info!("usb console connected");
+        while let Ok(n) = rx.read_packet(&mut packet).await {
+            for &byte in &packet[..n] {
+                let incoming = match lines.push(byte) {
+                    Some(LineEvent::Complete(bytes)) => Incoming {
+                        // Fits: the assembler holds at most MAX_LINE bytes.
+                        bytes: heapless::Vec::from_slice(bytes).unwrap_or_default(),
+                        too_long: None,
+                    },
+                    Some(LineEvent::TooLong { len }) => Incoming {
+                        bytes: heapless::Vec::new(),
+                        too_long: Some(len),
+                    },
+                    None => continue,
                 };
-                if onechip_app::console::answer(&event, &mut reply, run).is_err() {
-                    reply.clear();
-                    // Fits: the fallback is far shorter than MAX_REPLY.
-                    let _ = reply.push_str("!! reply too long\nok\n");
-                }
-                if let Line::TooLong { len } = event {
-                    defmt::warn!("dropped a {} byte line", len);
-                }
-                if let Some(heater) = wait {
-                    wait_for_heater(class, heater).await?;
-                }
-                send(class, reply.as_bytes()).await?;
+                LINES.send(incoming).await;
+                cortex_m::asm::sev();
             }
         }
+        defmt::info!("usb console disconnected");
     }
 }
 
-/// Waits until `heater` has reached its target (or everything shut
-/// down), reporting temperatures once a second as Klipper does.
-async fn wait_for_heater(
-    class: &mut CdcAcmClass<'static, UsbDriver>,
-    heater: usize,
-) -> Result<(), EndpointError> {
-    while crate::heater_io::busy(heater) {
-        Timer::after(Duration::from_secs(1)).await;
-        let mut line = heapless::String::<64>::new();
-        crate::heater_io::report(&mut line);
-        // Fits: two heaters' report is about 30 bytes.
-        let _ = line.push('\n');
-        send(class, line.as_bytes()).await?;
+/// Sends the replies in packets; a reply that fills its last packet
+/// exactly is closed with a zero-length packet so the host does not wait
+/// for more. Without a host, replies are dropped (thread code never
+/// blocks on a closed port).
+#[embassy_executor::task]
+pub async fn writer(mut tx: Sender<'static, UsbDriver>) -> ! {
+    let mut buf = [0u8; PACKET];
+    loop {
+        let n = REPLIES.read(&mut buf).await;
+        cortex_m::asm::sev();
+        if tx.write_packet(&buf[..n]).await.is_ok() && n == PACKET && REPLIES.is_empty() {
+            let _ = tx.write_packet(&[]).await;
+        }
     }
-    Ok(())
-}
-
-/// Sends `data` in packets; a reply that fills its last packet exactly is
-/// closed with a zero-length packet so the host does not wait for more.
-async fn send(
-    class: &mut CdcAcmClass<'static, UsbDriver>,
-    data: &[u8],
-) -> Result<(), EndpointError> {
-    for chunk in data.chunks(PACKET) {
-        class.write_packet(chunk).await?;
-    }
-    if data.len().is_multiple_of(PACKET) {
-        class.write_packet(&[]).await?;
-    }
-    Ok(())
 }

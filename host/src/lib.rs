@@ -14,9 +14,10 @@ pub mod plot;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
+use onechip_app::console::ErrorText;
 use onechip_app::line::LineAssembler;
-use onechip_app::session::{Session, Timing, profile};
-use onechip_planner::config::Config;
+use onechip_app::session::{Console, Session, Timing, profile};
+use onechip_app::setup::PrinterSetup;
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::toolhead::TrapqMove;
 use onechip_sched::outputs::Drive;
@@ -24,6 +25,10 @@ use std::fmt;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use virtual_mcu::{Physics, VirtualMcu};
+
+/// Bytes of one USB full-speed bulk packet, as the board's console reads
+/// its input.
+const USB_PACKET: usize = 64;
 
 /// The session as the host build runs it: the board's queues, with a
 /// lookahead of `L` moves (by default the board's).
@@ -57,6 +62,9 @@ pub struct Options {
     /// Fault injection: from print time `.0` (s) on, heater `.1`'s
     /// thermistor reads as an open circuit.
     pub open_sensor: Option<(f64, usize)>,
+    /// The G-code arrives on the console, in USB packets as the board's
+    /// console reads them, instead of from the SD card.
+    pub console: bool,
 }
 
 /// Where the toolhead really is at power-on.
@@ -81,6 +89,7 @@ impl Default for Options {
             start: Start::MidTravel,
             plot: None,
             open_sensor: None,
+            console: false,
         }
     }
 }
@@ -150,6 +159,8 @@ pub struct Summary {
     pub temperatures: Vec<(usize, String)>,
     /// Errors (`!!` replies), by line number.
     pub errors: Vec<(usize, String)>,
+    /// Everything the console printed, `ok`s included.
+    pub transcript: String,
     /// Every stepper's steps.
     pub steppers: Vec<StepperSummary>,
     /// The MCU role's shutdown message, if it shut down.
@@ -269,7 +280,7 @@ impl fmt::Display for Summary {
 
 /// Why the host build could not run.
 #[derive(Debug)]
-pub enum RunError {
+pub enum SimError {
     /// A file could not be read.
     Read(PathBuf, std::io::Error),
     /// printer.cfg is invalid (the message names file, line and option).
@@ -278,7 +289,7 @@ pub enum RunError {
     NoGcode(PathBuf),
 }
 
-impl fmt::Display for RunError {
+impl fmt::Display for SimError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::Read(path, e) => write!(f, "{}: {e}", path.display()),
@@ -292,11 +303,11 @@ impl fmt::Display for RunError {
     }
 }
 
-impl std::error::Error for RunError {}
+impl std::error::Error for SimError {}
 
 /// Runs the firmware logic on the SD folder `sd`, with `gcode` or else the
 /// folder's only `*.gcode` file, on the board's clock.
-pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, RunError> {
+pub fn run(sd: &Path, gcode: Option<&Path>) -> Result<Summary, SimError> {
     run_with(
         sd,
         &Options {
@@ -317,7 +328,7 @@ pub trait Replay<const L: usize> {
 }
 
 /// Runs the firmware logic on the SD folder `sd` as `options` say.
-pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, RunError> {
+pub fn run_with(sd: &Path, options: &Options) -> Result<Summary, SimError> {
     run_replaying::<{ profile::LOOKAHEAD }>(sd, options, None)
 }
 
@@ -327,16 +338,15 @@ pub fn run_replaying<const L: usize>(
     sd: &Path,
     options: &Options,
     mut replay: Option<&mut dyn Replay<L>>,
-) -> Result<Summary, RunError> {
+) -> Result<Summary, SimError> {
     let gcode = options.gcode.as_deref();
     let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
     let mut buf = vec![0u8; files::CONFIG_BUFFER];
     let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), &mut buf)
-        .map_err(|e| RunError::Config(e.to_string()))?;
-    let config = Config::parse_files(&texts).map_err(|e| RunError::Config(e.to_string()))?;
-    let machine = Machine::from_config(&config).map_err(|e| RunError::Config(e.to_string()))?;
-    onechip_app::pin_check::check(&machine, onechip_app::pin_check::BOARD_RESERVED)
-        .map_err(|e| RunError::Config(e.to_string()))?;
+        .map_err(|e| SimError::Config(e.to_string()))?;
+    let setup = PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED)
+        .map_err(|e| SimError::Config(e.to_string()))?;
+    let machine = setup.machine();
     let gcode_path = match gcode {
         Some(path) => path.to_path_buf(),
         None => only_gcode_file(sd)?,
@@ -345,7 +355,7 @@ pub fn run_replaying<const L: usize>(
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
     let mut session = Box::new(HostSession::<L>::new(
-        &machine,
+        machine,
         freq,
         profile::MAX_STEP_ERROR,
         options.clock_origin,
@@ -354,8 +364,8 @@ pub fn run_replaying<const L: usize>(
         session.set_timing(Timing::Batch);
     }
     let mut mcu =
-        VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(&machine, freq);
-    if let Some(physics) = physics(&machine, options.start) {
+        VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(machine, freq);
+    if let Some(physics) = physics(machine, options.start) {
         mcu = mcu.with_physics(physics);
     }
     if let Some((_, w)) = &options.plot {
@@ -385,6 +395,7 @@ pub fn run_replaying<const L: usize>(
         replies: Vec::new(),
         temperatures: Vec::new(),
         errors: Vec::new(),
+        transcript: String::new(),
         steppers: Vec::new(),
         shutdown: None,
         mcu_freq: freq,
@@ -395,6 +406,7 @@ pub fn run_replaying<const L: usize>(
         heat_wait: 0.0,
     };
     let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
+    let mut console = Console::new();
     let mut progress = Progress::new(program.len());
     for (at, &byte) in program.iter().chain(b"\n").enumerate() {
         let mut ran = false;
@@ -406,8 +418,19 @@ pub fn run_replaying<const L: usize>(
             }
             let mut reply = String::new();
             // Writing to a String never fails.
-            let _ = session.line(&event, &mut mcu, &mut reply);
+            let _ = console.line(
+                Some(&mut session),
+                &ErrorText::new(),
+                &event,
+                &mut mcu,
+                &mut reply,
+            );
             summary.note_reply(&reply);
+            ran = true;
+        }
+        if options.console && (at + 1) % USB_PACKET == 0 {
+            // The end of a USB packet: the console looks at the clock.
+            console.idle(&mut session, &mut mcu);
             ran = true;
         }
         if let Some(replay) = replay.as_deref_mut() {
@@ -499,7 +522,7 @@ pub fn run_replaying<const L: usize>(
             })
             .collect();
         let svg = plot::svg(&moves, &steppers, *window);
-        std::fs::write(path, svg).map_err(|e| RunError::Read(path.clone(), e))?;
+        std::fs::write(path, svg).map_err(|e| SimError::Read(path.clone(), e))?;
     }
     Ok(summary)
 }
@@ -508,6 +531,7 @@ impl Summary {
     /// Files the console's answer to the last line: `!!` lines as errors,
     /// temperature reports apart, other text as replies, `ok` dropped.
     fn note_reply(&mut self, reply: &str) {
+        self.transcript.push_str(reply);
         for line in reply.lines().filter(|l| *l != "ok") {
             let entry = |text: &str| (self.lines, text.to_string());
             if let Some(error) = line.strip_prefix("!! ") {
@@ -592,7 +616,11 @@ fn clock_at(t: f64, freq: f64) -> u64 {
 
 /// Notes a fault of step generation or the MCU role; true if the run
 /// must stop.
-fn stopped<const L: usize>(session: &HostSession<'_, L>, mcu: &mut VirtualMcu, summary: &mut Summary) -> bool {
+fn stopped<const L: usize>(
+    session: &HostSession<'_, L>,
+    mcu: &mut VirtualMcu,
+    summary: &mut Summary,
+) -> bool {
     if summary.shutdown.is_none() {
         summary.shutdown = session
             .motion_error()
@@ -603,9 +631,9 @@ fn stopped<const L: usize>(session: &HostSession<'_, L>, mcu: &mut VirtualMcu, s
 }
 
 /// Writes `steps-<name>.txt` into `dir`: one `<clock> <dir>` line per step.
-fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), RunError> {
+fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), SimError> {
     let path = dir.join(format!("steps-{name}.txt"));
-    let io = |e| RunError::Read(path.clone(), e);
+    let io = |e| SimError::Read(path.clone(), e);
     std::fs::create_dir_all(dir).map_err(io)?;
     let file = std::fs::File::create(&path).map_err(io)?;
     let mut out = std::io::BufWriter::new(file);
@@ -615,12 +643,12 @@ fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), RunE
     out.flush().map_err(io)
 }
 
-fn read(path: &Path) -> Result<Vec<u8>, RunError> {
-    std::fs::read(path).map_err(|e| RunError::Read(path.to_path_buf(), e))
+fn read(path: &Path) -> Result<Vec<u8>, SimError> {
+    std::fs::read(path).map_err(|e| SimError::Read(path.to_path_buf(), e))
 }
 
-fn only_gcode_file(sd: &Path) -> Result<PathBuf, RunError> {
-    let entries = std::fs::read_dir(sd).map_err(|e| RunError::Read(sd.to_path_buf(), e))?;
+fn only_gcode_file(sd: &Path) -> Result<PathBuf, SimError> {
+    let entries = std::fs::read_dir(sd).map_err(|e| SimError::Read(sd.to_path_buf(), e))?;
     let mut found: Vec<PathBuf> = entries
         .filter_map(Result::ok)
         .map(|e| e.path())
@@ -631,6 +659,6 @@ fn only_gcode_file(sd: &Path) -> Result<PathBuf, RunError> {
         .collect();
     match found.len() {
         1 => Ok(found.remove(0)),
-        _ => Err(RunError::NoGcode(sd.to_path_buf())),
+        _ => Err(SimError::NoGcode(sd.to_path_buf())),
     }
 }

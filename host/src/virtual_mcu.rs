@@ -17,8 +17,9 @@ use onechip_planner::machine::MAX_STEPPERS;
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::TrapqMove;
 use onechip_sched::endstop::Endstop;
-use onechip_sched::engine::{Command, Engine, Full};
+use onechip_sched::engine::{Engine, Full};
 use onechip_sched::shutdown::Shutdown;
+use onechip_sched::step_command::StepCommand;
 use onechip_sched::stepper::StepPins;
 use std::cell::Cell;
 use std::rc::Rc;
@@ -344,7 +345,7 @@ impl Mcu for VirtualMcu {
         self.now
     }
 
-    fn push(&mut self, stepper: usize, cmd: Command, clock: u64) -> Result<(), Full> {
+    fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
         if stepper >= self.steppers {
             // A stepper the engine does not drive here: dropped.
             return Ok(());

@@ -115,7 +115,11 @@ fn homing_from_mid_travel_ends_at_each_trigger_as_in_klipper() {
                 .map(|(clock, _)| clock as f64 / freq)
                 .find(|&t| t > at)
         });
-        let next = moved.iter().flatten().copied().fold(f64::INFINITY, f64::min);
+        let next = moved
+            .iter()
+            .flatten()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
         assert!(
             next - at < 0.050,
             "trigger {i} (axis {axis}) at {at:.3} s: next step at {next:.3} s"

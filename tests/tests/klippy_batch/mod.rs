@@ -43,7 +43,12 @@ impl Replay<KLIPPY_LOOKAHEAD> for KlippyBatch {
     /// At the end of an input chunk: fires the priming timer if klippy's
     /// had expired there, which shows as its plan ending at rest on the
     /// last move queued.
-    fn after_bytes(&mut self, read: usize, session: &mut HostSession<'_, KLIPPY_LOOKAHEAD>, mcu: &mut VirtualMcu) {
+    fn after_bytes(
+        &mut self,
+        read: usize,
+        session: &mut HostSession<'_, KLIPPY_LOOKAHEAD>,
+        mcu: &mut VirtualMcu,
+    ) {
         if !read.is_multiple_of(CHUNK) {
             return;
         }

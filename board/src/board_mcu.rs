@@ -1,0 +1,60 @@
+//! The MCU role as the session sees it on this board: the stepper engine
+//! in TIM5's interrupt and the heaters in TIM2's. Thread code reaches them
+//! through [`crate::step_timer`] and [`crate::heater_io`], and waits by
+//! sleeping until the next interrupt (`wfe`): the steppers' interrupt runs
+//! at every step, the heaters' at least every 10 ms, the I/O executor's
+//! tick every 10 ms, so a wait never spins and never oversleeps long.
+
+use crate::{heater_io, step_timer};
+use onechip_app::heaters::ThermalCommand;
+use onechip_app::session::Mcu;
+use onechip_sched::endstop::Endstop;
+use onechip_sched::engine::Full;
+use onechip_sched::shutdown::Shutdown;
+use onechip_sched::step_command::StepCommand;
+
+/// The board's MCU role.
+pub struct BoardMcu;
+
+impl Mcu for BoardMcu {
+    fn now(&mut self) -> u64 {
+        step_timer::now64()
+    }
+
+    fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
+        step_timer::push(stepper, cmd, clock)
+    }
+
+    fn wait(&mut self, _until: u64) {
+        cortex_m::asm::wfe();
+    }
+
+    fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
+        step_timer::watch_endstop(stepper, endstop, stops);
+    }
+
+    fn stop_watching(&mut self) {
+        step_timer::stop_watching();
+    }
+
+    fn take_trigger(&mut self) -> Option<u32> {
+        step_timer::take_trigger()
+    }
+
+    fn thermal(&mut self, command: ThermalCommand) {
+        heater_io::command(command);
+    }
+
+    fn heater_busy(&mut self, heater: usize) -> bool {
+        heater_io::busy(heater)
+    }
+
+    fn report_temperatures(&mut self, out: &mut impl core::fmt::Write) -> core::fmt::Result {
+        heater_io::report(out);
+        Ok(())
+    }
+
+    fn shutdown_reason(&mut self) -> Option<Shutdown> {
+        step_timer::shutdown_reason()
+    }
+}
