@@ -15,7 +15,8 @@ use core::ptr::addr_of_mut;
 use onechip_planner::gcode::{self, Command, Line};
 use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::{MoveSink, Toolhead};
+use onechip_planner::move_sink::MoveSink;
+use onechip_planner::toolhead::Toolhead;
 
 /// Why a line failed.
 #[derive(Debug, Clone, PartialEq)]

@@ -4,7 +4,7 @@
 use onechip_app::printer::Printer;
 use onechip_planner::config::Config;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{MoveSink, TrapqMove};
 
 const CFG: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
 [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\

@@ -93,12 +93,12 @@ const _: () = match RCC.hsi48 {
     None => panic!("HSI48 is off"),
 };
 
-// The core and the stepper timer run at the rates the firmware counts with.
+// The core runs at the rate the firmware counts with.
 const _: () = assert!(is(sysclk_hz(&RCC), SYSCLK_HZ), "SYSCLK_HZ is wrong");
-const _: () = assert!(
-    apb1_timer_hz(&RCC) == crate::step_timer::TIMER_HZ as u32,
-    "step_timer::TIMER_HZ is not TIM5's clock"
-);
+
+/// The clock of the APB1 timers (TIM2, TIM5), Hz, as the tree above
+/// makes it.
+pub const APB1_TIMER_HZ: u32 = apb1_timer_hz(&RCC);
 
 /// The embassy configuration for this board: clocks, and every DMA interrupt
 /// below the stepper timer's priority.

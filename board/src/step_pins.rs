@@ -70,7 +70,7 @@ impl OutPin {
         }
         let bit = self.inactive.trailing_zeros();
         let base = pac::GPIOA.as_ptr() as usize;
-        let port = (self.port.as_ptr() as usize).wrapping_sub(base) / GPIO_STRIDE;
+        let port = (self.port.as_ptr() as usize).wrapping_sub(base) / crate::gpio::STRIDE;
         crate::safety::register_safe_pin(
             u8::try_from(port).unwrap_or(u8::MAX),
             (bit % 16) as u8,
@@ -143,30 +143,12 @@ impl InPin {
 /// modifiers.
 fn gpio_pin(name: &str) -> Result<(pac::gpio::Gpio, usize, PinName), BadPin<'_>> {
     let pin = onechip_app::pins::parse(name)?;
-    let port = gpio(pin.port).ok_or(BadPin(name))?;
+    let port = crate::gpio::port(pin.port).ok_or(BadPin(name))?;
     let number = usize::from(pin.number);
     if number > 15 {
         return Err(BadPin(name));
     }
     Ok((port, number, pin))
-}
-
-/// Bytes between two GPIO ports' registers.
-const GPIO_STRIDE: usize = 0x400;
-
-/// The GPIO port with index `port` (0 = A).
-pub(crate) fn gpio(port: u8) -> Option<pac::gpio::Gpio> {
-    Some(match port {
-        0 => pac::GPIOA,
-        1 => pac::GPIOB,
-        2 => pac::GPIOC,
-        3 => pac::GPIOD,
-        4 => pac::GPIOE,
-        5 => pac::GPIOF,
-        6 => pac::GPIOG,
-        7 => pac::GPIOH,
-        _ => return None,
-    })
 }
 
 /// One stepper's step and direction pins, its step pulse and its rail's

@@ -23,6 +23,10 @@ const FIRST_WAKE: u32 = 260_000;
 
 /// The timer's clock, Hz (APB1 timers at twice the 130 MHz bus clock).
 pub const TIMER_HZ: f64 = 260_000_000.0;
+const _: () = assert!(
+    crate::clocks::APB1_TIMER_HZ == TIMER_HZ as u32,
+    "TIMER_HZ is not TIM5's clock"
+);
 
 /// Steppers the engine drives.
 pub const STEPPERS: usize = 8;

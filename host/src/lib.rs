@@ -19,7 +19,7 @@ use onechip_app::line::LineAssembler;
 use onechip_app::session::{Console, Session, Timing, profile};
 use onechip_app::setup::PrinterSetup;
 use onechip_planner::machine::{Kinematics, Machine};
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::outputs::Drive;
 use std::fmt;
 use std::io::Write as _;

@@ -1,7 +1,7 @@
 //! An SVG picture of a time window of a run: toolhead velocity from the
 //! planned moves, and each stepper's step rate from its steps.
 
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::move_sink::TrapqMove;
 use std::fmt::Write as _;
 
 /// Width and height of one chart, px.

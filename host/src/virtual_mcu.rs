@@ -15,7 +15,7 @@ use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::{Engine, Full};
 use onechip_sched::shutdown::Shutdown;

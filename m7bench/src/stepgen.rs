@@ -9,7 +9,7 @@ use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::{Motion, StepSink};
 

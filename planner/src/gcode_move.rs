@@ -8,8 +8,9 @@
 //! mm/min and scaled by M220.
 
 use crate::gcode::{Command, Escaped, Extended, GcodeError, Line, Traditional};
+use crate::move_sink::MoveSink;
 use crate::planned_move::E;
-use crate::toolhead::{MoveError, MoveSink, Toolhead};
+use crate::toolhead::{MoveError, Toolhead};
 use core::fmt::{self, Write};
 
 /// Why a command failed (the printer replies `!! <error>` and goes on).

@@ -10,60 +10,12 @@
 //! reports where and when the steppers stopped
 //! ([`MoveSink::homing_move_end`]), and print time goes on from the stop.
 
+use crate::move_sink::{HomingMove, MoveSink};
 use crate::planned_move::E;
-use crate::toolhead::{MoveError, MoveSink, Toolhead};
+use crate::toolhead::{HomingInfo, MoveError, Toolhead};
 
 /// Delay between arming endstops and starting a homing move, s.
 pub const HOMING_START_DELAY: f64 = 0.001;
-
-/// Where and when a homing move ended, as the step side reports it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HomingEnd {
-    /// The toolhead position where the steppers stopped, as Klipper
-    /// computes it (the target, plus any overshoot past the trigger), mm.
-    pub position: [f64; 3],
-    /// Print time the steppers stopped at, s: None if the move ran to its
-    /// end (no endstop triggered, or none is modelled).
-    pub stopped_at: Option<f64>,
-}
-
-/// How one axis homes (from its stepper section).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HomingInfo {
-    /// position_endstop, mm.
-    pub position_endstop: f64,
-    /// True if the endstop is at the positive end of the axis.
-    pub positive_dir: bool,
-    /// homing_speed, mm/s.
-    pub speed: f64,
-    /// second_homing_speed, mm/s.
-    pub second_speed: f64,
-    /// homing_retract_dist, mm (0: no second homing move).
-    pub retract_dist: f64,
-    /// homing_retract_speed, mm/s.
-    pub retract_speed: f64,
-    /// The axis' travel (position_min, position_max), mm.
-    pub range: (f64, f64),
-}
-
-/// A homing move, as the step side needs it to watch the endstop.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HomingMove {
-    /// The axis homed (0 = X, 1 = Y, 2 = Z).
-    pub axis: usize,
-    /// Where the move goes: the endstop position on the homed axis, mm.
-    pub target: [f64; 3],
-    /// position_endstop, mm.
-    pub position_endstop: f64,
-    /// True if the endstop is approached in the positive direction.
-    pub positive_dir: bool,
-    /// The move's speed, mm/s.
-    pub speed: f64,
-    /// Print time the endstop is armed at (just before the move), s.
-    pub start_time: f64,
-    /// Print time at the end of the move, s.
-    pub end_time: f64,
-}
 
 impl<const N: usize> Toolhead<N> {
     /// Homes each of `axes` (0 = X, 1 = Y, 2 = Z) in turn.

@@ -2,12 +2,12 @@
 //! and the extruder, read and checked the way Klipper reads them.
 
 use crate::config::{Bounds, Config, ConfigError, Section};
-use crate::homing::HomingInfo;
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::thermal::{self, Fan, Heater};
+use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 
 /// Most steppers a machine may have.

@@ -11,8 +11,8 @@
 //! position is set. Afterwards moves follow one another without gaps; a
 //! dwell adds its time, M400 only flushes the lookahead.
 
-use crate::homing::HomingInfo;
 use crate::lookahead::LookAhead;
+use crate::move_sink::{MoveSink, TrapqMove};
 use crate::planned_move::{E, Limits, Move};
 use core::fmt;
 
@@ -25,52 +25,23 @@ pub const MIN_KIN_TIME: f64 = 0.100;
 /// Step+dir+step filter window of stepcompress, s (the least scan delay).
 pub const SDS_CHECK_TIME: f64 = 0.001;
 
-/// One entry of a trapezoid motion queue, as `trapq_append` receives it.
+/// How one axis homes (from its stepper section).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrapqMove {
-    /// Start of the move, s.
-    pub print_time: f64,
-    /// Acceleration phase, s.
-    pub accel_t: f64,
-    /// Cruise phase, s.
-    pub cruise_t: f64,
-    /// Deceleration phase, s.
-    pub decel_t: f64,
-    /// Start position, mm (extruder: `[e, 0, 0]`).
-    pub start_pos: [f64; 3],
-    /// Direction (extruder: `[1, pressure advance allowed, 0]`).
-    pub axes_r: [f64; 3],
-    /// Start velocity, mm/s.
-    pub start_v: f64,
-    /// Cruise velocity, mm/s.
-    pub cruise_v: f64,
-    /// Acceleration, mm/s².
-    pub accel: f64,
-}
-
-/// Receives planned moves.
-pub trait MoveSink {
-    /// A toolhead (XYZ) move.
-    fn toolhead(&mut self, m: &TrapqMove);
-    /// An extruder move.
-    fn extruder(&mut self, m: &TrapqMove);
-    /// The toolhead position was set without moving (homing,
-    /// SET_KINEMATIC_POSITION), after every move so far: steppers take
-    /// `pos` (mm) as where they are. Sinks that only look at moves may
-    /// ignore it.
-    fn set_position(&mut self, pos: [f64; 3]) {
-        let _ = pos;
-    }
-    /// A homing move has been handed over entirely: the sink runs it with
-    /// the endstop armed and returns where and when the steppers stopped.
-    /// Sinks without endstops let the move complete: at the target, at
-    /// its end.
-    fn homing_move_end(&mut self, homing: &crate::homing::HomingMove) -> crate::homing::HomingEnd {
-        crate::homing::HomingEnd {
-            position: homing.target,
-            stopped_at: None,
-        }
-    }
+pub struct HomingInfo {
+    /// position_endstop, mm.
+    pub position_endstop: f64,
+    /// True if the endstop is at the positive end of the axis.
+    pub positive_dir: bool,
+    /// homing_speed, mm/s.
+    pub speed: f64,
+    /// second_homing_speed, mm/s.
+    pub second_speed: f64,
+    /// homing_retract_dist, mm (0: no second homing move).
+    pub retract_dist: f64,
+    /// homing_retract_speed, mm/s.
+    pub retract_speed: f64,
+    /// The axis' travel (position_min, position_max), mm.
+    pub range: (f64, f64),
 }
 
 /// Why a move was refused.

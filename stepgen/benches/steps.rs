@@ -7,7 +7,7 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use onechip_golden::Trapq;
 use onechip_planner::config::Config;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::{Motion, StepSink};
 

@@ -14,11 +14,11 @@ use crate::segment::Segment;
 use crate::shaper::StepperShaper;
 use crate::solver::{AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
 use crate::trapq::Trapq;
-use onechip_planner::homing::{HomingEnd, HomingMove};
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::kinematics::calc_position;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{HomingEnd, HomingMove};
+use onechip_planner::move_sink::{MoveSink, TrapqMove};
 
 /// Steps compressed behind generation so that a command can cover the
 /// steps that follow it, s (Klipper's STEPCOMPRESS_FLUSH_TIME).

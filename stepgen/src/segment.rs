@@ -2,7 +2,7 @@
 //! entries): each move becomes up to three segments (accelerate, cruise,
 //! decelerate), each with its own start position and velocity.
 
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::move_sink::TrapqMove;
 
 /// A span of constant acceleration along a straight line.
 #[derive(Debug, Clone, Copy, PartialEq)]

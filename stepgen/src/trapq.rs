@@ -10,7 +10,7 @@
 //! ([`Trapq::retire`]).
 
 use crate::segment::{Segment, segments};
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::move_sink::TrapqMove;
 
 /// Stationary time put before the first move, s (more than any
 /// step-generation margin).

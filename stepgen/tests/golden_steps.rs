@@ -13,7 +13,7 @@ use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::{Compressor, StepCommand, expand};
 use onechip_stepgen::extruder::{self, PressureAdvance};
 use onechip_stepgen::motion::{Motion, StepSink};

@@ -12,7 +12,7 @@ use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;
-use onechip_planner::toolhead::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{MoveSink, TrapqMove};
 
 const CONFIG: &str = include_str!("../../../../shared/golden/configs/cartesian.cfg");
 const GCODE: &str = include_str!("../../../../shared/golden/gcode/cart_circle.gcode");

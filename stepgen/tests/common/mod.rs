@@ -2,7 +2,7 @@
 //! as the planner hands them to step generation.
 
 use onechip_golden::TrapqAppend;
-use onechip_planner::toolhead::TrapqMove;
+use onechip_planner::move_sink::TrapqMove;
 
 /// A golden move (a `moves.tsv` line) as a [`TrapqMove`].
 pub fn trapq_move(m: &TrapqAppend) -> TrapqMove {

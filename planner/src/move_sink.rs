@@ -1,0 +1,81 @@
+//! What the planner hands out: planned moves for the motion queues, and
+//! homing moves for the step side to run against an endstop
+//! ([`MoveSink`]). The planner's one interface to step generation.
+
+/// One entry of a trapezoid motion queue, as `trapq_append` receives it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrapqMove {
+    /// Start of the move, s.
+    pub print_time: f64,
+    /// Acceleration phase, s.
+    pub accel_t: f64,
+    /// Cruise phase, s.
+    pub cruise_t: f64,
+    /// Deceleration phase, s.
+    pub decel_t: f64,
+    /// Start position, mm (extruder: `[e, 0, 0]`).
+    pub start_pos: [f64; 3],
+    /// Direction (extruder: `[1, pressure advance allowed, 0]`).
+    pub axes_r: [f64; 3],
+    /// Start velocity, mm/s.
+    pub start_v: f64,
+    /// Cruise velocity, mm/s.
+    pub cruise_v: f64,
+    /// Acceleration, mm/s².
+    pub accel: f64,
+}
+
+/// Receives planned moves.
+pub trait MoveSink {
+    /// A toolhead (XYZ) move.
+    fn toolhead(&mut self, m: &TrapqMove);
+    /// An extruder move.
+    fn extruder(&mut self, m: &TrapqMove);
+    /// The toolhead position was set without moving (homing,
+    /// SET_KINEMATIC_POSITION), after every move so far: steppers take
+    /// `pos` (mm) as where they are. Sinks that only look at moves may
+    /// ignore it.
+    fn set_position(&mut self, pos: [f64; 3]) {
+        let _ = pos;
+    }
+    /// A homing move has been handed over entirely: the sink runs it with
+    /// the endstop armed and returns where and when the steppers stopped.
+    /// Sinks without endstops let the move complete: at the target, at
+    /// its end.
+    fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
+        HomingEnd {
+            position: homing.target,
+            stopped_at: None,
+        }
+    }
+}
+
+/// A homing move, as the step side needs it to watch the endstop.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HomingMove {
+    /// The axis homed (0 = X, 1 = Y, 2 = Z).
+    pub axis: usize,
+    /// Where the move goes: the endstop position on the homed axis, mm.
+    pub target: [f64; 3],
+    /// position_endstop, mm.
+    pub position_endstop: f64,
+    /// True if the endstop is approached in the positive direction.
+    pub positive_dir: bool,
+    /// The move's speed, mm/s.
+    pub speed: f64,
+    /// Print time the endstop is armed at (just before the move), s.
+    pub start_time: f64,
+    /// Print time at the end of the move, s.
+    pub end_time: f64,
+}
+
+/// Where and when a homing move ended, as the step side reports it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HomingEnd {
+    /// The toolhead position where the steppers stopped, as Klipper
+    /// computes it (the target, plus any overshoot past the trigger), mm.
+    pub position: [f64; 3],
+    /// Print time the steppers stopped at, s: None if the move ran to its
+    /// end (no endstop triggered, or none is modelled).
+    pub stopped_at: Option<f64>,
+}
