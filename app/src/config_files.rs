@@ -1,10 +1,10 @@
 //! Loading `printer.cfg` and the files its `[include]` sections name from
 //! a file system both builds supply (the board's SD card, the host's SD
 //! folder), into one caller-owned buffer, for
-//! [`onechip_planner::config::Config::parse_files`].
+//! [`onechip_config::Config::parse_files`].
 
 use core::fmt;
-use onechip_planner::config::{ConfigFile, MAX_FILES, glob_match};
+use onechip_config::{ConfigFile, MAX_FILES, glob_match};
 
 /// Name of the printer configuration file in the card's root folder.
 pub const PRINTER_CFG: &str = "printer.cfg";
@@ -214,7 +214,7 @@ mod tests {
         let mut buf = [0u8; 64];
         let files = load(&mut fs, &mut buf).expect("loads");
         assert_eq!(names(&files), ["printer.cfg"]);
-        let e = onechip_planner::config::Config::parse_files(&files).expect_err("missing");
+        let e = onechip_config::Config::parse_files(&files).expect_err("missing");
         assert!(e.to_string().contains("include file does not exist"), "{e}");
     }
 }

@@ -599,7 +599,7 @@ impl Heaters {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use onechip_planner::config::Config;
+    use onechip_config::Config;
     use onechip_sched::outputs::Drive;
 
     /// MCU clock, Hz: one tick per µs.

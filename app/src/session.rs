@@ -205,14 +205,17 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     ) -> &'s mut Self {
         let p = slot.as_mut_ptr();
         // SAFETY: `p` is valid for writes; every field is written exactly
-        // once (the printer in place, the motion's queues with their
-        // storage left uninitialised, then set up in place) before the slot
-        // is taken as initialised.
+        // once (the printer and the motion in place, not through the stack)
+        // before the slot is taken as initialised.
         unsafe {
             let printer = &mut *addr_of_mut!((*p).printer).cast::<MaybeUninit<Printer<'a, L>>>();
             Printer::init_in(printer, machine).set_time_origin(start as f64 / freq);
-            addr_of_mut!((*p).motion).write(Motion::empty());
-            (*addr_of_mut!((*p).motion)).setup(machine, freq, (max_error * freq) as u32, [0.0; 3]);
+            Motion::<N, Q>::init_in(&mut *addr_of_mut!((*p).motion).cast()).setup(
+                machine,
+                freq,
+                (max_error * freq) as u32,
+                [0.0; 3],
+            );
             addr_of_mut!((*p).homing).write(HomingSetup::new(machine));
             addr_of_mut!((*p).freq).write(freq);
             addr_of_mut!((*p).timing).write(Timing::RealTime);

@@ -7,7 +7,8 @@ use crate::config_files::ConfigFiles;
 use crate::pin_check;
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
 use core::fmt;
-use onechip_planner::config::Config;
+use core::mem::MaybeUninit;
+pub use onechip_config::Config;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 
 /// A config error, with its file, line and option, as text (the config it
@@ -42,12 +43,18 @@ pub struct PrinterSetup<'a> {
 
 impl<'a> PrinterSetup<'a> {
     /// Reads `files` (printer.cfg first, then its includes) into a
-    /// machine; its pins must not repeat nor be any in `reserved`.
+    /// machine; its pins must not repeat nor be any in `reserved`. The
+    /// config is indexed in `scratch` (tens of KB: a static on a
+    /// microcontroller), which the machine no longer needs.
     // The error is text of a fixed size, returned once at start-up: no heap.
     #[allow(clippy::result_large_err)]
-    pub fn load(files: &ConfigFiles<'a>, reserved: &[(&str, &str)]) -> Result<Self, SetupError> {
-        let config = Config::parse_files(files).map_err(|e| text(&e))?;
-        let machine = Machine::from_config(&config).map_err(|e| text(&e))?;
+    pub fn load(
+        files: &ConfigFiles<'a>,
+        reserved: &[(&str, &str)],
+        scratch: &mut MaybeUninit<Config<'a>>,
+    ) -> Result<Self, SetupError> {
+        let config = Config::parse_files_in(scratch, files).map_err(|e| text(&e))?;
+        let machine = Machine::from_config(config).map_err(|e| text(&e))?;
         pin_check::check(&machine, reserved).map_err(|e| text(&e))?;
         let mut step_pulse = [0.0; MAX_STEPPERS];
         for (pulse, stepper) in step_pulse.iter_mut().zip(&machine.steppers) {

@@ -50,7 +50,8 @@ impl BlockDevice for MemCard {
 }
 
 /// Builds a card image of `mib` MiB whose first partition is a fresh FAT
-/// volume of `fat_type` holding `files` in its root directory.
+/// volume of `fat_type` holding `files` in its root directory (or, named
+/// `folder/file`, in a folder of it).
 fn card(mib: usize, fat_type: fatfs::FatType, files: &[(&str, &[u8])]) -> MemCard {
     let volume_len = mib * 1024 * 1024 - PARTITION_START as usize * 512;
     let mut volume = Cursor::new(vec![0u8; volume_len]);
@@ -61,8 +62,11 @@ fn card(mib: usize, fat_type: fatfs::FatType, files: &[(&str, &[u8])]) -> MemCar
     {
         let fs = fatfs::FileSystem::new(&mut volume, fatfs::FsOptions::new()).expect("mount");
         for (name, content) in files {
-            fs.root_dir()
-                .create_file(name)
+            let (dir, file) = match name.split_once('/') {
+                Some((folder, file)) => (fs.root_dir().create_dir(folder).expect("mkdir"), file),
+                None => (fs.root_dir(), *name),
+            };
+            dir.create_file(file)
                 .expect("create")
                 .write_all(content)
                 .expect("write");
@@ -135,4 +139,35 @@ fn a_blank_card_is_a_filesystem_error_not_a_panic() {
     let err = read_root_file(sd, PRINTER_CFG, &mut buf).expect_err("no partition table");
     assert!(matches!(err, ReadError::Filesystem(_)), "{err:?}");
     assert!(err.to_string().starts_with("SD card: "));
+}
+
+#[test]
+fn printer_cfg_and_its_includes_load_from_the_card_folders() {
+    use onechip_app::config_files::load;
+    use onechip_app::sdcard::SdFiles;
+    let printer = b"[include macros/*.cfg]\n[include board.cfg]\n[printer]\n";
+    let files: &[(&str, &[u8])] = &[
+        ("macros/homing.cfg", b"[gcode_macro H]\n"),
+        ("macros/notes.txt", b"not a config"),
+        (PRINTER_CFG, printer),
+        ("board.cfg", b"[mcu]\nserial: /dev/null\n"),
+        ("unused.cfg", b"[fan]\n"),
+    ];
+    for (mib, fat) in [(8, fatfs::FatType::Fat16), (40, fatfs::FatType::Fat32)] {
+        let mut sd = SdFiles::new(card(mib, fat, files));
+        let mut buf = vec![0u8; 4096];
+        let loaded = load(&mut sd, &mut buf).expect("loads");
+        let names: Vec<&str> = loaded.iter().map(|f| f.name).collect();
+        assert_eq!(
+            names,
+            ["printer.cfg", "macros/homing.cfg", "board.cfg"],
+            "{fat:?}"
+        );
+        assert_eq!(loaded[2].text, "[mcu]\nserial: /dev/null\n");
+        // A path deeper than one folder is refused with a clear message.
+        let mut one = [0u8; 64];
+        let e = onechip_app::config_files::Files::read(&mut sd, "a/b/c.cfg", &mut one)
+            .expect_err("too deep");
+        assert!(e.to_string().contains("folders in it"), "{e}");
+    }
 }

@@ -2,7 +2,7 @@
 //! board uses itself.
 
 use onechip_app::pin_check::{BOARD_RESERVED, PinConflict, PinUse, check};
-use onechip_planner::config::Config;
+use onechip_config::Config;
 use onechip_planner::machine::{Machine, Stepper};
 
 /// The printer.cfg shipped for the Octopus Pro.

@@ -2,7 +2,7 @@
 //! until more moves arrive or input pauses for the priming time.
 
 use onechip_app::printer::Printer;
-use onechip_planner::config::Config;
+use onechip_config::Config;
 use onechip_planner::machine::Machine;
 use onechip_planner::move_sink::{MoveSink, TrapqMove};
 

@@ -34,7 +34,7 @@ use onechip_app::config_files;
 use onechip_app::console::{ErrorText, error_text};
 use onechip_app::pin_check;
 use onechip_app::session::{BoardSession, Console, Mcu, profile};
-use onechip_app::setup::PrinterSetup;
+use onechip_app::setup::{Config, PrinterSetup};
 use static_cell::{ConstStaticCell, StaticCell};
 
 const _: () = assert!(
@@ -130,14 +130,16 @@ async fn load_printer(
 ) -> Result<&'static mut BoardSession<'static>, ErrorText> {
     static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
+    // Where printer.cfg is indexed while the machine is read from it.
+    static SCRATCH: StaticCell<Config<'static>> = StaticCell::new();
     let mut sdmmc = sd_card::controller(sd);
     let card = sd_card::open(&mut sdmmc)
         .await
         .map_err(|e| error_text(&format_args!("no SD card: {e}")))?;
     let mut files = onechip_app::sdcard::SdFiles::new(card);
     let texts = config_files::load(&mut files, TEXT.take()).map_err(|e| error_text(&e))?;
-    let mut setup =
-        PrinterSetup::load(&texts, pin_check::BOARD_RESERVED).map_err(|e| error_text(&e))?;
+    let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
+        .map_err(|e| error_text(&e))?;
     for section in setup.unsupported() {
         defmt::info!("[{}] is not supported yet, ignored", section);
     }

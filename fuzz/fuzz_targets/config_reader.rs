@@ -3,7 +3,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use onechip_planner::config::Config;
+use onechip_config::Config;
 use onechip_planner::machine::Machine;
 
 fuzz_target!(|data: &[u8]| {

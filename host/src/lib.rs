@@ -344,7 +344,8 @@ pub fn run_replaying<const L: usize>(
     let mut buf = vec![0u8; files::CONFIG_BUFFER];
     let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), &mut buf)
         .map_err(|e| SimError::Config(e.to_string()))?;
-    let setup = PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED)
+    let mut scratch = Box::new(std::mem::MaybeUninit::uninit());
+    let setup = PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED, &mut scratch)
         .map_err(|e| SimError::Config(e.to_string()))?;
     let machine = setup.machine();
     let gcode_path = match gcode {

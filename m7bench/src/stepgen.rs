@@ -5,7 +5,7 @@
 
 use crate::{exit, measure, report};
 use core::fmt;
-use onechip_planner::config::Config;
+use onechip_config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;

@@ -2,7 +2,7 @@
 //! at 200 mm/s): G-code text to planned trapezoids.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use onechip_planner::config::Config;
+use onechip_config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;

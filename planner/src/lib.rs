@@ -5,11 +5,11 @@
 //! move-relative time (accel, cruise, decel durations in s, velocities in
 //! mm/s) anchored at integer clock ticks, so nothing drifts over long prints.
 //!
-//! Available now: [`gcode`], parsing G-code lines, and [`config`], reading
-//! `printer.cfg`, both without allocation.
+//! Reading `printer.cfg` is `onechip-config`'s job; [`machine`] builds the
+//! motion side from its sections, and [`gcode`] parses G-code lines, both
+//! without allocation.
 #![cfg_attr(not(feature = "std"), no_std)]
 
-pub mod config;
 pub mod gcode;
 pub mod gcode_move;
 pub mod homing;

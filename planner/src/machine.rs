@@ -1,7 +1,6 @@
 //! The machine as `printer.cfg` describes it: kinematics, limits, steppers
 //! and the extruder, read and checked the way Klipper reads them.
 
-use crate::config::{Bounds, Config, ConfigError, Section};
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::planned_move::Limits;
@@ -9,6 +8,7 @@ use crate::shaper_config::{self, InputShaperConfig};
 use crate::thermal::{self, Fan, Heater};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
+use onechip_config::{Bounds, Config, ConfigError, Section};
 
 /// Most steppers a machine may have.
 pub const MAX_STEPPERS: usize = 8;
@@ -569,7 +569,7 @@ mod tests {
             microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
             [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
             position_endstop: 0\nposition_max: 200\n";
-        let config = crate::config::Config::parse("printer.cfg", text).expect("config");
+        let config = onechip_config::Config::parse("printer.cfg", text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
         let x = &machine.steppers[0];
         assert_eq!((x.step_pin, x.dir_pin), ("PF13", "!PF12"));
@@ -600,7 +600,7 @@ mod tests {
         };
         let pulses = |x_pulse: &str, e_pulse: &str| {
             let text = text(x_pulse, e_pulse);
-            let config = crate::config::Config::parse("printer.cfg", &text).expect("config");
+            let config = onechip_config::Config::parse("printer.cfg", &text).expect("config");
             Machine::from_config(&config)
                 .map(|m| m.steppers.iter().map(|s| s.step_pulse_duration).collect())
                 .map_err(|e| std::string::ToString::to_string(&e))

@@ -3,7 +3,7 @@
 //! them. Applying the filter is step generation's work; this reads and
 //! checks the settings as Klipper does.
 
-use crate::config::{Bounds, ConfigError, Section};
+use onechip_config::{Bounds, ConfigError, Section};
 
 /// The input shapers Klipper defines.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -262,7 +262,7 @@ pub fn read<'c>(section: &Section<'c, '_>) -> Result<InputShaperConfig, ConfigEr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::Config;
+    use onechip_config::Config;
 
     #[test]
     fn reads_types_frequencies_and_default_damping() {

@@ -8,7 +8,7 @@
 //! come from three (temperature, resistance) points of its data sheet, or
 //! from a beta value (`c3 = 0`).
 
-use crate::config::{Bounds, ConfigError, Section};
+use onechip_config::{Bounds, ConfigError, Section};
 
 /// 0 °C in kelvin.
 const ZERO_CELSIUS: f64 = 273.15;

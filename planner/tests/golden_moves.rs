@@ -4,8 +4,8 @@
 //! Each case also runs with the print starting 24 h in, with the same
 //! tolerances (time stamps are large then; durations must not drift).
 
+use onechip_config::Config;
 use onechip_golden::{Trapq, config, config_for, moves, trapq_moves};
-use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;
@@ -33,7 +33,7 @@ fn plan(case: &str, time_origin: f64) -> Vec<(Trapq, TrapqMove)> {
     let cfg_text = config(config_for(case));
     let config = Config::parse(config_for(case), &cfg_text).expect("config parses");
     let machine = Machine::from_config(&config).unwrap_or_else(|e| panic!("{case}: {e}"));
-    let mut toolhead = machine.toolhead::<4096>().with_time_origin(time_origin);
+    let mut toolhead = machine.toolhead::<1024>().with_time_origin(time_origin);
     let mut gcode = GcodeMove::default();
     let mut rec = Recorder::default();
     let golden_stops = golden_stops(case);

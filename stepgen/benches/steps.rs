@@ -4,8 +4,8 @@
 //! second of all steppers together.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use onechip_config::Config;
 use onechip_golden::Trapq;
-use onechip_planner::config::Config;
 use onechip_planner::machine::Machine;
 use onechip_planner::move_sink::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::StepCommand;

@@ -214,6 +214,28 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         }
     }
 
+    /// [`Self::empty`] built in place in `slot`, without passing the
+    /// queues through the stack (they are larger than a microcontroller's
+    /// stack); returns it, to be [`Self::setup`].
+    pub fn init_in(slot: &mut core::mem::MaybeUninit<Self>) -> &mut Self {
+        use core::ptr::addr_of_mut;
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; every field is written once (the
+        // queues in place; the channels as all-zero bytes, which heapless
+        // 0.9's Vec reads as empty: a length of 0 and uninitialised
+        // storage) before the slot is taken as initialised.
+        unsafe {
+            Trapq::<N>::init_in(&mut *addr_of_mut!((*p).toolhead).cast());
+            Trapq::<N>::init_in(&mut *addr_of_mut!((*p).extruder).cast());
+            addr_of_mut!((*p).channels).write_bytes(0, 1);
+            addr_of_mut!((*p).known_until).write(f64::NEG_INFINITY);
+            addr_of_mut!((*p).error).write(None);
+            addr_of_mut!((*p).max_error_time).write(0.0);
+            addr_of_mut!((*p).freq).write(1.0);
+            slot.assume_init_mut()
+        }
+    }
+
     /// Sets this up in place as [`Self::new`] would build it (any queued
     /// motion is dropped).
     pub fn setup(&mut self, machine: &Machine<'_>, freq: f64, max_error: u32, pos: [f64; 3]) {

@@ -7,8 +7,8 @@
 //! from our planner's events, which include the set_positions that
 //! moves.tsv does not show.
 
+use onechip_config::Config;
 use onechip_golden::{Trapq, config_for, summary_value, trapq_moves};
-use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::kinematics::StepperKinematics;
@@ -172,7 +172,7 @@ impl MoveSink for Planned {
 /// bounds this); durations and positions must match.
 fn planned_events(case: &str) -> Vec<Event> {
     let machine = machine(case);
-    let mut toolhead = machine.toolhead::<4096>();
+    let mut toolhead = machine.toolhead::<1024>();
     let mut gcode = GcodeMove::default();
     let mut planned = Planned(Vec::new());
     let mut replies = String::new();

@@ -4,7 +4,7 @@
 //! from the thermistor's curve at min_temp and max_temp.
 
 use onechip_app::heaters::McuSetup;
-use onechip_planner::config::Config;
+use onechip_config::Config;
 use onechip_planner::machine::Machine;
 use onechip_sched::outputs::OutputKind;
 use onechip_tests::{golden_dir, summary_value};

@@ -19,6 +19,12 @@ pub struct Budget {
     pub ram_base: u64,
     /// Least stack, KiB, between `ram_base` and the statics.
     pub stack_kib: u64,
+    /// Headroom, KiB, the static worst-case stack estimate must leave.
+    pub stack_margin_kib: u64,
+    /// Interrupt handlers (symbol names) and the NVIC priority the
+    /// firmware gives each (0 highest): handlers of one level do not
+    /// preempt each other.
+    pub irq_priorities: Vec<(String, u64)>,
     /// Address at which the bootloader places the application.
     pub app_base: u64,
     /// Symbol name of the stepper timer's interrupt handler.
@@ -70,15 +76,29 @@ impl Budget {
             int("stepper_irq_number")?,
         );
         let (ram_base, stack_kib) = (int("ram_base")?, int("stack_kib")?);
+        let stack_margin_kib = int("stack_margin_kib")?;
         let mut string = |key: &str| match values.remove(key) {
             Some(Value::Str(s)) => Ok(s),
             Some(Value::Int(_)) => Err(format!("`{key}` must be a string")),
             None => Err(format!("`{key}` is missing")),
         };
         let stepper_irq = string("stepper_irq")?;
-        let list = |text: String| text.split(',').map(|s| s.trim().to_string()).collect();
+        let list = |text: String| -> Vec<String> {
+            text.split(',').map(|s| s.trim().to_string()).collect()
+        };
         let required_code = list(string("required_code")?);
         let forbidden_code = list(string("forbidden_code")?);
+        let irq_priorities = list(string("irq_priorities")?)
+            .into_iter()
+            .map(|pair: String| {
+                let (name, level) = pair.split_once(':').unwrap_or((&pair, ""));
+                let level = level
+                    .trim()
+                    .parse()
+                    .map_err(|_| format!("`irq_priorities`: `{pair}` is not NAME:LEVEL"))?;
+                Ok((name.trim().to_string(), level))
+            })
+            .collect::<Result<_, String>>()?;
         if let Some(key) = values.keys().next() {
             return Err(format!("unknown key `{key}`"));
         }
@@ -87,6 +107,8 @@ impl Budget {
             ram_kib,
             ram_base,
             stack_kib,
+            stack_margin_kib,
+            irq_priorities,
             app_base,
             stepper_irq,
             stepper_irq_number,
@@ -115,7 +137,8 @@ mod tests {
     use super::*;
 
     const GOOD: &str = "flash_kib = 384 # comment\nram_kib = 256\napp_base = 0x0802_0000\n\
-                        ram_base = 0x2400_0000\nstack_kib = 64\n\
+                        ram_base = 0x2400_0000\nstack_kib = 64\nstack_margin_kib = 8\n\
+                        irq_priorities = \"TIM5:0, SPI6:4\"\n\
                         stepper_irq = \"TIM5\"\nstepper_irq_number = 50\n\
                         required_code = \"a..b, c\"\nforbidden_code = \"x::y\"\n";
 
@@ -131,6 +154,16 @@ mod tests {
         assert_eq!(b.stepper_irq, "TIM5");
         assert_eq!(b.required_code, ["a..b", "c"]);
         assert_eq!(b.forbidden_code, ["x::y"]);
+        assert_eq!(b.stack_margin_kib, 8);
+        assert_eq!(
+            b.irq_priorities,
+            [("TIM5".to_string(), 0), ("SPI6".to_string(), 4)]
+        );
+        let bad = GOOD.replace("SPI6:4", "SPI6");
+        assert_eq!(
+            Budget::parse(&bad),
+            Err("`irq_priorities`: `SPI6` is not NAME:LEVEL".into())
+        );
     }
 
     #[test]

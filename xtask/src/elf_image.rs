@@ -52,6 +52,9 @@ pub struct Image<'a> {
     segments: Vec<Segment>,
     ram_sections: Vec<RamSection>,
     functions: Vec<Function>,
+    /// ARM mapping symbols (`$t`: code follows, `$d`: data follows), by
+    /// address: `true` for data.
+    data_marks: Vec<(u64, bool)>,
 }
 
 impl<'a> Image<'a> {
@@ -99,11 +102,22 @@ impl<'a> Image<'a> {
             })
             .collect();
         functions.sort_by_key(|f| f.addr);
+        let mut data_marks: Vec<(u64, bool)> = elf
+            .symbols()
+            .filter_map(|s| {
+                let name = s.name().ok()?;
+                let data = name == "$d" || name.starts_with("$d.");
+                let code = name == "$t" || name.starts_with("$t.");
+                (data || code).then_some((s.address() & !1, data))
+            })
+            .collect();
+        data_marks.sort_unstable();
         Ok(Self {
             elf,
             segments,
             ram_sections,
             functions,
+            data_marks,
         })
     }
 
@@ -173,9 +187,22 @@ impl<'a> Image<'a> {
             .ok_or_else(|| format!("`{}` runs past its section", function.name))
     }
 
-    /// The instructions of `function`, decoded from its start.
+    /// The functions of the image, by address.
+    pub fn functions(&self) -> &[Function] {
+        &self.functions
+    }
+
+    /// The instructions of `function`, decoded from its start; literal
+    /// pools and jump tables the ELF marks as data (`$d`) are skipped.
     pub fn instructions(&self, function: &Function) -> Result<Vec<Insn>, String> {
-        Ok(thumb::decode(self.code(function)?, function.addr))
+        let code = self.code(function)?;
+        let end = function.addr + function.size;
+        let mut insns = Vec::new();
+        for (start, stop) in code_ranges(&self.data_marks, function.addr, end) {
+            let bytes = &code[(start - function.addr) as usize..(stop - function.addr) as usize];
+            insns.extend(thumb::decode(bytes, start));
+        }
+        Ok(insns)
     }
 
     /// The 32-bit words at word-aligned addresses in `function` (its
@@ -272,6 +299,29 @@ impl<'a> Image<'a> {
     }
 }
 
+/// The parts of `start..end` that are code, by the mapping symbols `marks`
+/// (sorted; `true` for data): a function starts with code, data runs
+/// from a `$d` to the next `$t`.
+fn code_ranges(marks: &[(u64, bool)], start: u64, end: u64) -> Vec<(u64, u64)> {
+    let before = marks.partition_point(|&(a, _)| a <= start);
+    let mut data = false;
+    let mut ranges = Vec::new();
+    let mut from = start;
+    for &(addr, is_data) in marks[before..].iter().take_while(|(a, _)| *a < end) {
+        if is_data && !data {
+            ranges.push((from, addr));
+        } else if !is_data && data {
+            from = addr;
+        }
+        data = is_data;
+    }
+    if !data {
+        ranges.push((from, end));
+    }
+    ranges.retain(|(a, b)| a < b);
+    ranges
+}
+
 /// Lays segments out from `base`; every flash segment must lie at or above it.
 pub fn flatten(segments: &[Segment], base: u64) -> Result<Vec<u8>, String> {
     let flash: Vec<&Segment> = segments
@@ -321,6 +371,20 @@ mod tests {
         ];
         let bin = flatten(&segs, 0x0802_0000).expect("laid out");
         assert_eq!(bin, [1, 2, 0xff, 0xff, 3, 4]);
+    }
+
+    #[test]
+    fn code_ranges_skip_data_between_mapping_symbols() {
+        // $t at 0x100, $d at 0x110 (a literal pool), $t at 0x118.
+        let marks = [(0x100, false), (0x110, true), (0x118, false), (0x200, true)];
+        assert_eq!(
+            code_ranges(&marks, 0x100, 0x120),
+            [(0x100, 0x110), (0x118, 0x120)]
+        );
+        // A function starts with code even after another's data; no
+        // marks: all code.
+        assert_eq!(code_ranges(&marks, 0x112, 0x116), [(0x112, 0x116)]);
+        assert_eq!(code_ranges(&[], 0x10, 0x20), [(0x10, 0x20)]);
     }
 
     #[test]

@@ -5,7 +5,8 @@
 //! `board/budget.toml` (flash and static RAM budgets, application base
 //! address, stepper interrupt vector, linked and forbidden code) and the
 //! rules of [`checks`] (stack below the statics, start-up taking control,
-//! safe panic and fault paths), and writes `firmware.bin` next to it, ready
+//! safe panic and fault paths) and [`stack_use`] (a static worst-case
+//! stack estimate), and writes `firmware.bin` next to it, ready
 //! for the board's SD-card bootloader. Exits non-zero on any violation,
 //! with the reason.
 //!
@@ -16,6 +17,7 @@
 mod budget;
 mod checks;
 mod elf_image;
+mod stack_use;
 mod thumb;
 
 use std::path::{Path, PathBuf};
@@ -148,8 +150,9 @@ fn image(elf_path: &Path) -> Result<(), String> {
             problems.push(format!("no code matching `{fragment}` is linked in"));
         }
     }
-    let rules: [(&str, checks::Check); 4] = [
+    let rules: [(&str, checks::Check); 5] = [
         ("stack", checks::stack),
+        ("stack use", stack_use::check),
         ("reset", checks::reset),
         ("forbidden", checks::forbidden),
         ("safety", |image, _| checks::safety(image)),

@@ -1,5 +1,6 @@
 //! Just enough Thumb-2 decoding to follow calls in the firmware image:
-//! instruction lengths, and the targets of `bl` and unconditional `b`.
+//! instruction lengths, the targets of `bl` and unconditional `b`, and
+//! the stack a function's prologue claims.
 
 /// One decoded instruction: its address, its halfwords, and where it
 /// branches to if it is a `bl`, `b.w` or unconditional 16-bit `b`.
@@ -98,6 +99,127 @@ pub fn is_msr_msp(insn: &Insn) -> bool {
     insn.hw1 & 0xfff0 == 0xf380 && insn.hw2 == Some(0x8808)
 }
 
+/// True for a `bl` (a direct call, as against a `b` or `b.w` jump).
+pub fn is_call(insn: &Insn) -> bool {
+    insn.branch.is_some() && insn.hw2.is_some_and(|h| h & 0x4000 != 0)
+}
+
+/// True for `blx rN`, a call through a register.
+pub fn is_indirect_call(insn: &Insn) -> bool {
+    insn.hw2.is_none() && insn.hw1 & 0xff87 == 0x4780
+}
+
+/// The stack a function's code claims: the sum of every `push`, `vpush`,
+/// `str rN, [sp, #-n]!` and `sub sp` in it (a bound on its frame, as
+/// LLVM writes one prologue and releases it on every exit).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Frame {
+    /// Bytes pushed or subtracted from SP.
+    pub bytes: u64,
+    /// `sub sp, rN` whose amount is not a `movw`/`movt` constant (a
+    /// dynamic allocation, not counted in `bytes`).
+    pub dynamic: usize,
+}
+
+/// Adds up the stack `insns` (one function's code) claim.
+pub fn frame(insns: &[Insn]) -> Frame {
+    let mut frame = Frame::default();
+    // Constants loaded by `movw`/`movt`, by register, for `sub sp, rN`.
+    let mut consts = [None::<u32>; 16];
+    for insn in insns {
+        if let Some((reg, value)) = mov_constant(insn, &consts) {
+            consts[reg] = Some(value);
+            continue;
+        }
+        match stack_claim(insn) {
+            Some(Claim::Bytes(n)) => frame.bytes += u64::from(n),
+            Some(Claim::Register(r)) => match consts[r] {
+                Some(n) => frame.bytes += u64::from(n),
+                None => frame.dynamic += 1,
+            },
+            None => {}
+        }
+    }
+    frame
+}
+
+/// What one instruction takes from the stack.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Claim {
+    /// A known number of bytes.
+    Bytes(u32),
+    /// `sub sp, sp, rN`: the value of register N.
+    Register(usize),
+}
+
+/// The stack `insn` claims, if it pushes or subtracts from SP.
+fn stack_claim(insn: &Insn) -> Option<Claim> {
+    let hw1 = insn.hw1;
+    let Some(hw2) = insn.hw2 else {
+        return match hw1 {
+            // push {rlist} (T1): 1011 010 M rlist.
+            _ if hw1 & 0xfe00 == 0xb400 => Some(Claim::Bytes(4 * (hw1 & 0x1ff).count_ones())),
+            // sub sp, #imm7 << 2 (T1): 1011 0000 1 imm7.
+            _ if hw1 & 0xff80 == 0xb080 => Some(Claim::Bytes(u32::from(hw1 & 0x7f) << 2)),
+            _ => None,
+        };
+    };
+    let rd_is_sp = hw2 & 0x8f00 == 0x0d00;
+    match hw1 {
+        // push.w / stmdb sp!, {rlist} (T2).
+        0xe92d => Some(Claim::Bytes(4 * u32::from(hw2).count_ones())),
+        // str.w rt, [sp, #-imm8]! (T4: P=1 U=0 W=1).
+        0xf84d if hw2 & 0x0f00 == 0x0d00 => Some(Claim::Bytes(u32::from(hw2 & 0xff))),
+        // vpush {dN..} / {sN..} (imm8 counts words either way).
+        _ if hw1 & 0xffbf == 0xed2d && hw2 & 0x0e00 == 0x0a00 => {
+            Some(Claim::Bytes(4 * u32::from(hw2 & 0xff)))
+        }
+        // sub.w sp, sp, #const (T2, S=0).
+        _ if hw1 & 0xfbff == 0xf1ad && rd_is_sp => Some(Claim::Bytes(thumb_expand_imm(
+            u32::from(hw1 >> 10 & 1) << 11 | u32::from(hw2 >> 4 & 0x700) | u32::from(hw2 & 0xff),
+        ))),
+        // subw sp, sp, #imm12 (T3).
+        _ if hw1 & 0xfbff == 0xf2ad && rd_is_sp => Some(Claim::Bytes(
+            u32::from(hw1 >> 10 & 1) << 11 | u32::from(hw2 >> 4 & 0x700) | u32::from(hw2 & 0xff),
+        )),
+        // sub.w sp, sp, rM (T1, S=0, no shift).
+        0xebad if rd_is_sp && hw2 & 0x70f0 == 0 => Some(Claim::Register(usize::from(hw2 & 0xf))),
+        _ => None,
+    }
+}
+
+/// `movw rD, #imm16` or `movt rD, #imm16`: the register and its value
+/// after it (`movt` keeps the low half `consts` knows).
+fn mov_constant(insn: &Insn, consts: &[Option<u32>; 16]) -> Option<(usize, u32)> {
+    let hw2 = insn.hw2?;
+    let top = insn.hw1 & 0xfbf0;
+    if (top != 0xf240 && top != 0xf2c0) || hw2 & 0x8000 != 0 {
+        return None;
+    }
+    let imm16 = u32::from(insn.hw1 & 0xf) << 12
+        | u32::from(insn.hw1 >> 10 & 1) << 11
+        | u32::from(hw2 >> 4 & 0x700)
+        | u32::from(hw2 & 0xff);
+    let rd = usize::from(hw2 >> 8 & 0xf);
+    if top == 0xf240 {
+        Some((rd, imm16))
+    } else {
+        Some((rd, imm16 << 16 | consts[rd].unwrap_or(0) & 0xffff))
+    }
+}
+
+/// ThumbExpandImm of a 12-bit `i:imm3:imm8` (ARMv7-M ARM A5.3.2).
+fn thumb_expand_imm(imm12: u32) -> u32 {
+    let imm8 = imm12 & 0xff;
+    match imm12 >> 8 {
+        0 => imm8,
+        1 => imm8 << 16 | imm8,
+        2 => imm8 << 24 | imm8 << 8,
+        3 => imm8 << 24 | imm8 << 16 | imm8 << 8 | imm8,
+        _ => (0x80 | imm12 & 0x7f).rotate_right(imm12 >> 7),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -131,6 +253,65 @@ mod tests {
         assert_eq!(insns[0].hw1, CPSID_I);
         assert!(is_msr_msp(&insns[1]));
         assert!(insns.iter().all(|i| i.branch.is_none()));
+    }
+
+    /// The stack the instructions `halfwords` claim.
+    fn frame_of(halfwords: &[u16]) -> Frame {
+        frame(&decode(&bytes(halfwords), 0x1000))
+    }
+
+    #[test]
+    fn prologues_add_up_as_objdump_shows_them() {
+        // From the firmware's load_printer closure:
+        // push {r4, r5, r6, r7, lr}; add r7, sp, #12;
+        // stmdb sp!, {r8, r9, sl, fp}; sub sp, #4; vpush {d8-d15};
+        // sub.w sp, sp, #157696; sub.w sp, sp, #728
+        let f = frame_of(&[
+            0xb5f0, 0xaf03, 0xe92d, 0x0f00, 0xb081, 0xed2d, 0x8b10, 0xf5ad, 0x3d1a, 0xf5ad, 0x7d36,
+        ]);
+        assert_eq!(f.bytes, 20 + 16 + 4 + 64 + 157_696 + 728);
+        assert_eq!(f.dynamic, 0);
+        // push {r7, lr}; str.w r8, [sp, #-4]!; vpush {d8}; sub sp, #0x1fc
+        let f = frame_of(&[0xb580, 0xf84d, 0x8d04, 0xed2d, 0x8b02, 0xb0ff]);
+        assert_eq!(f.bytes, 8 + 4 + 8 + 0x1fc);
+        // subw sp, sp, #0x674 (T3); sub.w sp, sp, #0x214 (T2, rotated)
+        assert_eq!(frame_of(&[0xf2ad, 0x6d74]).bytes, 0x674);
+        assert_eq!(frame_of(&[0xf5ad, 0x7d05]).bytes, 0x214);
+        // vpush {s16-s17} (single precision: 2 words)
+        assert_eq!(frame_of(&[0xed2d, 0x8a02]).bytes, 8);
+    }
+
+    #[test]
+    fn large_frames_from_movw_movt_and_dynamic_ones() {
+        // movw ip, #0x2345; movt ip, #0x1; sub.w sp, sp, ip
+        let f = frame_of(&[0xf242, 0x3c45, 0xf2c0, 0x0c01, 0xebad, 0x0d0c]);
+        assert_eq!((f.bytes, f.dynamic), (0x1_2345, 0));
+        // sub.w sp, sp, r0 with r0 unknown: a dynamic allocation.
+        let f = frame_of(&[0xebad, 0x0d00]);
+        assert_eq!((f.bytes, f.dynamic), (0, 1));
+    }
+
+    #[test]
+    fn releasing_and_other_instructions_claim_nothing() {
+        // add sp, #8; pop {r4, pc}; add.w sp, sp, #0x214; vpop {d8-d15};
+        // ldmia.w sp!, {r8, r9, sl, fp}; sub r0, sp, #4 (not SP's own);
+        // str.w r0, [sp, #4] (no writeback).
+        let f = frame_of(&[
+            0xb002, 0xbd10, 0xf50d, 0x7d05, 0xecbd, 0x8b10, 0xe8bd, 0x0f00, 0xf1ad, 0x0004, 0xf8cd,
+            0x0004,
+        ]);
+        assert_eq!(f, Frame::default());
+    }
+
+    #[test]
+    fn calls_and_indirect_calls_are_told_apart() {
+        // bl; b.w; blx r3; bx lr
+        let insns = decode(
+            &bytes(&[0xf000, 0xf82a, 0xf000, 0xb806, 0x4798, 0x4770]),
+            0x100,
+        );
+        assert!(is_call(&insns[0]) && !is_call(&insns[1]));
+        assert!(is_indirect_call(&insns[2]) && !is_indirect_call(&insns[3]));
     }
 
     #[test]

@@ -7,8 +7,8 @@
 
 use core::fmt;
 use cortex_m_rt::entry;
+use onechip_config::Config;
 use onechip_m7bench::{exit, measure, report};
-use onechip_planner::config::Config;
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;

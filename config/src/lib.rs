@@ -11,6 +11,10 @@
 //! Every option that the firmware reads is marked used; [`Config::check_unused`]
 //! then reports the first option nobody read, as Klipper does ("Option 'x' is
 //! not valid in section 'y'").
+//!
+//! Below `onechip-planner`, which builds the machine from these sections:
+//! nothing here knows about motion.
+#![cfg_attr(not(feature = "std"), no_std)]
 
 use core::cell::Cell;
 use core::fmt;
@@ -188,11 +192,25 @@ impl<'a> Config<'a> {
     /// `files` must hold every file a pattern can match (the loader reads
     /// them); patterns use `*` and `?` and match file names as given.
     pub fn parse_files(files: &[ConfigFile<'a>]) -> Result<Self, ConfigError<'a>> {
-        let mut config = Self {
-            files: heapless::Vec::new(),
-            sections: heapless::Vec::new(),
-            options: heapless::Vec::new(),
-            used: Default::default(),
+        let mut slot = core::mem::MaybeUninit::uninit();
+        Self::parse_files_in(&mut slot, files)?;
+        // SAFETY: `parse_files_in` initialised it (it returned Ok).
+        Ok(unsafe { slot.assume_init() })
+    }
+
+    /// [`Self::parse_files`] built in place in `slot` (a config is tens of
+    /// KB, too large to pass through a microcontroller's stack); returns it.
+    /// On an error `slot` is left initialised but holds a partial config.
+    pub fn parse_files_in<'s>(
+        slot: &'s mut core::mem::MaybeUninit<Self>,
+        files: &[ConfigFile<'a>],
+    ) -> Result<&'s mut Self, ConfigError<'a>> {
+        // SAFETY: all-zero bytes are a valid empty config: heapless 0.9's
+        // Vecs are a length (0) and uninitialised storage, `used` counters
+        // of 0.
+        let config = unsafe {
+            slot.as_mut_ptr().write_bytes(0, 1);
+            slot.assume_init_mut()
         };
         let main = files.first().ok_or(ConfigError {
             file: "printer.cfg",
