@@ -45,6 +45,21 @@ pub const MAX_HEATERS: usize = 2;
 /// Outputs: the heaters and the fan.
 pub const OUTPUTS: usize = MAX_HEATERS + 1;
 
+/// Each heater's label (`T`, `B`), smoothed temperature and target, °C;
+/// displayed as the M105 report.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Temperatures(heapless::Vec<(&'static str, f64, f64), MAX_HEATERS>);
+
+impl core::fmt::Display for Temperatures {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        for (i, (label, temperature, target)) in self.0.iter().enumerate() {
+            let sep = if i == 0 { "" } else { " " };
+            write!(f, "{sep}{label}:{temperature:.1} /{target:.1}")?;
+        }
+        Ok(())
+    }
+}
+
 /// What a G-code line asks of the heaters and fan.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ThermalCommand {
@@ -578,11 +593,19 @@ impl Heaters {
 
     /// The M105 report: `T:<temp> /<target> B:<temp> /<target>`.
     pub fn report(&self, out: &mut impl Write) -> core::fmt::Result {
-        for (i, h) in self.heaters.iter().enumerate() {
-            let sep = if i == 0 { "" } else { " " };
-            write!(out, "{sep}{}:{:.1} /{:.1}", h.label, h.smoothed, h.target)?;
-        }
-        Ok(())
+        write!(out, "{}", self.temperatures())
+    }
+
+    /// Every heater's label, temperature and target: a few bytes to copy
+    /// where the heaters' interrupt is held off, and format after
+    /// ([`Temperatures`]' Display is the M105 report).
+    pub fn temperatures(&self) -> Temperatures {
+        Temperatures(
+            self.heaters
+                .iter()
+                .map(|h| (h.label, h.smoothed, h.target))
+                .collect(),
+        )
     }
 
     /// Why the heaters shut down, if they did.
@@ -684,5 +707,36 @@ mod tests {
         assert!(scales.clone().eq(used));
         // Klipper's defaults: heaters 0.1 s cycles, the fan 0.010 s.
         assert!(scales.eq([100_000, 100_000, 10_000]));
+    }
+
+    #[test]
+    fn m105_is_formatted_from_a_copy_of_the_temperatures() {
+        let config = Config::parse("printer.cfg", SHIPPED).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let target = |celsius| ThermalCommand::Target {
+            heater: 0,
+            celsius,
+            wait: false,
+        };
+        heaters
+            .command(target(200.0), 0, &mut Hw)
+            .expect("in range");
+        // The copy is all the board takes under the heaters' lock; it
+        // formats as the M105 report, and stays as it was copied.
+        let copy = heaters.temperatures();
+        let text = |t: &dyn core::fmt::Display| {
+            let mut s = heapless::String::<64>::new();
+            write!(s, "{t}").expect("fits");
+            s
+        };
+        let mut report = heapless::String::<64>::new();
+        heaters.report(&mut report).expect("fits");
+        assert_eq!(text(&copy), report);
+        assert!(report.starts_with("T:0.0 /200.0 B:0.0 /0.0"), "{report}");
+        // Two heaters: a few dozen bytes, against the whole heaters (~1 KB).
+        assert!(core::mem::size_of::<Temperatures>() <= 96);
+        heaters.command(target(0.0), 0, &mut Hw).expect("off");
+        assert!(text(&copy).starts_with("T:0.0 /200.0"));
     }
 }

@@ -19,7 +19,7 @@ use embassy_stm32::interrupt::Priority;
 ///
 /// Invariant: only its handler touches it outside the cell's lock (through
 /// [`Self::in_handler`]); other code touches it only inside the lock
-/// ([`Self::with`], [`Self::snapshot_of`]), which holds the handler off, and
+/// ([`Self::with`]), which holds the handler off, and
 /// only from thread mode or a handler that the owner cannot preempt
 /// (priority at or below the owner's; checked); the handler does not
 /// preempt itself.
@@ -61,14 +61,6 @@ impl<T> HandlerCell<T> {
     /// below it.
     pub fn with<R>(&self, f: impl FnOnce(&mut T) -> R) -> Option<R> {
         self.lock(|slot| slot.as_mut().map(f))
-    }
-
-    /// A copy of the part of the value `part` picks, taken with the owner
-    /// masked, for work that must not happen under the lock (formatting a
-    /// report): the lock covers the copy only. None before the value is
-    /// installed.
-    pub fn snapshot_of<U: Clone>(&self, part: impl FnOnce(&T) -> &U) -> Option<U> {
-        self.lock(|slot| slot.as_ref().map(|value| part(value).clone()))
     }
 
     /// The handler's own access, without a lock.

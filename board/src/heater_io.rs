@@ -240,12 +240,13 @@ pub fn busy(heater: usize) -> bool {
     with_io(|io| io.heaters.busy(heater) && io.heaters.shutdown_reason().is_none()).unwrap_or(false)
 }
 
-/// Writes the M105 report (`T:… /… B:… /…`) to `out`: the heaters are
-/// copied under the lock, and the copy formatted after it (formatting
-/// floats takes far longer than the copy; TIM2 must not wait for it).
+/// Writes the M105 report (`T:… /… B:… /…`) to `out`: the temperatures
+/// are copied under the lock (which holds off TIM2 only), and formatted
+/// after it (formatting floats takes far longer than the copy; TIM2 must
+/// not wait for it).
 pub fn report(out: &mut impl core::fmt::Write) {
-    if let Some(heaters) = IO.snapshot_of(|io| &io.heaters) {
-        let _ = heaters.report(out);
+    if let Some(temperatures) = IO.with(|io| io.heaters.temperatures()) {
+        let _ = write!(out, "{temperatures}");
     }
 }
 
