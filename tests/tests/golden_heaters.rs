@@ -7,13 +7,8 @@ use onechip_app::heaters::McuSetup;
 use onechip_config::Config;
 use onechip_planner::machine::Machine;
 use onechip_sched::outputs::OutputKind;
-use onechip_tests::{golden_dir, summary_value};
+use onechip_tests::summary_value;
 use std::collections::HashMap;
-use std::path::PathBuf;
-
-fn read(path: PathBuf) -> String {
-    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
 
 /// The `key=value` fields of the first line of `commands` starting with
 /// `name` and having all of `with`.
@@ -40,19 +35,20 @@ fn number(fields: &HashMap<String, String>, key: &str) -> u64 {
 
 #[test]
 fn heater_and_thermistor_configuration_matches_klippy() {
+    // One extrusion case for each of the six golden configs.
     let cases = [
-        ("cartesian", "cart_extrude", "stm32f446"),
-        ("corexy", "corexy_extrude", "stm32f446"),
-        ("delta", "delta_extrude", "stm32f446"),
-        ("cartesian_shaper", "shaper_extrude", "stm32f446"),
-        ("cartesian_avr", "avr_cart_extrude", "atmega2560"),
-        ("cartesian_h723", "h723_cart_extrude", "stm32h723"),
+        "cart_extrude",
+        "corexy_extrude",
+        "delta_extrude",
+        "shaper_extrude",
+        "avr_cart_extrude",
+        "h723_cart_extrude",
     ];
-    for (config_name, case, dict) in cases {
-        let text = read(golden_dir().join(format!("configs/{config_name}.cfg")));
+    for case in cases {
+        let text = onechip_golden::config(onechip_golden::config_for(case));
         let config = Config::parse("printer.cfg", &text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let dict = read(golden_dir().join(format!("dicts/{dict}.dict")));
+        let dict = onechip_golden::dict(onechip_golden::dict_for(case));
         let adc_max: u16 = dict
             .split("\"ADC_MAX\":")
             .nth(1)
@@ -61,7 +57,7 @@ fn heater_and_thermistor_configuration_matches_klippy() {
             .expect("ADC_MAX");
         let freq = summary_value(case, "clock_freq");
         let setup = McuSetup::new(&machine, freq, adc_max, 0);
-        let commands = read(golden_dir().join(format!("{case}/mcu-commands.txt")));
+        let commands = onechip_golden::read_string(format!("{case}/mcu-commands.txt"));
 
         let (pin, heater) = setup.outputs[0];
         let out = command(&commands, "config_digital_out", &[("pin", pin)]);
