@@ -95,30 +95,42 @@ pub enum Timing {
     Batch,
 }
 
-/// What homing needs to know of the machine.
+/// The session's side of the MCU role's stepper engine: its clock, what
+/// homing needs to know of the machine, and the homing move being watched.
 #[derive(Debug, Clone, Copy)]
-struct HomingSetup {
+struct EngineLink {
+    /// Step clock, Hz.
+    freq: f64,
     /// Axes (0 = X) whose rail has an endstop pin.
     endstops: [bool; 3],
     /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
     rails: u32,
     /// The finest of their step distances, mm.
     finest_step: f64,
+    /// The start clock of the homing move whose endstop is watched.
+    watching: Option<u64>,
 }
 
-impl HomingSetup {
-    fn new(machine: &Machine<'_>) -> Self {
+impl EngineLink {
+    fn new(machine: &Machine<'_>, freq: f64) -> Self {
         let rails = machine.stepper_kinematics.len().min(machine.steppers.len());
-        let mut setup = Self {
+        let mut link = Self {
+            freq,
             endstops: [false; 3],
             rails: (1 << rails) - 1,
             finest_step: f64::INFINITY,
+            watching: None,
         };
         for (i, stepper) in machine.steppers.iter().take(rails).enumerate() {
-            setup.endstops[i] = stepper.endstop_pin.is_some();
-            setup.finest_step = setup.finest_step.min(stepper.step_dist);
+            link.endstops[i] = stepper.endstop_pin.is_some();
+            link.finest_step = link.finest_step.min(stepper.step_dist);
         }
-        setup
+        link
+    }
+
+    /// The engine's step sink, through `mcu`.
+    fn steps<'m, M>(&'m mut self, mcu: &'m mut M) -> EngineSteps<'m, M> {
+        EngineSteps { mcu, link: self }
     }
 }
 
@@ -169,12 +181,8 @@ impl fmt::Display for SessionError<'_> {
 pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
     printer: Printer<'a, L>,
     motion: Motion<N, Q>,
-    homing: HomingSetup,
-    /// Step clock, Hz.
-    freq: f64,
+    engine: EngineLink,
     timing: Timing,
-    /// The start clock of the homing move whose endstop is watched.
-    watching: Option<u64>,
     planned: Planned,
     /// Time spent waiting for heaters, s.
     heat_wait: f64,
@@ -210,16 +218,15 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         unsafe {
             let printer = &mut *addr_of_mut!((*p).printer).cast::<MaybeUninit<Printer<'a, L>>>();
             Printer::init_in(printer, machine).set_time_origin(start as f64 / freq);
-            Motion::<N, Q>::init_in(&mut *addr_of_mut!((*p).motion).cast()).setup(
+            Motion::<N, Q>::init_in(
+                &mut *addr_of_mut!((*p).motion).cast(),
                 machine,
                 freq,
                 (max_error * freq) as u32,
                 [0.0; 3],
             );
-            addr_of_mut!((*p).homing).write(HomingSetup::new(machine));
-            addr_of_mut!((*p).freq).write(freq);
+            addr_of_mut!((*p).engine).write(EngineLink::new(machine, freq));
             addr_of_mut!((*p).timing).write(Timing::RealTime);
-            addr_of_mut!((*p).watching).write(None);
             addr_of_mut!((*p).planned).write(Planned::default());
             addr_of_mut!((*p).heat_wait).write(0.0);
             slot.assume_init_mut()
@@ -252,43 +259,21 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if let Some(reason) = mcu.shutdown_reason() {
             return Err(error_text(&SessionError::Shutdown(reason)));
         }
-        if !self.homing.endstops.iter().all(|&e| e)
+        if !self.engine.endstops.iter().all(|&e| e)
             && console::command_word(text.as_bytes()).eq_ignore_ascii_case(b"G28")
         {
             return Err(error_text(&SessionError::NoEndstops));
         }
         if self.timing == Timing::RealTime && self.printer.is_idle() {
             // An idle printer starts its next move from now.
-            let now = mcu.now() as f64 / self.freq;
+            let now = mcu.now() as f64 / self.engine.freq;
             self.printer.set_time_origin(now);
         }
-        let Self {
-            printer,
-            motion,
-            homing,
-            watching,
-            planned,
-            freq,
-            ..
-        } = self;
-        let mut steps = EngineSteps {
-            mcu: &mut *mcu,
-            homing,
-            watching,
-            freq: *freq,
-        };
-        let result = printer
-            .execute(
-                text,
-                &mut Planning {
-                    motion: &mut *motion,
-                    steps: &mut steps,
-                    planned,
-                },
-                out,
-            )
-            .map_err(|e| error_text(&SessionError::Command(e)));
-        motion.generate(f64::INFINITY, &mut steps);
+        let result = self.with_planning(mcu, |printer, planning| {
+            printer
+                .execute(text, planning, out)
+                .map_err(|e| error_text(&SessionError::Command(e)))
+        });
         let thermal = self.thermal(mcu, out);
         result.and(thermal)
     }
@@ -328,15 +313,9 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if !busy(mcu) {
             return Ok(());
         }
-        let freq = self.freq;
+        let freq = self.engine.freq;
         let clock = |t: f64| (t.max(0.0) * freq) as u64;
-        let mut steps = EngineSteps {
-            mcu: &mut *mcu,
-            homing: &self.homing,
-            watching: &mut self.watching,
-            freq,
-        };
-        self.motion.settle(&mut steps);
+        self.motion.settle(&mut self.engine.steps(mcu));
         let start = mcu.now();
         let report_every = clock(HEAT_REPORT_TIME);
         let deadline = start + clock(MAX_HEAT_WAIT);
@@ -370,29 +349,18 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// sent (after klippy's 0.5 s dwell).
     pub fn finish(&mut self, mcu: &mut impl Mcu) {
         self.with_planning(mcu, |printer, planning| printer.finish(planning));
-        let mut steps = EngineSteps {
-            mcu,
-            homing: &self.homing,
-            watching: &mut self.watching,
-            freq: self.freq,
-        };
-        self.motion.finish(&mut steps);
+        self.motion.finish(&mut self.engine.steps(mcu));
     }
 
     /// Runs `f` on the printer with the planning sink, then generates
-    /// steps as far as the plan is final.
-    fn with_planning<M: Mcu>(
+    /// steps as far as the plan is final; returns what `f` returned.
+    fn with_planning<M: Mcu, R>(
         &mut self,
         mcu: &mut M,
-        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>),
-    ) {
-        let mut steps = EngineSteps {
-            mcu,
-            homing: &self.homing,
-            watching: &mut self.watching,
-            freq: self.freq,
-        };
-        f(
+        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>) -> R,
+    ) -> R {
+        let mut steps = self.engine.steps(mcu);
+        let result = f(
             &mut self.printer,
             &mut Planning {
                 motion: &mut self.motion,
@@ -401,6 +369,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             },
         );
         self.motion.generate(f64::INFINITY, &mut steps);
+        result
     }
 
     /// The printer (G-code state and toolhead).
@@ -463,11 +432,7 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
 /// stepper's outbox is full; homing moves run against the endstops.
 struct EngineSteps<'m, M> {
     mcu: &'m mut M,
-    homing: &'m HomingSetup,
-    /// The start clock of the homing move whose endstop is watched.
-    watching: &'m mut Option<u64>,
-    /// Step clock, Hz.
-    freq: f64,
+    link: &'m mut EngineLink,
 }
 
 impl<M: Mcu> StepSink for EngineSteps<'_, M> {
@@ -490,20 +455,20 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
         start_clock: u64,
         until_clock: u64,
     ) -> Option<HomingStop> {
-        if *self.watching != Some(start_clock) {
+        let link = &mut *self.link;
+        if link.watching != Some(start_clock) {
             let endstop = Endstop::for_homing(
                 start_clock as u32,
-                self.freq,
+                link.freq,
                 homing.speed,
-                self.homing.finest_step,
+                link.finest_step,
             );
-            self.mcu
-                .watch_endstop(homing.axis, endstop, self.homing.rails);
-            *self.watching = Some(start_clock);
+            self.mcu.watch_endstop(homing.axis, endstop, link.rails);
+            link.watching = Some(start_clock);
         }
         loop {
             if let Some(trigger) = self.mcu.take_trigger() {
-                *self.watching = None;
+                link.watching = None;
                 // The 64-bit clock of the trigger, which lies before now.
                 let now = self.mcu.now();
                 let ago = i64::from((now as u32).wrapping_sub(trigger) as i32);
@@ -519,10 +484,10 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             }
             self.mcu.wait(until_clock);
         }
-        if until_clock >= (homing.end_time.max(0.0) * self.freq) as u64 {
+        if until_clock >= (homing.end_time.max(0.0) * link.freq) as u64 {
             // The whole move ran without a trigger.
             self.mcu.stop_watching();
-            *self.watching = None;
+            link.watching = None;
         }
         None
     }
@@ -569,7 +534,7 @@ impl Console {
         session: &mut Session<'_, L, N, Q>,
         mcu: &mut impl Mcu,
     ) {
-        let priming = (crate::printer::PRIMING_TIME * session.freq) as u64;
+        let priming = (crate::printer::PRIMING_TIME * session.engine.freq) as u64;
         if let Some(at) = self.last_line
             && mcu.now().saturating_sub(at) >= priming
         {
