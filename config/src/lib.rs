@@ -205,13 +205,14 @@ impl<'a> Config<'a> {
         slot: &'s mut core::mem::MaybeUninit<Self>,
         files: &[ConfigFile<'a>],
     ) -> Result<&'s mut Self, ConfigError<'a>> {
-        // SAFETY: all-zero bytes are a valid empty config: heapless 0.9's
-        // Vecs are a length (0) and uninitialised storage, `used` counters
-        // of 0.
-        let config = unsafe {
-            slot.as_mut_ptr().write_bytes(0, 1);
-            slot.assume_init_mut()
-        };
+        // Written into the slot: the empty vectors' storage is
+        // uninitialised, so only their lengths and `used` are stored.
+        let config = slot.write(Self {
+            files: heapless::Vec::new(),
+            sections: heapless::Vec::new(),
+            options: heapless::Vec::new(),
+            used: Default::default(),
+        });
         let main = files.first().ok_or(ConfigError {
             file: "printer.cfg",
             line: 0,

@@ -34,21 +34,6 @@ impl<const N: usize> LookAhead<N> {
         }
     }
 
-    /// An empty queue built in place in `slot`, without passing its
-    /// storage through the stack (a long lookahead is larger than a
-    /// microcontroller's stack); returns it.
-    pub fn init_in(slot: &mut core::mem::MaybeUninit<Self>) -> &mut Self {
-        // SAFETY: all-zero bytes are a valid queue: heapless 0.9's Vec is
-        // a length (0: empty) and uninitialised storage, the flush time an
-        // f64 (0.0), set right after.
-        let queue = unsafe {
-            slot.as_mut_ptr().write_bytes(0, 1);
-            slot.assume_init_mut()
-        };
-        queue.reset();
-        queue
-    }
-
     /// Forgets every queued move.
     pub fn reset(&mut self) {
         self.queue.clear();

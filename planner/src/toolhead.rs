@@ -422,10 +422,11 @@ impl<const N: usize> Toolhead<N> {
         use core::ptr::addr_of_mut;
         let p = slot.as_mut_ptr();
         // SAFETY: `p` is valid for writes; every field is written exactly
-        // once (the lookahead in place, not through the stack) before the
-        // slot is taken as initialised.
+        // once (the empty lookahead straight into the slot: its storage is
+        // uninitialised, so only its length is stored) before the slot is
+        // taken as initialised.
         unsafe {
-            LookAhead::<N>::init_in(&mut *addr_of_mut!((*p).lookahead).cast());
+            addr_of_mut!((*p).lookahead).write(LookAhead::new());
             (*addr_of_mut!((*p).lookahead)).set_flush_time(BUFFER_TIME_HIGH);
             addr_of_mut!((*p).limits).write(limits);
             addr_of_mut!((*p).kinematics).write(kinematics);

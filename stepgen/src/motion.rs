@@ -195,57 +195,46 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     /// Step generation for `machine`'s steppers, with an MCU clock of `freq`
     /// Hz and steps within `max_error` ticks; the toolhead starts at `pos`.
     pub fn new(machine: &Machine<'_>, freq: f64, max_error: u32, pos: [f64; 3]) -> Self {
-        let mut motion = Self::empty();
-        motion.setup(machine, freq, max_error, pos);
-        motion
+        let mut slot = core::mem::MaybeUninit::uninit();
+        Self::init_in(&mut slot, machine, freq, max_error, pos);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
     }
 
-    /// Step generation for no stepper: a value for a static, to be
-    /// [`Self::setup`] in place (the queues are large to move).
-    pub const fn empty() -> Self {
-        Self {
-            toolhead: Trapq::new(),
-            extruder: Trapq::new(),
-            channels: heapless::Vec::new(),
-            known_until: f64::NEG_INFINITY,
-            error: None,
-            max_error_time: 0.0,
-            freq: 1.0,
-        }
-    }
-
-    /// [`Self::empty`] built in place in `slot`, without passing the
-    /// queues through the stack (they are larger than a microcontroller's
-    /// stack); returns it, to be [`Self::setup`].
-    pub fn init_in(slot: &mut core::mem::MaybeUninit<Self>) -> &mut Self {
+    /// [`Self::new`] built in place in `slot`, without passing the queues
+    /// through the stack (they are larger than a microcontroller's stack);
+    /// returns it.
+    pub fn init_in<'s>(
+        slot: &'s mut core::mem::MaybeUninit<Self>,
+        machine: &Machine<'_>,
+        freq: f64,
+        max_error: u32,
+        pos: [f64; 3],
+    ) -> &'s mut Self {
         use core::ptr::addr_of_mut;
         let p = slot.as_mut_ptr();
         // SAFETY: `p` is valid for writes; every field is written once (the
-        // queues in place; the channels as all-zero bytes, which heapless
-        // 0.9's Vec reads as empty: a length of 0 and uninitialised
-        // storage) before the slot is taken as initialised.
-        unsafe {
-            Trapq::<N>::init_in(&mut *addr_of_mut!((*p).toolhead).cast());
-            Trapq::<N>::init_in(&mut *addr_of_mut!((*p).extruder).cast());
-            addr_of_mut!((*p).channels).write_bytes(0, 1);
+        // empty queues straight into the slot: their storage is
+        // uninitialised, so only their lengths are stored) before the slot
+        // is taken as initialised.
+        let motion = unsafe {
+            addr_of_mut!((*p).toolhead).write(Trapq::new());
+            addr_of_mut!((*p).extruder).write(Trapq::new());
+            addr_of_mut!((*p).channels).write(heapless::Vec::new());
             addr_of_mut!((*p).known_until).write(f64::NEG_INFINITY);
             addr_of_mut!((*p).error).write(None);
-            addr_of_mut!((*p).max_error_time).write(0.0);
-            addr_of_mut!((*p).freq).write(1.0);
+            addr_of_mut!((*p).max_error_time).write(f64::from(max_error) / freq);
+            addr_of_mut!((*p).freq).write(freq);
             slot.assume_init_mut()
-        }
+        };
+        motion.add_channels(machine, max_error, pos);
+        motion
     }
 
-    /// Sets this up in place as [`Self::new`] would build it (any queued
-    /// motion is dropped).
-    pub fn setup(&mut self, machine: &Machine<'_>, freq: f64, max_error: u32, pos: [f64; 3]) {
-        self.toolhead.clear();
-        self.extruder.clear();
-        self.channels.clear();
-        self.known_until = f64::NEG_INFINITY;
-        self.error = None;
-        self.max_error_time = f64::from(max_error) / freq;
-        self.freq = freq;
+    /// A channel for each of `machine`'s steppers, compressing within
+    /// `max_error` ticks; the toolhead starts at `pos`.
+    fn add_channels(&mut self, machine: &Machine<'_>, max_error: u32, pos: [f64; 3]) {
+        let freq = self.freq;
         for (i, stepper) in machine.steppers.iter().enumerate() {
             let (kin, follows, shaper, margins) = match machine.stepper_kinematics.get(i) {
                 Some(&kin) => {

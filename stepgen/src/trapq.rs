@@ -47,17 +47,6 @@ impl<const N: usize> Trapq<N> {
         }
     }
 
-    /// An empty queue built in place in `slot`, without passing its
-    /// storage through the stack; returns it.
-    pub fn init_in(slot: &mut core::mem::MaybeUninit<Self>) -> &mut Self {
-        // SAFETY: all-zero bytes are a valid empty queue: heapless 0.9's Vec
-        // is a length (0) and uninitialised storage.
-        unsafe {
-            slot.as_mut_ptr().write_bytes(0, 1);
-            slot.assume_init_mut()
-        }
-    }
-
     /// Empties the queue.
     pub fn clear(&mut self) {
         self.segs.clear();
