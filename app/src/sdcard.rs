@@ -77,29 +77,9 @@ impl TimeSource for NoClock {
     }
 }
 
-/// Reads the whole file `name` from the root directory of the card's first
-/// partition into `buf`; returns the number of bytes read.
-pub fn read_root_file<D: BlockDevice>(
-    device: D,
-    name: &str,
-    buf: &mut [u8],
-) -> Result<usize, ReadError<D::Error>> {
-    let volumes: VolumeManager<D, NoClock, 1, 1, 1> =
-        VolumeManager::new_with_limits(device, NoClock, 0);
-    let volume = volumes.open_volume(VolumeIdx(0))?;
-    let root = volume.open_root_dir()?;
-    read_in(&root, name, buf)
-}
-
 /// Reads file `name` of folder `dir` whole into `buf`.
-fn read_in<
-    D: BlockDevice,
-    T: TimeSource,
-    const DIRS: usize,
-    const FILES: usize,
-    const VOLS: usize,
->(
-    dir: &embedded_sdmmc::Directory<'_, D, T, DIRS, FILES, VOLS>,
+fn read_in<D: BlockDevice, const DIRS: usize, const FILES: usize, const VOLS: usize>(
+    dir: &embedded_sdmmc::Directory<'_, D, NoClock, DIRS, FILES, VOLS>,
     name: &str,
     buf: &mut [u8],
 ) -> Result<usize, ReadError<D::Error>> {

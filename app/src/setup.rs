@@ -4,14 +4,14 @@
 //! planner's types.
 
 use crate::config_files::ConfigFiles;
+use crate::console::cut_text;
 use crate::pin_check;
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
-use core::fmt;
 use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 
-/// A config error, with its file, line and option, as text (the config it
+/// A config error, with its file, line and option, as text (cut to fit; the config it
 /// quotes is gone once the machine is built).
 pub type SetupError = heapless::String<192>;
 
@@ -53,9 +53,9 @@ impl<'a> PrinterSetup<'a> {
         reserved: &[(&str, &str)],
         scratch: &mut MaybeUninit<Config<'a>>,
     ) -> Result<Self, SetupError> {
-        let config = Config::parse_files_in(scratch, files).map_err(|e| text(&e))?;
-        let machine = Machine::from_config(config).map_err(|e| text(&e))?;
-        pin_check::check(&machine, reserved).map_err(|e| text(&e))?;
+        let config = Config::parse_files_in(scratch, files).map_err(|e| cut_text(&e))?;
+        let machine = Machine::from_config(config).map_err(|e| cut_text(&e))?;
+        pin_check::check(&machine, reserved).map_err(|e| cut_text(&e))?;
         let mut step_pulse = [0.0; MAX_STEPPERS];
         for (pulse, stepper) in step_pulse.iter_mut().zip(&machine.steppers) {
             let tmc = has_tmc_driver(config.section_names(), stepper.name);
@@ -111,9 +111,4 @@ impl<'a> PrinterSetup<'a> {
             None => false,
         }
     }
-}
-
-/// `e` as a [`SetupError`], cut where it does not fit.
-fn text(e: &impl fmt::Display) -> SetupError {
-    crate::console::cut_text(e)
 }

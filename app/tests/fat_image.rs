@@ -3,7 +3,8 @@
 //! implementation (the `fatfs` crate), read back through embedded-sdmmc.
 
 use embedded_sdmmc::{Block, BlockCount, BlockDevice, BlockIdx};
-use onechip_app::sdcard::{PRINTER_CFG, ReadError, read_root_file};
+use onechip_app::config_files::Files;
+use onechip_app::sdcard::{PRINTER_CFG, ReadError, SdFiles};
 use std::cell::RefCell;
 use std::io::{Cursor, Write};
 
@@ -103,7 +104,9 @@ fn reads_printer_cfg_from_fat16_and_fat32() {
     for (mib, fat) in [(8, fatfs::FatType::Fat16), (40, fatfs::FatType::Fat32)] {
         let sd = card(mib, fat, &[("other.txt", b"x"), (PRINTER_CFG, &cfg)]);
         let mut buf = vec![0u8; 64 * 1024];
-        let n = read_root_file(sd, PRINTER_CFG, &mut buf).expect("readable");
+        let n = SdFiles::new(sd)
+            .read(PRINTER_CFG, &mut buf)
+            .expect("readable");
         assert_eq!(&buf[..n], &cfg[..], "{fat:?}");
     }
 }
@@ -113,7 +116,7 @@ fn a_missing_file_is_reported_as_not_found() {
     let sd = card(8, fatfs::FatType::Fat16, &[("other.txt", b"x")]);
     let mut buf = [0u8; 128];
     assert!(matches!(
-        read_root_file(sd, PRINTER_CFG, &mut buf),
+        SdFiles::new(sd).read(PRINTER_CFG, &mut buf),
         Err(ReadError::NotFound)
     ));
 }
@@ -123,7 +126,7 @@ fn a_file_larger_than_the_buffer_is_refused_with_its_size() {
     let cfg = sample_cfg();
     let sd = card(8, fatfs::FatType::Fat16, &[(PRINTER_CFG, &cfg)]);
     let mut buf = [0u8; 1024];
-    match read_root_file(sd, PRINTER_CFG, &mut buf) {
+    match SdFiles::new(sd).read(PRINTER_CFG, &mut buf) {
         Err(ReadError::TooLarge {
             size,
             capacity: 1024,
@@ -136,7 +139,9 @@ fn a_file_larger_than_the_buffer_is_refused_with_its_size() {
 fn a_blank_card_is_a_filesystem_error_not_a_panic() {
     let sd = MemCard(RefCell::new(vec![0u8; 1024 * 1024]));
     let mut buf = [0u8; 128];
-    let err = read_root_file(sd, PRINTER_CFG, &mut buf).expect_err("no partition table");
+    let err = SdFiles::new(sd)
+        .read(PRINTER_CFG, &mut buf)
+        .expect_err("no partition table");
     assert!(matches!(err, ReadError::Filesystem(_)), "{err:?}");
     assert!(err.to_string().starts_with("SD card: "));
 }
@@ -166,8 +171,7 @@ fn printer_cfg_and_its_includes_load_from_the_card_folders() {
         assert_eq!(loaded[2].text, "[mcu]\nserial: /dev/null\n");
         // A path deeper than one folder is refused with a clear message.
         let mut one = [0u8; 64];
-        let e = onechip_app::config_files::Files::read(&mut sd, "a/b/c.cfg", &mut one)
-            .expect_err("too deep");
+        let e = sd.read("a/b/c.cfg", &mut one).expect_err("too deep");
         assert!(e.to_string().contains("folders in it"), "{e}");
     }
 }
