@@ -18,6 +18,7 @@ use core::ptr::addr_of_mut;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::move_sink::{HomingEnd, HomingMove};
 use onechip_planner::move_sink::{MoveSink, TrapqMove};
+use onechip_sched::clock::widen;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
@@ -470,9 +471,7 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             if let Some(trigger) = self.mcu.take_trigger() {
                 link.watching = None;
                 // The 64-bit clock of the trigger, which lies before now.
-                let now = self.mcu.now();
-                let ago = i64::from((now as u32).wrapping_sub(trigger) as i32);
-                let clock = now.saturating_add_signed(-ago);
+                let clock = widen(trigger, self.mcu.now());
                 // Stopped at once: no step past the trigger.
                 return Some(HomingStop {
                     clock,

@@ -384,10 +384,9 @@ impl Mcu for VirtualMcu {
 
     fn take_trigger(&mut self) -> Option<u32> {
         let trigger = self.engine.take_trigger()?;
-        let ago = u64::from((self.now as u32).wrapping_sub(trigger));
         let real = self.real_position().unwrap_or_default();
-        self.triggers
-            .push((self.watched, real, self.now.saturating_sub(ago)));
+        let clock = onechip_sched::clock::widen(trigger, self.now);
+        self.triggers.push((self.watched, real, clock));
         Some(trigger)
     }
 

@@ -25,6 +25,13 @@ pub fn due(at: Option<u32>, now: u32) -> Option<u32> {
     at.filter(|&at| !is_before(now, at))
 }
 
+/// The 64-bit clock of the 32-bit clock `at`, which lies less than 2^31
+/// ticks from the 64-bit clock `now` (before or after it; 0 at the least).
+pub fn widen(at: u32, now: u64) -> u64 {
+    let ahead = i64::from(at.wrapping_sub(now as u32) as i32);
+    now.saturating_add_signed(ahead)
+}
+
 /// Rebuilds a monotonic 64-bit clock from 32-bit readings.
 ///
 /// Invariant: consecutive readings passed to [`Extender::extend`] are less
@@ -52,6 +59,15 @@ impl Extender {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_32_bit_clock_widens_to_the_64_bit_one_near_now_across_a_wrap() {
+        let now = (3u64 << 32) + 10;
+        assert_eq!(widen(5, now), now - 5);
+        assert_eq!(widen(u32::MAX - 4, now), now - 15);
+        assert_eq!(widen(1_000, now), now + 990);
+        assert_eq!(widen(u32::MAX, 3), 0);
+    }
 
     #[test]
     fn ordering_holds_across_the_wrap() {
