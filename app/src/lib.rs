@@ -3,23 +3,32 @@
 //! boards hand it bytes (USB, SD-card blocks) and get bytes back.
 //!
 //! - [`line`]: bounded assembly of G-code lines from a byte stream;
-//! - [`console`]: what the firmware answers to each line;
+//! - [`line_protocol`]: line numbers, checksums and resends;
+//! - [`emergency`]: M112 spotted in the byte stream;
+//! - [`console`]: what the firmware answers to each line, and SD printing
+//!   ([`sd_print`] on a [`card`]);
+//! - [`session`]: the printer both builds run;
 //! - [`printer`]: G-code lines through the planner to planned moves;
 //! - [`pins`]: MCU pin names as printer.cfg writes them;
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod card;
 pub mod config_files;
 pub mod console;
+pub mod emergency;
 pub mod heaters;
 pub mod line;
+pub mod line_protocol;
 pub mod pin_check;
 pub mod pins;
 pub mod printer;
+pub mod sd_print;
 pub mod sdcard;
 pub mod session;
 pub mod setup;
 pub mod step_pulse;
+pub mod text;
 
 /// Firmware name reported to hosts (M115).
 pub const FIRMWARE_NAME: &str = "onechip";

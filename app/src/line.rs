@@ -43,6 +43,11 @@ impl<const N: usize> LineAssembler<N> {
         }
     }
 
+    /// True when no byte of a line is pending.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0 && self.overflow == 0
+    }
+
     /// Feeds one byte; returns an event when it ends a line.
     pub fn push(&mut self, byte: u8) -> Option<LineEvent<'_>> {
         if byte == b'\n' || byte == b'\r' {

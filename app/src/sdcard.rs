@@ -3,15 +3,21 @@
 //!
 //! Works on any [`BlockDevice`] (the board's SDMMC adapter, an in-memory image
 //! in tests) through embedded-sdmmc: MBR partition table, first partition,
-//! FAT16 or FAT32, 8.3 file names (seen in lower case), in the root folder
-//! and the folders just below it.
+//! FAT16 or FAT32, 8.3 file names (seen in lower case, with their long
+//! names for listings), in the root folder and the folders just below it;
+//! files can be created, appended to and deleted ([`Card`]).
 
+use crate::card::{Card, Entry};
 use crate::config_files::{Files, MAX_PATH};
 use core::fmt::{self, Write};
 use core::ops::ControlFlow;
 use embedded_sdmmc::{
-    BlockDevice, DirEntry, Mode, ShortFileName, TimeSource, Timestamp, VolumeIdx, VolumeManager,
+    BlockDevice, DirEntry, LfnBuffer, Mode, ShortFileName, TimeSource, Timestamp, VolumeIdx,
+    VolumeManager,
 };
+
+/// Longest long file name read, bytes of UTF-8.
+const MAX_LONG_NAME: usize = 128;
 
 pub use crate::config_files::PRINTER_CFG;
 
@@ -134,41 +140,117 @@ impl<D: BlockDevice> Files for SdFiles<D> {
     type Error = ReadError<D::Error>;
 
     fn each_file(&mut self, f: &mut dyn FnMut(&str)) -> Result<(), Self::Error> {
+        self.each_entry(&mut |entry| f(entry.path))
+    }
+
+    fn read(&mut self, path: &str, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        self.in_folder(path, |dir, name| read_in(dir, name, buf))
+    }
+}
+
+/// A folder of the card, as embedded-sdmmc opens it.
+type Dir<'v, D> = embedded_sdmmc::Directory<'v, D, NoClock, 2, 1, 1>;
+
+impl<D: BlockDevice> SdFiles<D> {
+    /// Runs `f` on the folder holding `path` (the root, or a folder in
+    /// it) with the file's own name.
+    fn in_folder<R>(
+        &mut self,
+        path: &str,
+        f: impl FnOnce(&Dir<'_, D>, &str) -> Result<R, ReadError<D::Error>>,
+    ) -> Result<R, ReadError<D::Error>> {
         let volume = self.volumes.open_volume(VolumeIdx(0))?;
         let root = volume.open_root_dir()?;
-        let mut folders: heapless::Vec<ShortFileName, MAX_FOLDERS> = heapless::Vec::new();
-        root.iterate_dir(|entry| {
-            if entry.attributes.is_volume() || entry.name.base_name().starts_with(b".") {
-                // The volume label, `.` and `..`.
-            } else if entry.attributes.is_directory() {
+        match path.split_once('/') {
+            None => f(&root, path),
+            Some((_, rest)) if rest.contains('/') => Err(ReadError::TooDeep),
+            Some((folder, name)) => f(&root.open_dir(folder)?, name),
+        }
+    }
+}
+
+/// Calls `f` with each file of `dir` (below `folder`, None for the root)
+/// and its long name; collects the folders into `folders` if given.
+fn list_in<D: BlockDevice>(
+    dir: &Dir<'_, D>,
+    folder: Option<&ShortFileName>,
+    mut folders: Option<&mut heapless::Vec<ShortFileName, MAX_FOLDERS>>,
+    f: &mut dyn FnMut(&Entry<'_>),
+) -> Result<(), ReadError<D::Error>> {
+    let mut storage = [0u8; MAX_LONG_NAME];
+    let mut lfn = LfnBuffer::new(&mut storage);
+    dir.iterate_dir_lfn(&mut lfn, |entry, long| {
+        if entry.attributes.is_volume() || entry.name.base_name().starts_with(b".") {
+            // The volume label, `.` and `..`.
+        } else if entry.attributes.is_directory() {
+            if let Some(folders) = folders.as_deref_mut() {
                 let _ = folders.push(entry.name);
-            } else if let Some(path) = entry_path(None, entry) {
-                f(&path);
             }
-            ControlFlow::Continue(())
-        })?;
+        } else if let Some(path) = entry_path(folder, entry) {
+            let short = path.rsplit('/').next().unwrap_or(&path);
+            f(&Entry {
+                path: &path,
+                size: entry.size,
+                long_name: long.unwrap_or(short),
+            });
+        }
+        ControlFlow::Continue(())
+    })?;
+    Ok(())
+}
+
+impl<D: BlockDevice> Card for SdFiles<D> {
+    fn each_entry(&mut self, f: &mut dyn FnMut(&Entry<'_>)) -> Result<(), Self::Error> {
+        let volume = self.volumes.open_volume(VolumeIdx(0))?;
+        let root = volume.open_root_dir()?;
+        let mut folders = heapless::Vec::new();
+        list_in(&root, None, Some(&mut folders), f)?;
         for folder in &folders {
-            let dir = root.open_dir(folder)?;
-            dir.iterate_dir(|entry| {
-                if !entry.attributes.is_directory()
-                    && !entry.attributes.is_volume()
-                    && let Some(path) = entry_path(Some(folder), entry)
-                {
-                    f(&path);
-                }
-                ControlFlow::Continue(())
-            })?;
+            list_in(&root.open_dir(folder)?, Some(folder), None, f)?;
         }
         Ok(())
     }
 
-    fn read(&mut self, path: &str, buf: &mut [u8]) -> Result<usize, Self::Error> {
-        let volume = self.volumes.open_volume(VolumeIdx(0))?;
-        let root = volume.open_root_dir()?;
-        match path.split_once('/') {
-            None => read_in(&root, path, buf),
-            Some((_, rest)) if rest.contains('/') => Err(ReadError::TooDeep),
-            Some((folder, name)) => read_in(&root.open_dir(folder)?, name, buf),
+    fn read_at(&mut self, path: &str, offset: u32, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        self.in_folder(path, |dir, name| {
+            let file = dir.open_file_in_dir(name, Mode::ReadOnly)?;
+            if offset >= file.length() {
+                return Ok(0);
+            }
+            file.seek_from_start(offset)?;
+            let mut filled = 0;
+            while filled < buf.len() {
+                match file.read(&mut buf[filled..])? {
+                    0 => break,
+                    n => filled += n,
+                }
+            }
+            Ok(filled)
+        })
+    }
+
+    fn create(&mut self, path: &str) -> Result<(), Self::Error> {
+        self.in_folder(path, |dir, name| {
+            dir.open_file_in_dir(name, Mode::ReadWriteCreateOrTruncate)?
+                .close()?;
+            Ok(())
+        })
+    }
+
+    fn append(&mut self, path: &str, data: &[u8]) -> Result<(), Self::Error> {
+        self.in_folder(path, |dir, name| {
+            let file = dir.open_file_in_dir(name, Mode::ReadWriteAppend)?;
+            file.write(data)?;
+            file.close()?;
+            Ok(())
+        })
+    }
+
+    fn delete(&mut self, path: &str) -> Result<bool, Self::Error> {
+        match self.in_folder(path, |dir, name| Ok(dir.delete_entry_in_dir(name)?)) {
+            Ok(()) => Ok(true),
+            Err(ReadError::NotFound) => Ok(false),
+            Err(e) => Err(e),
         }
     }
 }

@@ -8,10 +8,11 @@
 //! run), the host build in virtual time (a wait runs the next timer event).
 //! Everything a user can observe is decided here, once, for both.
 
-use crate::console::{self, ErrorText, error_text};
+use crate::console;
 use crate::heaters::ThermalCommand;
-use crate::line::LineEvent;
 use crate::printer::{LineError, Printer};
+use crate::text::{ErrorText, error_text};
+use core::cell::RefCell;
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
@@ -50,6 +51,11 @@ pub const MAX_HEAT_WAIT: f64 = 1800.0;
 /// Time between temperature reports while waiting for a heater, s
 /// (Klipper's).
 pub const HEAT_REPORT_TIME: f64 = 1.0;
+/// Time between `echo:busy: processing` lines while a console line waits
+/// (homing, M400, a full step queue), s (Marlin's host keepalive).
+pub const BUSY_TIME: f64 = 2.0;
+/// Marlin's host keepalive line: the line is still running.
+pub const BUSY_LINE: &str = "echo:busy: processing";
 
 /// The MCU role as the session drives it: the stepper engine with its
 /// endstop check, and the heaters' io.
@@ -78,6 +84,9 @@ pub trait Mcu {
     fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
     /// Why the MCU role shut down, if it did.
     fn shutdown_reason(&mut self) -> Option<Shutdown>;
+    /// M112: every stepper stops and every heater goes off at once, and
+    /// the MCU role stays shut down ([`Shutdown::EmergencyStop`]).
+    fn emergency_stop(&mut self);
     /// A move was planned (toolhead, or extruder if `extruder`); for
     /// simulators that report the plan.
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
@@ -110,6 +119,8 @@ struct EngineLink {
     finest_step: f64,
     /// The start clock of the homing move whose endstop is watched.
     watching: Option<u64>,
+    /// When the running line next reports that it is busy (clock).
+    busy_at: u64,
 }
 
 impl EngineLink {
@@ -121,6 +132,7 @@ impl EngineLink {
             rails: (1 << rails) - 1,
             finest_step: f64::INFINITY,
             watching: None,
+            busy_at: u64::MAX,
         };
         for (i, stepper) in machine.steppers.iter().take(rails).enumerate() {
             link.endstops[i] = stepper.endstop_pin.is_some();
@@ -129,9 +141,46 @@ impl EngineLink {
         link
     }
 
-    /// The engine's step sink, through `mcu`.
-    fn steps<'m, M>(&'m mut self, mcu: &'m mut M) -> EngineSteps<'m, M> {
-        EngineSteps { mcu, link: self }
+    /// The engine's step sink, through `mcu`; busy lines go to `out`.
+    fn steps<'m, M>(&'m mut self, mcu: &'m mut M, out: &'m mut dyn Write) -> EngineSteps<'m, M> {
+        EngineSteps {
+            mcu,
+            link: self,
+            out,
+        }
+    }
+
+    /// A line starts at clock `now`: it reports busy from [`BUSY_TIME`]
+    /// on while it waits.
+    fn line_starts(&mut self, now: u64) {
+        self.busy_at = now + (BUSY_TIME * self.freq) as u64;
+    }
+
+    /// Writes the busy line to `out` if it is due at clock `now`.
+    fn keepalive(&mut self, now: u64, out: &mut dyn Write) {
+        if now >= self.busy_at {
+            let _ = writeln!(out, "{BUSY_LINE}");
+            self.busy_at = now + (BUSY_TIME * self.freq) as u64;
+        }
+    }
+}
+
+/// One writer shared by the planner's replies and the step sink's busy
+/// lines; each write borrows it only while it writes.
+struct SharedOut<'o, W>(&'o RefCell<&'o mut W>);
+
+impl<W: Write> Write for SharedOut<'_, W> {
+    fn write_str(&mut self, s: &str) -> fmt::Result {
+        self.0.borrow_mut().write_str(s)
+    }
+}
+
+/// A writer that drops what it is given (no console to keep alive).
+struct Discard;
+
+impl Write for Discard {
+    fn write_str(&mut self, _: &str) -> fmt::Result {
+        Ok(())
     }
 }
 
@@ -180,6 +229,8 @@ impl fmt::Display for SessionError<'_> {
 /// role, replies out. `L` moves of lookahead, motion queues of `N`
 /// segments, compressors of `Q` steps.
 pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
+    /// Step accuracy, ticks.
+    max_error: f64,
     printer: Printer<'a, L>,
     motion: Motion<N, Q>,
     engine: EngineLink,
@@ -227,6 +278,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 [0.0; 3],
             );
             addr_of_mut!((*p).engine).write(EngineLink::new(machine, freq));
+            addr_of_mut!((*p).max_error).write(max_error);
             addr_of_mut!((*p).timing).write(Timing::RealTime);
             addr_of_mut!((*p).planned).write(Planned::default());
             addr_of_mut!((*p).heat_wait).write(0.0);
@@ -239,19 +291,22 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         self.timing = timing;
     }
 
-    /// Answers one console or file event: the line runs, its replies and
-    /// then `ok` go to `out` (errors as `!! ` lines, as Klipper).
-    pub fn line(
-        &mut self,
-        event: &LineEvent<'_>,
-        mcu: &mut impl Mcu,
-        out: &mut impl Write,
-    ) -> fmt::Result {
-        console::answer(event, out, |text, out| self.run(text, mcu, out))
+    /// Starts afresh after a shutdown (FIRMWARE_RESTART, M999), as if just
+    /// built for `machine` at clock `start`: nothing planned or queued, at
+    /// rest at position 0, everything homed again before use.
+    pub fn restart(&mut self, machine: &Machine<'a>, start: u64) {
+        let (freq, max_error, timing) = (self.engine.freq, self.max_error, self.timing);
+        // SAFETY: a `MaybeUninit<Self>` has the layout of `Self`; the old
+        // value is overwritten without being dropped (nothing in it owns
+        // a resource), every field is written by `init_in`.
+        let slot = unsafe { &mut *(self as *mut Self).cast::<MaybeUninit<Self>>() };
+        Self::init_in(slot, machine, freq, max_error, start).set_timing(timing);
     }
 
-    /// Runs one line of G-code; replies other than `ok` go to `out`.
-    fn run(
+    /// Runs one line of G-code (without line number or checksum); replies
+    /// other than `ok` go to `out`, and while the line waits (homing, M400,
+    /// a full step queue) `echo:busy: processing` every [`BUSY_TIME`].
+    pub fn run(
         &mut self,
         text: &str,
         mcu: &mut impl Mcu,
@@ -260,9 +315,8 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if let Some(reason) = mcu.shutdown_reason() {
             return Err(error_text(&SessionError::Shutdown(reason)));
         }
-        if !self.engine.endstops.iter().all(|&e| e)
-            && console::command_word(text.as_bytes()).eq_ignore_ascii_case(b"G28")
-        {
+        let word = console::command_word(text.as_bytes());
+        if !self.engine.endstops.iter().all(|&e| e) && word.eq_ignore_ascii_case(b"G28") {
             return Err(error_text(&SessionError::NoEndstops));
         }
         if self.timing == Timing::RealTime && self.printer.is_idle() {
@@ -270,13 +324,32 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             let now = mcu.now() as f64 / self.engine.freq;
             self.printer.set_time_origin(now);
         }
-        let result = self.with_planning(mcu, |printer, planning| {
+        self.engine.line_starts(mcu.now());
+        let result = self.with_planning(mcu, out, |printer, planning, out| {
             printer
                 .execute(text, planning, out)
                 .map_err(|e| error_text(&SessionError::Command(e)))
         });
         let thermal = self.thermal(mcu, out);
+        if result.is_ok() && word.eq_ignore_ascii_case(b"M400") && self.timing == Timing::RealTime {
+            self.wait_moves_done(mcu, out);
+        }
         result.and(thermal)
+    }
+
+    /// M400: waits until every queued step has run.
+    fn wait_moves_done(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+        let mut steps = self.engine.steps(mcu, out);
+        self.motion.settle(&mut steps);
+        let end = (self.printer.print_time().max(0.0) * self.engine.freq) as u64;
+        loop {
+            let now = mcu.now();
+            if now >= end || mcu.shutdown_reason().is_some() {
+                return;
+            }
+            self.engine.keepalive(now, out);
+            mcu.wait(end);
+        }
     }
 
     /// Carries out the heater and fan commands of the line just run.
@@ -316,7 +389,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         }
         let freq = self.engine.freq;
         let clock = |t: f64| (t.max(0.0) * freq) as u64;
-        self.motion.settle(&mut self.engine.steps(mcu));
+        self.motion.settle(&mut self.engine.steps(mcu, out));
         let start = mcu.now();
         let report_every = clock(HEAT_REPORT_TIME);
         let deadline = start + clock(MAX_HEAT_WAIT);
@@ -343,24 +416,34 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// [`crate::printer::PRIMING_TIME`]: releases the moves still waiting
     /// for the lookahead to fill, and generates their steps.
     pub fn idle(&mut self, mcu: &mut impl Mcu) {
-        self.with_planning(mcu, |printer, planning| printer.priming_timeout(planning));
+        self.with_planning(mcu, &mut Discard, |printer, planning, _| {
+            printer.priming_timeout(planning)
+        });
     }
 
     /// The end of the input: every queued move is planned and its steps
     /// sent (after klippy's 0.5 s dwell).
     pub fn finish(&mut self, mcu: &mut impl Mcu) {
-        self.with_planning(mcu, |printer, planning| printer.finish(planning));
-        self.motion.finish(&mut self.engine.steps(mcu));
+        self.with_planning(mcu, &mut Discard, |printer, planning, _| {
+            printer.finish(planning)
+        });
+        self.motion
+            .finish(&mut self.engine.steps(mcu, &mut Discard));
     }
 
-    /// Runs `f` on the printer with the planning sink, then generates
-    /// steps as far as the plan is final; returns what `f` returned.
-    fn with_planning<M: Mcu, R>(
+    /// Runs `f` on the printer with the planning sink and `out`, then
+    /// generates steps as far as the plan is final (busy lines to `out`
+    /// while waiting); returns what `f` returned.
+    fn with_planning<M: Mcu, W: Write, R>(
         &mut self,
         mcu: &mut M,
-        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>) -> R,
+        out: &mut W,
+        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>, &mut SharedOut<'_, W>) -> R,
     ) -> R {
-        let mut steps = self.engine.steps(mcu);
+        // The step sink writes busy lines between the replies `f` writes.
+        let out = RefCell::new(out);
+        let mut sink_out = SharedOut(&out);
+        let mut steps = self.engine.steps(mcu, &mut sink_out);
         let result = f(
             &mut self.printer,
             &mut Planning {
@@ -368,6 +451,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 steps: &mut steps,
                 planned: &mut self.planned,
             },
+            &mut SharedOut(&out),
         );
         self.motion.generate(f64::INFINITY, &mut steps);
         result
@@ -434,6 +518,8 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
 struct EngineSteps<'m, M> {
     mcu: &'m mut M,
     link: &'m mut EngineLink,
+    /// Where busy lines go.
+    out: &'m mut dyn Write,
 }
 
 impl<M: Mcu> StepSink for EngineSteps<'_, M> {
@@ -443,6 +529,7 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 return;
             }
             // The engine makes room as its steps run.
+            self.link.keepalive(self.mcu.now(), self.out);
             self.mcu.wait(u64::MAX);
         }
     }
@@ -478,9 +565,11 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                     overshoot: [0; MAX_STEPPERS],
                 });
             }
-            if self.mcu.now() >= until_clock || self.mcu.shutdown_reason().is_some() {
+            let now = self.mcu.now();
+            if now >= until_clock || self.mcu.shutdown_reason().is_some() {
                 break;
             }
+            link.keepalive(now, self.out);
             self.mcu.wait(until_clock);
         }
         if until_clock >= (homing.end_time.max(0.0) * link.freq) as u64 {
@@ -489,56 +578,5 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             link.watching = None;
         }
         None
-    }
-}
-
-/// The console loop both builds run around a session: each line is
-/// answered through it, and when no line has arrived for
-/// [`crate::printer::PRIMING_TIME`] the moves still waiting in the
-/// lookahead are released (Klipper's priming timer).
-#[derive(Debug, Clone, Default)]
-pub struct Console {
-    /// The clock of the last line, until the priming timeout has run.
-    last_line: Option<u64>,
-}
-
-impl Console {
-    /// A console with no line yet.
-    pub const fn new() -> Self {
-        Self { last_line: None }
-    }
-
-    /// Answers `event` through `session`, or without a printer (no valid
-    /// printer.cfg) with `no_printer` as the error.
-    pub fn line<const L: usize, const N: usize, const Q: usize>(
-        &mut self,
-        session: Option<&mut Session<'_, L, N, Q>>,
-        no_printer: &ErrorText,
-        event: &LineEvent<'_>,
-        mcu: &mut impl Mcu,
-        out: &mut impl Write,
-    ) -> fmt::Result {
-        let answered = match session {
-            Some(session) => session.line(event, mcu, out),
-            None => console::answer(event, out, |_, _| Err(no_printer.clone())),
-        };
-        self.last_line = Some(mcu.now());
-        answered
-    }
-
-    /// To call whenever woken without a line: runs the priming timeout
-    /// once its time has come.
-    pub fn idle<const L: usize, const N: usize, const Q: usize>(
-        &mut self,
-        session: &mut Session<'_, L, N, Q>,
-        mcu: &mut impl Mcu,
-    ) {
-        let priming = (crate::printer::PRIMING_TIME * session.engine.freq) as u64;
-        if let Some(at) = self.last_line
-            && mcu.now().saturating_sub(at) >= priming
-        {
-            session.idle(mcu);
-            self.last_line = None;
-        }
     }
 }

@@ -4,9 +4,9 @@
 //! planner's types.
 
 use crate::config_files::ConfigFiles;
-use crate::console::cut_text;
 use crate::pin_check;
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
+use crate::text::cut_text;
 use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};

@@ -16,6 +16,16 @@ use onechip_sched::step_command::StepCommand;
 /// The board's MCU role.
 pub struct BoardMcu;
 
+/// M112: every stepper stops and every heater and fan output goes off at
+/// once. Called by thread code, and by the USB receive path the moment an
+/// `M112` arrives (both below the stepper and heater interrupts, whose
+/// state they reach with those interrupts masked).
+pub fn emergency_stop() {
+    let reason = Shutdown::EmergencyStop;
+    step_timer::stop(reason);
+    heater_io::shutdown(reason);
+}
+
 impl Mcu for BoardMcu {
     fn now(&mut self) -> u64 {
         step_timer::now64()
@@ -56,5 +66,9 @@ impl Mcu for BoardMcu {
 
     fn shutdown_reason(&mut self) -> Option<Shutdown> {
         step_timer::shutdown_reason()
+    }
+
+    fn emergency_stop(&mut self) {
+        emergency_stop();
     }
 }

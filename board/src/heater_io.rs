@@ -235,6 +235,12 @@ pub fn command(command: ThermalCommand) {
     });
 }
 
+/// Every heater and fan output off at once, for `reason` (M112); they stay
+/// off until the board restarts.
+pub fn shutdown(reason: onechip_sched::shutdown::Shutdown) {
+    with_io(|io| io.heaters.shutdown(reason, &mut io.hw));
+}
+
 /// True while heater `heater` is still reaching its target.
 pub fn busy(heater: usize) -> bool {
     with_io(|io| io.heaters.busy(heater) && io.heaters.shutdown_reason().is_none()).unwrap_or(false)

@@ -31,10 +31,12 @@ use embassy_stm32::interrupt::InterruptExt;
 use embassy_time::{Duration, Ticker};
 use octopus_pro_v1_1::Board;
 use onechip_app::config_files;
-use onechip_app::console::{ErrorText, error_text};
+use onechip_app::console::Console;
 use onechip_app::pin_check;
-use onechip_app::session::{BoardSession, Console, Mcu, profile};
+use onechip_app::sdcard::SdFiles;
+use onechip_app::session::{BoardSession, Mcu, profile};
 use onechip_app::setup::{Config, PrinterSetup};
+use onechip_app::text::{ErrorText, error_text};
 use static_cell::{ConstStaticCell, StaticCell};
 
 const _: () = assert!(
@@ -67,11 +69,25 @@ async fn main(_spawner: Spawner) -> ! {
     interrupt::SPI6.set_priority(priority::IO_EXECUTOR);
     let io: SendSpawner = IO.start(interrupt::SPI6);
     io.spawn(start_io(board.usb).expect("spawned once"));
-    let session = load_printer(board.sd, board.thermistors).await;
+    let mut card = open_card(board.sd).await;
+    let session = load_printer(&mut card, board.thermistors);
     if let Err(e) = &session {
         defmt::warn!("{}", e.as_str());
     }
-    serve(session)
+    serve(card.ok(), session)
+}
+
+/// The card in the slot, as the session reads and writes it.
+type BoardCard = SdFiles<sd_card::SdBlocks<'static, 'static>>;
+
+/// Opens the SD card, or says why there is none.
+async fn open_card(sd: octopus_pro_v1_1::SdPins) -> Result<BoardCard, ErrorText> {
+    static SDMMC: StaticCell<embassy_stm32::sdmmc::Sdmmc<'static>> = StaticCell::new();
+    let sdmmc = SDMMC.init(sd_card::controller(sd));
+    let blocks = sd_card::open(sdmmc)
+        .await
+        .map_err(|e| error_text(&format_args!("no SD card: {e}")))?;
+    Ok(SdFiles::new(blocks))
 }
 
 /// The I/O executor's first task: starts the watchdog's, USB's and the
@@ -91,18 +107,25 @@ async fn start_io(usb: octopus_pro_v1_1::UsbPins) {
     spawner.spawn(tick().expect("spawned once"));
 }
 
-/// Thread code: answers console lines through the session forever,
-/// asleep between them (the console's priming timeout looks at the clock
-/// whenever woken). Without a printer (no valid printer.cfg), every line
-/// is answered with the reason.
-fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
+/// Thread code: answers console lines through the session forever, and
+/// between them prints from the card (`auto0.g`, ... at boot, as Marlin);
+/// asleep whenever there is nothing to do (the console's timers look at
+/// the clock whenever woken). Without a printer (no valid printer.cfg),
+/// every command that needs one is answered with the reason; the card
+/// still lists and takes uploads (M20, M28), so a fixed printer.cfg can be
+/// sent and the board restarted with M999.
+fn serve(
+    mut card: Option<BoardCard>,
+    session: Result<&'static mut BoardSession<'static>, ErrorText>,
+) -> ! {
     let (mut session, no_printer) = match session {
         Ok(session) => (Some(session), ErrorText::new()),
         Err(e) => (None, e),
     };
     let mut mcu = board_mcu::BoardMcu;
     let mut out = usb_console::ConsoleOut;
-    let mut console = Console::new();
+    let mut console = Console::new(step_timer::TIMER_HZ);
+    console.autostart();
     loop {
         if let Some(incoming) = usb_console::try_line() {
             let event = incoming.event();
@@ -110,34 +133,48 @@ fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
                 session.as_deref_mut(),
                 &no_printer,
                 &event,
+                &mut card,
                 &mut mcu,
                 &mut out,
             );
+            if console.take_restart() {
+                restart();
+            }
             continue;
         }
-        if let Some(session) = session.as_deref_mut() {
-            console.idle(session, &mut mcu);
+        let _ = console.poll(session.as_deref_mut(), &mut card, &mut mcu, &mut out);
+        if !console.is_printing() {
+            mcu.wait(u64::MAX);
         }
-        mcu.wait(u64::MAX);
     }
 }
 
+/// FIRMWARE_RESTART, M999: a reset once the reply has had time to leave,
+/// which reads printer.cfg again (as Klipper's restart reloads it); the
+/// USB host sees the console reconnect.
+fn restart() -> ! {
+    let until = step_timer::now64() + (RESTART_DELAY * step_timer::TIMER_HZ) as u64;
+    while step_timer::now64() < until {
+        cortex_m::asm::wfe();
+    }
+    cortex_m::peripheral::SCB::sys_reset()
+}
+
+/// Time given to the last reply before a restart, s.
+const RESTART_DELAY: f64 = 0.05;
+
 /// Reads printer.cfg and its includes from the SD card, configures the
 /// pins it names and builds the session (in place, in a static).
-async fn load_printer(
-    sd: octopus_pro_v1_1::SdPins,
+fn load_printer(
+    card: &mut Result<BoardCard, ErrorText>,
     thermistors: octopus_pro_v1_1::ThermistorPins,
 ) -> Result<&'static mut BoardSession<'static>, ErrorText> {
     static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
     // Where printer.cfg is indexed while the machine is read from it.
     static SCRATCH: StaticCell<Config<'static>> = StaticCell::new();
-    let mut sdmmc = sd_card::controller(sd);
-    let card = sd_card::open(&mut sdmmc)
-        .await
-        .map_err(|e| error_text(&format_args!("no SD card: {e}")))?;
-    let mut files = onechip_app::sdcard::SdFiles::new(card);
-    let texts = config_files::load(&mut files, TEXT.take()).map_err(|e| error_text(&e))?;
+    let files = card.as_mut().map_err(|e| e.clone())?;
+    let texts = config_files::load(files, TEXT.take()).map_err(|e| error_text(&e))?;
     let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
         .map_err(|e| error_text(&e))?;
     for section in setup.unsupported() {

@@ -2,12 +2,11 @@
 //! [`onechip_app::sdcard`] code as an embedded-sdmmc [`BlockDevice`].
 //!
 //! embassy's SDMMC driver is async and embedded-sdmmc is blocking, so
-//! [`SdBlocks`] completes each block transfer with `block_on`. That is only
-//! used outside time-critical paths (printer.cfg at boot); the stepper
-//! interrupt preempts it as it preempts everything.
+//! [`SdBlocks`] completes each block transfer in thread code, asleep
+//! (`wfe`) until the SDMMC interrupt that ends it; the stepper interrupt
+//! preempts it as it preempts everything.
 
 use core::cell::RefCell;
-use embassy_futures::block_on;
 use embassy_stm32::sdmmc::sd::{Card, CmdBlock, DataBlock, StorageDevice};
 use embassy_stm32::sdmmc::{self, Sdmmc};
 use embassy_stm32::time::Hertz;
@@ -51,22 +50,33 @@ pub async fn open<'a, 'b>(sdmmc: &'a mut Sdmmc<'b>) -> Result<SdBlocks<'a, 'b>, 
 pub enum SdmmcError {
     /// The controller or the card reported an error.
     Card(sdmmc::Error),
-    /// A write was attempted; the card is mounted read-only.
-    ReadOnly,
 }
 
 impl core::fmt::Display for SdmmcError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
             Self::Card(e) => write!(f, "SDMMC: {e:?}"),
-            Self::ReadOnly => f.write_str("SDMMC: card is mounted read-only"),
         }
+    }
+}
+
+/// Runs `transfer` to its end, asleep (`wfe`) between polls: the SDMMC
+/// interrupt that moves it on wakes the core, as does every other
+/// interrupt (the 10 ms tick at the latest).
+fn finish<F: core::future::Future>(transfer: F) -> F::Output {
+    let mut transfer = core::pin::pin!(transfer);
+    let mut cx = core::task::Context::from_waker(core::task::Waker::noop());
+    loop {
+        if let core::task::Poll::Ready(done) = transfer.as_mut().poll(&mut cx) {
+            return done;
+        }
+        cortex_m::asm::wfe();
     }
 }
 
 impl core::error::Error for SdmmcError {}
 
-/// An identified card, read block by block. Read-only for now: writes fail.
+/// An identified card, read and written block by block.
 pub struct SdBlocks<'a, 'b>(RefCell<StorageDevice<'a, 'b, Card>>);
 
 impl BlockDevice for SdBlocks<'_, '_> {
@@ -76,14 +86,20 @@ impl BlockDevice for SdBlocks<'_, '_> {
         let mut card = self.0.borrow_mut();
         let mut buffer = DataBlock::new();
         for (idx, block) in (start.0..).zip(blocks.iter_mut()) {
-            block_on(card.read_block(idx, &mut buffer)).map_err(SdmmcError::Card)?;
+            finish(card.read_block(idx, &mut buffer)).map_err(SdmmcError::Card)?;
             block.contents.copy_from_slice(&buffer[..]);
         }
         Ok(())
     }
 
-    fn write(&self, _blocks: &[Block], _start: BlockIdx) -> Result<(), SdmmcError> {
-        Err(SdmmcError::ReadOnly)
+    fn write(&self, blocks: &[Block], start: BlockIdx) -> Result<(), SdmmcError> {
+        let mut card = self.0.borrow_mut();
+        let mut buffer = DataBlock::new();
+        for (idx, block) in (start.0..).zip(blocks.iter()) {
+            buffer.copy_from_slice(&block.contents);
+            finish(card.write_block(idx, &buffer)).map_err(SdmmcError::Card)?;
+        }
+        Ok(())
     }
 
     fn num_blocks(&self) -> Result<BlockCount, SdmmcError> {

@@ -15,6 +15,7 @@ use embassy_sync::channel::Channel;
 use embassy_sync::pipe::Pipe;
 use embassy_usb::class::cdc_acm::{CdcAcmClass, Receiver, Sender, State};
 use embassy_usb::{Builder, UsbDevice};
+use onechip_app::emergency::EmergencyParser;
 use onechip_app::line::{LineAssembler, LineEvent};
 use onechip_app::session::profile::MAX_LINE;
 use static_cell::StaticCell;
@@ -138,12 +139,17 @@ pub async fn device(mut device: UsbDevice<'static, UsbDriver>) -> ! {
 #[embassy_executor::task]
 pub async fn reader(mut rx: Receiver<'static, UsbDriver>) -> ! {
     let mut lines = LineAssembler::<MAX_LINE>::new();
+    let mut emergency = EmergencyParser::new();
     let mut packet = [0u8; PACKET];
     loop {
         rx.wait_connection().await;
         defmt::info!("usb console connected");
         while let Ok(n) = rx.read_packet(&mut packet).await {
             for &byte in &packet[..n] {
+                if emergency.push(byte) {
+                    // Now, not when the line's turn comes.
+                    crate::board_mcu::emergency_stop();
+                }
                 let incoming = match lines.push(byte) {
                     Some(LineEvent::Complete(bytes)) => Incoming {
                         // Fits: the assembler holds at most MAX_LINE bytes.

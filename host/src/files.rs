@@ -1,7 +1,10 @@
-//! A host folder playing the SD card, for the session's config loading
-//! ([`onechip_app::config_files::Files`]).
+//! A host folder playing the SD card: for the session's config loading
+//! ([`onechip_app::config_files::Files`]) and for printing from the card
+//! ([`onechip_app::card::Card`]: M20 lists it, M28 writes into it).
 
+use onechip_app::card::{Card, Entry};
 use onechip_app::config_files::Files;
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 /// Bytes of config text (printer.cfg and its includes, with their names)
@@ -21,6 +24,60 @@ impl Folder {
     pub fn new(root: &Path) -> Self {
         Self {
             root: root.to_path_buf(),
+        }
+    }
+
+    /// The host path of card path `path`; refuses paths that leave the
+    /// folder (`..`, absolute paths).
+    fn host_path(&self, path: &str) -> std::io::Result<PathBuf> {
+        let inside = Path::new(path)
+            .components()
+            .all(|c| matches!(c, std::path::Component::Normal(_)));
+        if !inside || path.is_empty() {
+            return Err(std::io::Error::other(format!(
+                "{path}: not a path on the card"
+            )));
+        }
+        Ok(self.root.join(path))
+    }
+}
+
+impl Card for Folder {
+    fn each_entry(&mut self, f: &mut dyn FnMut(&Entry<'_>)) -> Result<(), Self::Error> {
+        let root = self.root.clone();
+        self.each_file(&mut |path| {
+            let size = std::fs::metadata(root.join(path)).map_or(0, |m| m.len());
+            let long_name = path.rsplit('/').next().unwrap_or(path);
+            f(&Entry {
+                path,
+                size: u32::try_from(size).unwrap_or(u32::MAX),
+                long_name,
+            });
+        })
+    }
+
+    fn read_at(&mut self, path: &str, offset: u32, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let mut file = std::fs::File::open(self.host_path(path)?)?;
+        file.seek(SeekFrom::Start(u64::from(offset)))?;
+        file.read(buf)
+    }
+
+    fn create(&mut self, path: &str) -> Result<(), Self::Error> {
+        std::fs::File::create(self.host_path(path)?).map(drop)
+    }
+
+    fn append(&mut self, path: &str, data: &[u8]) -> Result<(), Self::Error> {
+        let mut file = std::fs::OpenOptions::new()
+            .append(true)
+            .open(self.host_path(path)?)?;
+        file.write_all(data)
+    }
+
+    fn delete(&mut self, path: &str) -> Result<bool, Self::Error> {
+        match std::fs::remove_file(self.host_path(path)?) {
+            Ok(()) => Ok(true),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(e),
         }
     }
 }

@@ -14,10 +14,11 @@ pub mod plot;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
-use onechip_app::console::ErrorText;
+use onechip_app::console::Console;
 use onechip_app::line::LineAssembler;
-use onechip_app::session::{Console, Session, Timing, profile};
+use onechip_app::session::{Session, Timing, profile};
 use onechip_app::setup::PrinterSetup;
+use onechip_app::text::ErrorText;
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::outputs::Drive;
@@ -407,7 +408,8 @@ pub fn run_replaying<const L: usize>(
         heat_wait: 0.0,
     };
     let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
-    let mut console = Console::new();
+    let mut console = Console::new(freq);
+    let mut card = files::Folder::new(sd);
     let mut progress = Progress::new(program.len());
     for (at, &byte) in program.iter().chain(b"\n").enumerate() {
         let mut ran = false;
@@ -423,15 +425,22 @@ pub fn run_replaying<const L: usize>(
                 Some(&mut session),
                 &ErrorText::new(),
                 &event,
+                &mut card,
                 &mut mcu,
                 &mut reply,
             );
+            if console.take_restart() {
+                mcu.restart(machine, freq);
+                session.restart(machine, mcu.now());
+            }
             summary.note_reply(&reply);
             ran = true;
         }
         if options.console && (at + 1) % USB_PACKET == 0 {
             // The end of a USB packet: the console looks at the clock.
-            console.idle(&mut session, &mut mcu);
+            let mut reply = String::new();
+            let _ = console.poll(Some(&mut session), &mut card, &mut mcu, &mut reply);
+            summary.note_reply(&reply);
             ran = true;
         }
         if let Some(replay) = replay.as_deref_mut() {
@@ -530,10 +539,14 @@ pub fn run_replaying<const L: usize>(
 
 impl Summary {
     /// Files the console's answer to the last line: `!!` lines as errors,
-    /// temperature reports apart, other text as replies, `ok` dropped.
+    /// temperature reports apart (M105's on its `ok` line), other text as
+    /// replies, `ok` and busy lines dropped (the transcript has them).
     fn note_reply(&mut self, reply: &str) {
         self.transcript.push_str(reply);
-        for line in reply.lines().filter(|l| *l != "ok") {
+        let keepalive = |l: &&str| *l == "ok" || *l == onechip_app::session::BUSY_LINE;
+        for line in reply.lines().filter(|l| !keepalive(l)) {
+            // M105's temperatures come on its `ok` line.
+            let line = line.strip_prefix("ok ").unwrap_or(line);
             let entry = |text: &str| (self.lines, text.to_string());
             if let Some(error) = line.strip_prefix("!! ") {
                 self.errors.push(entry(error));

@@ -178,6 +178,18 @@ impl VirtualMcu {
         self
     }
 
+    /// Leaves a shutdown (FIRMWARE_RESTART): the engine idle and
+    /// unfaulted, the heaters and fan rebuilt for `machine` (their physics
+    /// from ambient again) if they were simulated.
+    pub fn restart(&mut self, machine: &Machine<'_>, freq: f64) {
+        self.engine.restart();
+        self.pushed = true;
+        if self.thermal.take().is_some() {
+            let mcu = std::mem::replace(self, Self::new(0, 0));
+            *self = mcu.with_heaters(machine, freq);
+        }
+    }
+
     /// The heaters and fan with their physics, if simulated.
     pub fn thermal(&mut self) -> Option<(&Heaters, &mut Plant)> {
         let now = self.now;
@@ -407,6 +419,17 @@ impl Mcu for VirtualMcu {
 
     fn shutdown_reason(&mut self) -> Option<Shutdown> {
         self.shutdown()
+    }
+
+    fn emergency_stop(&mut self) {
+        let reason = Shutdown::EmergencyStop;
+        self.engine.stop(reason);
+        let now = self.now;
+        if let Some((heaters, plant)) = &mut self.thermal {
+            plant.now = now;
+            heaters.shutdown(reason, plant);
+        }
+        self.update_io_wake();
     }
 
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {

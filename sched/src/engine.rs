@@ -455,6 +455,19 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         self.halt();
     }
 
+    /// Leaves a shutdown (FIRMWARE_RESTART): every stepper idle with no
+    /// command, no endstop watched, no fault; the clock runs on, and the
+    /// next commands start from a step clock reset as after start-up.
+    pub fn restart(&mut self) {
+        self.stop_watching();
+        for i in 0..S {
+            self.stop_stepper(i);
+            self.slots[i].stepper = Stepper::new();
+        }
+        self.trigger = None;
+        self.shutdown = None;
+    }
+
     /// Stops every stepper at once and drops their commands, and those
     /// that come until each one's step clock is reset, without a fault (an
     /// endstop ended a homing move).

@@ -23,6 +23,8 @@ pub enum Shutdown {
     /// A PWM output stayed away from its default past max_duration
     /// without a refresh.
     PwmExpired,
+    /// The host asked for an emergency stop (M112).
+    EmergencyStop,
 }
 
 impl Shutdown {
@@ -35,6 +37,7 @@ impl Shutdown {
             Self::AdcOutOfRange => "ADC out of range",
             Self::DigitalOutExpired => "Missed scheduling of next digital out event",
             Self::PwmExpired => "Missed scheduling of next hard pwm event",
+            Self::EmergencyStop => "Shutdown due to M112 command",
         }
     }
 }
