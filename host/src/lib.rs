@@ -11,6 +11,7 @@
 
 pub mod files;
 pub mod plot;
+pub mod step_log;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
@@ -22,7 +23,7 @@ use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::outputs::Drive;
 use std::fmt;
-use std::io::Write as _;
+use std::io::{BufReader, Read as _};
 use std::path::{Path, PathBuf};
 use virtual_mcu::{Physics, VirtualMcu};
 
@@ -281,7 +282,7 @@ impl fmt::Display for Summary {
 /// Why the host build could not run.
 #[derive(Debug)]
 pub enum SimError {
-    /// A file could not be read.
+    /// A file could not be read (or a steps file written).
     Read(PathBuf, std::io::Error),
     /// printer.cfg is invalid (the message names file, line and option).
     Config(String),
@@ -352,7 +353,7 @@ pub fn run_replaying<const L: usize>(
         Some(path) => path.to_path_buf(),
         None => only_gcode_file(sd)?,
     };
-    let program = read(&gcode_path)?;
+    let (program, program_len) = open(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
     let mut session = Box::new(HostSession::<L>::new(
@@ -370,10 +371,15 @@ pub fn run_replaying<const L: usize>(
         mcu = mcu.with_physics(physics);
     }
     if let Some((_, w)) = &options.plot {
-        mcu = mcu.with_plan(plot::Window {
+        let window = plot::Window {
             from: w.from + origin,
             to: w.to + origin,
-        });
+        };
+        mcu = mcu.with_plot(window, freq);
+    }
+    if let Some(dir) = &options.steps_dir {
+        let names = machine.steppers.iter().map(|s| s.name);
+        mcu = mcu.with_step_files(dir, names).map_err(write_error)?;
     }
     if let (Some((t, heater)), Some((_, plant))) = (options.open_sensor, mcu.thermal()) {
         plant.open_sensor = Some((clock_at(t + origin, freq), heater));
@@ -408,8 +414,9 @@ pub fn run_replaying<const L: usize>(
     };
     let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
     let mut console = Console::new();
-    let mut progress = Progress::new(program.len());
-    for (at, &byte) in program.iter().chain(b"\n").enumerate() {
+    let mut progress = Progress::new(program_len);
+    for (at, byte) in program.enumerate() {
+        let byte = byte.map_err(|e| SimError::Read(summary.gcode_path.clone(), e))?;
         let mut ran = false;
         if let Some(event) = assembler.push(byte) {
             progress.note(at, session.printer().print_time() - origin);
@@ -487,17 +494,15 @@ pub fn run_replaying<const L: usize>(
         .iter()
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
+    mcu.flush_steps().map_err(write_error)?;
     for (stepper, log) in machine.steppers.iter().zip(mcu.logs()) {
         summary.steppers.push(StepperSummary {
             name: stepper.name.to_string(),
-            steps: log.steps.len(),
+            steps: log.count,
             position: log.position,
             peak_rate: log.min_interval.map_or(0.0, |i| freq / i as f64),
-            last_step: log.steps.last().map(|s| s.0),
+            last_step: log.last,
         });
-        if let Some(dir) = &options.steps_dir {
-            write_steps(dir, stepper.name, &log.steps)?;
-        }
     }
     if let Some((path, window)) = &options.plot {
         // Plotted in print time from the start of the print.
@@ -507,9 +512,9 @@ pub fn run_replaying<const L: usize>(
             .zip(mcu.logs())
             .map(|(st, log)| {
                 let times = log
-                    .steps
+                    .window_steps()
                     .iter()
-                    .map(|s| s.0 as f64 / freq - origin)
+                    .map(|&clock| clock as f64 / freq - origin)
                     .collect();
                 (st.name, times)
             })
@@ -631,21 +636,21 @@ fn stopped<const L: usize>(
     summary.shutdown.is_some()
 }
 
-/// Writes `steps-<name>.txt` into `dir`: one `<clock> <dir>` line per step.
-fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), SimError> {
-    let path = dir.join(format!("steps-{name}.txt"));
-    let io = |e| SimError::Read(path.clone(), e);
-    std::fs::create_dir_all(dir).map_err(io)?;
-    let file = std::fs::File::create(&path).map_err(io)?;
-    let mut out = std::io::BufWriter::new(file);
-    for &(clock, positive) in steps {
-        writeln!(out, "{clock} {}", u8::from(positive)).map_err(io)?;
-    }
-    out.flush().map_err(io)
+/// A steps file that could not be written.
+fn write_error((path, e): step_log::FileError) -> SimError {
+    SimError::Read(path, e)
 }
 
-fn read(path: &Path) -> Result<Vec<u8>, SimError> {
-    std::fs::read(path).map_err(|e| SimError::Read(path.to_path_buf(), e))
+/// The G-code file's bytes as they are read, then a newline to end its
+/// last line; and its length, bytes.
+fn open(
+    path: &Path,
+) -> Result<(impl Iterator<Item = std::io::Result<u8>> + use<>, usize), SimError> {
+    let error = |e| SimError::Read(path.to_path_buf(), e);
+    let file = std::fs::File::open(path).map_err(error)?;
+    let len = file.metadata().map_err(error)?.len();
+    let bytes = BufReader::new(file).bytes().chain([Ok(b'\n')]);
+    Ok((bytes, usize::try_from(len).unwrap_or(usize::MAX)))
 }
 
 fn only_gcode_file(sd: &Path) -> Result<PathBuf, SimError> {
