@@ -127,6 +127,10 @@ pub struct HeaterSummary {
     pub on_at_end: bool,
 }
 
+/// Bytes of console output a [`Summary`] keeps as its transcript (a
+/// print's `ok`s would grow it by 3 bytes a line).
+pub const TRANSCRIPT_MAX: usize = 64 * 1024;
+
 /// What a run of the host build did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
@@ -160,8 +164,11 @@ pub struct Summary {
     pub temperatures: Vec<(usize, String)>,
     /// Errors (`!!` replies), by line number.
     pub errors: Vec<(usize, String)>,
-    /// Everything the console printed, `ok`s included.
+    /// Everything the console printed, `ok`s included, up to
+    /// [`TRANSCRIPT_MAX`] bytes: the answers to the lines up to there.
     pub transcript: String,
+    /// Bytes of console output past the transcript's end, not kept.
+    pub transcript_dropped: usize,
     /// Every stepper's steps.
     pub steppers: Vec<StepperSummary>,
     /// The MCU role's shutdown message, if it shut down.
@@ -403,6 +410,7 @@ pub fn run_replaying<const L: usize>(
         temperatures: Vec::new(),
         errors: Vec::new(),
         transcript: String::new(),
+        transcript_dropped: 0,
         steppers: Vec::new(),
         shutdown: None,
         mcu_freq: freq,
@@ -537,7 +545,11 @@ impl Summary {
     /// Files the console's answer to the last line: `!!` lines as errors,
     /// temperature reports apart, other text as replies, `ok` dropped.
     fn note_reply(&mut self, reply: &str) {
-        self.transcript.push_str(reply);
+        if self.transcript_dropped == 0 && self.transcript.len() + reply.len() <= TRANSCRIPT_MAX {
+            self.transcript.push_str(reply);
+        } else {
+            self.transcript_dropped += reply.len();
+        }
         for line in reply.lines().filter(|l| *l != "ok") {
             let entry = |text: &str| (self.lines, text.to_string());
             if let Some(error) = line.strip_prefix("!! ") {
@@ -666,5 +678,29 @@ fn only_gcode_file(sd: &Path) -> Result<PathBuf, SimError> {
     match found.len() {
         1 => Ok(found.remove(0)),
         _ => Err(SimError::NoGcode(sd.to_path_buf())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_transcript_keeps_the_answers_up_to_its_cap() {
+        let dir = std::env::temp_dir().join(format!("onechip-transcript-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let shipped =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
+        std::fs::copy(shipped.join("printer.cfg"), dir.join("printer.cfg")).expect("cfg");
+        // About 40 bytes of answer a line, for twice the cap.
+        let lines = 2 * TRANSCRIPT_MAX / 40;
+        std::fs::write(dir.join("long.gcode"), "M114\n".repeat(lines)).expect("gcode");
+        let s = run(&dir, None).expect("runs");
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(s.replies.len(), lines);
+        let answer = "X:0.000 Y:0.000 Z:0.000 E:0.000\nok\n";
+        let kept = TRANSCRIPT_MAX / answer.len();
+        assert_eq!(s.transcript, answer.repeat(kept));
+        assert_eq!(s.transcript_dropped, (lines - kept) * answer.len());
     }
 }
