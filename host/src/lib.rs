@@ -48,7 +48,7 @@ pub struct Options {
     /// The G-code file; by default the SD folder's only `*.gcode`.
     pub gcode: Option<PathBuf>,
     /// If set, every stepper's steps are written there as
-    /// `steps-<stepper>.txt` (`<clock> <dir>` lines).
+    /// `steps-<stepper>.txt` (`<clock> <dir>` lines), as they are made.
     pub steps_dir: Option<PathBuf>,
     /// MCU clock frequency, Hz.
     pub mcu_freq: f64,
@@ -692,13 +692,13 @@ mod tests {
         let shipped =
             Path::new(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
         std::fs::copy(shipped.join("printer.cfg"), dir.join("printer.cfg")).expect("cfg");
-        // About 40 bytes of answer a line, for twice the cap.
-        let lines = 2 * TRANSCRIPT_MAX / 40;
+        let answer = "X:0.000 Y:0.000 Z:0.000 E:0.000\nok\n";
+        // Answers for twice the cap.
+        let lines = 2 * TRANSCRIPT_MAX / answer.len();
         std::fs::write(dir.join("long.gcode"), "M114\n".repeat(lines)).expect("gcode");
         let s = run(&dir, None).expect("runs");
         std::fs::remove_dir_all(&dir).ok();
         assert_eq!(s.replies.len(), lines);
-        let answer = "X:0.000 Y:0.000 Z:0.000 E:0.000\nok\n";
         let kept = TRANSCRIPT_MAX / answer.len();
         assert_eq!(s.transcript, answer.repeat(kept));
         assert_eq!(s.transcript_dropped, (lines - kept) * answer.len());
