@@ -11,6 +11,7 @@
 
 pub mod files;
 pub mod plot;
+pub mod step_log;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
@@ -23,7 +24,7 @@ use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::outputs::Drive;
 use std::fmt;
-use std::io::Write as _;
+use std::io::{BufReader, Read as _};
 use std::path::{Path, PathBuf};
 use virtual_mcu::{Physics, VirtualMcu};
 
@@ -48,7 +49,7 @@ pub struct Options {
     /// The G-code file; by default the SD folder's only `*.gcode`.
     pub gcode: Option<PathBuf>,
     /// If set, every stepper's steps are written there as
-    /// `steps-<stepper>.txt` (`<clock> <dir>` lines).
+    /// `steps-<stepper>.txt` (`<clock> <dir>` lines), as they are made.
     pub steps_dir: Option<PathBuf>,
     /// MCU clock frequency, Hz.
     pub mcu_freq: f64,
@@ -127,6 +128,10 @@ pub struct HeaterSummary {
     pub on_at_end: bool,
 }
 
+/// Bytes of console output a [`Summary`] keeps as its transcript (a
+/// print's `ok`s would grow it by 3 bytes a line).
+pub const TRANSCRIPT_MAX: usize = 64 * 1024;
+
 /// What a run of the host build did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
@@ -160,8 +165,11 @@ pub struct Summary {
     pub temperatures: Vec<(usize, String)>,
     /// Errors (`!!` replies), by line number.
     pub errors: Vec<(usize, String)>,
-    /// Everything the console printed, `ok`s included.
+    /// Everything the console printed, `ok`s included, up to
+    /// [`TRANSCRIPT_MAX`] bytes: the answers to the lines up to there.
     pub transcript: String,
+    /// Bytes of console output past the transcript's end, not kept.
+    pub transcript_dropped: usize,
     /// Every stepper's steps.
     pub steppers: Vec<StepperSummary>,
     /// The MCU role's shutdown message, if it shut down.
@@ -282,7 +290,7 @@ impl fmt::Display for Summary {
 /// Why the host build could not run.
 #[derive(Debug)]
 pub enum SimError {
-    /// A file could not be read.
+    /// A file could not be read (or a steps file written).
     Read(PathBuf, std::io::Error),
     /// printer.cfg is invalid (the message names file, line and option).
     Config(String),
@@ -353,7 +361,7 @@ pub fn run_replaying<const L: usize>(
         Some(path) => path.to_path_buf(),
         None => only_gcode_file(sd)?,
     };
-    let program = read(&gcode_path)?;
+    let (program, program_len) = open(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
     let mut session = Box::new(HostSession::<L>::new(
@@ -371,10 +379,15 @@ pub fn run_replaying<const L: usize>(
         mcu = mcu.with_physics(physics);
     }
     if let Some((_, w)) = &options.plot {
-        mcu = mcu.with_plan(plot::Window {
+        let window = plot::Window {
             from: w.from + origin,
             to: w.to + origin,
-        });
+        };
+        mcu = mcu.with_plot(window, freq);
+    }
+    if let Some(dir) = &options.steps_dir {
+        let names = machine.steppers.iter().map(|s| s.name);
+        mcu = mcu.with_step_files(dir, names).map_err(write_error)?;
     }
     if let (Some((t, heater)), Some((_, plant))) = (options.open_sensor, mcu.thermal()) {
         plant.open_sensor = Some((clock_at(t + origin, freq), heater));
@@ -398,6 +411,7 @@ pub fn run_replaying<const L: usize>(
         temperatures: Vec::new(),
         errors: Vec::new(),
         transcript: String::new(),
+        transcript_dropped: 0,
         steppers: Vec::new(),
         shutdown: None,
         mcu_freq: freq,
@@ -410,8 +424,9 @@ pub fn run_replaying<const L: usize>(
     let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
     let mut console = Console::new(freq);
     let mut card = files::Folder::new(sd);
-    let mut progress = Progress::new(program.len());
-    for (at, &byte) in program.iter().chain(b"\n").enumerate() {
+    let mut progress = Progress::new(program_len);
+    for (at, byte) in program.enumerate() {
+        let byte = byte.map_err(|e| SimError::Read(summary.gcode_path.clone(), e))?;
         let mut ran = false;
         if let Some(event) = assembler.push(byte) {
             progress.note(at, session.printer().print_time() - origin);
@@ -496,17 +511,15 @@ pub fn run_replaying<const L: usize>(
         .iter()
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
+    mcu.flush_steps().map_err(write_error)?;
     for (stepper, log) in machine.steppers.iter().zip(mcu.logs()) {
         summary.steppers.push(StepperSummary {
             name: stepper.name.to_string(),
-            steps: log.steps.len(),
+            steps: log.count,
             position: log.position,
             peak_rate: log.min_interval.map_or(0.0, |i| freq / i as f64),
-            last_step: log.steps.last().map(|s| s.0),
+            last_step: log.last,
         });
-        if let Some(dir) = &options.steps_dir {
-            write_steps(dir, stepper.name, &log.steps)?;
-        }
     }
     if let Some((path, window)) = &options.plot {
         // Plotted in print time from the start of the print.
@@ -516,9 +529,9 @@ pub fn run_replaying<const L: usize>(
             .zip(mcu.logs())
             .map(|(st, log)| {
                 let times = log
-                    .steps
+                    .window_steps()
                     .iter()
-                    .map(|s| s.0 as f64 / freq - origin)
+                    .map(|&clock| clock as f64 / freq - origin)
                     .collect();
                 (st.name, times)
             })
@@ -542,7 +555,11 @@ impl Summary {
     /// temperature reports apart (M105's on its `ok` line), other text as
     /// replies, `ok` and busy lines dropped (the transcript has them).
     fn note_reply(&mut self, reply: &str) {
-        self.transcript.push_str(reply);
+        if self.transcript_dropped == 0 && self.transcript.len() + reply.len() <= TRANSCRIPT_MAX {
+            self.transcript.push_str(reply);
+        } else {
+            self.transcript_dropped += reply.len();
+        }
         let keepalive = |l: &&str| *l == "ok" || *l == onechip_app::session::BUSY_LINE;
         for line in reply.lines().filter(|l| !keepalive(l)) {
             // M105's temperatures come on its `ok` line.
@@ -644,21 +661,21 @@ fn stopped<const L: usize>(
     summary.shutdown.is_some()
 }
 
-/// Writes `steps-<name>.txt` into `dir`: one `<clock> <dir>` line per step.
-fn write_steps(dir: &Path, name: &str, steps: &[(u64, bool)]) -> Result<(), SimError> {
-    let path = dir.join(format!("steps-{name}.txt"));
-    let io = |e| SimError::Read(path.clone(), e);
-    std::fs::create_dir_all(dir).map_err(io)?;
-    let file = std::fs::File::create(&path).map_err(io)?;
-    let mut out = std::io::BufWriter::new(file);
-    for &(clock, positive) in steps {
-        writeln!(out, "{clock} {}", u8::from(positive)).map_err(io)?;
-    }
-    out.flush().map_err(io)
+/// A steps file that could not be written.
+fn write_error((path, e): step_log::FileError) -> SimError {
+    SimError::Read(path, e)
 }
 
-fn read(path: &Path) -> Result<Vec<u8>, SimError> {
-    std::fs::read(path).map_err(|e| SimError::Read(path.to_path_buf(), e))
+/// The G-code file's bytes as they are read, then a newline to end its
+/// last line; and its length, bytes.
+fn open(
+    path: &Path,
+) -> Result<(impl Iterator<Item = std::io::Result<u8>> + use<>, usize), SimError> {
+    let error = |e| SimError::Read(path.to_path_buf(), e);
+    let file = std::fs::File::open(path).map_err(error)?;
+    let len = file.metadata().map_err(error)?.len();
+    let bytes = BufReader::new(file).bytes().chain([Ok(b'\n')]);
+    Ok((bytes, usize::try_from(len).unwrap_or(usize::MAX)))
 }
 
 fn only_gcode_file(sd: &Path) -> Result<PathBuf, SimError> {
@@ -674,5 +691,29 @@ fn only_gcode_file(sd: &Path) -> Result<PathBuf, SimError> {
     match found.len() {
         1 => Ok(found.remove(0)),
         _ => Err(SimError::NoGcode(sd.to_path_buf())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_transcript_keeps_the_answers_up_to_its_cap() {
+        let dir = std::env::temp_dir().join(format!("onechip-transcript-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let shipped =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
+        std::fs::copy(shipped.join("printer.cfg"), dir.join("printer.cfg")).expect("cfg");
+        let answer = "X:0.000 Y:0.000 Z:0.000 E:0.000\nok\n";
+        // Answers for twice the cap.
+        let lines = 2 * TRANSCRIPT_MAX / answer.len();
+        std::fs::write(dir.join("long.gcode"), "M114\n".repeat(lines)).expect("gcode");
+        let s = run(&dir, None).expect("runs");
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(s.replies.len(), lines);
+        let kept = TRANSCRIPT_MAX / answer.len();
+        assert_eq!(s.transcript, answer.repeat(kept));
+        assert_eq!(s.transcript_dropped, (lines - kept) * answer.len());
     }
 }

@@ -9,6 +9,8 @@
 //! ([`Plant`]); a fault of either shuts both down. It is the session's
 //! [`Mcu`]: a wait runs the next timer event.
 
+use crate::plot::Window;
+use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
 use onechip_app::session::Mcu;
@@ -22,6 +24,7 @@ use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 use onechip_sched::stepper::StepPins;
 use std::cell::Cell;
+use std::path::Path;
 use std::rc::Rc;
 
 /// Moves each virtual stepper's queue holds, and commands its outbox holds.
@@ -71,17 +74,6 @@ impl Rails {
     }
 }
 
-/// The steps one stepper made.
-#[derive(Debug, Clone, Default)]
-pub struct StepLog {
-    /// Every step: 64-bit MCU clock and direction (true: positive).
-    pub steps: Vec<(u64, bool)>,
-    /// Position in steps (+1 per positive step).
-    pub position: i64,
-    /// Shortest time between two steps, ticks.
-    pub min_interval: Option<u64>,
-}
-
 /// A stepper's pins, recording each step at the clock the engine runs at;
 /// a motion stepper's also read its rail's simulated endstop.
 #[derive(Debug, Default)]
@@ -99,12 +91,7 @@ impl StepPins for Recorder {
     }
 
     fn step(&mut self) {
-        if let Some(&(last, _)) = self.log.steps.last() {
-            let gap = self.clock - last;
-            self.log.min_interval = Some(self.log.min_interval.map_or(gap, |m| m.min(gap)));
-        }
-        self.log.steps.push((self.clock, self.dir));
-        self.log.position += if self.dir { 1 } else { -1 };
+        self.log.record(self.clock, self.dir);
         if let Some((k, rails)) = &self.rail {
             let mut steps = rails.steps.get();
             steps[*k] = self.log.position;
@@ -138,7 +125,7 @@ pub struct VirtualMcu {
     watched: usize,
     /// Planned moves kept for a plot, and the print-time window they
     /// must touch (s).
-    plan: Option<(crate::plot::Window, Vec<TrapqMove>)>,
+    plan: Option<(Window, Vec<TrapqMove>)>,
     /// The heaters and fan, and their physics.
     thermal: Option<(Heaters, Plant)>,
     /// When the heaters' io wants to run next, ticks (kept up to date
@@ -229,11 +216,41 @@ impl VirtualMcu {
         self
     }
 
-    /// The same MCU keeping the planned moves that touch print-time
-    /// `window` (s), for a plot.
-    pub fn with_plan(mut self, window: crate::plot::Window) -> Self {
+    /// The same MCU keeping, for a plot, the planned moves that touch
+    /// print-time `window` (s) and the steps within it (and perhaps a tick
+    /// either side), on a clock of `freq` Hz.
+    pub fn with_plot(mut self, window: Window, freq: f64) -> Self {
+        // Rounded outwards: the plot picks the steps in the window itself.
+        let clock = |t: f64| (t * freq).max(0.0) as u64;
+        let clocks = clock(window.from).saturating_sub(1)..=clock(window.to).saturating_add(2);
+        for pins in self.engine.pins_mut() {
+            pins.log.keep_window(clocks.clone());
+        }
         self.plan = Some((window, Vec::new()));
         self
+    }
+
+    /// The same MCU writing each stepper's steps into `dir` as
+    /// `steps-<name>.txt` as it makes them, `names` in stepper order;
+    /// [`Self::flush_steps`] writes out the rest at the end.
+    pub fn with_step_files<'n>(
+        mut self,
+        dir: &Path,
+        names: impl IntoIterator<Item = &'n str>,
+    ) -> Result<Self, FileError> {
+        for (pins, name) in self.engine.pins_mut().take(self.steppers).zip(names) {
+            pins.log.write_to(dir, name)?;
+        }
+        Ok(self)
+    }
+
+    /// Writes out what the steps files still buffer.
+    pub fn flush_steps(&mut self) -> Result<(), FileError> {
+        let steppers = self.steppers;
+        self.engine
+            .pins_mut()
+            .take(steppers)
+            .try_for_each(|pins| pins.log.flush())
     }
 
     /// The planned moves kept for the plot.

@@ -10,13 +10,20 @@
 //! for the board's SD-card bootloader. Exits non-zero on any violation,
 //! with the reason.
 //!
-//! `cargo xtask hour-print DIR` writes an SD folder for the host build's
-//! speed benchmark: the golden cartesian machine and a one-hour print made
-//! of the golden extrusion case's body repeated (`time cargo sim DIR`).
+//! `cargo xtask hour-print DIR [--hours N]` writes an SD folder for the
+//! host build's speed benchmark: the golden cartesian machine and an
+//! N-hour print (one by default) made of the golden extrusion case's body
+//! repeated (`time cargo sim DIR`).
+//!
+//! `cargo xtask sim-memory` checks that the host build's peak memory does
+//! not grow with the print ([`sim_memory`]).
 
+mod bench_print;
 mod budget;
 mod checks;
 mod elf_image;
+#[cfg(target_os = "linux")]
+mod sim_memory;
 mod stack_use;
 mod thumb;
 
@@ -26,16 +33,16 @@ use std::process::ExitCode;
 /// The firmware ELF under the target directory.
 const ELF_IN_TARGET: &str = "thumbv7em-none-eabihf/release/onechip-board";
 const BUDGET: &str = "board/budget.toml";
+const USAGE: &str = "usage: cargo xtask image [ELF] | cargo xtask hour-print DIR [--hours N] | cargo xtask sim-memory";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.first().map(String::as_str) {
         Some("image") => image(&args.get(1).map_or_else(default_elf, PathBuf::from)),
-        Some("hour-print") => match args.get(1) {
-            Some(dir) => hour_print(Path::new(dir)),
-            None => Err("usage: cargo xtask hour-print DIR".into()),
-        },
-        _ => Err("usage: cargo xtask image [ELF] | cargo xtask hour-print DIR".into()),
+        Some("hour-print") => bench_print::parse_args(&args[1..])
+            .and_then(|(dir, hours)| bench_print::write(&workspace_root(), &dir, hours)),
+        Some("sim-memory") => sim_memory(),
+        _ => Err(USAGE.into()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -46,46 +53,30 @@ fn main() -> ExitCode {
     }
 }
 
-/// Repetitions of the golden extrusion body (15.4 s of print each) in the
-/// one-hour print.
-const HOUR_REPEATS: usize = 234;
-
-/// Writes the one-hour benchmark print into `dir` (printer.cfg and
-/// hour.gcode), from the golden data next to the workspace.
-fn hour_print(dir: &Path) -> Result<(), String> {
-    let golden = workspace_root().join("../shared/golden");
-    let read =
-        |p: PathBuf| std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()));
-    let config = read(golden.join("configs/cartesian.cfg"))?;
-    let gcode = read(golden.join("gcode/cart_extrude.gcode"))?;
-    // The prologue (position, modes) once, then the body over and over.
-    let lines: Vec<&str> = gcode.lines().collect();
-    let (prologue, body) = lines.split_at(5.min(lines.len()));
-    let mut out = prologue.join("\n") + "\n";
-    for _ in 0..HOUR_REPEATS {
-        out += &body.join("\n");
-        out += "\n";
-    }
-    let write = |name: &str, text: &str| {
-        let path = dir.join(name);
-        std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
-    };
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    write("printer.cfg", &config)?;
-    write("hour.gcode", &out)
+/// The ELF `cargo fw` builds.
+fn default_elf() -> PathBuf {
+    target_dir().join(ELF_IN_TARGET)
 }
 
-/// The ELF `cargo fw` builds: under `$CARGO_TARGET_DIR` (relative to the
-/// current directory, as cargo takes it) if set, else the workspace's
-/// `target/`.
-fn default_elf() -> PathBuf {
+/// Cargo's target directory: `$CARGO_TARGET_DIR` (relative to the current
+/// directory, as cargo takes it) if set, else the workspace's `target/`.
+fn target_dir() -> PathBuf {
     match std::env::var_os("CARGO_TARGET_DIR") {
-        Some(dir) => std::env::current_dir()
-            .unwrap_or_default()
-            .join(dir)
-            .join(ELF_IN_TARGET),
-        None => workspace_root().join("target").join(ELF_IN_TARGET),
+        Some(dir) => std::env::current_dir().unwrap_or_default().join(dir),
+        None => workspace_root().join("target"),
     }
+}
+
+/// Measures the host build's peak memory on prints of two lengths.
+#[cfg(target_os = "linux")]
+fn sim_memory() -> Result<(), String> {
+    sim_memory::run(&workspace_root(), &target_dir())
+}
+
+/// Peak memory is read with Linux's `wait4`.
+#[cfg(not(target_os = "linux"))]
+fn sim_memory() -> Result<(), String> {
+    Err("sim-memory reads peak memory on Linux only".into())
 }
 
 /// Checks the firmware image and writes firmware.bin beside the ELF.
