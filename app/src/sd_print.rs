@@ -30,8 +30,10 @@ pub enum SdError<E> {
     Busy,
     /// M24 without a selected file.
     NoFile,
-    /// PAUSE while paused, or RESUME while not paused.
+    /// RESUME while not paused.
     NotPaused,
+    /// PAUSE while paused.
+    AlreadyPaused,
     /// A name longer than a path can be.
     NameTooLong,
     /// The card failed.
@@ -45,6 +47,7 @@ impl<E: fmt::Display> fmt::Display for SdError<E> {
             Self::Busy => f.write_str("SD busy"),
             Self::NoFile => f.write_str("No file selected (M23 NAME first)"),
             Self::NotPaused => f.write_str("Print is not paused"),
+            Self::AlreadyPaused => f.write_str("Print already paused"),
             Self::NameTooLong => write!(f, "file name longer than {MAX_PATH} bytes"),
             Self::Card(e) => write!(f, "SD card: {e}"),
         }
@@ -197,7 +200,8 @@ impl SdPrint {
                 self.state = State::Paused;
                 Ok(())
             }
-            _ => Err(SdError::NotPaused),
+            State::Paused => Err(SdError::AlreadyPaused),
+            State::Stopped => Err(SdError::NotPaused),
         }
     }
 

@@ -9,6 +9,7 @@
 //! position, and any errors; optionally every step's clock, in the format
 //! of Klipper's golden `steps-*.txt`.
 
+pub mod console_printer;
 pub mod files;
 pub mod plot;
 pub mod step_log;

@@ -1,0 +1,171 @@
+//! The simulated printer as a host on its console sees it: bytes in,
+//! replies out, in virtual time. The same path as the board's thread code:
+//! the emergency parser on every byte as it arrives, lines through the
+//! console (line numbers, SD printing, auto-reports), and between lines
+//! the console polled at the board's 10 ms tick.
+
+use crate::files::Folder;
+use crate::step_log::StepLog;
+use crate::virtual_mcu::VirtualMcu;
+use crate::{HostSession, Options, SimError, clock_at, physics};
+use onechip_app::console::Console;
+use onechip_app::emergency::EmergencyParser;
+use onechip_app::line::LineAssembler;
+use onechip_app::session::{Mcu, profile};
+use onechip_app::setup::PrinterSetup;
+use onechip_app::text::ErrorText;
+use onechip_planner::machine::Machine;
+use onechip_sched::outputs::Drive;
+use std::path::Path;
+
+/// The board's thread code wakes at least this often, s.
+const TICK: f64 = 0.010;
+
+/// A printer on a console, in virtual time.
+pub struct ConsolePrinter {
+    machine: &'static Machine<'static>,
+    session: Box<HostSession<'static>>,
+    mcu: VirtualMcu,
+    console: Console,
+    card: Folder,
+    lines: LineAssembler<{ profile::MAX_LINE }>,
+    emergency: EmergencyParser,
+    freq: f64,
+}
+
+impl ConsolePrinter {
+    /// The printer of SD folder `sd` (its printer.cfg; the folder is its
+    /// card), as `options` say (clock, start position, faults). The
+    /// config is kept for the life of the process.
+    pub fn new(sd: &Path, options: &Options) -> Result<Self, SimError> {
+        let buf = Box::leak(vec![0u8; crate::files::CONFIG_BUFFER].into_boxed_slice());
+        let texts = onechip_app::config_files::load(&mut Folder::new(sd), buf)
+            .map_err(|e| SimError::Config(e.to_string()))?;
+        let texts = Box::leak(Box::new(texts));
+        let scratch = Box::leak(Box::new(std::mem::MaybeUninit::uninit()));
+        let setup = PrinterSetup::load(texts, onechip_app::pin_check::BOARD_RESERVED, scratch)
+            .map_err(|e| SimError::Config(e.to_string()))?;
+        let machine: &'static Machine<'static> = Box::leak(Box::new(setup)).machine();
+        let freq = options.mcu_freq;
+        let start = options.clock_origin;
+        let session = Box::new(HostSession::new(
+            machine,
+            freq,
+            profile::MAX_STEP_ERROR,
+            start,
+        ));
+        let mut mcu = VirtualMcu::new(machine.steppers.len(), start).with_heaters(machine, freq);
+        if let Some(physics) = physics(machine, options.start) {
+            mcu = mcu.with_physics(physics);
+        }
+        Ok(Self {
+            machine,
+            session,
+            mcu,
+            console: Console::new(freq),
+            card: Folder::new(sd),
+            lines: LineAssembler::new(),
+            emergency: EmergencyParser::new(),
+            freq,
+        })
+    }
+
+    /// Runs `auto0.g`, `auto1.g`, ... from the card, as the board at boot.
+    pub fn autostart(&mut self) {
+        self.console.autostart();
+    }
+
+    /// Bytes arrive on the console; returns the replies to every line they
+    /// complete.
+    pub fn receive(&mut self, bytes: &[u8]) -> String {
+        let mut out = String::new();
+        for &byte in bytes {
+            if self.emergency.push(byte) {
+                self.mcu.emergency_stop();
+            }
+            if let Some(event) = self.lines.push(byte) {
+                // Writing to a String never fails.
+                let _ = self.console.line(
+                    Some(&mut self.session),
+                    &ErrorText::new(),
+                    &event,
+                    &mut self.card,
+                    &mut self.mcu,
+                    &mut out,
+                );
+                self.after_line();
+            }
+        }
+        out
+    }
+
+    /// One console line, `\n` added; returns its replies.
+    pub fn send(&mut self, line: &str) -> String {
+        self.receive(format!("{line}\n").as_bytes())
+    }
+
+    /// Lets `seconds` s of virtual time pass with no console input: the
+    /// console is polled (priming, auto-reports, the card's print) as the
+    /// board's thread code does; returns what it wrote.
+    pub fn run_for(&mut self, seconds: f64) -> String {
+        let end = self.mcu.now() + (seconds * self.freq) as u64;
+        let mut out = String::new();
+        while self.mcu.now() < end && self.mcu.shutdown().is_none() {
+            let _ = self.console.poll(
+                Some(&mut self.session),
+                &mut self.card,
+                &mut self.mcu,
+                &mut out,
+            );
+            self.after_line();
+            if !self.console.is_printing() {
+                let tick = self.mcu.now() + (TICK * self.freq) as u64;
+                self.mcu.run_until(tick.min(end));
+            }
+        }
+        out
+    }
+
+    /// After a line or a poll: the MCU runs the steps as far as they have
+    /// all been sent, and a restart asked for is carried out.
+    fn after_line(&mut self) {
+        let sent = clock_at(self.session.sent_until(), self.freq);
+        self.mcu.run_until(sent);
+        if self.console.take_restart() {
+            self.mcu.restart(self.machine, self.freq);
+            self.session.restart(self.machine, self.mcu.now());
+        }
+    }
+
+    /// True while a file prints from the card.
+    pub fn is_printing(&self) -> bool {
+        self.console.is_printing()
+    }
+
+    /// The virtual clock now, ticks.
+    pub fn now(&mut self) -> u64 {
+        self.mcu.now()
+    }
+
+    /// Every stepper's step log.
+    pub fn steps(&self) -> impl Iterator<Item = &StepLog> {
+        self.mcu.logs()
+    }
+
+    /// Whether each heater's output is on now.
+    pub fn heaters_on(&mut self) -> Vec<bool> {
+        self.mcu.thermal().map_or_else(Vec::new, |(_, plant)| {
+            plant
+                .outputs
+                .iter()
+                .take(self.machine.heaters.len())
+                .map(|o| matches!(o.drive, Some(Drive::Level(true))))
+                .collect()
+        })
+    }
+
+    /// The G-code position (X, Y, Z, E), mm.
+    pub fn position(&mut self) -> [f64; 4] {
+        self.session.printer().position()
+    }
+}
