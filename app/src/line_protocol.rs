@@ -7,7 +7,9 @@
 //! to send again from the line after the last one run (`Resend: N`). A
 //! line numbered at or below the last one run (a resend of a line that
 //! already ran) is acknowledged without running it again. `M110 N<n>`
-//! sets the last line number. Lines without a number run as they come.
+//! sets the last line number. Lines without a number run as they come,
+//! unless they carry a checksum (as Marlin: such a line is the tail of a
+//! numbered line split by a corrupted byte).
 
 use core::fmt;
 
@@ -19,6 +21,9 @@ pub enum Refusal {
     ChecksumMismatch,
     /// A numbered line without a checksum.
     NoChecksum,
+    /// A checksum on a line without a number: most likely the tail of a
+    /// numbered line whose middle byte was corrupted into a line end.
+    NoLineNumber,
     /// The line number skips one or more lines.
     NotNext,
     /// The line overflowed the line buffer, so neither its number nor its
@@ -82,8 +87,8 @@ impl LineNumbers {
             None => true,
         };
         let Some(number) = number else {
-            if !checksum_ok {
-                return self.refuse(Refusal::ChecksumMismatch);
+            if checksum.is_some() {
+                return self.refuse(Refusal::NoLineNumber);
             }
             if is_m110(command)
                 && let Some(n) = m110_number(command)
@@ -142,6 +147,7 @@ impl fmt::Display for Refusal {
         match self {
             Self::ChecksumMismatch => f.write_str("checksum mismatch"),
             Self::NoChecksum => f.write_str("No Checksum with line number"),
+            Self::NoLineNumber => f.write_str("No Line Number with checksum"),
             Self::NotNext => f.write_str("Line Number is not Last Line Number+1"),
             Self::TooLong { len } => {
                 write!(f, "Line too long ({len} bytes), checksum not verified")
@@ -310,11 +316,14 @@ mod tests {
     }
 
     #[test]
-    fn unnumbered_lines_run_and_a_bare_checksum_is_still_checked() {
+    fn unnumbered_lines_run_unless_they_carry_a_checksum() {
         let mut n = LineNumbers::new();
         assert_eq!(n.check(b"G28"), Checked::Run(b"G28"));
-        assert_eq!(n.check(sum("G28").as_bytes()), Checked::Run(b"G28"));
-        assert_eq!(n.check(b"G28*1"), resend(Refusal::ChecksumMismatch, 0));
+        assert_eq!(
+            n.check(sum("G28").as_bytes()),
+            resend(Refusal::NoLineNumber, 0)
+        );
+        assert_eq!(n.check(b"G28*1"), resend(Refusal::NoLineNumber, 0));
         assert!(!n.host_numbers_lines());
         // Not a line number: N without digits, or too many of them.
         assert_eq!(n.check(b"NOZZLE_WIPE"), Checked::Run(b"NOZZLE_WIPE"));
