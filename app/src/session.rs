@@ -78,6 +78,9 @@ pub trait Mcu {
     fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
     /// Why the MCU role shut down, if it did.
     fn shutdown_reason(&mut self) -> Option<Shutdown>;
+    /// True if the extruder is hot enough to extrude
+    /// ([`crate::heaters::Heaters::can_extrude`]).
+    fn can_extrude(&mut self) -> bool;
     /// A move was planned (toolhead, or extruder if `extruder`); for
     /// simulators that report the plan.
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
@@ -265,6 +268,9 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         {
             return Err(error_text(&SessionError::NoEndstops));
         }
+        // Klipper's batch mode never refuses a cold extrusion.
+        let can_extrude = self.timing == Timing::Batch || mcu.can_extrude();
+        self.printer.set_can_extrude(can_extrude);
         if self.timing == Timing::RealTime && self.printer.is_idle() {
             // An idle printer starts its next move from now.
             let now = mcu.now() as f64 / self.engine.freq;

@@ -57,4 +57,8 @@ impl Mcu for BoardMcu {
     fn shutdown_reason(&mut self) -> Option<Shutdown> {
         step_timer::shutdown_reason()
     }
+
+    fn can_extrude(&mut self) -> bool {
+        heater_io::can_extrude()
+    }
 }

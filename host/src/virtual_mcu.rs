@@ -409,6 +409,10 @@ impl Mcu for VirtualMcu {
         self.shutdown()
     }
 
+    fn can_extrude(&mut self) -> bool {
+        self.thermal.as_ref().is_none_or(|(h, _)| h.can_extrude())
+    }
+
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
         if let Some((w, moves)) = &mut self.plan
             && !extruder
