@@ -5,6 +5,8 @@
 //! - [`line`]: bounded assembly of G-code lines from a byte stream;
 //! - [`console`]: what the firmware answers to each line;
 //! - [`printer`]: G-code lines through the planner to planned moves;
+//! - [`heaters`]: heaters and fan, with verify_heater and min_extrude_temp;
+//! - [`idle_timeout`]: Klipper's idle timeout (heaters off when idle);
 //! - [`pins`]: MCU pin names as printer.cfg writes them;
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -12,6 +14,7 @@
 pub mod config_files;
 pub mod console;
 pub mod heaters;
+pub mod idle_timeout;
 pub mod line;
 pub mod pin_check;
 pub mod pins;
