@@ -5,6 +5,13 @@
 //! the heater's control (PID or watermark) at once, which queues the next
 //! PWM value 0.308 s after the report, as Klipper's host does.
 //!
+//! Klipper's host-side heater safety runs here too, on the same reports:
+//! each heater's `[verify_heater]` checks (once a second of heater time;
+//! a heater that does not heat as expected shuts everything down with
+//! Klipper's message), and whether the extruder is hot enough to extrude
+//! (min_extrude_temp, read by the session before each line through
+//! [`Heaters::can_extrude`]).
+//!
 //! [`Heaters`] owns the MCU role's [`Io`] so that report, control and
 //! update happen in one place and in time: the board runs it from a timer
 //! interrupt, the host build in virtual time. G-code reaches it as
@@ -12,12 +19,12 @@
 
 use core::fmt::Write;
 use onechip_planner::machine::Machine;
-use onechip_planner::thermal::{Control, Fan, Heater, PWM_DELAY};
+use onechip_planner::thermal::{Control, Fan, Heater, PWM_DELAY, VerifyHeater};
 use onechip_sched::adc::{AdcQuery, AdcReport};
 use onechip_sched::clock::is_before;
 use onechip_sched::io::{Io, Peripherals};
 use onechip_sched::outputs::{OutputConfig, OutputKind, QueueError};
-use onechip_sched::shutdown::Shutdown;
+use onechip_sched::shutdown::{self, Shutdown};
 
 /// Time between a thermistor's readings, s.
 pub const SAMPLE_TIME: f64 = 0.001;
@@ -33,6 +40,8 @@ pub const MAX_HEAT_TIME: f64 = 3.0;
 pub const PWM_MAX: u32 = 65_535;
 /// Delay from start-up to the first readings, s.
 pub const FIRST_REPORT: f64 = 0.2;
+/// Time between two verify_heater checks of a heater, s (Klipper's).
+pub const VERIFY_TIME: f64 = 1.0;
 /// The temperature the PID starts from, °C.
 const AMBIENT: f64 = 25.0;
 /// A PID heater is settled within this of its target, °C.
@@ -184,9 +193,102 @@ impl ControlState {
     }
 }
 
+/// Klipper's verify_heater state machine for one heater, advanced by
+/// [`Verify::check`] once a second of heater time. Time is counted in
+/// checks (s), not clock ticks: a 32-bit clock at 260 MHz wraps in 16 s,
+/// shorter than check_gain_time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Verify {
+    config: VerifyHeater,
+    /// Heating towards a new target, and gaining as expected so far.
+    approaching: bool,
+    /// The first gain towards that target is not yet made.
+    starting: bool,
+    /// The target at the previous check, °C.
+    last_target: f64,
+    /// The temperature to reach by `goal_time`, °C.
+    goal_temp: f64,
+    /// When `goal_temp` must be reached, s (in checks).
+    goal_time: f64,
+    /// Accumulated shortfall below target − hysteresis, °C·s.
+    error: f64,
+    /// Checks so far, s.
+    time: f64,
+    /// Clock of the next check (None: at the next report).
+    next_check: Option<u32>,
+}
+
+impl Verify {
+    fn new(config: VerifyHeater) -> Self {
+        Self {
+            config,
+            approaching: false,
+            starting: false,
+            last_target: 0.0,
+            goal_temp: 0.0,
+            goal_time: 0.0,
+            error: 0.0,
+            time: 0.0,
+            next_check: None,
+        }
+    }
+
+    /// One check of the smoothed temperature `temp` against `target`
+    /// (°C), one second after the previous; false: the heater failed.
+    ///
+    /// Near the target (within hysteresis below it, or no target) all is
+    /// well, and the error clears unless the heater is above target +
+    /// hysteresis. Below it the shortfall accumulates every second. A new
+    /// target starts an approach: the heater must gain heating_gain
+    /// within every check_gain_time (each gain clears the error). Once it
+    /// stops gaining, the accumulated error must stay below max_error.
+    fn check(&mut self, temp: f64, target: f64) -> bool {
+        let c = self.config;
+        self.time += VERIFY_TIME;
+        let now = self.time;
+        let last_target = core::mem::replace(&mut self.last_target, target);
+        if target <= 0.0 || temp >= target - c.hysteresis {
+            self.approaching = false;
+            self.starting = false;
+            if temp <= target + c.hysteresis {
+                self.error = 0.0;
+            }
+            return true;
+        }
+        self.error += target - c.hysteresis - temp;
+        if !self.approaching {
+            if target != last_target {
+                self.approaching = true;
+                self.starting = true;
+                self.set_goal(temp, now);
+            } else if self.error >= c.max_error {
+                return false;
+            }
+        } else if temp >= self.goal_temp {
+            self.starting = false;
+            self.error = 0.0;
+            self.set_goal(temp, now);
+        } else if now >= self.goal_time {
+            self.approaching = false;
+        } else if self.starting {
+            self.goal_temp = self.goal_temp.min(temp + c.heating_gain);
+        }
+        true
+    }
+
+    /// The next gain to make: heating_gain above `temp` within
+    /// check_gain_time of `now`.
+    fn set_goal(&mut self, temp: f64, now: f64) {
+        self.goal_temp = temp + self.config.heating_gain;
+        self.goal_time = now + self.config.check_gain_time;
+    }
+}
+
 /// One heater: configuration and state.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct HeaterState {
+    /// Which heater it is.
+    which: shutdown::Heater,
     /// `T` or `B`, as M105 reports it.
     label: &'static str,
     min_temp: f64,
@@ -206,6 +308,13 @@ struct HeaterState {
     /// Last power queued (0..1), and the clock by which to repeat it.
     last_power: f64,
     refresh_by: u32,
+    /// min_extrude_temp, °C.
+    min_extrude_temp: f64,
+    /// The smoothed temperature is at least min_extrude_temp (Klipper's
+    /// `can_extrude`, updated at each report).
+    can_extrude: bool,
+    /// verify_heater.
+    verify: Verify,
 }
 
 /// The fan: configuration and last speed.
@@ -365,6 +474,8 @@ pub struct Heaters {
     pwm_delay: u32,
     /// Ticks after which a heater's unchanged power is sent again.
     refresh_ticks: u32,
+    /// Ticks between verify_heater checks.
+    verify_ticks: u32,
     freq: f64,
     adc_full: f64,
 }
@@ -398,6 +509,11 @@ impl Heaters {
             .iter()
             .zip(&setup.outputs)
             .map(|(h, (_, output))| HeaterState {
+                which: if h.name == "heater_bed" {
+                    shutdown::Heater::Bed
+                } else {
+                    shutdown::Heater::Extruder
+                },
                 label: if h.name == "heater_bed" { "B" } else { "T" },
                 min_temp: h.min_temp,
                 max_temp: h.max_temp,
@@ -412,6 +528,9 @@ impl Heaters {
                 last_report: None,
                 last_power: 0.0,
                 refresh_by: start,
+                min_extrude_temp: h.min_extrude_temp,
+                can_extrude: h.min_extrude_temp <= 0.0,
+                verify: Verify::new(h.verify),
             })
             .collect();
         let fan_config = setup.outputs.get(machine.heaters.len());
@@ -433,6 +552,7 @@ impl Heaters {
             fan,
             pwm_delay: ticks(PWM_DELAY, freq),
             refresh_ticks: ticks(0.75 * MAX_HEAT_TIME, freq),
+            verify_ticks: ticks(VERIFY_TIME, freq),
             freq,
             adc_full: adc_full(adc_max),
         }
@@ -458,7 +578,9 @@ impl Heaters {
     }
 
     /// A heater's report: new temperature, control, and the update it
-    /// causes (Klipper's `temperature_callback` and `set_pwm`).
+    /// causes (Klipper's `temperature_callback` and `set_pwm`); then, if
+    /// a second has passed since the last, its verify_heater check, whose
+    /// failure shuts everything down.
     fn control(
         &mut self,
         index: usize,
@@ -482,6 +604,12 @@ impl Heaters {
         });
         h.last_report = Some(report.clock);
         h.smoothed += (temp - h.smoothed) * weight;
+        h.can_extrude = h.smoothed >= h.min_extrude_temp;
+        if !Self::verify(h, report.clock, self.verify_ticks) {
+            let reason = Shutdown::NotHeating(h.which);
+            self.io.shutdown(reason, hw);
+            return Err(reason);
+        }
         if h.target <= 0.0 {
             power = 0.0;
         }
@@ -494,6 +622,21 @@ impl Heaters {
         h.last_power = power;
         let on_ticks = scaled(power, h.cycle_ticks);
         self.queue(index, at, on_ticks, now, hw)
+    }
+
+    /// Runs `h`'s verify_heater check if it is due at report clock
+    /// `clock` (checks `verify_ticks` apart; one that came late restarts
+    /// the count from this report); false: the heater failed.
+    fn verify(h: &mut HeaterState, clock: u32, verify_ticks: u32) -> bool {
+        let v = &mut h.verify;
+        let next = match v.next_check {
+            None => clock,
+            Some(next) if is_before(clock, next) => return true,
+            Some(next) if is_before(clock, next.wrapping_add(verify_ticks)) => next,
+            Some(_) => clock,
+        };
+        v.next_check = Some(next.wrapping_add(verify_ticks));
+        v.check(h.smoothed, h.target)
     }
 
     /// Queues an output update; a full queue drops it (the next report
@@ -579,6 +722,19 @@ impl Heaters {
         self.heaters
             .get(heater)
             .is_some_and(|h| h.target > 0.0 && h.control.busy(h.smoothed, h.target))
+    }
+
+    /// True if the extruder may extrude: its heater's smoothed temperature
+    /// is at least its min_extrude_temp at its last report (before the
+    /// first: only if min_extrude_temp is 0 or less), or it has no
+    /// heater. The
+    /// session tells the planner before each line
+    /// (`Printer::set_can_extrude`).
+    pub fn can_extrude(&self) -> bool {
+        self.heaters
+            .iter()
+            .find(|h| h.which == shutdown::Heater::Extruder)
+            .is_none_or(|h| h.can_extrude)
     }
 
     /// Heater `heater`'s smoothed temperature and target, °C.
@@ -707,6 +863,185 @@ mod tests {
         assert!(scales.clone().eq(used));
         // Klipper's defaults: heaters 0.1 s cycles, the fan 0.010 s.
         assert!(scales.eq([100_000, 100_000, 10_000]));
+    }
+
+    /// Hardware that ignores outputs; input `i` reads `.0[i]` counts.
+    struct Reads([u16; 2]);
+
+    impl Peripherals for Reads {
+        fn drive(&mut self, _: usize, _: Drive) {}
+        fn read_adc(&mut self, index: usize) -> u16 {
+            self.0.get(index).copied().unwrap_or(0)
+        }
+    }
+
+    /// Klipper's defaults for the hot end.
+    fn hot_end() -> Verify {
+        Verify::new(VerifyHeater::defaults("extruder"))
+    }
+
+    /// Checks `verify` once a second against `temps(second)` and `target`
+    /// for up to `seconds` checks; the check (1-based) that failed.
+    fn fails_at(
+        verify: &mut Verify,
+        seconds: u32,
+        target: impl Fn(u32) -> f64,
+        temps: impl Fn(u32) -> f64,
+    ) -> Option<u32> {
+        (1..=seconds).find(|&s| !verify.check(temps(s), target(s)))
+    }
+
+    #[test]
+    fn a_heater_gaining_as_expected_never_faults() {
+        // 1 °C/s up to the target, then holding it.
+        let rising = |s: u32| (25.0 + f64::from(s)).min(200.0);
+        assert_eq!(fails_at(&mut hot_end(), 1000, |_| 200.0, rising), None);
+        // Slowing to 0.11 °C/s: still heating_gain (2 °C) within every
+        // check_gain_time (20 s).
+        let slow = |s: u32| 25.0 + 0.11 * f64::from(s);
+        assert_eq!(fails_at(&mut hot_end(), 1000, |_| 200.0, slow), None);
+        // No target: nothing to check.
+        assert_eq!(fails_at(&mut hot_end(), 1000, |_| 0.0, |_| 25.0), None);
+    }
+
+    #[test]
+    fn a_heater_that_stops_gaining_faults_once_its_gain_time_is_over() {
+        // A dead heater: the approach starts at the first check; after 20
+        // s without the 2 °C gain it is over, and the error accumulated
+        // (170 °C·s a second) is far past max_error at the next check.
+        assert_eq!(fails_at(&mut hot_end(), 100, |_| 200.0, |_| 25.0), Some(22));
+        // 0.09 °C/s: 2 °C takes 22 s, longer than check_gain_time.
+        let slow = |s: u32| 25.0 + 0.09 * f64::from(s);
+        assert_eq!(fails_at(&mut hot_end(), 100, |_| 200.0, slow), Some(22));
+        // The bed gets 60 s.
+        let mut bed = Verify::new(VerifyHeater::defaults("heater_bed"));
+        assert_eq!(fails_at(&mut bed, 100, |_| 60.0, |_| 25.0), Some(62));
+    }
+
+    #[test]
+    fn within_hysteresis_is_at_temperature_and_just_below_it_accumulates() {
+        // Stuck 5 °C below target (the hysteresis): at temperature.
+        assert_eq!(fails_at(&mut hot_end(), 1000, |_| 200.0, |_| 195.0), None);
+        // Stuck 6 °C below: 1 °C·s a second from the first check, so
+        // max_error (120) is reached at the 120th.
+        assert_eq!(
+            fails_at(&mut hot_end(), 1000, |_| 200.0, |_| 194.0),
+            Some(120)
+        );
+        // A heater that held its target and then sags: the error counts
+        // from the sag (no new target, so no approach).
+        let sags = |s: u32| if s < 100 { 200.0 } else { 190.0 };
+        assert_eq!(fails_at(&mut hot_end(), 1000, |_| 200.0, sags), Some(123));
+    }
+
+    #[test]
+    fn a_new_target_starts_a_new_approach() {
+        // Heats to 150 °C by 25 s and stays there with a target of 200 °C:
+        // its approach ends at 45 s (20 s without gain; error 45 °C·s a
+        // second since). At 46 s the target goes up to 210 °C, which starts
+        // a new approach instead of failing; only 20 s later without gain
+        // does it fail.
+        let temps = |s: u32| (25.0 + 5.0 * f64::from(s)).min(150.0);
+        let target = |s: u32| if s <= 45 { 200.0 } else { 210.0 };
+        let mut v = hot_end();
+        assert_eq!(fails_at(&mut v, 45, target, temps), None);
+        assert!(v.error > v.config.max_error && !v.approaching, "{v:?}");
+        assert_eq!(
+            (46..=200).find(|&s| !v.check(temps(s), target(s))),
+            Some(67)
+        );
+        // Without the change, it fails right away.
+        assert_eq!(fails_at(&mut hot_end(), 100, |_| 200.0, temps), Some(46));
+    }
+
+    #[test]
+    fn a_cooling_heater_is_not_a_fault() {
+        // At 200 °C, the target drops to 60 °C: above target + hysteresis
+        // while it cools, no error; then the target off.
+        let temps = |s: u32| (200.0 - f64::from(s)).max(60.0);
+        let target = |s: u32| if s < 300 { 60.0 } else { 0.0 };
+        let mut v = hot_end();
+        assert_eq!(fails_at(&mut v, 1000, target, temps), None);
+        assert_eq!(v.error, 0.0);
+        assert!(!v.approaching);
+    }
+
+    #[test]
+    fn a_heater_that_does_not_heat_shuts_everything_down_with_klippers_message() {
+        let config = Config::parse("printer.cfg", SHIPPED).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        // Both thermistors read a constant 60 °C or so: the heaters do
+        // nothing.
+        let reading = (machine.heaters[0].thermistor.adc(60.0) * 4095.0) as u16;
+        let mut hw = Reads([reading, 2048]);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut hw);
+        let target = ThermalCommand::Target {
+            heater: 0,
+            celsius: 200.0,
+            wait: false,
+        };
+        heaters.command(target, 0, &mut hw).expect("in range");
+        let mut now;
+        let fault = loop {
+            let Some(wake) = heaters.next_wake() else {
+                panic!("stopped without a fault")
+            };
+            now = wake;
+            if let Err(reason) = heaters.run(now, &mut hw) {
+                break reason;
+            }
+            assert!(now < 60_000_000, "no fault in 60 s");
+        };
+        assert_eq!(fault, Shutdown::NotHeating(shutdown::Heater::Extruder));
+        assert_eq!(
+            fault.message(),
+            "Heater extruder not heating at expected rate"
+        );
+        assert_eq!(
+            fault.hint(),
+            [
+                "See the 'verify_heater' section in docs/Config_Reference.md",
+                "for the parameters that control this check."
+            ]
+        );
+        // The first check at the first report (0 s), the 22nd 21 s later
+        // (checks are a second apart, at the first report after each).
+        let seconds = f64::from(now) / FREQ;
+        assert!((21.0..21.3).contains(&seconds), "{seconds}");
+        assert_eq!(heaters.shutdown_reason(), Some(fault));
+        assert!(heaters.io.value(0) == Some(0) && heaters.next_wake().is_none());
+        // The bed has no target: it is left alone.
+        assert!(!heaters.busy(1));
+    }
+
+    #[test]
+    fn the_extruder_may_extrude_once_its_smoothed_temperature_reaches_min_extrude_temp() {
+        let config = Config::parse("printer.cfg", SHIPPED).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let thermistor = machine.heaters[0].thermistor;
+        let counts = |celsius: f64| (thermistor.adc(celsius) * 4095.0).round() as u16;
+        let mut hw = Reads([counts(25.0), 2048]);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut hw);
+        // Before any reading: min_extrude_temp (170 °C) is above 0.
+        assert!(!heaters.can_extrude());
+        let run_to = |heaters: &mut Heaters, hw: &mut Reads, until: u32| {
+            while let Some(wake) = heaters.next_wake().filter(|&w| w <= until) {
+                heaters.run(wake, hw).expect("no fault");
+            }
+        };
+        run_to(&mut heaters, &mut hw, 2_000_000);
+        assert!(!heaters.can_extrude());
+        // At 175 °C, once the smoothing (1 s: 30% of the way each 0.3 s
+        // report) has caught up: ten reports.
+        hw.0[0] = counts(175.0);
+        run_to(&mut heaters, &mut hw, 2_400_000);
+        assert!(!heaters.can_extrude(), "smoothed, not the raw reading");
+        run_to(&mut heaters, &mut hw, 5_500_000);
+        assert!(heaters.can_extrude());
+        // Cooling below 170 °C: refused again.
+        hw.0[0] = counts(160.0);
+        run_to(&mut heaters, &mut hw, 7_000_000);
+        assert!(!heaters.can_extrude());
     }
 
     #[test]

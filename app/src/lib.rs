@@ -9,6 +9,8 @@
 //!   ([`sd_print`] on a [`card`]);
 //! - [`session`]: the printer both builds run;
 //! - [`printer`]: G-code lines through the planner to planned moves;
+//! - [`heaters`]: heaters and fan, with verify_heater and min_extrude_temp;
+//! - [`idle_timeout`]: Klipper's idle timeout (heaters off when idle);
 //! - [`pins`]: MCU pin names as printer.cfg writes them;
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -18,6 +20,7 @@ pub mod config_files;
 pub mod console;
 pub mod emergency;
 pub mod heaters;
+pub mod idle_timeout;
 pub mod line;
 pub mod line_protocol;
 pub mod pin_check;

@@ -98,7 +98,9 @@ impl<'a, const N: usize> Printer<'a, N> {
         // initialised.
         unsafe {
             let toolhead = &mut *addr_of_mut!((*p).toolhead).cast::<MaybeUninit<Toolhead<N>>>();
-            machine.toolhead_in(toolhead);
+            machine
+                .toolhead_in(toolhead)
+                .set_can_extrude(machine.can_extrude_cold());
             addr_of_mut!((*p).gcode).write(GcodeMove::default());
             addr_of_mut!((*p).heaters).write(heaters);
             addr_of_mut!((*p).has_fan).write(machine.fan.is_some());
@@ -111,6 +113,14 @@ impl<'a, const N: usize> Printer<'a, N> {
     /// powered on long before the print).
     pub fn set_time_origin(&mut self, origin: f64) {
         self.toolhead.set_time_origin(origin);
+    }
+
+    /// Whether moves with E motion may run: the extruder's heater is at
+    /// or above min_extrude_temp ([`crate::heaters::Heaters::can_extrude`]).
+    /// While false, such moves are refused with Klipper's "Extrude below
+    /// minimum temp". The session sets it before each line.
+    pub fn set_can_extrude(&mut self, can_extrude: bool) {
+        self.toolhead.set_can_extrude(can_extrude);
     }
 
     /// True while nothing is queued or moving.

@@ -87,6 +87,9 @@ pub trait Mcu {
     /// M112: every stepper stops and every heater goes off at once, and
     /// the MCU role stays shut down ([`Shutdown::EmergencyStop`]).
     fn emergency_stop(&mut self);
+    /// True if the extruder is hot enough to extrude
+    /// ([`crate::heaters::Heaters::can_extrude`]).
+    fn can_extrude(&mut self) -> bool;
     /// A move was planned (toolhead, or extruder if `extruder`); for
     /// simulators that report the plan.
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
@@ -319,6 +322,9 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if !self.engine.endstops.iter().all(|&e| e) && word.eq_ignore_ascii_case(b"G28") {
             return Err(error_text(&SessionError::NoEndstops));
         }
+        // Klipper's batch mode never refuses a cold extrusion.
+        let can_extrude = self.timing == Timing::Batch || mcu.can_extrude();
+        self.printer.set_can_extrude(can_extrude);
         if self.timing == Timing::RealTime && self.printer.is_idle() {
             // An idle printer starts its next move from now.
             let now = mcu.now() as f64 / self.engine.freq;

@@ -71,4 +71,8 @@ impl Mcu for BoardMcu {
     fn emergency_stop(&mut self) {
         emergency_stop();
     }
+
+    fn can_extrude(&mut self) -> bool {
+        heater_io::can_extrude()
+    }
 }

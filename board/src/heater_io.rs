@@ -246,6 +246,12 @@ pub fn busy(heater: usize) -> bool {
     with_io(|io| io.heaters.busy(heater) && io.heaters.shutdown_reason().is_none()).unwrap_or(false)
 }
 
+/// True if the extruder is hot enough to extrude (false before the
+/// heaters are installed).
+pub fn can_extrude() -> bool {
+    with_io(|io| io.heaters.can_extrude()).unwrap_or(false)
+}
+
 /// Writes the M105 report (`T:… /… B:… /…`) to `out`: the temperatures
 /// are copied under the lock (which holds off TIM2 only), and formatted
 /// after it (formatting floats takes far longer than the copy; TIM2 must

@@ -65,6 +65,9 @@ pub struct Options {
     /// Fault injection: from print time `.0` (s) on, heater `.1`'s
     /// thermistor reads as an open circuit.
     pub open_sensor: Option<(f64, usize)>,
+    /// Fault injection: heater `.0`'s simulated element gives `.1` times
+    /// its power (0: it does not heat at all).
+    pub weak_heater: Option<(usize, f64)>,
     /// The G-code arrives on the console, in USB packets as the board's
     /// console reads them, instead of from the SD card.
     pub console: bool,
@@ -92,6 +95,7 @@ impl Default for Options {
             start: Start::MidTravel,
             plot: None,
             open_sensor: None,
+            weak_heater: None,
             console: false,
         }
     }
@@ -392,6 +396,9 @@ pub fn run_replaying<const L: usize>(
     }
     if let (Some((t, heater)), Some((_, plant))) = (options.open_sensor, mcu.thermal()) {
         plant.open_sensor = Some((clock_at(t + origin, freq), heater));
+    }
+    if let (Some((heater, factor)), Some((_, plant))) = (options.weak_heater, mcu.thermal()) {
+        plant.weaken(heater, factor);
     }
     let mut summary = Summary {
         config_path,

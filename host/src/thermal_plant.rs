@@ -127,6 +127,16 @@ impl Plant {
         }
     }
 
+    /// Fault injection: heater `index`'s element gives `factor` times its
+    /// power from now on (0: a broken element).
+    pub fn weaken(&mut self, index: usize, factor: f64) {
+        let (now, freq) = (self.now, self.freq);
+        if let Some(lump) = self.lumps.get_mut(index) {
+            lump.advance(now, freq);
+            lump.model.watts *= factor.max(0.0);
+        }
+    }
+
     /// Heater `index`'s temperature now and the highest it reached, °C.
     pub fn temperature(&mut self, index: usize) -> Option<(f64, f64)> {
         let (now, freq) = (self.now, self.freq);

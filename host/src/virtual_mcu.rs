@@ -449,6 +449,10 @@ impl Mcu for VirtualMcu {
         self.update_io_wake();
     }
 
+    fn can_extrude(&mut self) -> bool {
+        self.thermal.as_ref().is_none_or(|(h, _)| h.can_extrude())
+    }
+
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
         if let Some((w, moves)) = &mut self.plan
             && !extruder

@@ -43,6 +43,17 @@ impl From<MoveError> for CommandError<'_> {
     }
 }
 
+impl CommandError<'_> {
+    /// The line Klipper's message has under the error, if any (see
+    /// [`MoveError::hint`]).
+    pub fn hint(&self) -> Option<&'static str> {
+        match self {
+            Self::Move(e) => e.hint(),
+            _ => None,
+        }
+    }
+}
+
 impl fmt::Display for CommandError<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -107,7 +118,10 @@ impl GcodeMove {
     }
 
     /// Runs one parsed line; text replies (M114, SET_VELOCITY_LIMIT) go to
-    /// `out`. Unknown commands get Klipper's `Unknown command` reply.
+    /// `out`. Unknown commands get Klipper's `Unknown command` reply. An
+    /// error whose message has a hint line (see [`CommandError::hint`])
+    /// writes both lines to `out` as `// ` information, as Klipper does,
+    /// before the caller reports the error itself (`!! <first line>`).
     pub fn execute<'a, const N: usize>(
         &mut self,
         line: &Line<'a>,
@@ -115,11 +129,19 @@ impl GcodeMove {
         sink: &mut impl MoveSink,
         out: &mut impl Write,
     ) -> Result<(), CommandError<'a>> {
-        match line.command {
+        let result = match line.command {
             Command::Empty => Ok(()),
             Command::Traditional(t) => self.traditional(&t, toolhead, sink, out),
             Command::Extended(e) => self.extended(&e, toolhead, sink, out),
+        };
+        if let Err(e) = &result
+            && let Some(hint) = e.hint()
+        {
+            // Klipper's reply to an error of several lines: all of them as
+            // information, then the first as the error.
+            let _ = writeln!(out, "// {e}\n// {hint}");
         }
+        result
     }
 
     fn traditional<'a, const N: usize>(
@@ -451,5 +473,154 @@ impl fmt::Display for Upper<'_> {
         self.0
             .chars()
             .try_for_each(|c| f.write_char(c.to_ascii_uppercase()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use crate::gcode;
+    use crate::machine::Machine;
+    use crate::move_sink::TrapqMove;
+    use std::boxed::Box;
+    use std::string::{String, ToString};
+
+    /// A cartesian printer with a heated extruder (Klipper's extruder
+    /// defaults: min_extrude_temp 170 °C, max_extrude_only_distance 50
+    /// mm, max_extrude_cross_section 4 × nozzle² = 0.64 mm²).
+    const CFG: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
+        nozzle_diameter: 0.4\nfilament_diameter: 1.75\nheater_pin: PA0\nsensor_pin: PF4\n\
+        sensor_type: EPCOS 100K B57560G104F\ncontrol: watermark\nmin_temp: 0\nmax_temp: 250\n";
+
+    /// Counts the moves planned.
+    #[derive(Default)]
+    struct Count {
+        toolhead: usize,
+        extruder: usize,
+    }
+
+    impl MoveSink for Count {
+        fn toolhead(&mut self, _: &TrapqMove) {
+            self.toolhead += 1;
+        }
+        fn extruder(&mut self, _: &TrapqMove) {
+            self.extruder += 1;
+        }
+    }
+
+    /// A homed printer at X10 Y10 Z0 E0, with the extruder hot or cold.
+    struct Bench {
+        gcode: GcodeMove,
+        toolhead: Box<Toolhead<16>>,
+        sink: Count,
+    }
+
+    impl Bench {
+        fn new(can_extrude: bool) -> Self {
+            let config = onechip_config::Config::parse("printer.cfg", CFG).expect("config");
+            let machine = Machine::from_config(&config).expect("machine");
+            assert!(!machine.can_extrude_cold());
+            let mut toolhead = Box::new(machine.toolhead::<16>());
+            toolhead.set_can_extrude(can_extrude);
+            let mut bench = Self {
+                gcode: GcodeMove::default(),
+                toolhead,
+                sink: Count::default(),
+            };
+            bench
+                .run("SET_KINEMATIC_POSITION X=10 Y=10 Z=0")
+                .expect("homed");
+            bench
+        }
+
+        /// Runs `line`; its replies, or the error (as `!! ` would show it)
+        /// after them.
+        fn run(&mut self, line: &str) -> Result<String, (String, String)> {
+            let parsed = gcode::parse(line).expect("parses");
+            let mut out = String::new();
+            match self
+                .gcode
+                .execute(&parsed, &mut self.toolhead, &mut self.sink, &mut out)
+            {
+                Ok(()) => Ok(out),
+                Err(e) => Err((out, e.to_string())),
+            }
+        }
+    }
+
+    #[test]
+    fn cold_extrusion_is_refused_with_klippers_message_and_the_move_not_made() {
+        let mut b = Bench::new(false);
+        // Klipper's reply: the whole message as information, then the
+        // error's first line.
+        let refused = Err((
+            "// Extrude below minimum temp\n\
+             // See the 'min_extrude_temp' config option for details\n"
+                .to_string(),
+            "Extrude below minimum temp".to_string(),
+        ));
+        // An extrusion, an extrude-only move, and a retraction.
+        for line in ["G1 X20 E1 F1200", "G1 E5", "G1 E-1"] {
+            assert_eq!(b.run(line), refused, "{line}");
+            assert_eq!(b.gcode.gcode_position(), [10.0, 10.0, 0.0, 0.0]);
+        }
+        // Moves without E still run, and are planned.
+        assert_eq!(b.run("G1 X30 F6000"), Ok(String::new()));
+        b.toolhead.wait_moves(&mut b.sink);
+        assert_eq!((b.sink.toolhead, b.sink.extruder), (1, 0));
+        // Hot: the same extrusion runs.
+        b.toolhead.set_can_extrude(true);
+        assert_eq!(b.run("G1 X40 E1 F1200"), Ok(String::new()));
+        b.toolhead.wait_moves(&mut b.sink);
+        assert_eq!((b.sink.toolhead, b.sink.extruder), (2, 1));
+        assert_eq!(b.gcode.gcode_position(), [40.0, 10.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn an_extrude_only_move_longer_than_max_extrude_only_distance_is_refused() {
+        let mut b = Bench::new(true);
+        assert_eq!(
+            b.run("G1 E50.5 F300"),
+            Err((
+                "// Extrude only move too long (50.500mm vs 50.000mm)\n\
+                 // See the 'max_extrude_only_distance' config option for details\n"
+                    .to_string(),
+                "Extrude only move too long (50.500mm vs 50.000mm)".to_string()
+            ))
+        );
+        // A retraction too, also with XY motion.
+        let long_retract = b.run("G1 X20 E-51 F300").expect_err("too long");
+        assert_eq!(
+            long_retract.1,
+            "Extrude only move too long (-51.000mm vs 50.000mm)"
+        );
+        assert_eq!(b.gcode.gcode_position(), [10.0, 10.0, 0.0, 0.0]);
+        // Exactly the limit is allowed.
+        assert_eq!(b.run("G1 E50 F300"), Ok(String::new()));
+    }
+
+    #[test]
+    fn an_extrusion_wider_than_max_extrude_cross_section_is_refused() {
+        let mut b = Bench::new(true);
+        // 10 mm of filament over 1 mm of travel: 24.053 mm² against 0.64.
+        let (out, error) = b.run("G1 X11 E10 F600").expect_err("too wide");
+        assert_eq!(
+            error,
+            "Move exceeds maximum extrusion (24.053mm^2 vs 0.640mm^2)"
+        );
+        assert!(
+            out.ends_with("// See the 'max_extrude_cross_section' config option for details\n"),
+            "{out}"
+        );
+        // A tiny amount is let through (Klipper's nozzle-sized allowance).
+        assert_eq!(b.run("G1 X10.1 E0.05 F600"), Ok(String::new()));
     }
 }

@@ -25,7 +25,7 @@ impl<const N: usize> Toolhead<N> {
                 return Err(MoveError {
                     reason: "Homing is not supported for this kinematics yet",
                     end: self.position(),
-                    detail: None,
+                    detail: crate::toolhead::Detail::Position,
                 });
             };
             self.home_axis(axis, &info, sink)?;

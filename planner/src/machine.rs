@@ -5,7 +5,7 @@ use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
-use crate::thermal::{self, Fan, Heater};
+use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -82,6 +82,9 @@ pub struct Machine<'a> {
     pub heaters: heapless::Vec<Heater<'a>, 2>,
     /// The part-cooling fan.
     pub fan: Option<Fan<'a>>,
+    /// What to do when the printer has been idle (`[idle_timeout]`, with
+    /// Klipper's defaults when absent).
+    pub idle_timeout: IdleTimeoutConfig<'a>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -100,7 +103,7 @@ const STEPPER_OTHER: [&str; 8] = [
 ];
 
 /// Sections whose options the motion pipeline reads.
-const MOTION_SECTIONS: [&str; 13] = [
+const MOTION_SECTIONS: [&str; 14] = [
     "printer",
     "stepper_x",
     "stepper_y",
@@ -114,6 +117,7 @@ const MOTION_SECTIONS: [&str; 13] = [
     "input_shaper",
     "heater_bed",
     "fan",
+    "idle_timeout",
 ];
 
 /// Delta tower angles when not configured, degrees.
@@ -230,13 +234,37 @@ impl<'a> Machine<'a> {
             .section("fan")
             .map(|section| thermal::read_fan(&section))
             .transpose()?;
+        // `[verify_heater NAME]` of a heater onechip drives; one naming
+        // any other heater stays unsupported, as that heater is.
+        let mut verified = heapless::Vec::<&str, 2>::new();
+        for section in config.section_names() {
+            let Some(name) = thermal::verify_heater_target(section) else {
+                continue;
+            };
+            let heater = heaters
+                .iter_mut()
+                .find(|h: &&mut Heater<'_>| h.name == name);
+            if let (Some(heater), Some(s)) = (heater, config.section(section))
+                && !verified.contains(&section)
+            {
+                heater.verify = thermal::read_verify_heater(&s, heater.name)?;
+                let _ = verified.push(section);
+            }
+        }
+        let idle_timeout = match config.section("idle_timeout") {
+            Some(section) => thermal::read_idle_timeout(&section)?,
+            None => IdleTimeoutConfig::default(),
+        };
         if let Some(section) = config.section("force_move") {
             section.get_bool("enable_force_move", false)?;
         }
         config.accept_section("mcu");
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
-            if !MOTION_SECTIONS.contains(&name) && !unsupported.contains(&name) {
+            if !MOTION_SECTIONS.contains(&name)
+                && !verified.contains(&name)
+                && !unsupported.contains(&name)
+            {
                 let _ = unsupported.push(name);
                 config.accept_section(name);
             }
@@ -254,8 +282,19 @@ impl<'a> Machine<'a> {
             input_shaper,
             heaters,
             fan,
+            idle_timeout,
             unsupported,
         })
+    }
+
+    /// True if the extruder may extrude before any temperature is known:
+    /// it has no heater, or its min_extrude_temp is 0 or less (as
+    /// Klipper's `can_extrude` starts).
+    pub fn can_extrude_cold(&self) -> bool {
+        self.heaters
+            .iter()
+            .find(|h| h.name == "extruder")
+            .is_none_or(|h| h.min_extrude_temp <= 0.0)
     }
 
     /// The step-generation scan window this machine needs, s: how far
@@ -559,6 +598,7 @@ fn parse_gear_ratio(text: &str) -> Option<f64> {
 mod tests {
     extern crate std;
     use super::*;
+    use std::string::ToString;
 
     #[test]
     fn pins_are_kept_as_written() {
@@ -615,6 +655,94 @@ mod tests {
             assert!(e.contains("step_pulse_duration"), "{e}");
         }
         assert!(pulses("", "step_pulse_duration: 0.001").is_ok());
+    }
+
+    /// A cartesian printer with a heated extruder and bed, and `extra`.
+    fn with_heaters(extra: &str) -> Result<Machine<'static>, std::string::String> {
+        let text = std::format!(
+            "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
+            nozzle_diameter: 0.4\nfilament_diameter: 1.75\nheater_pin: PA0\nsensor_pin: PF4\n\
+            sensor_type: EPCOS 100K B57560G104F\ncontrol: watermark\nmin_temp: 0\nmax_temp: 250\n\
+            [heater_bed]\nheater_pin: PA1\nsensor_pin: PF3\nsensor_type: Generic 3950\n\
+            control: watermark\nmin_temp: 0\nmax_temp: 130\n{extra}"
+        );
+        // Leaked: the machine borrows the text (a test only).
+        let text: &'static str = std::boxed::Box::leak(text.into_boxed_str());
+        let config = std::boxed::Box::leak(std::boxed::Box::new(
+            onechip_config::Config::parse("printer.cfg", text).map_err(|e| e.to_string())?,
+        ));
+        Machine::from_config(config).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn every_heater_is_verified_with_klippers_defaults_unless_its_section_says_otherwise() {
+        let m = with_heaters("").expect("machine");
+        let defaults = |gain_time| crate::thermal::VerifyHeater {
+            max_error: 120.0,
+            check_gain_time: gain_time,
+            hysteresis: 5.0,
+            heating_gain: 2.0,
+        };
+        assert_eq!(m.heaters[0].verify, defaults(20.0));
+        assert_eq!(m.heaters[1].verify, defaults(60.0));
+        assert_eq!(m.heaters[0].min_extrude_temp, 170.0);
+        assert!(!m.can_extrude_cold());
+        let m = with_heaters(
+            "[verify_heater extruder]\nmax_error: 60\ncheck_gain_time: 30\nhysteresis: 3\n\
+            heating_gain: 1\n[verify_heater heater_bed]\ncheck_gain_time: 90\n",
+        )
+        .expect("machine");
+        assert_eq!(
+            m.heaters[0].verify,
+            crate::thermal::VerifyHeater {
+                max_error: 60.0,
+                check_gain_time: 30.0,
+                hysteresis: 3.0,
+                heating_gain: 1.0,
+            }
+        );
+        assert_eq!(m.heaters[1].verify, defaults(90.0));
+        assert!(m.unsupported.is_empty(), "{:?}", m.unsupported);
+        // A heater onechip does not drive: unsupported, as the heater is.
+        let m = with_heaters("[verify_heater extruder1]\nmax_error: 5\n").expect("machine");
+        assert_eq!(&m.unsupported[..], ["verify_heater extruder1"]);
+        // Klipper's bounds, and unknown options.
+        let e =
+            with_heaters("[verify_heater extruder]\ncheck_gain_time: 0.5\n").expect_err("bound");
+        assert!(e.contains("'check_gain_time'"), "{e}");
+        let e = with_heaters("[verify_heater extruder]\nheating_gain: 0\n").expect_err("bound");
+        assert!(e.contains("'heating_gain'"), "{e}");
+        let e = with_heaters("[verify_heater extruder]\nmax_eror: 5\n").expect_err("typo");
+        assert!(e.contains("'max_eror' is not valid"), "{e}");
+        // min_extrude_temp 0: extrusion is never refused.
+        let m = with_heaters("[extruder]\nmin_extrude_temp: 0\n").expect("machine");
+        assert!(m.can_extrude_cold());
+    }
+
+    #[test]
+    fn the_idle_timeout_is_klippers_unless_configured() {
+        let m = with_heaters("").expect("machine");
+        assert_eq!(m.idle_timeout.timeout, 600.0);
+        assert_eq!(m.idle_timeout.gcode, "TURN_OFF_HEATERS\nM84");
+        let m = with_heaters("[idle_timeout]\ntimeout: 1800\ngcode:\n  M104 S0\n  M140 S0\n")
+            .expect("machine");
+        assert_eq!(m.idle_timeout.timeout, 1800.0);
+        assert_eq!(m.idle_timeout.gcode.lines().count(), 2);
+        assert!(m.unsupported.is_empty(), "{:?}", m.unsupported);
+        let e = with_heaters("[idle_timeout]\ntimeout: 0\n").expect_err("bound");
+        assert!(e.contains("'timeout'"), "{e}");
+        let e = with_heaters(
+            "[idle_timeout]\ngcode:\n  {% if 'heaters' in printer %}\n  TURN_OFF_HEATERS\n  {% endif %}\n",
+        )
+        .expect_err("template");
+        assert!(e.contains("template"), "{e}");
     }
 
     #[test]

@@ -1,6 +1,8 @@
 //! Heaters, their thermistors and the part-cooling fan as printer.cfg
 //! describes them: the heater options of `[extruder]`, `[heater_bed]` and
-//! `[fan]`, with Klipper's option names, defaults and limits.
+//! `[fan]`, each heater's `[verify_heater NAME]` checks and the
+//! `[idle_timeout]` that turns the heaters off, with Klipper's option
+//! names, defaults and limits.
 //!
 //! A thermistor is read through a voltage divider (a pullup resistor to
 //! the ADC reference); its resistance follows the Steinhart-Hart equation
@@ -190,6 +192,122 @@ pub struct Heater<'a> {
     pub smooth_time: f64,
     /// The heater's software PWM cycle, s.
     pub pwm_cycle_time: f64,
+    /// Extrusion is refused while the smoothed temperature is below this,
+    /// °C (`min_extrude_temp`; 0 or less: never refused).
+    pub min_extrude_temp: f64,
+    /// The checks that the heater heats as it should (`[verify_heater]`).
+    pub verify: VerifyHeater,
+}
+
+/// Klipper's `[verify_heater NAME]`: checked once a second of heater time
+/// against the smoothed temperature and the target. Every heater has it,
+/// with these defaults unless its section overrides them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VerifyHeater {
+    /// Largest accumulated error (°C below target − hysteresis, summed
+    /// once a second) before the heater faults, °C·s (`max_error`).
+    pub max_error: f64,
+    /// Time in which a heater approaching its target must gain
+    /// `heating_gain`, s (`check_gain_time`: 20 s, 60 s for the bed).
+    pub check_gain_time: f64,
+    /// Distance from the target within which the heater counts as at
+    /// temperature, °C (`hysteresis`).
+    pub hysteresis: f64,
+    /// Gain expected within each `check_gain_time` while approaching the
+    /// target, °C (`heating_gain`).
+    pub heating_gain: f64,
+}
+
+impl VerifyHeater {
+    /// Klipper's defaults for the heater named `heater`.
+    pub fn defaults(heater: &str) -> Self {
+        Self {
+            max_error: 120.0,
+            check_gain_time: if heater == "heater_bed" { 60.0 } else { 20.0 },
+            hysteresis: 5.0,
+            heating_gain: 2.0,
+        }
+    }
+}
+
+/// Reads `[verify_heater NAME]` for the heater `heater` from `section`,
+/// with Klipper's defaults and bounds.
+pub fn read_verify_heater<'c>(
+    section: &Section<'c, '_>,
+    heater: &str,
+) -> Result<VerifyHeater, ConfigError<'c>> {
+    let defaults = VerifyHeater::defaults(heater);
+    Ok(VerifyHeater {
+        hysteresis: section.get_float(
+            "hysteresis",
+            Some(defaults.hysteresis),
+            Bounds::NON_NEGATIVE,
+        )?,
+        max_error: section.get_float(
+            "max_error",
+            Some(defaults.max_error),
+            Bounds::NON_NEGATIVE,
+        )?,
+        heating_gain: section.get_float(
+            "heating_gain",
+            Some(defaults.heating_gain),
+            Bounds::POSITIVE,
+        )?,
+        check_gain_time: section.get_float(
+            "check_gain_time",
+            Some(defaults.check_gain_time),
+            Bounds {
+                minval: Some(1.0),
+                ..Bounds::NONE
+            },
+        )?,
+    })
+}
+
+/// The heater name a `[verify_heater NAME]` section names, if `section`
+/// is one.
+pub fn verify_heater_target(section: &str) -> Option<&str> {
+    let rest = section.strip_prefix("verify_heater")?;
+    let name = rest.trim();
+    (rest.starts_with(char::is_whitespace) && !name.is_empty()).then_some(name)
+}
+
+/// `[idle_timeout]`: after `timeout` s with nothing to do, the printer
+/// runs `gcode` (Klipper loads it on every printer, with these defaults).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IdleTimeoutConfig<'a> {
+    /// Idle time before `gcode` runs, s (`timeout`).
+    pub timeout: f64,
+    /// The G-code lines to run (`gcode`), one command a line.
+    pub gcode: &'a str,
+}
+
+/// Klipper's default idle G-code: every heater off, then the motors.
+pub const DEFAULT_IDLE_GCODE: &str = "TURN_OFF_HEATERS\nM84";
+
+impl Default for IdleTimeoutConfig<'_> {
+    fn default() -> Self {
+        Self {
+            timeout: 600.0,
+            gcode: DEFAULT_IDLE_GCODE,
+        }
+    }
+}
+
+/// Reads `[idle_timeout]`. G-code templates (`{ }`, `{% %}`) cannot run
+/// here, so a `gcode` using one is refused rather than run half-understood.
+pub fn read_idle_timeout<'c, 'a>(
+    section: &Section<'c, 'a>,
+) -> Result<IdleTimeoutConfig<'a>, ConfigError<'c>> {
+    let timeout = section.get_float("timeout", Some(600.0), Bounds::POSITIVE)?;
+    let gcode = section.get_opt("gcode").unwrap_or(DEFAULT_IDLE_GCODE);
+    if gcode.contains('{') {
+        return Err(section.error_for(
+            "gcode",
+            "uses a template ({ }), which onechip does not support yet",
+        ));
+    }
+    Ok(IdleTimeoutConfig { timeout, gcode })
 }
 
 /// The part-cooling fan (`[fan]`).
@@ -249,7 +367,7 @@ pub fn read_heater<'c, 'a>(section: &Section<'c, 'a>) -> Result<Heater<'a>, Conf
             max_delta: section.get_float("max_delta", Some(2.0), Bounds::POSITIVE)?,
         },
     };
-    section.get_float(
+    let min_extrude_temp = section.get_float(
         "min_extrude_temp",
         Some(170.0),
         Bounds {
@@ -258,8 +376,9 @@ pub fn read_heater<'c, 'a>(section: &Section<'c, 'a>) -> Result<Heater<'a>, Conf
             ..Bounds::NONE
         },
     )?;
+    let name = section.name_in_file();
     Ok(Heater {
-        name: section.name_in_file(),
+        name,
         heater_pin: section.get("heater_pin")?,
         sensor_pin: section.get("sensor_pin")?,
         thermistor,
@@ -277,6 +396,8 @@ pub fn read_heater<'c, 'a>(section: &Section<'c, 'a>) -> Result<Heater<'a>, Conf
                 ..Bounds::NONE
             },
         )?,
+        min_extrude_temp,
+        verify: VerifyHeater::defaults(name),
     })
 }
 

@@ -47,33 +47,81 @@ pub struct HomingInfo {
 /// Why a move was refused.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MoveError {
-    /// What is wrong.
+    /// What is wrong (the first line of Klipper's message).
     pub reason: &'static str,
     /// The requested end position.
     pub end: [f64; 4],
-    /// A value the message quotes (E distance, extrusion area), if any.
-    pub detail: Option<(f64, f64)>,
+    /// What the message quotes after the reason.
+    pub detail: Detail,
+}
+
+/// What a [`MoveError`]'s message quotes after its reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Detail {
+    /// The requested end position (`reason: X Y Z [E]`, as Klipper's
+    /// move errors).
+    Position,
+    /// A value against its limit, in `unit` (`reason (1.000mm vs
+    /// 0.500mm)`).
+    Limit {
+        /// The move's value.
+        value: f64,
+        /// The configured limit.
+        limit: f64,
+        /// Unit written after both (`mm`, `mm^2`).
+        unit: &'static str,
+    },
+    /// Nothing: the reason says it all.
+    Nothing,
+}
+
+impl MoveError {
+    /// The line Klipper adds under the message naming the option that
+    /// sets the limit, if any (Klipper echoes both lines as `// ` info
+    /// before the `!! ` line with the reason).
+    pub fn hint(&self) -> Option<&'static str> {
+        match self.reason {
+            EXTRUDE_COLD => Some("See the 'min_extrude_temp' config option for details"),
+            EXTRUDE_ONLY_TOO_LONG => {
+                Some("See the 'max_extrude_only_distance' config option for details")
+            }
+            OVER_EXTRUSION => Some("See the 'max_extrude_cross_section' config option for details"),
+            _ => None,
+        }
+    }
 }
 
 impl fmt::Display for MoveError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let e = &self.end;
         match self.detail {
-            Some((a, b)) => write!(f, "{} ({a:.3} vs {b:.3})", self.reason),
-            None => write!(
+            Detail::Limit { value, limit, unit } => {
+                write!(f, "{} ({value:.3}{unit} vs {limit:.3}{unit})", self.reason)
+            }
+            Detail::Position => write!(
                 f,
                 "{}: {:.3} {:.3} {:.3} [{:.3}]",
                 self.reason, e[0], e[1], e[2], e[3]
             ),
+            Detail::Nothing => f.write_str(self.reason),
         }
     }
 }
+
+/// Klipper's refusal of an extrusion while the extruder is below
+/// min_extrude_temp.
+pub const EXTRUDE_COLD: &str = "Extrude below minimum temp";
+/// Klipper's refusal of an extrude-only move (or retraction) longer than
+/// max_extrude_only_distance.
+pub const EXTRUDE_ONLY_TOO_LONG: &str = "Extrude only move too long";
+/// Klipper's refusal of an extrusion wider than max_extrude_cross_section.
+pub const OVER_EXTRUSION: &str = "Move exceeds maximum extrusion";
 
 fn move_error(m: &Move, reason: &'static str) -> MoveError {
     MoveError {
         reason,
         end: m.end_pos,
-        detail: None,
+        detail: Detail::Position,
     }
 }
 
@@ -311,17 +359,33 @@ pub struct ExtruderLimits {
 }
 
 impl ExtruderLimits {
-    fn check_move(&self, m: &mut Move) -> Result<(), MoveError> {
+    /// Klipper's extruder check of a move with E motion: refused while the
+    /// extruder may not extrude (`can_extrude` false: below
+    /// min_extrude_temp), when extrude-only (or retracting) further than
+    /// max_extrude_only_distance, or wider than max_extrude_cross_section;
+    /// extrude-only moves are slowed to the extrude-only limits.
+    fn check_move(&self, m: &mut Move, can_extrude: bool) -> Result<(), MoveError> {
         let axis_r = m.axes_r[E];
         let axis_d = m.axes_d[E];
+        let refuse = |reason, detail| MoveError {
+            reason,
+            end: m.end_pos,
+            detail,
+        };
+        if !can_extrude {
+            return Err(refuse(EXTRUDE_COLD, Detail::Nothing));
+        }
         if (m.axes_d[0] == 0.0 && m.axes_d[1] == 0.0) || axis_r < 0.0 {
             // Extrude-only move or retraction.
             if axis_d.abs() > self.max_e_dist {
-                return Err(MoveError {
-                    reason: "Extrude only move too long",
-                    end: m.end_pos,
-                    detail: Some((axis_d, self.max_e_dist)),
-                });
+                return Err(refuse(
+                    EXTRUDE_ONLY_TOO_LONG,
+                    Detail::Limit {
+                        value: axis_d,
+                        limit: self.max_e_dist,
+                        unit: "mm",
+                    },
+                ));
             }
             let inv_extrude_r = 1.0 / axis_r.abs();
             m.limit_speed(
@@ -331,14 +395,14 @@ impl ExtruderLimits {
         } else if axis_r > self.max_extrude_ratio
             && axis_d > self.nozzle_diameter * self.max_extrude_ratio
         {
-            return Err(MoveError {
-                reason: "Move exceeds maximum extrusion",
-                end: m.end_pos,
-                detail: Some((
-                    axis_r * self.filament_area,
-                    self.max_extrude_ratio * self.filament_area,
-                )),
-            });
+            return Err(refuse(
+                OVER_EXTRUSION,
+                Detail::Limit {
+                    value: axis_r * self.filament_area,
+                    limit: self.max_extrude_ratio * self.filament_area,
+                    unit: "mm^2",
+                },
+            ));
         }
         Ok(())
     }
@@ -375,6 +439,8 @@ pub struct Toolhead<const N: usize> {
     pub kinematics: Travel,
     /// The extruder, if configured.
     pub extruder: Option<ExtruderLimits>,
+    /// The extruder is hot enough to move (see [`Self::set_can_extrude`]).
+    can_extrude: bool,
     lookahead: LookAhead<N>,
     commanded_pos: [f64; 4],
     print_time: f64,
@@ -431,6 +497,7 @@ impl<const N: usize> Toolhead<N> {
             addr_of_mut!((*p).limits).write(limits);
             addr_of_mut!((*p).kinematics).write(kinematics);
             addr_of_mut!((*p).extruder).write(extruder);
+            addr_of_mut!((*p).can_extrude).write(true);
             addr_of_mut!((*p).commanded_pos).write([0.0; 4]);
             addr_of_mut!((*p).print_time).write(0.0);
             addr_of_mut!((*p).state).write(QueueState::NeedPrime);
@@ -441,6 +508,15 @@ impl<const N: usize> Toolhead<N> {
             addr_of_mut!((*p).kin_flush_delay).write(scan_delay.max(SDS_CHECK_TIME));
             slot.assume_init_mut()
         }
+    }
+
+    /// Whether moves with E motion may run: false while the extruder's
+    /// heater is below its min_extrude_temp (they are then refused with
+    /// Klipper's "Extrude below minimum temp"). True from the start: a
+    /// toolhead alone plans as klippy's batch mode, which never refuses;
+    /// the printer sets it from the heaters.
+    pub fn set_can_extrude(&mut self, can_extrude: bool) {
+        self.can_extrude = can_extrude;
     }
 
     /// Starts the clock at `origin` s instead of 0, as when printing begins
@@ -515,7 +591,7 @@ impl<const N: usize> Toolhead<N> {
         }
         if m.axes_d[E] != 0.0 {
             match &self.extruder {
-                Some(e) => e.check_move(&mut m)?,
+                Some(e) => e.check_move(&mut m, self.can_extrude)?,
                 None => return Err(move_error(&m, "Extrude when no extruder present")),
             }
         }

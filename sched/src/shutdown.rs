@@ -25,7 +25,35 @@ pub enum Shutdown {
     PwmExpired,
     /// The host asked for an emergency stop (M112).
     EmergencyStop,
+    /// A heater did not heat at the rate its `[verify_heater]` checks
+    /// expect (in Klipper a host-side check; here the MCU role runs it).
+    NotHeating(Heater),
 }
+
+/// The heaters a shutdown can name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Heater {
+    /// `[extruder]`'s heater.
+    Extruder,
+    /// `[heater_bed]`.
+    Bed,
+}
+
+impl Heater {
+    /// The heater's name in printer.cfg.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Extruder => "extruder",
+            Self::Bed => "heater_bed",
+        }
+    }
+}
+
+/// The lines Klipper adds under a verify_heater shutdown's message.
+const HINT_THERMAL: &[&str] = &[
+    "See the 'verify_heater' section in docs/Config_Reference.md",
+    "for the parameters that control this check.",
+];
 
 impl Shutdown {
     /// Klipper's text for this reason.
@@ -38,6 +66,17 @@ impl Shutdown {
             Self::DigitalOutExpired => "Missed scheduling of next digital out event",
             Self::PwmExpired => "Missed scheduling of next hard pwm event",
             Self::EmergencyStop => "Shutdown due to M112 command",
+            Self::NotHeating(Heater::Extruder) => "Heater extruder not heating at expected rate",
+            Self::NotHeating(Heater::Bed) => "Heater heater_bed not heating at expected rate",
+        }
+    }
+
+    /// The lines Klipper prints under the message (each to be shown as a
+    /// `// ` line), if any: where to read about the check that fired.
+    pub fn hint(self) -> &'static [&'static str] {
+        match self {
+            Self::NotHeating(_) => HINT_THERMAL,
+            _ => &[],
         }
     }
 }

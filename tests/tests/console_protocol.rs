@@ -8,9 +8,9 @@ use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start};
 use std::path::{Path, PathBuf};
 
-/// A short job: home, then a square with extrusion, the hotend already
-/// allowed to extrude (no heating: the job is about the console).
-const JOB: &str = "G28\nG90\nG1 Z5 F600\nG1 X20 Y20 F6000\nG1 X60 Y20 E2\nG1 X60 Y60 E4\nG1 X20 Y60 E6\nG1 X20 Y20 E8\nM400\n";
+/// A short job: home while the hot end heats, then a square with
+/// extrusion.
+const JOB: &str = "M104 S200\nG28\nM109 S200\nG90\nG1 Z5 F600\nG1 X20 Y20 F6000\nG1 X60 Y20 E2\nG1 X60 Y60 E4\nG1 X20 Y60 E6\nG1 X20 Y20 E8\nM400\n";
 
 fn sd(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("onechip-protocol-{name}-{}", std::process::id()));
@@ -112,9 +112,9 @@ fn a_corrupt_line_is_resent_and_every_line_runs_exactly_once() {
     assert_eq!(steps(&lossy), steps(&clean));
     assert_eq!(lossy.position(), clean.position());
     assert_eq!(clean.position(), [20.0, 20.0, 5.0, 8.0]);
-    let missing = lossy.send("N10 G1 X1");
+    let missing = lossy.send("N12 G1 X1");
     assert!(
-        missing.starts_with("Error:No Checksum with line number, Last Line: 9\nResend: 10\n"),
+        missing.starts_with("Error:No Checksum with line number, Last Line: 11\nResend: 12\n"),
         "{missing}"
     );
     let _ = std::fs::remove_dir_all(&dir);
@@ -188,7 +188,7 @@ fn a_file_prints_from_the_card_as_hosts_drive_it() {
     assert!(progress.starts_with("SD printing byte "), "{progress}");
     // Console commands still work during the print.
     assert!(p.send("M105").starts_with("ok T:"));
-    let rest = print_to_end(&mut p, 120.0);
+    let rest = print_to_end(&mut p, 300.0);
     assert!(!rest.contains("!!"), "{rest}");
     assert_eq!(p.send("M27"), "Not SD printing.\nok\n");
     assert_eq!(steps(&p), steps(&streamed));
@@ -200,7 +200,7 @@ fn a_file_prints_from_the_card_as_hosts_drive_it() {
             .send("SDCARD_PRINT_FILE FILENAME=cube.gcode")
             .contains("File selected")
     );
-    print_to_end(&mut again, 120.0);
+    print_to_end(&mut again, 300.0);
     assert_eq!(steps(&again), steps(&streamed));
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -228,7 +228,7 @@ fn a_file_is_uploaded_printed_paused_resumed_and_deleted() {
     assert_eq!(p.send("M27"), paused, "no line runs while paused");
     assert_eq!(p.send("PAUSE"), "!! Print already paused\nok\n");
     assert_eq!(p.send("RESUME"), "ok\n");
-    print_to_end(&mut p, 120.0);
+    print_to_end(&mut p, 300.0);
     assert_eq!(p.position(), [20.0, 20.0, 5.0, 8.0]);
     assert_eq!(p.send("M30 up.gcode"), "File deleted:up.gcode\nok\n");
     assert!(!dir.join("up.gcode").exists());
@@ -285,7 +285,7 @@ fn m112_stops_at_once_and_a_restart_prints_again() {
     assert_eq!(p.send("FIRMWARE_RESTART"), "ok\n");
     let restarted = p.send("SDCARD_PRINT_FILE FILENAME=cube.gcode");
     assert!(restarted.contains("File selected"), "{restarted}");
-    let rest = print_to_end(&mut p, 120.0);
+    let rest = print_to_end(&mut p, 300.0);
     assert!(!rest.contains("!!"), "{rest}");
     assert_eq!(p.position(), [20.0, 20.0, 5.0, 8.0]);
     let _ = std::fs::remove_dir_all(&dir);
