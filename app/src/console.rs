@@ -60,7 +60,7 @@ pub struct Console {
     /// The step clock, Hz.
     freq: f64,
     numbers: LineNumbers,
-    /// The clock of the last line, until the priming timeout has run.
+    /// The clock of the last console line.
     last_line: Option<u64>,
     /// M155: temperature reports.
     temperatures: Option<Every>,
@@ -164,12 +164,13 @@ impl Console {
     ) -> fmt::Result {
         let now = mcu.now();
         let priming = (crate::printer::PRIMING_TIME * self.freq) as u64;
-        if let (Some(at), Some(session)) = (self.last_line, session.as_deref_mut())
-            && now.saturating_sub(at) >= priming
+        if let Some(session) = session.as_deref_mut()
+            && self
+                .last_line
+                .is_none_or(|at| now.saturating_sub(at) >= priming)
             && !self.sd.is_printing()
         {
-            session.idle(mcu);
-            self.last_line = None;
+            session.idle(mcu, out);
         }
         if due(&mut self.temperatures, now) {
             mcu.report_temperatures(out)?;

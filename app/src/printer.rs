@@ -253,6 +253,13 @@ impl<'a, const N: usize> Printer<'a, N> {
         self.toolhead.priming_timeout(sink);
     }
 
+    /// While moves flow: plans and releases every queued move once those
+    /// released end within a second of print time `now` (s), as klippy's
+    /// flush timer does when the input stalls.
+    pub fn flush_if_low(&mut self, now: f64, sink: &mut impl MoveSink) {
+        self.toolhead.flush_if_low(now, sink);
+    }
+
     /// Ends the input as klippy does: a 0.5 s dwell, then every move.
     pub fn finish(&mut self, sink: &mut impl MoveSink) {
         self.gcode.finish(&mut self.toolhead, sink);

@@ -10,12 +10,14 @@
 
 use crate::console;
 use crate::heaters::ThermalCommand;
+use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
 use crate::printer::{LineError, Printer};
 use crate::text::{ErrorText, error_text};
 use core::cell::RefCell;
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
+use onechip_planner::gcode;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::move_sink::{HomingEnd, HomingMove};
 use onechip_planner::move_sink::{MoveSink, TrapqMove};
@@ -241,6 +243,8 @@ pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
     planned: Planned,
     /// Time spent waiting for heaters, s.
     heat_wait: f64,
+    /// Klipper's idle timeout.
+    idle: IdleTimeout<'a>,
 }
 
 /// The session with the board's queue sizes.
@@ -285,6 +289,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             addr_of_mut!((*p).timing).write(Timing::RealTime);
             addr_of_mut!((*p).planned).write(Planned::default());
             addr_of_mut!((*p).heat_wait).write(0.0);
+            addr_of_mut!((*p).idle).write(IdleTimeout::new(&machine.idle_timeout));
             slot.assume_init_mut()
         }
     }
@@ -330,6 +335,15 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             let now = mcu.now() as f64 / self.engine.freq;
             self.printer.set_time_origin(now);
         }
+        let now = mcu.now() as f64 / self.engine.freq;
+        let parsed = gcode::parse(text).ok();
+        if let Some(line) = &parsed {
+            match self.idle.command(line, now, out) {
+                Ok(true) => return Ok(()),
+                Ok(false) => {}
+                Err(e) => return Err(error_text(&e)),
+            }
+        }
         self.engine.line_starts(mcu.now());
         let result = self.with_planning(mcu, out, |printer, planning, out| {
             printer
@@ -337,8 +351,14 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 .map_err(|e| error_text(&SessionError::Command(e)))
         });
         let thermal = self.thermal(mcu, out);
-        if result.is_ok() && word.eq_ignore_ascii_case(b"M400") && self.timing == Timing::RealTime {
-            self.wait_moves_done(mcu, out);
+        if self.timing == Timing::RealTime {
+            if result.is_ok() && word.eq_ignore_ascii_case(b"M400") {
+                self.wait_moves_done(mcu, out);
+            }
+            if parsed.as_ref().is_some_and(idle_timeout::is_activity) {
+                let now = mcu.now() as f64 / self.engine.freq;
+                self.idle.note_activity(now, self.printer.print_time());
+            }
         }
         result.and(thermal)
     }
@@ -419,12 +439,52 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     }
 
     /// To call when no input has arrived for
-    /// [`crate::printer::PRIMING_TIME`]: releases the moves still waiting
-    /// for the lookahead to fill, and generates their steps.
-    pub fn idle(&mut self, mcu: &mut impl Mcu) {
+    /// [`crate::printer::PRIMING_TIME`] (and as long as none arrives):
+    /// releases the moves still waiting for the lookahead to fill (Klipper's
+    /// priming timer) and, as real time runs, flushes the lookahead when the
+    /// moves sent are about to run out (its flush timer); generates their
+    /// steps, all of them once nothing is queued; runs the idle timeout.
+    pub fn idle(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+        let now = mcu.now() as f64 / self.engine.freq;
+        let real_time = self.timing == Timing::RealTime;
         self.with_planning(mcu, &mut Discard, |printer, planning, _| {
-            printer.priming_timeout(planning)
+            printer.priming_timeout(planning);
+            if real_time {
+                printer.flush_if_low(now, planning);
+            }
         });
+        if real_time {
+            if self.printer.is_idle() {
+                // Nothing more is coming for now: every step of the motion
+                // queued goes out, so it runs to its end (klippy's
+                // background flush).
+                self.motion
+                    .settle(&mut self.engine.steps(mcu, &mut Discard));
+            }
+            self.idle_timeout(mcu, out);
+        }
+    }
+
+    /// Klipper's idle timeout: once nothing has moved for its timeout, its
+    /// G-code runs (by default: heaters off, motors off).
+    fn idle_timeout(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+        let now = mcu.now() as f64 / self.engine.freq;
+        let toolhead = ToolheadState {
+            print_time: self.printer.print_time(),
+            lookahead_empty: self.printer.is_idle(),
+        };
+        let Some(gcode) = self.idle.poll(now, toolhead) else {
+            return;
+        };
+        let mut ok = true;
+        for line in gcode.lines() {
+            if let Err(e) = self.run(line, mcu, out) {
+                let _ = writeln!(out, "!! {e}");
+                ok = false;
+            }
+        }
+        let now = mcu.now() as f64 / self.engine.freq;
+        self.idle.idle_gcode_done(now, ok);
     }
 
     /// The end of the input: every queued move is planned and its steps

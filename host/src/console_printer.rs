@@ -7,7 +7,7 @@
 use crate::files::Folder;
 use crate::step_log::StepLog;
 use crate::virtual_mcu::VirtualMcu;
-use crate::{HostSession, Options, SimError, clock_at, physics};
+use crate::{HostSession, Options, SimError, physics};
 use onechip_app::console::Console;
 use onechip_app::emergency::EmergencyParser;
 use onechip_app::line::LineAssembler;
@@ -126,11 +126,11 @@ impl ConsolePrinter {
         out
     }
 
-    /// After a line or a poll: the MCU runs the steps as far as they have
-    /// all been sent, and a restart asked for is carried out.
+    /// After a line or a poll: a restart asked for is carried out. (The
+    /// virtual clock moves only while the session waits for the MCU role
+    /// and in [`Self::run_for`]: lines arrive as fast as the host sends
+    /// them, as on the board.)
     fn after_line(&mut self) {
-        let sent = clock_at(self.session.sent_until(), self.freq);
-        self.mcu.run_until(sent);
         if self.console.take_restart() {
             self.mcu.restart(self.machine, self.freq);
             self.session.restart(self.machine, self.mcu.now());

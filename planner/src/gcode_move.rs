@@ -223,6 +223,15 @@ impl GcodeMove {
                 toolhead.wait_moves(sink);
                 Ok(())
             }
+            // Drivers stay enabled on this firmware (their enable pins are
+            // set at start-up): M17 has nothing to do, and M18/M84 let the
+            // moves finish and forget homing, as Klipper's motor off.
+            (b'M', 17, None) => Ok(()),
+            (b'M', 18 | 84, None) => {
+                toolhead.wait_moves(sink);
+                toolhead.kinematics.clear_homed();
+                Ok(())
+            }
             _ => {
                 let _ = writeln!(out, "Unknown command:\"{}{}\"", t.letter as char, t.number);
                 Ok(())

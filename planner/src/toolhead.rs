@@ -20,6 +20,10 @@ use core::fmt;
 pub const BUFFER_TIME_START: f64 = 0.250;
 /// Lookahead time gathered while priming, s.
 pub const BUFFER_TIME_HIGH: f64 = 2.0;
+/// When the moves released to step generation end less than this after
+/// the MCU's clock, the lookahead is flushed whole, s (Klipper's
+/// `BUFFER_TIME_LOW`).
+pub const BUFFER_TIME_LOW: f64 = 1.0;
 /// Minimum time to the first step generation, s.
 pub const MIN_KIN_TIME: f64 = 0.100;
 /// Step+dir+step filter window of stepcompress, s (the least scan delay).
@@ -327,6 +331,15 @@ impl Travel {
         }
     }
 
+    /// Forgets homing (M84: the motors may move freely): every axis must
+    /// be homed again before it moves.
+    pub fn clear_homed(&mut self) {
+        match self {
+            Self::Cartesian(c) => c.range = [NOT_HOMED; 3],
+            Self::Delta(d) => d.need_home = true,
+        }
+    }
+
     /// Notes that the position was set with every axis homed.
     pub fn set_homed(&mut self) {
         match self {
@@ -562,6 +575,17 @@ impl<const N: usize> Toolhead<N> {
     /// passed while reading input.
     pub fn priming_timeout(&mut self, sink: &mut impl MoveSink) {
         if self.state == QueueState::Priming {
+            self.flush_lookahead(sink);
+        }
+    }
+
+    /// What klippy's flush timer does while moves flow: once the moves
+    /// released so far end within [`BUFFER_TIME_LOW`] of print time `now`
+    /// (s, the MCU's clock), the input has stalled and every queued move
+    /// is planned to a stop and released, so none is left waiting for
+    /// lines that are not coming.
+    pub fn flush_if_low(&mut self, now: f64, sink: &mut impl MoveSink) {
+        if self.state == QueueState::Main && self.print_time - now < BUFFER_TIME_LOW {
             self.flush_lookahead(sink);
         }
     }

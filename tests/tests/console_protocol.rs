@@ -290,3 +290,42 @@ fn m112_stops_at_once_and_a_restart_prints_again() {
     assert_eq!(p.position(), [20.0, 20.0, 5.0, 8.0]);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_host_that_stops_mid_stream_leaves_no_move_queued_and_no_heater_on() {
+    let dir = sd("stall");
+    let stream = |p: &mut ConsolePrinter| {
+        for line in ["M140 S60", "M104 S200", "G28", "M109 S200", "G1 Z2 F600"] {
+            p.send(line);
+        }
+        for i in 0..1000 {
+            let (x, y) = (10 + i % 50, 10 + i / 20);
+            p.send(&format!("G1 X{x} Y{y} E{} F6000", i as f64 * 0.02));
+        }
+    };
+    let mut finished = printer(&dir);
+    stream(&mut finished);
+    finished.send("M400");
+    finished.run_for(30.0);
+    // The host goes silent after its last move: the lookahead is flushed
+    // when the moves sent run low (Klipper's flush timer), so every move
+    // runs, and the heaters stay on until the idle timeout (600 s after
+    // the last move ended) turns them off.
+    let mut silent = printer(&dir);
+    stream(&mut silent);
+    silent.run_for(30.0);
+    assert_eq!(steps(&silent), steps(&finished));
+    assert_eq!(silent.heaters_on().len(), 2);
+    assert!(silent.heaters_on().iter().all(|&on| on) || silent.heaters_on()[0]);
+    silent.run_for(540.0);
+    assert!(
+        silent.heaters_on().iter().any(|&on| on),
+        "not before the timeout"
+    );
+    silent.run_for(70.0);
+    assert_eq!(silent.heaters_on(), [false, false], "off after the timeout");
+    // M84 in the idle G-code: homing is forgotten.
+    let refused = silent.send("G1 X20");
+    assert!(refused.contains("Must home axis first"), "{refused}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
