@@ -69,6 +69,8 @@ pub struct Console {
     sd: SdPrint,
     /// M999 or FIRMWARE_RESTART asked for a restart not yet taken.
     restart: bool,
+    /// The MCU role's shutdown has been reported.
+    shutdown_reported: bool,
 }
 
 /// A `!! ` error line.
@@ -87,6 +89,7 @@ impl Console {
             sd_status: None,
             sd: SdPrint::new(),
             restart: false,
+            shutdown_reported: false,
         }
     }
 
@@ -145,6 +148,7 @@ impl Console {
                 }
             },
         }
+        self.report_shutdown(mcu, out)?;
         if !acked {
             out.write_str("ok\n")?;
         }
@@ -162,6 +166,7 @@ impl Console {
         mcu: &mut impl Mcu,
         out: &mut impl Write,
     ) -> fmt::Result {
+        self.report_shutdown(mcu, out)?;
         let now = mcu.now();
         let priming = (crate::printer::PRIMING_TIME * self.freq) as u64;
         if let Some(session) = session.as_deref_mut()
@@ -200,6 +205,28 @@ impl Console {
         let no_printer = ErrorText::new();
         self.command(text, Source::File, session, &no_printer, card, mcu, out)?;
         Ok(())
+    }
+
+    /// Reports a shutdown of the MCU role once, when it is seen (an M112,
+    /// a heater fault, a step too late), as Klipper does: its hint lines,
+    /// then the reason; a print from the card stops.
+    fn report_shutdown(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) -> fmt::Result {
+        match mcu.shutdown_reason() {
+            Some(reason) if !self.shutdown_reported => {
+                self.shutdown_reported = true;
+                self.sd.reset();
+                for hint in reason.hint() {
+                    writeln!(out, "// {hint}")?;
+                }
+                writeln!(out, "// Nothing moves or heats until FIRMWARE_RESTART.")?;
+                error_line(out, &reason)
+            }
+            Some(_) => Ok(()),
+            None => {
+                self.shutdown_reported = false;
+                Ok(())
+            }
+        }
     }
 
     /// A file line failed: the print pauses after reporting it (RESUME or
@@ -306,9 +333,8 @@ impl Console {
                 }
             }
         } else if is("M112") {
+            // Reported with the line's answer, as every shutdown.
             mcu.emergency_stop();
-            sd.reset();
-            error_line(out, &onechip_sched::shutdown::Shutdown::EmergencyStop)?;
             Ok(())
         } else if is("FIRMWARE_RESTART") || is("M999") && mcu.shutdown_reason().is_some() {
             // M999 as Marlin's: a restart after a shutdown, else nothing.

@@ -54,16 +54,22 @@ pub const MAX_HEATERS: usize = 2;
 /// Outputs: the heaters and the fan.
 pub const OUTPUTS: usize = MAX_HEATERS + 1;
 
-/// Each heater's label (`T`, `B`), smoothed temperature and target, °C;
-/// displayed as the M105 report.
+/// Each heater's label (`T`, `B`), smoothed temperature and target (°C)
+/// and power (0..1); displayed as the M105 report, Marlin's
+/// `T:200.0 /200.0 B:60.0 /60.0 @:127 B@:0` (power on Marlin's 0..127).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Temperatures(heapless::Vec<(&'static str, f64, f64), MAX_HEATERS>);
+pub struct Temperatures(heapless::Vec<(&'static str, f64, f64, f64), MAX_HEATERS>);
 
 impl core::fmt::Display for Temperatures {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        for (i, (label, temperature, target)) in self.0.iter().enumerate() {
+        for (i, (label, temperature, target, _)) in self.0.iter().enumerate() {
             let sep = if i == 0 { "" } else { " " };
             write!(f, "{sep}{label}:{temperature:.1} /{target:.1}")?;
+        }
+        for (label, _, _, power) in &self.0 {
+            // The hot end's power is `@:`, the others' `B@:`.
+            let label = if *label == "T" { "" } else { label };
+            write!(f, " {label}@:{:.0}", (power * 127.0).clamp(0.0, 127.0))?;
         }
         Ok(())
     }
@@ -759,7 +765,7 @@ impl Heaters {
         Temperatures(
             self.heaters
                 .iter()
-                .map(|h| (h.label, h.smoothed, h.target))
+                .map(|h| (h.label, h.smoothed, h.target, h.last_power))
                 .collect(),
         )
     }
@@ -1068,7 +1074,7 @@ mod tests {
         let mut report = heapless::String::<64>::new();
         heaters.report(&mut report).expect("fits");
         assert_eq!(text(&copy), report);
-        assert!(report.starts_with("T:0.0 /200.0 B:0.0 /0.0"), "{report}");
+        assert_eq!(report, "T:0.0 /200.0 B:0.0 /0.0 @:0 B@:0");
         // Two heaters: a few dozen bytes, against the whole heaters (~1 KB).
         assert!(core::mem::size_of::<Temperatures>() <= 96);
         heaters.command(target(0.0), 0, &mut Hw).expect("off");

@@ -137,7 +137,18 @@ fn temperatures_come_on_the_ok_and_as_auto_reports() {
     p.run_for(1.0);
     let m105 = p.send("M105");
     assert!(m105.starts_with("ok T:"), "{m105}");
-    assert!(m105.contains(" B:"), "{m105}");
+    assert!(
+        m105.contains(" B:") && m105.contains(" @:") && m105.contains(" B@:"),
+        "{m105}"
+    );
+    // Heating: the hot end's power shows.
+    p.send("M104 S200");
+    p.run_for(2.0);
+    let heating = p.send("M105");
+    assert!(
+        heating.contains(" @:127 "),
+        "full power while far below: {heating}"
+    );
     assert_eq!(m105.lines().count(), 1, "{m105}");
     assert_eq!(p.send("M155 S1"), "ok\n");
     let reports = p.run_for(3.05);
