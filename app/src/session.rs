@@ -86,6 +86,8 @@ pub trait Mcu {
     fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
     /// Why the MCU role shut down, if it did.
     fn shutdown_reason(&mut self) -> Option<Shutdown>;
+    /// True while stepper `stepper`'s endstop reads pressed (M119).
+    fn endstop_triggered(&mut self, stepper: usize) -> bool;
     /// M112: every stepper stops and every heater goes off at once, and
     /// the MCU role stays shut down ([`Shutdown::EmergencyStop`]).
     fn emergency_stop(&mut self);
@@ -335,6 +337,10 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             let now = mcu.now() as f64 / self.engine.freq;
             self.printer.set_time_origin(now);
         }
+        if word.eq_ignore_ascii_case(b"M119") || word.eq_ignore_ascii_case(b"QUERY_ENDSTOPS") {
+            self.query_endstops(mcu, out);
+            return Ok(());
+        }
         let now = mcu.now() as f64 / self.engine.freq;
         let parsed = gcode::parse(text).ok();
         if let Some(line) = &parsed {
@@ -361,6 +367,24 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             }
         }
         result.and(thermal)
+    }
+
+    /// M119, QUERY_ENDSTOPS: each axis' endstop as Klipper reports it
+    /// (`x:open y:open z:TRIGGERED`).
+    fn query_endstops(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+        let mut sep = "";
+        for (axis, name) in ["x", "y", "z"].iter().enumerate() {
+            if self.engine.endstops[axis] {
+                let state = if mcu.endstop_triggered(axis) {
+                    "TRIGGERED"
+                } else {
+                    "open"
+                };
+                let _ = write!(out, "{sep}{name}:{state}");
+                sep = " ";
+            }
+        }
+        let _ = writeln!(out);
     }
 
     /// M400: waits until every queued step has run.

@@ -68,6 +68,10 @@ impl Mcu for BoardMcu {
         step_timer::shutdown_reason()
     }
 
+    fn endstop_triggered(&mut self, stepper: usize) -> bool {
+        step_timer::endstop_triggered(stepper)
+    }
+
     fn emergency_stop(&mut self) {
         emergency_stop();
     }

@@ -17,6 +17,7 @@ use embassy_stm32::interrupt::InterruptExt;
 use embassy_stm32::pac;
 use onechip_sched::engine::{Full, StepTimer};
 use onechip_sched::step_command::StepCommand;
+use onechip_sched::stepper::StepPins;
 
 /// Timer ticks to the first interrupt after start (1 ms at 260 MHz).
 const FIRST_WAKE: u32 = 260_000;
@@ -127,6 +128,16 @@ pub fn stop_watching() {
 /// The 32-bit clock of the endstop trigger since the last call, if any.
 pub fn take_trigger() -> Option<u32> {
     with_engine(|e| e.take_trigger()).flatten()
+}
+
+/// True while stepper `stepper`'s endstop input reads pressed.
+pub fn endstop_triggered(stepper: usize) -> bool {
+    with_engine(|e| {
+        e.pins_mut()
+            .nth(stepper)
+            .is_some_and(|pins| pins.endstop_triggered())
+    })
+    .unwrap_or(false)
 }
 
 /// Stops every stepper for `reason` (a heater fault).

@@ -438,6 +438,13 @@ impl Mcu for VirtualMcu {
         self.shutdown()
     }
 
+    fn endstop_triggered(&mut self, stepper: usize) -> bool {
+        self.engine
+            .pins_mut()
+            .nth(stepper)
+            .is_some_and(|pins| pins.endstop_triggered())
+    }
+
     fn emergency_stop(&mut self) {
         let reason = Shutdown::EmergencyStop;
         self.engine.stop(reason);

@@ -340,3 +340,19 @@ fn a_host_that_stops_mid_stream_leaves_no_move_queued_and_no_heater_on() {
     assert!(refused.contains("Must home axis first"), "{refused}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn m119_reads_the_endstops() {
+    let dir = sd("m119");
+    let mut p = printer(&dir);
+    assert_eq!(p.send("M119"), "x:open y:open z:open\nok\n");
+    p.send("G28");
+    p.run_for(1.0);
+    // Homed: each axis rests where its endstop triggered.
+    let homed = p.send("QUERY_ENDSTOPS");
+    assert_eq!(homed, "x:TRIGGERED y:TRIGGERED z:TRIGGERED\nok\n");
+    p.send("G1 X50 Y50 Z20 F6000");
+    p.run_for(5.0);
+    assert_eq!(p.send("M119"), "x:open y:open z:open\nok\n");
+    let _ = std::fs::remove_dir_all(&dir);
+}
