@@ -37,6 +37,10 @@ const CAPABILITIES: &[(&str, bool)] = &[
     ("HOST_ACTION_COMMANDS", false),
 ];
 
+/// How often the session's idle work runs while no line comes, s: the
+/// thread code may wake at every step interrupt, the work need not.
+const IDLE_PERIOD: f64 = 0.010;
+
 /// Where a line came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Source {
@@ -62,6 +66,8 @@ pub struct Console {
     numbers: LineNumbers,
     /// The clock of the last console line.
     last_line: Option<u64>,
+    /// The clock from which the session's idle work is due again.
+    idle_due: u64,
     /// M155: temperature reports.
     temperatures: Option<Every>,
     /// M27 S: SD print status reports.
@@ -85,6 +91,7 @@ impl Console {
             freq,
             numbers: LineNumbers::new(),
             last_line: None,
+            idle_due: 0,
             temperatures: None,
             sd_status: None,
             sd: SdPrint::new(),
@@ -173,9 +180,11 @@ impl Console {
             && self
                 .last_line
                 .is_none_or(|at| now.saturating_sub(at) >= priming)
+            && now >= self.idle_due
             && !self.sd.is_printing()
         {
             session.idle(mcu, out);
+            self.idle_due = now + (IDLE_PERIOD * self.freq) as u64;
         }
         if due(&mut self.temperatures, now) {
             mcu.report_temperatures(out)?;
