@@ -177,13 +177,13 @@ impl Console {
         let now = mcu.now();
         let priming = (crate::printer::PRIMING_TIME * self.freq) as u64;
         if let Some(session) = session.as_deref_mut()
-            && self
-                .last_line
-                .is_none_or(|at| now.saturating_sub(at) >= priming)
             && now >= self.idle_due
             && !self.sd.is_printing()
         {
-            session.idle(mcu, out);
+            let quiet = self
+                .last_line
+                .is_none_or(|at| now.saturating_sub(at) >= priming);
+            session.idle(mcu, out, quiet);
             self.idle_due = now + (IDLE_PERIOD * self.freq) as u64;
         }
         if due(&mut self.temperatures, now) {

@@ -128,6 +128,11 @@ impl<'a, const N: usize> Printer<'a, N> {
         self.toolhead.is_idle()
     }
 
+    /// True once moves flow: their print times are fixed.
+    pub fn is_flowing(&self) -> bool {
+        self.toolhead.is_flowing()
+    }
+
     /// If idle, the next move starts no earlier than print time `t` s.
     pub fn hold_until(&mut self, t: f64) {
         self.toolhead.hold_until(t);

@@ -332,11 +332,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         // Klipper's batch mode never refuses a cold extrusion.
         let can_extrude = self.timing == Timing::Batch || mcu.can_extrude();
         self.printer.set_can_extrude(can_extrude);
-        if self.timing == Timing::RealTime && self.printer.is_idle() {
-            // An idle printer starts its next move from now.
-            let now = mcu.now() as f64 / self.engine.freq;
-            self.printer.set_time_origin(now);
-        }
+        self.anchor(mcu);
         if word.eq_ignore_ascii_case(b"M119") || word.eq_ignore_ascii_case(b"QUERY_ENDSTOPS") {
             self.query_endstops(mcu, out);
             return Ok(());
@@ -462,17 +458,24 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         Ok(())
     }
 
-    /// To call when no input has arrived for
-    /// [`crate::printer::PRIMING_TIME`] (and as long as none arrives):
-    /// releases the moves still waiting for the lookahead to fill (Klipper's
-    /// priming timer) and, as real time runs, flushes the lookahead when the
-    /// moves sent are about to run out (its flush timer); generates their
-    /// steps, all of them once nothing is queued; runs the idle timeout.
-    pub fn idle(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+    /// To call between lines, as time runs: if `priming` (no input for
+    /// [`crate::printer::PRIMING_TIME`]), releases the moves still waiting
+    /// for the lookahead to fill (Klipper's priming timer); in real time,
+    /// flushes the lookahead when the moves sent are about to run out (its
+    /// flush timer), sends every step once nothing is queued, and runs the
+    /// idle timeout.
+    pub fn idle(&mut self, mcu: &mut impl Mcu, out: &mut impl Write, priming: bool) {
         let now = mcu.now() as f64 / self.engine.freq;
         let real_time = self.timing == Timing::RealTime;
+        if !self.printer.is_idle() {
+            // Moves wait to be released: from now at the earliest. (An idle
+            // toolhead's print time stays where its last move ended.)
+            self.anchor(mcu);
+        }
         self.with_planning(mcu, &mut Discard, |printer, planning, _| {
-            printer.priming_timeout(planning);
+            if priming {
+                printer.priming_timeout(planning);
+            }
             if real_time {
                 printer.flush_if_low(now, planning);
             }
@@ -486,6 +489,16 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                     .settle(&mut self.engine.steps(mcu, &mut Discard));
             }
             self.idle_timeout(mcu, out);
+        }
+    }
+
+    /// In real time, until moves flow, their print time starts from the
+    /// MCU's clock now (as klippy fixes it when it releases the first
+    /// moves, not when they are queued).
+    fn anchor(&mut self, mcu: &mut impl Mcu) {
+        if self.timing == Timing::RealTime && !self.printer.is_flowing() {
+            let now = mcu.now() as f64 / self.engine.freq;
+            self.printer.set_time_origin(now);
         }
     }
 

@@ -552,6 +552,12 @@ impl<const N: usize> Toolhead<N> {
         self.state == QueueState::NeedPrime
     }
 
+    /// True once moves flow (some have been released to step generation
+    /// since the toolhead was last idle): their print times are fixed.
+    pub fn is_flowing(&self) -> bool {
+        self.state == QueueState::Main
+    }
+
     /// The next move of an idle toolhead starts no earlier than print time
     /// `t` s (as klippy holds it back until its estimate of the MCU's
     /// print time lets it).
