@@ -10,12 +10,15 @@
 //! of Klipper's golden `steps-*.txt`.
 
 pub mod files;
+pub mod pace;
 pub mod plot;
+pub mod serial;
+pub mod summary_json;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
 use onechip_app::console::ErrorText;
-use onechip_app::line::LineAssembler;
+use onechip_app::line::{LineAssembler, LineEvent};
 use onechip_app::session::{Console, Session, Timing, profile};
 use onechip_app::setup::PrinterSetup;
 use onechip_planner::machine::{Kinematics, Machine};
@@ -287,6 +290,8 @@ pub enum SimError {
     Config(String),
     /// The SD folder has no G-code file, or several and none was named.
     NoGcode(PathBuf),
+    /// The serial port could not be set up or served.
+    Serial(PathBuf, std::io::Error),
 }
 
 impl fmt::Display for SimError {
@@ -299,6 +304,7 @@ impl fmt::Display for SimError {
                 "{}: expected exactly one *.gcode file (or name one as the second argument)",
                 dir.display()
             ),
+            Self::Serial(path, e) => write!(f, "serial port {}: {e}", path.display()),
         }
     }
 }
@@ -339,7 +345,59 @@ pub fn run_replaying<const L: usize>(
     options: &Options,
     mut replay: Option<&mut dyn Replay<L>>,
 ) -> Result<Summary, SimError> {
-    let gcode = options.gcode.as_deref();
+    with_session::<L>(sd, options, |session, mcu, summary| {
+        summary.gcode_path = match options.gcode.as_deref() {
+            Some(path) => path.to_path_buf(),
+            None => only_gcode_file(sd)?,
+        };
+        let program = read(&summary.gcode_path)?;
+        if replay.is_some() {
+            session.set_timing(Timing::Batch);
+        }
+        let freq = options.mcu_freq;
+        let origin = options.clock_origin as f64 / freq;
+        let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
+        let mut console = Console::new();
+        let mut progress = Progress::new(program.len());
+        for (at, &byte) in program.iter().chain(b"\n").enumerate() {
+            let mut ran = false;
+            if let Some(event) = assembler.push(byte) {
+                progress.note(at, session.printer().print_time() - origin);
+                if let Some(replay) = replay.as_deref_mut() {
+                    replay.before_line(session);
+                }
+                summary.run_line(&mut console, session, &event, mcu, &mut NoOutput);
+                ran = true;
+            }
+            if options.console && (at + 1) % USB_PACKET == 0 {
+                // The end of a USB packet: the console looks at the clock.
+                console.idle(session, mcu);
+                ran = true;
+            }
+            if let Some(replay) = replay.as_deref_mut() {
+                replay.after_bytes(at + 1, session, mcu);
+                ran = true;
+            }
+            if ran {
+                // The MCU runs the steps as far as they have all been sent.
+                mcu.run_until(clock_at(session.sent_until(), freq));
+                if stopped(session, mcu, summary) {
+                    break;
+                }
+            }
+        }
+        Ok(())
+    })
+}
+
+/// Sets up the printer of the SD folder `sd` as `options` say (its
+/// session with a lookahead of `L` moves, and the virtual MCU), lets
+/// `input` feed it, then finishes the print and sums up what it did.
+pub(crate) fn with_session<const L: usize>(
+    sd: &Path,
+    options: &Options,
+    input: impl FnOnce(&mut HostSession<'_, L>, &mut VirtualMcu, &mut Summary) -> Result<(), SimError>,
+) -> Result<Summary, SimError> {
     let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
     let mut buf = vec![0u8; files::CONFIG_BUFFER];
     let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), &mut buf)
@@ -348,11 +406,6 @@ pub fn run_replaying<const L: usize>(
     let setup = PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED, &mut scratch)
         .map_err(|e| SimError::Config(e.to_string()))?;
     let machine = setup.machine();
-    let gcode_path = match gcode {
-        Some(path) => path.to_path_buf(),
-        None => only_gcode_file(sd)?,
-    };
-    let program = read(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
     let mut session = Box::new(HostSession::<L>::new(
@@ -361,9 +414,6 @@ pub fn run_replaying<const L: usize>(
         profile::MAX_STEP_ERROR,
         options.clock_origin,
     ));
-    if replay.is_some() {
-        session.set_timing(Timing::Batch);
-    }
     let mut mcu =
         VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(machine, freq);
     if let Some(physics) = physics(machine, options.start) {
@@ -386,7 +436,7 @@ pub fn run_replaying<const L: usize>(
             .iter()
             .filter_map(|(axis, s)| s.map(|s| format!("{axis}: {} {} Hz", s.kind.name(), s.freq)))
             .collect(),
-        gcode_path,
+        gcode_path: PathBuf::new(),
         lines: 0,
         toolhead_moves: 0,
         extruder_moves: 0,
@@ -406,46 +456,7 @@ pub fn run_replaying<const L: usize>(
         fan_speed: None,
         heat_wait: 0.0,
     };
-    let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
-    let mut console = Console::new();
-    let mut progress = Progress::new(program.len());
-    for (at, &byte) in program.iter().chain(b"\n").enumerate() {
-        let mut ran = false;
-        if let Some(event) = assembler.push(byte) {
-            progress.note(at, session.printer().print_time() - origin);
-            summary.lines += 1;
-            if let Some(replay) = replay.as_deref_mut() {
-                replay.before_line(&mut session);
-            }
-            let mut reply = String::new();
-            // Writing to a String never fails.
-            let _ = console.line(
-                Some(&mut session),
-                &ErrorText::new(),
-                &event,
-                &mut mcu,
-                &mut reply,
-            );
-            summary.note_reply(&reply);
-            ran = true;
-        }
-        if options.console && (at + 1) % USB_PACKET == 0 {
-            // The end of a USB packet: the console looks at the clock.
-            console.idle(&mut session, &mut mcu);
-            ran = true;
-        }
-        if let Some(replay) = replay.as_deref_mut() {
-            replay.after_bytes(at + 1, &mut session, &mut mcu);
-            ran = true;
-        }
-        if ran {
-            // The MCU runs the steps as far as they have all been sent.
-            mcu.run_until(clock_at(session.sent_until(), freq));
-            if stopped(&session, &mut mcu, &mut summary) {
-                break;
-            }
-        }
-    }
+    input(&mut session, &mut mcu, &mut summary)?;
     session.finish(&mut mcu);
     mcu.run_until(u64::MAX);
     // The heaters run on to the end of the print (its last dwell).
@@ -529,6 +540,40 @@ pub fn run_replaying<const L: usize>(
 }
 
 impl Summary {
+    /// Answers one console line through `console` and `session`, counts
+    /// it and files its replies, which also go to `out` as they come (a
+    /// failing `out` loses nothing here).
+    fn run_line<const L: usize>(
+        &mut self,
+        console: &mut Console,
+        session: &mut HostSession<'_, L>,
+        event: &LineEvent<'_>,
+        mcu: &mut VirtualMcu,
+        out: &mut impl fmt::Write,
+    ) {
+        /// The reply, kept as it goes to `out`.
+        struct Tee<'o, W> {
+            out: &'o mut W,
+            kept: String,
+        }
+        impl<W: fmt::Write> fmt::Write for Tee<'_, W> {
+            fn write_str(&mut self, s: &str) -> fmt::Result {
+                self.kept.push_str(s);
+                // The host may have gone; the summary still gets the reply.
+                let _ = self.out.write_str(s);
+                Ok(())
+            }
+        }
+        self.lines += 1;
+        let mut tee = Tee {
+            out,
+            kept: String::new(),
+        };
+        // The tee never fails.
+        let _ = console.line(Some(session), &ErrorText::new(), event, mcu, &mut tee);
+        self.note_reply(&tee.kept);
+    }
+
     /// Files the console's answer to the last line: `!!` lines as errors,
     /// temperature reports apart, other text as replies, `ok` dropped.
     fn note_reply(&mut self, reply: &str) {
@@ -543,6 +588,15 @@ impl Summary {
                 self.replies.push(entry(line));
             }
         }
+    }
+}
+
+/// Where replies go when only the summary keeps them.
+struct NoOutput;
+
+impl fmt::Write for NoOutput {
+    fn write_str(&mut self, _: &str) -> fmt::Result {
+        Ok(())
     }
 }
 

@@ -7,8 +7,10 @@
 //! GPIOs. The heaters and fan ([`Heaters`], the io the board runs from its
 //! second timer) run in the same virtual time against simulated physics
 //! ([`Plant`]); a fault of either shuts both down. It is the session's
-//! [`Mcu`]: a wait runs the next timer event.
+//! [`Mcu`]: a wait runs the next timer event, no earlier than its wall
+//! time when virtual time is paced ([`Pace`]).
 
+use crate::pace::Pace;
 use crate::thermal_plant::{ADC_MAX, Plant};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
 use onechip_app::session::Mcu;
@@ -144,6 +146,8 @@ pub struct VirtualMcu {
     /// When the heaters' io wants to run next, ticks (kept up to date
     /// whenever the io changes, so the engine's steps need not ask).
     io_wake: Option<u64>,
+    /// If set, timer events wait for their wall time.
+    pace: Option<Pace>,
 }
 
 impl VirtualMcu {
@@ -161,6 +165,7 @@ impl VirtualMcu {
             plan: None,
             thermal: None,
             io_wake: None,
+            pace: None,
         };
         mcu.advance_clock(start);
         mcu
@@ -229,6 +234,27 @@ impl VirtualMcu {
         self.plan.as_ref().map_or(&[], |(_, moves)| moves)
     }
 
+    /// Paces virtual time by the wall clock from now on: each timer event
+    /// runs no earlier than `pace` says.
+    pub fn set_pace(&mut self, pace: Pace) {
+        self.pace = Some(pace);
+    }
+
+    /// With a pace: runs every event the wall clock has passed, and moves
+    /// virtual time to the wall clock's.
+    pub fn run_to_wall_clock(&mut self) {
+        if let Some(clock) = self.pace.as_ref().map(Pace::clock_now) {
+            self.run_until(clock);
+        }
+    }
+
+    /// Sleeps until the wall time of clock `at`, if paced.
+    fn pace_to(&self, at: u64) {
+        if let Some(pace) = &self.pace {
+            pace.sleep_until(at);
+        }
+    }
+
     /// Runs every step and heater event before clock `until`, in time
     /// order, and moves virtual time there (with `u64::MAX`: until the
     /// steppers are idle).
@@ -260,6 +286,7 @@ impl VirtualMcu {
 
     /// The heaters' timer at clock `at`; a fault stops the steppers too.
     fn run_io(&mut self, at: u64) {
+        self.pace_to(at);
         self.now = self.now.max(at);
         let Some((heaters, plant)) = &mut self.thermal else {
             return;
@@ -302,6 +329,7 @@ impl VirtualMcu {
     /// events before it.
     fn run_at(&mut self, at: u64) {
         self.run_io_before(at);
+        self.pace_to(at);
         for pins in self.engine.pins_mut() {
             pins.clock = at;
         }
