@@ -12,8 +12,12 @@
 use onechip_host::plot::Window;
 use onechip_host::serial::Port;
 use onechip_host::{Options, SimError, Summary};
+use signal_hook::consts::{SIGINT, SIGTERM};
+use signal_hook::flag;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 
 const USAGE: &str = "usage: onechip-sim SD_FOLDER [GCODE] [--plot FILE.svg [--from S] [--to S]] \
                      [--steps DIR] [--summary-json FILE]\n       \
@@ -93,13 +97,23 @@ fn command(args: &[String]) -> Result<Command, String> {
 /// Runs what `command` asks for and writes its JSON summary if asked.
 fn run(command: &Command) -> Result<Summary, SimError> {
     let summary = match &command.serial {
-        Some(port) => onechip_host::serial::serve(&command.sd, &command.options, port, |link| {
-            eprintln!(
-                "onechip-sim: serving the console on {} ({}x real time); close the port or press Ctrl-C to end",
-                link.display(),
-                port.speed
-            );
-        })?,
+        Some(port) => {
+            let ending = Arc::new(AtomicBool::new(false));
+            for signal in [SIGINT, SIGTERM] {
+                let registered =
+                    flag::register_conditional_shutdown(signal, 1, Arc::clone(&ending))
+                        .and_then(|_| flag::register(signal, Arc::clone(&ending)));
+                registered.map_err(|e| SimError::Serial(port.path.clone(), e))?;
+            }
+            onechip_host::serial::serve(&command.sd, &command.options, port, &ending, |link| {
+                eprintln!(
+                    "onechip-sim: serving the console on {} ({}x real time); close the port \
+                     or press Ctrl-C to end (twice: at once)",
+                    link.display(),
+                    port.speed
+                );
+            })?
+        }
         None => onechip_host::run_with(Path::new(&command.sd), &command.options)?,
     };
     if let Some(path) = &command.summary_json {

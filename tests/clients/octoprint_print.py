@@ -26,7 +26,10 @@ import common
 from common import Failure, wait_for
 
 API_KEY = "ONECHIPCLIENTTEST0123456789ABCDE"
+# Uploaded under this name; on the SD card under an 8.3 name (as the
+# board's FAT driver lists names), matched without regard to case.
 JOB = "square.gcode"
+CARD_JOB = "SQUARE.GCO"
 # A print of 111 s of virtual time (68 s of it heating) takes about 5 s.
 DEFAULT_SPEED = 20.0
 
@@ -167,7 +170,7 @@ def harness():
     args = parser.parse_args()
     gcode = common.SAMPLE_GCODE.read_text()
     with common.workdir("onechip-octoprint-", args.keep) as work:
-        on_card = {JOB: gcode} if args.source == "sdcard" else {}
+        on_card = {CARD_JOB: gcode} if args.source == "sdcard" else {}
         sd = common.make_sd(work, on_card)
         with common.Simulator(work, sd, args.speed) as sim, OctoPrint(work, sim.link) as octoprint:
             try:
@@ -184,8 +187,8 @@ def harness():
 
 
 def run_job(octoprint, sim, source, gcode):
-    """Connects, prints `JOB` from `source`, disconnects; returns the
-    simulator's summary."""
+    """Connects, prints the job from `source` (uploaded, or on the card),
+    disconnects; returns the simulator's summary."""
     start = time.monotonic()
     octoprint.post("/api/connection", {"command": "connect", "port": str(sim.link), "baudrate": 115200})
     wait_for("OctoPrint to connect", lambda: operational(octoprint), 60, every=0.1)
@@ -201,9 +204,9 @@ def run_job(octoprint, sim, source, gcode):
 
         def listed():
             files = octoprint.get("/api/files/sdcard").get("files", [])
-            return [f["name"] for f in files if f["name"].lower() == JOB]
+            return [f["name"] for f in files if f["name"].lower() == CARD_JOB.lower()]
 
-        name = wait_for(f"{JOB} in the SD card's list", listed, 20, every=0.5)[0]
+        name = wait_for(f"{CARD_JOB} in the SD card's list", listed, 20, every=0.5)[0]
         octoprint.post(f"/api/files/sdcard/{name}", {"command": "select", "print": True})
     printed = print_to_the_end(octoprint, timeout=120)
     print(f"printed from {source} in {printed:.1f} s")

@@ -7,8 +7,8 @@
 //! channel of two ([`reader`]); the session answers them one at a time,
 //! and between lines the console's idle work runs and virtual time
 //! follows the wall clock ([`crate::pace`]). The print ends when the host
-//! closes the port, or on SIGINT or SIGTERM: what is queued then runs to
-//! its end (unpaced) and the run is summed up.
+//! closes the port, or when told to (SIGINT, SIGTERM): what is queued then
+//! runs to its end (unpaced) and the run is summed up.
 
 pub mod pty;
 pub mod reader;
@@ -36,29 +36,27 @@ pub struct Port {
 }
 
 /// Serves the printer of the SD folder `sd` on `port` until the host
-/// closes it (or SIGINT/SIGTERM), then finishes the print and sums it up.
-/// `ready` is called once the port is there to open.
+/// closes it or `ending` is raised (the command line raises it on SIGINT
+/// and SIGTERM), then finishes the print and sums it up. `ready` is called
+/// once the port is there to open.
 pub fn serve(
     sd: &Path,
     options: &Options,
     port: &Port,
+    ending: &Arc<AtomicBool>,
     ready: impl FnOnce(&Path),
 ) -> Result<Summary, SimError> {
     let serial_error = |e| SimError::Serial(port.path.clone(), e);
-    let ending = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, Arc::clone(&ending)).map_err(serial_error)?;
-    }
     with_session::<{ profile::LOOKAHEAD }>(sd, options, |session, mcu, summary| {
         let pty = Pty::open(&port.path).map_err(serial_error)?;
         summary.gcode_path = port.path.clone();
         let master = pty.try_clone().map_err(serial_error)?;
-        let (lines, reader) = reader::spawn(master, Arc::clone(&ending));
+        let (lines, reader) = reader::spawn(master, Arc::clone(ending));
         mcu.set_pace(Pace::new(
             mcu.now(),
             options.mcu_freq,
             port.speed,
-            Arc::clone(&ending),
+            Arc::clone(ending),
         ));
         ready(pty.link());
         let idle_poll = idle_poll(port.speed);
