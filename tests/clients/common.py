@@ -126,7 +126,8 @@ class Simulator:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
+    def stop(self):
+        """Ends the simulator as Ctrl-C would (it still sums up)."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
@@ -134,6 +135,9 @@ class Simulator:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+
+    def __exit__(self, *exc):
+        self.stop()
         self.log.close()
         return False
 

@@ -176,6 +176,7 @@ def harness():
             try:
                 served = run_job(octoprint, sim, args.source, gcode)
             except Failure as e:
+                sim.stop()
                 raise Failure(
                     f"{e}\n--- OctoPrint serial.log (tail) ---\n"
                     + "\n".join(octoprint.serial_log().splitlines()[-40:])

@@ -133,7 +133,11 @@ def harness():
             try:
                 stream(line, gcode)
             except Failure as e:
-                raise Failure(f"{e}\n--- replies (tail) ---\n{line.replies.decode(errors='replace')[-3000:]}")
+                sim.stop()
+                raise Failure(
+                    f"{e}\n--- replies (tail) ---\n{line.replies.decode(errors='replace')[-3000:]}"
+                    f"\n--- simulator ---\n{sim.output()}"
+                )
             finally:
                 (Path(work) / "replies.txt").write_bytes(bytes(line.replies))
             served = sim.finish()

@@ -19,7 +19,7 @@ use onechip_app::printer::PRIMING_TIME;
 use onechip_app::session::{Console, profile};
 use pty::Pty;
 use std::fmt;
-use std::io::Write as _;
+use std::io::{LineWriter, Write as _};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
@@ -61,7 +61,7 @@ pub fn serve(
         ready(pty.link());
         let idle_poll = idle_poll(port.speed);
         let mut console = Console::new();
-        let mut out = Replies(&pty);
+        let mut out = Replies(LineWriter::new(&pty));
         loop {
             mcu.run_to_wall_clock();
             match lines.recv_timeout(idle_poll) {
@@ -87,13 +87,13 @@ fn idle_poll(speed: f64) -> Duration {
     Duration::from_secs_f64(wall.clamp(0.001, 0.010))
 }
 
-/// Replies to the host, written to the pty as they come.
-struct Replies<'p>(&'p Pty);
+/// Replies to the host, written to the pty a whole line at a time as
+/// they come.
+struct Replies<'p>(LineWriter<&'p Pty>);
 
 impl fmt::Write for Replies<'_> {
     fn write_str(&mut self, s: &str) -> fmt::Result {
-        let mut pty = self.0;
-        pty.write_all(s.as_bytes()).map_err(|_| fmt::Error)
+        self.0.write_all(s.as_bytes()).map_err(|_| fmt::Error)
     }
 }
 
