@@ -17,7 +17,7 @@ use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 /// The workspace root.
@@ -92,6 +92,10 @@ fn served(
     speed: f64,
     client: impl FnOnce(&mut Host, &AtomicBool),
 ) -> onechip_host::Summary {
+    // One at a time: a host that the machine's load holds back is late in
+    // virtual time by that much times the speed.
+    static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let port = Port {
         path: dir.join("printer.tty"),
         speed,
@@ -113,7 +117,7 @@ fn served(
 fn a_host_gets_each_reply_as_the_board_gives_it_and_closing_the_port_ends_the_print() {
     let dir = sd("replies");
     let start = Instant::now();
-    let summary = served(&dir, 20.0, |host, _| {
+    let summary = served(&dir, 10.0, |host, _| {
         let identity = format!(
             "FIRMWARE_NAME:onechip FIRMWARE_VERSION:{}",
             onechip_app::FIRMWARE_VERSION
@@ -130,13 +134,16 @@ fn a_host_gets_each_reply_as_the_board_gives_it_and_closing_the_port_ends_the_pr
         );
         assert_eq!(host.send("M114")[0], "X:20.000 Y:30.000 Z:5.000 E:0.000");
     });
-    // G28 from mid-travel takes 34 s of virtual time: 1.7 s at 20×, and
-    // virtual time never runs ahead of the wall clock.
-    let wall = start.elapsed().as_secs_f64();
-    assert!(wall > 34.0 / 20.0, "{wall} s");
     assert_eq!(summary.lines, 6);
     assert_eq!(summary.errors.len(), 1);
     assert_eq!(summary.endstops.len(), 6);
+    // G28 from mid-travel takes 34 s of virtual time, which never runs
+    // ahead of the wall clock (by more than the pacing's 1 ms): at 10×,
+    // the `ok` came 3.4 s after the start.
+    let homed = summary.endstops[5].2;
+    let wall = start.elapsed().as_secs_f64();
+    assert!(homed > 33.0, "{homed} s");
+    assert!(wall > homed / 10.0 - 0.002, "{wall} s");
     assert_eq!(summary.shutdown, None);
     // The move after homing ran to its end once the port closed.
     let real = summary.real_position.expect("physics");
@@ -154,10 +161,9 @@ fn told_to_end_the_simulator_stops_waiting_on_the_wall_clock_and_finishes_the_pr
         // Homing from mid-travel: 34 s in real time.
         writeln!(host.port, "G28").expect("write");
         std::thread::sleep(Duration::from_millis(200));
+        // The port goes with the simulator, maybe before the host has
+        // read the `ok`.
         ending.store(true, Ordering::Relaxed);
-        let mut ok = String::new();
-        host.replies.read_line(&mut ok).expect("read");
-        assert_eq!(ok, "ok\n");
     });
     assert!(
         start.elapsed() < Duration::from_secs(10),
@@ -180,7 +186,10 @@ fn a_print_through_the_port_steps_as_the_same_file_from_the_card() {
     .expect("sample")
     .replace("M190", "M140")
     .replace("M109", "M104");
-    let summary = served(&dir, 20.0, |host, _| {
+    // At 10×, a host stalled for 0.2 s (a loaded CI machine) is 2 s late
+    // in virtual time, as long as the lookahead holds (see the slow-host
+    // test below).
+    let summary = served(&dir, 10.0, |host, _| {
         for line in program.lines() {
             let reply = host.send(line);
             assert!(
