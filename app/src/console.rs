@@ -57,15 +57,13 @@ struct Every {
     next: u64,
 }
 
-/// The console's state: line numbering, the priming timer, auto-reports,
+/// The console's state: line numbering, auto-reports, when the session's timers run,
 /// the SD card's print.
 #[derive(Debug)]
 pub struct Console {
     /// The step clock, Hz.
     freq: f64,
     numbers: LineNumbers,
-    /// The clock of the last console line.
-    last_line: Option<u64>,
     /// The clock from which the session's idle work is due again.
     idle_due: u64,
     /// M155: temperature reports.
@@ -90,7 +88,6 @@ impl Console {
         Self {
             freq,
             numbers: LineNumbers::new(),
-            last_line: None,
             idle_due: 0,
             temperatures: None,
             sd_status: None,
@@ -159,13 +156,12 @@ impl Console {
         if !acked {
             out.write_str("ok\n")?;
         }
-        self.last_line = Some(mcu.now());
         Ok(())
     }
 
-    /// To call whenever woken without a console line: the priming timeout
-    /// once its time has come, the auto-reports that are due, and the next
-    /// line of a file printing from the card.
+    /// To call whenever woken without a console line: the session's timers
+    /// ([`Session::idle`], every [`IDLE_PERIOD`] at most), the auto-reports
+    /// that are due, and the next line of a file printing from the card.
     pub fn poll<const L: usize, const N: usize, const Q: usize>(
         &mut self,
         mut session: Option<&mut Session<'_, L, N, Q>>,
@@ -175,15 +171,10 @@ impl Console {
     ) -> fmt::Result {
         self.report_shutdown(mcu, out)?;
         let now = mcu.now();
-        let priming = (crate::printer::PRIMING_TIME * self.freq) as u64;
         if let Some(session) = session.as_deref_mut()
             && now >= self.idle_due
-            && !self.sd.is_printing()
         {
-            let quiet = self
-                .last_line
-                .is_none_or(|at| now.saturating_sub(at) >= priming);
-            session.idle(mcu, out, quiet);
+            session.idle(mcu, out);
             self.idle_due = now + (IDLE_PERIOD * self.freq) as u64;
         }
         if due(&mut self.temperatures, now) {

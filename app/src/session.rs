@@ -247,6 +247,9 @@ pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
     heat_wait: f64,
     /// Klipper's idle timeout.
     idle: IdleTimeout<'a>,
+    /// When the first move since the toolhead was idle was queued (clock):
+    /// the priming timer runs.
+    priming_since: Option<u64>,
 }
 
 /// The session with the board's queue sizes.
@@ -292,6 +295,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             addr_of_mut!((*p).planned).write(Planned::default());
             addr_of_mut!((*p).heat_wait).write(0.0);
             addr_of_mut!((*p).idle).write(IdleTimeout::new(&machine.idle_timeout));
+            addr_of_mut!((*p).priming_since).write(None);
             slot.assume_init_mut()
         }
     }
@@ -347,11 +351,16 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             }
         }
         self.engine.line_starts(mcu.now());
+        let was_idle = self.printer.is_idle();
         let result = self.with_planning(mcu, out, |printer, planning, out| {
             printer
                 .execute(text, planning, out)
                 .map_err(|e| error_text(&SessionError::Command(e)))
         });
+        if was_idle && !self.printer.is_idle() && !self.printer.is_flowing() {
+            // The first move since idle: the priming timer starts.
+            self.priming_since = Some(mcu.now());
+        }
         let thermal = self.thermal(mcu, out);
         if self.timing == Timing::RealTime {
             if result.is_ok() && word.eq_ignore_ascii_case(b"M400") {
@@ -458,15 +467,23 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         Ok(())
     }
 
-    /// To call between lines, as time runs: if `priming` (no input for
-    /// [`crate::printer::PRIMING_TIME`]), releases the moves still waiting
-    /// for the lookahead to fill (Klipper's priming timer); in real time,
-    /// flushes the lookahead when the moves sent are about to run out (its
-    /// flush timer), sends every step once nothing is queued, and runs the
-    /// idle timeout.
-    pub fn idle(&mut self, mcu: &mut impl Mcu, out: &mut impl Write, priming: bool) {
-        let now = mcu.now() as f64 / self.engine.freq;
-        let real_time = self.timing == Timing::RealTime;
+    /// To call between lines, as real time runs (the board's thread code
+    /// between console lines; every 10 ms is often enough): Klipper's
+    /// timers. The priming timer releases the moves queued since the
+    /// toolhead was idle [`crate::printer::PRIMING_TIME`] after the first
+    /// of them; the flush timer flushes the lookahead when the moves sent
+    /// are about to run out; once nothing is queued every step goes out;
+    /// and the idle timeout runs.
+    pub fn idle(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+        if self.timing != Timing::RealTime {
+            return;
+        }
+        let clock = mcu.now();
+        let now = clock as f64 / self.engine.freq;
+        let priming_ticks = (crate::printer::PRIMING_TIME * self.engine.freq) as u64;
+        let priming = self
+            .priming_since
+            .is_some_and(|since| clock.saturating_sub(since) >= priming_ticks);
         if !self.printer.is_idle() {
             // Moves wait to be released: from now at the earliest. (An idle
             // toolhead's print time stays where its last move ended.)
@@ -476,20 +493,28 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             if priming {
                 printer.priming_timeout(planning);
             }
-            if real_time {
-                printer.flush_if_low(now, planning);
-            }
+            printer.flush_if_low(now, planning);
         });
-        if real_time {
-            if self.printer.is_idle() {
-                // Nothing more is coming for now: every step of the motion
-                // queued goes out, so it runs to its end (klippy's
-                // background flush).
-                self.motion
-                    .settle(&mut self.engine.steps(mcu, &mut Discard));
-            }
-            self.idle_timeout(mcu, out);
+        if self.printer.is_idle() || self.printer.is_flowing() {
+            self.priming_since = None;
         }
+        if self.printer.is_idle() {
+            // Nothing more is coming for now: every step of the motion
+            // queued goes out, so it runs to its end (klippy's background
+            // flush).
+            self.motion
+                .settle(&mut self.engine.steps(mcu, &mut Discard));
+        }
+        self.idle_timeout(mcu, out);
+    }
+
+    /// Klipper's priming timeout, now: the moves queued since the toolhead
+    /// was idle are planned and released (for replaying klippy's batch
+    /// mode, which decides it from its own speed).
+    pub fn prime(&mut self, mcu: &mut impl Mcu) {
+        self.with_planning(mcu, &mut Discard, |printer, planning, _| {
+            printer.priming_timeout(planning)
+        });
     }
 
     /// In real time, until moves flow, their print time starts from the

@@ -11,13 +11,16 @@
 
 pub mod console_printer;
 pub mod files;
+pub mod pace;
 pub mod plot;
+pub mod serial;
 pub mod step_log;
+pub mod summary_json;
 pub mod thermal_plant;
 pub mod virtual_mcu;
 
 use onechip_app::console::Console;
-use onechip_app::line::LineAssembler;
+use onechip_app::line::{LineAssembler, LineEvent};
 use onechip_app::session::{Session, Timing, profile};
 use onechip_app::setup::PrinterSetup;
 use onechip_app::text::ErrorText;
@@ -301,6 +304,8 @@ pub enum SimError {
     Config(String),
     /// The SD folder has no G-code file, or several and none was named.
     NoGcode(PathBuf),
+    /// The serial port could not be set up or served.
+    Serial(PathBuf, std::io::Error),
 }
 
 impl fmt::Display for SimError {
@@ -313,6 +318,7 @@ impl fmt::Display for SimError {
                 "{}: expected exactly one *.gcode file (or name one as the second argument)",
                 dir.display()
             ),
+            Self::Serial(path, e) => write!(f, "serial port {}: {e}", path.display()),
         }
     }
 }
@@ -353,7 +359,150 @@ pub fn run_replaying<const L: usize>(
     options: &Options,
     mut replay: Option<&mut dyn Replay<L>>,
 ) -> Result<Summary, SimError> {
-    let gcode = options.gcode.as_deref();
+    with_session::<L>(sd, options, |run| {
+        run.summary.gcode_path = match options.gcode.as_deref() {
+            Some(path) => path.to_path_buf(),
+            None => only_gcode_file(sd)?,
+        };
+        let (program, program_len) = open(&run.summary.gcode_path)?;
+        if replay.is_some() {
+            run.session.set_timing(Timing::Batch);
+        }
+        let freq = options.mcu_freq;
+        let origin = options.clock_origin as f64 / freq;
+        let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
+        let mut progress = Progress::new(program_len);
+        for (at, byte) in program.enumerate() {
+            let byte = byte.map_err(|e| SimError::Read(run.summary.gcode_path.clone(), e))?;
+            let mut ran = false;
+            if let Some(event) = assembler.push(byte) {
+                progress.note(at, run.session.printer().print_time() - origin);
+                if let Some(replay) = replay.as_deref_mut() {
+                    replay.before_line(run.session);
+                }
+                run.line(&event, &mut NoOutput);
+                ran = true;
+            }
+            if options.console && (at + 1) % USB_PACKET == 0 {
+                // The end of a USB packet: the console looks at the clock.
+                run.poll(&mut NoOutput);
+                ran = true;
+            }
+            if let Some(replay) = replay.as_deref_mut() {
+                replay.after_bytes(at + 1, run.session, run.mcu);
+                ran = true;
+            }
+            if ran {
+                // The MCU runs the steps as far as they have all been sent.
+                run.mcu.run_until(clock_at(run.session.sent_until(), freq));
+                if stopped(run.session, run.mcu, run.summary) {
+                    break;
+                }
+            }
+        }
+        Ok(())
+    })
+}
+
+/// A printer set up for a run, as its input drives it: the machine, the
+/// session, the virtual MCU, the console with the SD folder as its card,
+/// and the summary its replies go to.
+pub(crate) struct Run<'r, 'm, const L: usize> {
+    pub(crate) machine: &'r Machine<'m>,
+    pub(crate) session: &'r mut HostSession<'m, L>,
+    pub(crate) mcu: &'r mut VirtualMcu,
+    pub(crate) summary: &'r mut Summary,
+    console: Console,
+    card: files::Folder,
+}
+
+impl<const L: usize> Run<'_, '_, L> {
+    /// Answers one console line, counts it and files its replies, which
+    /// also go to `out` as they come (a failing `out` loses nothing here);
+    /// carries out a restart it asks for.
+    pub(crate) fn line(&mut self, event: &LineEvent<'_>, out: &mut impl fmt::Write) {
+        self.summary.lines += 1;
+        let mut tee = Tee::new(out);
+        // The tee never fails.
+        let _ = self.console.line(
+            Some(self.session),
+            &ErrorText::new(),
+            event,
+            &mut self.card,
+            self.mcu,
+            &mut tee,
+        );
+        if self.console.take_restart() {
+            let freq = self.summary.mcu_freq;
+            self.mcu.restart(self.machine, freq);
+            self.session.restart(self.machine, self.mcu.now());
+        }
+        self.summary.note_reply(&tee.kept);
+    }
+
+    /// The console's work between lines (priming, the flush timer, the
+    /// idle timeout, auto-reports, the card's print); what it writes goes
+    /// to `out` and the summary.
+    pub(crate) fn poll(&mut self, out: &mut impl fmt::Write) {
+        let mut tee = Tee::new(out);
+        let _ = self
+            .console
+            .poll(Some(self.session), &mut self.card, self.mcu, &mut tee);
+        self.summary.note_reply(&tee.kept);
+    }
+
+    /// Runs `auto0.g`, `auto1.g`, ... from the card, as the board at boot.
+    pub(crate) fn autostart(&mut self) {
+        self.console.autostart();
+    }
+
+    /// True while a file prints from the card.
+    pub(crate) fn is_printing(&self) -> bool {
+        self.console.is_printing()
+    }
+}
+
+/// A reply kept as it goes to `out`.
+struct Tee<'o, W> {
+    out: &'o mut W,
+    kept: String,
+}
+
+impl<'o, W: fmt::Write> Tee<'o, W> {
+    fn new(out: &'o mut W) -> Self {
+        Self {
+            out,
+            kept: String::new(),
+        }
+    }
+}
+
+impl<W: fmt::Write> fmt::Write for Tee<'_, W> {
+    fn write_str(&mut self, s: &str) -> fmt::Result {
+        self.kept.push_str(s);
+        // The host may have gone; the summary still gets the reply.
+        let _ = self.out.write_str(s);
+        Ok(())
+    }
+}
+
+/// Where replies go when only the summary keeps them.
+struct NoOutput;
+
+impl fmt::Write for NoOutput {
+    fn write_str(&mut self, _: &str) -> fmt::Result {
+        Ok(())
+    }
+}
+
+/// Sets up the printer of the SD folder `sd` as `options` say (its
+/// session with a lookahead of `L` moves, the virtual MCU, the console),
+/// lets `input` feed it, then finishes the print and sums up what it did.
+pub(crate) fn with_session<const L: usize>(
+    sd: &Path,
+    options: &Options,
+    input: impl FnOnce(&mut Run<'_, '_, L>) -> Result<(), SimError>,
+) -> Result<Summary, SimError> {
     let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
     let mut buf = vec![0u8; files::CONFIG_BUFFER];
     let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), &mut buf)
@@ -362,11 +511,6 @@ pub fn run_replaying<const L: usize>(
     let setup = PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED, &mut scratch)
         .map_err(|e| SimError::Config(e.to_string()))?;
     let machine = setup.machine();
-    let gcode_path = match gcode {
-        Some(path) => path.to_path_buf(),
-        None => only_gcode_file(sd)?,
-    };
-    let (program, program_len) = open(&gcode_path)?;
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
     let mut session = Box::new(HostSession::<L>::new(
@@ -375,9 +519,6 @@ pub fn run_replaying<const L: usize>(
         profile::MAX_STEP_ERROR,
         options.clock_origin,
     ));
-    if replay.is_some() {
-        session.set_timing(Timing::Batch);
-    }
     let mut mcu =
         VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(machine, freq);
     if let Some(physics) = physics(machine, options.start) {
@@ -408,7 +549,7 @@ pub fn run_replaying<const L: usize>(
             .iter()
             .filter_map(|(axis, s)| s.map(|s| format!("{axis}: {} {} Hz", s.kind.name(), s.freq)))
             .collect(),
-        gcode_path,
+        gcode_path: PathBuf::new(),
         lines: 0,
         toolhead_moves: 0,
         extruder_moves: 0,
@@ -429,55 +570,14 @@ pub fn run_replaying<const L: usize>(
         fan_speed: None,
         heat_wait: 0.0,
     };
-    let mut assembler = LineAssembler::<{ profile::MAX_LINE }>::new();
-    let mut console = Console::new(freq);
-    let mut card = files::Folder::new(sd);
-    let mut progress = Progress::new(program_len);
-    for (at, byte) in program.enumerate() {
-        let byte = byte.map_err(|e| SimError::Read(summary.gcode_path.clone(), e))?;
-        let mut ran = false;
-        if let Some(event) = assembler.push(byte) {
-            progress.note(at, session.printer().print_time() - origin);
-            summary.lines += 1;
-            if let Some(replay) = replay.as_deref_mut() {
-                replay.before_line(&mut session);
-            }
-            let mut reply = String::new();
-            // Writing to a String never fails.
-            let _ = console.line(
-                Some(&mut session),
-                &ErrorText::new(),
-                &event,
-                &mut card,
-                &mut mcu,
-                &mut reply,
-            );
-            if console.take_restart() {
-                mcu.restart(machine, freq);
-                session.restart(machine, mcu.now());
-            }
-            summary.note_reply(&reply);
-            ran = true;
-        }
-        if options.console && (at + 1) % USB_PACKET == 0 {
-            // The end of a USB packet: the console looks at the clock.
-            let mut reply = String::new();
-            let _ = console.poll(Some(&mut session), &mut card, &mut mcu, &mut reply);
-            summary.note_reply(&reply);
-            ran = true;
-        }
-        if let Some(replay) = replay.as_deref_mut() {
-            replay.after_bytes(at + 1, &mut session, &mut mcu);
-            ran = true;
-        }
-        if ran {
-            // The MCU runs the steps as far as they have all been sent.
-            mcu.run_until(clock_at(session.sent_until(), freq));
-            if stopped(&session, &mut mcu, &mut summary) {
-                break;
-            }
-        }
-    }
+    input(&mut Run {
+        machine,
+        session: &mut session,
+        mcu: &mut mcu,
+        summary: &mut summary,
+        console: Console::new(freq),
+        card: files::Folder::new(sd),
+    })?;
     session.finish(&mut mcu);
     mcu.run_until(u64::MAX);
     // The heaters run on to the end of the print (its last dwell).

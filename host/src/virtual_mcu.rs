@@ -7,8 +7,10 @@
 //! GPIOs. The heaters and fan ([`Heaters`], the io the board runs from its
 //! second timer) run in the same virtual time against simulated physics
 //! ([`Plant`]); a fault of either shuts both down. It is the session's
-//! [`Mcu`]: a wait runs the next timer event.
+//! [`Mcu`]: a wait runs the next timer event, no earlier than its wall
+//! time when virtual time is paced ([`Pace`]).
 
+use crate::pace::Pace;
 use crate::plot::Window;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant};
@@ -26,6 +28,8 @@ use onechip_sched::stepper::StepPins;
 use std::cell::Cell;
 use std::path::Path;
 use std::rc::Rc;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Moves each virtual stepper's queue holds, and commands its outbox holds.
 pub const MOVE_QUEUE: usize = 256;
@@ -131,6 +135,10 @@ pub struct VirtualMcu {
     /// When the heaters' io wants to run next, ticks (kept up to date
     /// whenever the io changes, so the engine's steps need not ask).
     io_wake: Option<u64>,
+    /// If set, timer events wait for their wall time.
+    pace: Option<Pace>,
+    /// Raised by the serial reader when an M112 arrives.
+    emergency: Option<Arc<AtomicBool>>,
 }
 
 impl VirtualMcu {
@@ -148,6 +156,8 @@ impl VirtualMcu {
             plan: None,
             thermal: None,
             io_wake: None,
+            pace: None,
+            emergency: None,
         };
         mcu.advance_clock(start);
         mcu
@@ -258,6 +268,48 @@ impl VirtualMcu {
         self.plan.as_ref().map_or(&[], |(_, moves)| moves)
     }
 
+    /// Paces virtual time by the wall clock from now on: each timer event
+    /// runs no earlier than `pace` says.
+    pub fn set_pace(&mut self, pace: Pace) {
+        self.pace = Some(pace);
+    }
+
+    /// With a pace: runs every event the wall clock has passed, and moves
+    /// virtual time to the wall clock's.
+    pub fn run_to_wall_clock(&mut self) {
+        self.check_emergency();
+        if let Some(clock) = self.pace.as_ref().map(Pace::clock_now) {
+            self.run_until(clock);
+        }
+    }
+
+    /// Sleeps until the wall time of clock `at`, if paced; an M112 seen
+    /// meanwhile stops everything before the event.
+    fn pace_to(&mut self, at: u64) {
+        if let Some(pace) = &self.pace {
+            pace.sleep_until(at);
+        }
+        self.check_emergency();
+    }
+
+    /// From now on, a raised `flag` (an M112 the serial reader saw) shuts
+    /// the MCU role down before its next event, as the board's USB path
+    /// does at once.
+    pub fn set_emergency(&mut self, flag: Arc<AtomicBool>) {
+        self.emergency = Some(flag);
+    }
+
+    /// Carries out a raised emergency flag.
+    fn check_emergency(&mut self) {
+        if self
+            .emergency
+            .as_ref()
+            .is_some_and(|flag| flag.swap(false, Ordering::Relaxed))
+        {
+            Mcu::emergency_stop(self);
+        }
+    }
+
     /// Runs every step and heater event before clock `until`, in time
     /// order, and moves virtual time there (with `u64::MAX`: until the
     /// steppers are idle).
@@ -289,6 +341,7 @@ impl VirtualMcu {
 
     /// The heaters' timer at clock `at`; a fault stops the steppers too.
     fn run_io(&mut self, at: u64) {
+        self.pace_to(at);
         self.now = self.now.max(at);
         let Some((heaters, plant)) = &mut self.thermal else {
             return;
@@ -331,6 +384,7 @@ impl VirtualMcu {
     /// events before it.
     fn run_at(&mut self, at: u64) {
         self.run_io_before(at);
+        self.pace_to(at);
         for pins in self.engine.pins_mut() {
             pins.clock = at;
         }

@@ -58,7 +58,7 @@ impl Replay<KLIPPY_LOOKAHEAD> for KlippyBatch {
         };
         let last = (planned + toolhead_moves).checked_sub(1);
         if last.is_some_and(|m| self.stops.contains(&m)) {
-            session.idle(mcu, &mut String::new(), true);
+            session.prime(mcu);
         }
     }
 }
