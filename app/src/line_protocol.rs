@@ -46,17 +46,18 @@ pub enum Checked<'a> {
         /// Why.
         refusal: Refusal,
         /// The last line number run.
-        last: u32,
+        last: i64,
         /// The line to send again (the one after `last`).
-        resend: u32,
+        resend: i64,
     },
 }
 
 /// The line numbering state of one console.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct LineNumbers {
-    /// The number of the last numbered line run.
-    last: u32,
+    /// The number of the last numbered line run (`M110 N-1` makes the
+    /// next one 0, as Printrun does).
+    last: i64,
     /// A numbered line has arrived since start: the host keeps a history
     /// of its lines and can resend.
     numbered: bool,
@@ -72,7 +73,7 @@ impl LineNumbers {
     }
 
     /// The number of the last numbered line run.
-    pub fn last(&self) -> u32 {
+    pub fn last(&self) -> i64 {
         self.last
     }
 
@@ -113,7 +114,7 @@ impl LineNumbers {
         if number <= self.last {
             return Checked::Repeat;
         }
-        if number != self.last.wrapping_add(1) {
+        if number != self.last + 1 {
             return self.refuse(Refusal::NotNext);
         }
         self.last = number;
@@ -131,7 +132,7 @@ impl LineNumbers {
         Checked::Resend {
             refusal,
             last: self.last,
-            resend: self.last.wrapping_add(1),
+            resend: self.last + 1,
         }
     }
 
@@ -161,8 +162,8 @@ impl fmt::Display for Refusal {
 pub fn write_refusal(
     out: &mut impl fmt::Write,
     refusal: Refusal,
-    last: u32,
-    resend: Option<u32>,
+    last: i64,
+    resend: Option<i64>,
 ) -> fmt::Result {
     writeln!(out, "Error:{refusal}, Last Line: {last}")?;
     match resend {
@@ -189,23 +190,25 @@ fn split_checksum(line: &[u8]) -> (&[u8], Option<Result<u8, ()>>) {
     (&line[..star], Some(value))
 }
 
-/// `N<digits>` at the start, and the rest (trimmed).
-fn split_number(body: &[u8]) -> (Option<u32>, &[u8]) {
+/// `N<digits>` (or `N-<digits>`) at the start, and the rest (trimmed).
+fn split_number(body: &[u8]) -> (Option<i64>, &[u8]) {
     let [b'N' | b'n', rest @ ..] = body else {
         return (None, body);
     };
+    let (negative, rest) = match rest {
+        [b'-', rest @ ..] => (true, rest),
+        _ => (false, rest),
+    };
     let digits = rest.iter().take_while(|b| b.is_ascii_digit()).count();
-    if digits == 0 {
+    if digits == 0 || digits > 18 {
+        // No number, or one too large for any host's history.
         return (None, body);
     }
-    let number = rest[..digits].iter().try_fold(0u32, |v, d| {
-        v.checked_mul(10)?.checked_add(u32::from(d - b'0'))
-    });
-    match number {
-        Some(n) => (Some(n), trim(&rest[digits..])),
-        // A number too large for any host's history: not a line number.
-        None => (None, body),
-    }
+    let number = rest[..digits]
+        .iter()
+        .fold(0i64, |v, d| v * 10 + i64::from(d - b'0'));
+    let number = if negative { -number } else { number };
+    (Some(number), trim(&rest[digits..]))
 }
 
 fn trim(bytes: &[u8]) -> &[u8] {
@@ -222,7 +225,7 @@ fn is_m110(command: &[u8]) -> bool {
 }
 
 /// M110's `N` parameter.
-fn m110_number(command: &[u8]) -> Option<u32> {
+fn m110_number(command: &[u8]) -> Option<i64> {
     command
         .split(u8::is_ascii_whitespace)
         .skip(1)
@@ -245,7 +248,7 @@ mod tests {
         format!("{line}*{c}")
     }
 
-    fn resend(refusal: Refusal, last: u32) -> Checked<'static> {
+    fn resend(refusal: Refusal, last: i64) -> Checked<'static> {
         Checked::Resend {
             refusal,
             last,
@@ -276,6 +279,13 @@ mod tests {
         assert_eq!(n.check(sum("N7 M110").as_bytes()), Checked::Run(b"M110"));
         assert_eq!(n.last(), 7);
         assert_eq!(n.check(sum("N8 G28").as_bytes()), Checked::Run(b"G28"));
+        // Printrun starts from M110 N-1: its next line is N0.
+        assert_eq!(
+            n.check(sum("N-1 M110 N-1").as_bytes()),
+            Checked::Run(b"M110 N-1")
+        );
+        assert_eq!(n.check(sum("N0 G28").as_bytes()), Checked::Run(b"G28"));
+        assert_eq!(n.check(sum("N1 G28").as_bytes()), Checked::Run(b"G28"));
         // Unnumbered M110 N: also sets it.
         assert_eq!(n.check(b"M110 N41"), Checked::Run(b"M110 N41"));
         assert_eq!(n.check(sum("N42 G28").as_bytes()), Checked::Run(b"G28"));
@@ -328,8 +338,8 @@ mod tests {
         // Not a line number: N without digits, or too many of them.
         assert_eq!(n.check(b"NOZZLE_WIPE"), Checked::Run(b"NOZZLE_WIPE"));
         assert_eq!(
-            n.check(b"N99999999999 G1"),
-            Checked::Run(b"N99999999999 G1")
+            n.check(b"N9999999999999999999 G1"),
+            Checked::Run(b"N9999999999999999999 G1")
         );
     }
 

@@ -20,7 +20,7 @@ fuzz_target!(|data: &[u8]| {
     let mut lines = LineAssembler::<256>::new();
     let mut emergency = EmergencyParser::new();
     let mut ran: Vec<Vec<u8>> = Vec::new();
-    let mut next = 1u32;
+    let mut next = 1i64;
     let mut transmissions = 0;
     while (next as usize) <= JOB.len() {
         transmissions += 1;

@@ -156,17 +156,24 @@ def batch_summary(workdir, sd, gcode):
     return json.loads(out.read_text())
 
 
-def compare_motion(served, batch, what):
+def compare_motion(served, batch, what, count_tolerance=0.0):
     """Fails unless `served` (a print through a host) moved every stepper
-    exactly as `batch` did: the same step counts and final positions, and
-    the same final G-code position."""
+    as `batch` did: the same final positions and final G-code position,
+    and the same step counts, or within `count_tolerance` (a fraction) of
+    them. A host that streams line by line in real time lets Klipper's
+    timers decide when moves are planned (released 0.1 s after the first
+    one queued, flushed when the buffer runs low), so its moves may stop
+    where the batch run's flowed on: the path and where every stepper
+    ends are the same, but pressure advance and input shaping make their
+    few extra steps back and forth at different stops."""
     problems = []
     if [s["name"] for s in served["steppers"]] != [s["name"] for s in batch["steppers"]]:
         problems.append("different steppers")
     for s, b in zip(served["steppers"], batch["steppers"]):
-        for key in ("steps", "position"):
-            if s[key] != b[key]:
-                problems.append(f"{s['name']} {key}: {s[key]} through {what}, {b[key]} in the batch run")
+        if s["position"] != b["position"]:
+            problems.append(f"{s['name']} position: {s['position']} through {what}, {b['position']} in the batch run")
+        if abs(s["steps"] - b["steps"]) > count_tolerance * b["steps"]:
+            problems.append(f"{s['name']} steps: {s['steps']} through {what}, {b['steps']} in the batch run")
     for axis, s, b in zip("XYZE", served["final_position"], batch["final_position"]):
         if abs(s - b) > 1e-9:
             problems.append(f"final {axis}: {s} through {what}, {b} in the batch run")
@@ -174,8 +181,10 @@ def compare_motion(served, batch, what):
         problems.append(f"the simulator shut down: {served['shutdown']}")
     if problems:
         raise Failure("motion differs from the batch run:\n  " + "\n  ".join(problems))
-    steps = ", ".join(f"{s['name']} {s['steps']}" for s in served["steppers"])
-    print(f"same motion as the batch run: {steps} steps")
+    steps = ", ".join(
+        f"{s['name']} {s['steps']} ({b['steps']})" for s, b in zip(served["steppers"], batch["steppers"])
+    )
+    print(f"same motion as the batch run: steps (batch run's) {steps}, same final positions")
 
 
 def main(harness):
