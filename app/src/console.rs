@@ -12,7 +12,7 @@
 //! runs its lines one at a time between console lines.
 
 use crate::card::Card;
-use crate::line::LineEvent;
+use crate::line::{LineEvent, command_word};
 use crate::line_protocol::{Checked, LineNumbers, write_refusal};
 use crate::sd_print::{SdError, SdPrint};
 use crate::session::{Mcu, Session, profile::MAX_LINE};
@@ -421,17 +421,4 @@ fn extended_value<'t>(rest: &'t str, key: &str) -> Option<&'t str> {
         let (k, v) = word.split_once('=')?;
         k.eq_ignore_ascii_case(key).then_some(v)
     })
-}
-
-/// The first word of a G-code line, after an optional `N<number>` line number.
-pub fn command_word(line: &[u8]) -> &[u8] {
-    let mut words = line
-        .split(|b| b.is_ascii_whitespace())
-        .filter(|w| !w.is_empty());
-    let first = words.next().unwrap_or_default();
-    if first.first().is_some_and(|b| b.eq_ignore_ascii_case(&b'N')) {
-        words.next().unwrap_or_default()
-    } else {
-        first
-    }
 }

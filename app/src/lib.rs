@@ -2,7 +2,8 @@
 //! share. Everything here is `no_std`, allocation-free and hardware-free: the
 //! boards hand it bytes (USB, SD-card blocks) and get bytes back.
 //!
-//! - [`line`]: bounded assembly of G-code lines from a byte stream;
+//! - [`line`]: bounded assembly of G-code lines from a byte stream, and
+//!   their command word;
 //! - [`line_protocol`]: line numbers, checksums and resends;
 //! - [`emergency`]: M112 spotted in the byte stream;
 //! - [`console`]: what the firmware answers to each line, and SD printing

@@ -70,6 +70,19 @@ impl<const N: usize> LineAssembler<N> {
     }
 }
 
+/// The first word of a G-code line, after an optional `N<number>` line number.
+pub fn command_word(line: &[u8]) -> &[u8] {
+    let mut words = line
+        .split(|b| b.is_ascii_whitespace())
+        .filter(|w| !w.is_empty());
+    let first = words.next().unwrap_or_default();
+    if first.first().is_some_and(|b| b.eq_ignore_ascii_case(&b'N')) {
+        words.next().unwrap_or_default()
+    } else {
+        first
+    }
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;

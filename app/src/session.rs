@@ -8,9 +8,9 @@
 //! run), the host build in virtual time (a wait runs the next timer event).
 //! Everything a user can observe is decided here, once, for both.
 
-use crate::console;
 use crate::heaters::ThermalCommand;
 use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
+use crate::line::command_word;
 use crate::printer::{LineError, Printer};
 use crate::text::{ErrorText, error_text};
 use core::cell::RefCell;
@@ -329,7 +329,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if let Some(reason) = mcu.shutdown_reason() {
             return Err(error_text(&SessionError::Shutdown(reason)));
         }
-        let word = console::command_word(text.as_bytes());
+        let word = command_word(text.as_bytes());
         if !self.engine.endstops.iter().all(|&e| e) && word.eq_ignore_ascii_case(b"G28") {
             return Err(error_text(&SessionError::NoEndstops));
         }
