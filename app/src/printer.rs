@@ -2,7 +2,7 @@
 //! heater/fan commands out.
 //!
 //! Holds the toolhead (with a lookahead of `N` moves) and the G-code state;
-//! each line is parsed and executed, and replies follow Klipper's console
+//! each parsed line is executed, and replies follow Klipper's console
 //! conventions (`!! ` for errors, `// ` for information). Heater and fan
 //! G-codes (M104, M109, M140, M190, M106, M107, M105,
 //! SET_HEATER_TEMPERATURE, TURN_OFF_HEATERS) are checked here and handed
@@ -141,15 +141,14 @@ impl<'a, const N: usize> Printer<'a, N> {
     /// Runs one line of G-code; replies other than `ok` go to `out`.
     pub fn execute<'l>(
         &mut self,
-        line: &'l str,
+        line: &Line<'l>,
         sink: &mut impl MoveSink,
         out: &mut impl Write,
     ) -> Result<(), LineError<'l>> {
-        let parsed = gcode::parse(line).map_err(CommandError::Gcode)?;
-        if self.thermal(&parsed, sink)? {
+        if self.thermal(line, sink)? {
             return Ok(());
         }
-        Ok(self.gcode.execute(&parsed, &mut self.toolhead, sink, out)?)
+        Ok(self.gcode.execute(line, &mut self.toolhead, sink, out)?)
     }
 
     /// The next heater or fan command of the lines run so far.

@@ -342,19 +342,18 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             return Ok(());
         }
         let now = mcu.now() as f64 / self.engine.freq;
-        let parsed = gcode::parse(text).ok();
-        if let Some(line) = &parsed {
-            match self.idle.command(line, now, out) {
-                Ok(true) => return Ok(()),
-                Ok(false) => {}
-                Err(e) => return Err(error_text(&e)),
-            }
+        let line = gcode::parse(text)
+            .map_err(|e| error_text(&SessionError::Command(LineError::from(e))))?;
+        match self.idle.command(&line, now, out) {
+            Ok(true) => return Ok(()),
+            Ok(false) => {}
+            Err(e) => return Err(error_text(&e)),
         }
         self.engine.line_starts(mcu.now());
         let was_idle = self.printer.is_idle();
         let result = self.with_planning(mcu, out, |printer, planning, out| {
             printer
-                .execute(text, planning, out)
+                .execute(&line, planning, out)
                 .map_err(|e| error_text(&SessionError::Command(e)))
         });
         if was_idle && !self.printer.is_idle() && !self.printer.is_flowing() {
@@ -366,7 +365,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             if result.is_ok() && word.eq_ignore_ascii_case(b"M400") {
                 self.wait_moves_done(mcu, out);
             }
-            if parsed.as_ref().is_some_and(idle_timeout::is_activity) {
+            if idle_timeout::is_activity(&line) {
                 let now = mcu.now() as f64 / self.engine.freq;
                 self.idle.note_activity(now, self.printer.print_time());
             }

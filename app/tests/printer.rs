@@ -3,6 +3,7 @@
 
 use onechip_app::printer::Printer;
 use onechip_config::Config;
+use onechip_planner::gcode;
 use onechip_planner::machine::Machine;
 use onechip_planner::move_sink::{MoveSink, TrapqMove};
 
@@ -28,16 +29,12 @@ fn a_streamed_move_is_released_by_the_priming_timeout() {
     let mut printer = Box::new(Printer::<64>::new(&machine));
     let mut moves = Moves::default();
     let mut replies = String::new();
-    printer
-        .execute(
-            "SET_KINEMATIC_POSITION X=0 Y=0 Z=0",
-            &mut moves,
-            &mut replies,
-        )
-        .expect("runs");
-    printer
-        .execute("G1 X10 F6000", &mut moves, &mut replies)
-        .expect("runs");
+    for line in ["SET_KINEMATIC_POSITION X=0 Y=0 Z=0", "G1 X10 F6000"] {
+        let line = gcode::parse(line).expect("parses");
+        printer
+            .execute(&line, &mut moves, &mut replies)
+            .expect("runs");
+    }
     assert!(moves.0.is_empty(), "a single move waits for lookahead");
     printer.priming_timeout(&mut moves);
     assert_eq!(moves.0.len(), 1);
