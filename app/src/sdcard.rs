@@ -95,9 +95,18 @@ fn read_in<D: BlockDevice, const DIRS: usize, const FILES: usize, const VOLS: us
     let dest = buf
         .get_mut(..size as usize)
         .ok_or(ReadError::TooLarge { size, capacity })?;
+    fill(&file, dest)
+}
+
+/// Reads from `file`'s position into `buf` until it is full or the file
+/// ends; returns how many bytes were read.
+fn fill<D: BlockDevice, const DIRS: usize, const FILES: usize, const VOLS: usize>(
+    file: &embedded_sdmmc::File<'_, D, NoClock, DIRS, FILES, VOLS>,
+    buf: &mut [u8],
+) -> Result<usize, ReadError<D::Error>> {
     let mut filled = 0;
-    while filled < dest.len() {
-        match file.read(&mut dest[filled..])? {
+    while filled < buf.len() {
+        match file.read(&mut buf[filled..])? {
             0 => break,
             n => filled += n,
         }
@@ -218,14 +227,7 @@ impl<D: BlockDevice> Card for SdFiles<D> {
                 return Ok(0);
             }
             file.seek_from_start(offset)?;
-            let mut filled = 0;
-            while filled < buf.len() {
-                match file.read(&mut buf[filled..])? {
-                    0 => break,
-                    n => filled += n,
-                }
-            }
-            Ok(filled)
+            fill(&file, buf)
         })
     }
 
