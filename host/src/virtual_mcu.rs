@@ -166,13 +166,18 @@ impl VirtualMcu {
     /// The same MCU with `machine`'s heaters and fan, simulated, on a
     /// clock of `freq` Hz; first temperature readings 0.2 s from now.
     pub fn with_heaters(mut self, machine: &Machine<'_>, freq: f64) -> Self {
+        self.start_heaters(machine, freq);
+        self
+    }
+
+    /// Builds `machine`'s heaters and fan, and their physics, from now.
+    fn start_heaters(&mut self, machine: &Machine<'_>, freq: f64) {
         let mut plant = Plant::new(machine, freq);
         plant.now = self.now;
         let first = self.now + (FIRST_REPORT * freq) as u64;
         let heaters = Heaters::new(machine, freq, ADC_MAX, first as u32, &mut plant);
         self.thermal = Some((heaters, plant));
         self.update_io_wake();
-        self
     }
 
     /// Leaves a shutdown (FIRMWARE_RESTART): the engine idle and
@@ -181,9 +186,8 @@ impl VirtualMcu {
     pub fn restart(&mut self, machine: &Machine<'_>, freq: f64) {
         self.engine.restart();
         self.pushed = true;
-        if self.thermal.take().is_some() {
-            let mcu = std::mem::replace(self, Self::new(0, 0));
-            *self = mcu.with_heaters(machine, freq);
+        if self.thermal.is_some() {
+            self.start_heaters(machine, freq);
         }
     }
 
