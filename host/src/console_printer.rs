@@ -7,12 +7,11 @@
 use crate::files::Folder;
 use crate::step_log::StepLog;
 use crate::virtual_mcu::VirtualMcu;
-use crate::{HostSession, Options, SimError, physics};
+use crate::{HostSession, Options, SimError, load_setup, restart_if_asked, virtual_mcu};
 use onechip_app::console::Console;
 use onechip_app::emergency::EmergencyParser;
 use onechip_app::line::LineAssembler;
 use onechip_app::session::{Mcu, profile};
-use onechip_app::setup::PrinterSetup;
 use onechip_app::text::ErrorText;
 use onechip_planner::machine::Machine;
 use onechip_sched::outputs::Drive;
@@ -35,29 +34,22 @@ pub struct ConsolePrinter {
 
 impl ConsolePrinter {
     /// The printer of SD folder `sd` (its printer.cfg; the folder is its
-    /// card), as `options` say (clock, start position, faults). The
+    /// card), as `options` say (clock, start position, step files, plot,
+    /// faults). The
     /// config is kept for the life of the process.
     pub fn new(sd: &Path, options: &Options) -> Result<Self, SimError> {
         let buf = Box::leak(vec![0u8; crate::files::CONFIG_BUFFER].into_boxed_slice());
-        let texts = onechip_app::config_files::load(&mut Folder::new(sd), buf)
-            .map_err(|e| SimError::Config(e.to_string()))?;
-        let texts = Box::leak(Box::new(texts));
         let scratch = Box::leak(Box::new(std::mem::MaybeUninit::uninit()));
-        let setup = PrinterSetup::load(texts, onechip_app::pin_check::BOARD_RESERVED, scratch)
-            .map_err(|e| SimError::Config(e.to_string()))?;
+        let setup = load_setup(sd, buf, scratch)?;
         let machine: &'static Machine<'static> = Box::leak(Box::new(setup)).machine();
         let freq = options.mcu_freq;
-        let start = options.clock_origin;
         let session = Box::new(HostSession::new(
             machine,
             freq,
             profile::MAX_STEP_ERROR,
-            start,
+            options.clock_origin,
         ));
-        let mut mcu = VirtualMcu::new(machine.steppers.len(), start).with_heaters(machine, freq);
-        if let Some(physics) = physics(machine, options.start) {
-            mcu = mcu.with_physics(physics);
-        }
+        let mcu = virtual_mcu(machine, options)?;
         Ok(Self {
             machine,
             session,
@@ -131,10 +123,13 @@ impl ConsolePrinter {
     /// and in [`Self::run_for`]: lines arrive as fast as the host sends
     /// them, as on the board.)
     fn after_line(&mut self) {
-        if self.console.take_restart() {
-            self.mcu.restart(self.machine, self.freq);
-            self.session.restart(self.machine, self.mcu.now());
-        }
+        restart_if_asked(
+            &mut self.console,
+            self.machine,
+            &mut self.mcu,
+            &mut self.session,
+            self.freq,
+        );
     }
 
     /// True while a file prints from the card.

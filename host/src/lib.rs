@@ -432,11 +432,14 @@ impl<const L: usize> Run<'_, '_, L> {
             self.mcu,
             &mut tee,
         );
-        if self.console.take_restart() {
-            let freq = self.summary.mcu_freq;
-            self.mcu.restart(self.machine, freq);
-            self.session.restart(self.machine, self.mcu.now());
-        }
+        let freq = self.summary.mcu_freq;
+        restart_if_asked(
+            &mut self.console,
+            self.machine,
+            self.mcu,
+            self.session,
+            freq,
+        );
         self.summary.note_reply(&tee.kept);
     }
 
@@ -495,30 +498,24 @@ impl fmt::Write for NoOutput {
     }
 }
 
-/// Sets up the printer of the SD folder `sd` as `options` say (its
-/// session with a lookahead of `L` moves, the virtual MCU, the console),
-/// lets `input` feed it, then finishes the print and sums up what it did.
-pub(crate) fn with_session<const L: usize>(
+/// Reads printer.cfg (and its includes) from the SD folder `sd` into
+/// `buf` and the machine from it (`scratch` indexes the config meanwhile).
+fn load_setup<'b>(
     sd: &Path,
-    options: &Options,
-    input: impl FnOnce(&mut Run<'_, '_, L>) -> Result<(), SimError>,
-) -> Result<Summary, SimError> {
-    let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
-    let mut buf = vec![0u8; files::CONFIG_BUFFER];
-    let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), &mut buf)
+    buf: &'b mut [u8],
+    scratch: &mut std::mem::MaybeUninit<onechip_app::setup::Config<'b>>,
+) -> Result<PrinterSetup<'b>, SimError> {
+    let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), buf)
         .map_err(|e| SimError::Config(e.to_string()))?;
-    let mut scratch = Box::new(std::mem::MaybeUninit::uninit());
-    let setup = PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED, &mut scratch)
-        .map_err(|e| SimError::Config(e.to_string()))?;
-    let machine = setup.machine();
+    PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED, scratch)
+        .map_err(|e| SimError::Config(e.to_string()))
+}
+
+/// The virtual MCU for `machine` as `options` say: heaters, physics (where
+/// the toolhead starts), plot window, step files, injected faults.
+fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, SimError> {
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
-    let mut session = Box::new(HostSession::<L>::new(
-        machine,
-        freq,
-        profile::MAX_STEP_ERROR,
-        options.clock_origin,
-    ));
     let mut mcu =
         VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(machine, freq);
     if let Some(physics) = physics(machine, options.start) {
@@ -541,6 +538,46 @@ pub(crate) fn with_session<const L: usize>(
     if let (Some((heater, factor)), Some((_, plant))) = (options.weak_heater, mcu.thermal()) {
         plant.weaken(heater, factor);
     }
+    Ok(mcu)
+}
+
+/// Carries out a restart `console` was asked for (FIRMWARE_RESTART,
+/// M999): the MCU role and the session start afresh for `machine`.
+fn restart_if_asked<'m, const L: usize>(
+    console: &mut Console,
+    machine: &Machine<'m>,
+    mcu: &mut VirtualMcu,
+    session: &mut HostSession<'m, L>,
+    freq: f64,
+) {
+    if console.take_restart() {
+        mcu.restart(machine, freq);
+        session.restart(machine, onechip_app::session::Mcu::now(mcu));
+    }
+}
+
+/// Sets up the printer of the SD folder `sd` as `options` say (its
+/// session with a lookahead of `L` moves, the virtual MCU, the console),
+/// lets `input` feed it, then finishes the print and sums up what it did.
+pub(crate) fn with_session<const L: usize>(
+    sd: &Path,
+    options: &Options,
+    input: impl FnOnce(&mut Run<'_, '_, L>) -> Result<(), SimError>,
+) -> Result<Summary, SimError> {
+    let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
+    let mut buf = vec![0u8; files::CONFIG_BUFFER];
+    let mut scratch = Box::new(std::mem::MaybeUninit::uninit());
+    let setup = load_setup(sd, &mut buf, &mut scratch)?;
+    let machine = setup.machine();
+    let freq = options.mcu_freq;
+    let origin = options.clock_origin as f64 / freq;
+    let mut session = Box::new(HostSession::<L>::new(
+        machine,
+        freq,
+        profile::MAX_STEP_ERROR,
+        options.clock_origin,
+    ));
+    let mut mcu = virtual_mcu(machine, options)?;
     let mut summary = Summary {
         config_path,
         kinematics: machine.kinematics,
