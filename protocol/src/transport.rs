@@ -289,7 +289,7 @@ impl HostLink {
         let delta = u64::from(wire_seq.wrapping_sub(self.receive_seq as u8) & SEQ_MASK);
         let rseq = self.receive_seq + delta;
         if rseq != self.receive_seq {
-            if rseq > self.send_seq {
+            if rseq > self.send_seq && !self.connecting() {
                 // Acknowledges a block never sent: not from this connection.
                 return false;
             }
@@ -306,11 +306,23 @@ impl HostLink {
         true
     }
 
-    /// Drops blocks below `rseq` and updates the round-trip estimate.
+    /// True until the MCU has acknowledged anything: its sequence number
+    /// is not known yet. A Klipper MCU starts expecting block 0 and keeps
+    /// its count across host connections, so its first ack (or nak) may
+    /// name any block; the link adopts it, as klippy's serial queue does.
+    fn connecting(&self) -> bool {
+        self.receive_seq == 1
+    }
+
+    /// Drops blocks below `rseq` and updates the round-trip estimate. An
+    /// ack past every block sent (only while [`Self::connecting`]) makes
+    /// `rseq` the next block to send; the blocks sent before were not
+    /// taken and are dropped, so their senders must retry.
     fn acknowledge(&mut self, rseq: u64, now_us: u64) {
         let mut acked_sent_at = None;
         while self.receive_seq < rseq {
             let Some((frame, sent_at)) = self.sent.pop_front() else {
+                self.send_seq = rseq;
                 break;
             };
             self.sent_bytes -= frame.len();
@@ -613,11 +625,30 @@ mod tests {
     }
 
     #[test]
-    fn acks_for_blocks_never_sent_are_ignored() {
+    fn acks_for_blocks_never_sent_are_ignored_once_connected() {
         let mut host = HostLink::default();
         host.send(b"a", 0).expect("room");
-        host.receive(&block_bytes(9, b""), 1, |_| {});
+        host.receive(&block_bytes(2, b""), 1, |_| {});
+        host.send(b"b", 2).expect("room");
+        host.receive(&block_bytes(9, b""), 3, |_| {});
         assert_eq!(host.unacknowledged(), 1);
+    }
+
+    #[test]
+    fn the_first_ack_sets_the_sequence_of_a_fresh_or_reused_mcu() {
+        // A freshly started Klipper MCU expects block 0 and naks block 1
+        // with sequence 0; one still counting from an earlier host naks
+        // with its own number. Either way the next block carries it.
+        for mcu_expects in [0u8, 5, 15] {
+            let mut host = HostLink::default();
+            host.send(b"identify", 0).expect("room");
+            host.receive(&block_bytes(mcu_expects, b""), 1, |_| {});
+            let wire_seq = host.send(b"identify", 2).expect("room")[1] & SEQ_MASK;
+            assert_eq!(wire_seq, mcu_expects);
+            // The block it acknowledges next is taken as an ack.
+            host.receive(&block_bytes((mcu_expects + 1) & SEQ_MASK, b""), 3, |_| {});
+            assert_eq!(host.unacknowledged(), 0);
+        }
     }
 
     #[test]

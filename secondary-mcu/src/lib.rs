@@ -1,10 +1,13 @@
 //! Secondary boards (AVR, SAMD, LPC, STM32) running stock Klipper MCU
 //! firmware, driven as Klipper's host drives them: identify, data dictionary,
-//! config, clock synchronisation and `queue_step` (issue #6 and after).
+//! config, clock synchronisation and `queue_step`.
 //!
-//! Available now:
+//! - [`clock_sync`]: the MCU's clock against host (print) time;
+//! - [`crc32`]: the checksum of the config commands;
 //! - [`step_commands`]: step generation's commands as `queue_step` /
 //!   `set_next_step_dir` messages of a given MCU's dictionary, and back.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod clock_sync;
+pub mod crc32;
 pub mod step_commands;
