@@ -13,6 +13,7 @@ pub mod console_printer;
 pub mod files;
 pub mod pace;
 pub mod plot;
+pub mod secondary;
 pub mod serial;
 pub mod step_log;
 pub mod summary_json;

@@ -133,6 +133,11 @@ impl<'b> Fetcher<'b> {
     pub fn output(&self) -> &[u8] {
         &self.out[..self.out_len]
     }
+
+    /// Ends the fetch, handing back the dictionary text inflated so far.
+    pub fn into_output(self) -> &'b [u8] {
+        &self.out[..self.out_len]
+    }
 }
 
 /// The MCU side: serves a compressed dictionary in `identify` chunks.

@@ -133,7 +133,7 @@ pub fn read(mut master: &File, buf: &mut [u8]) -> io::Result<Option<usize>> {
 }
 
 /// Sets the terminal `fd` to raw mode.
-fn make_raw(fd: &OwnedFd) -> io::Result<()> {
+pub(crate) fn make_raw(fd: &OwnedFd) -> io::Result<()> {
     // SAFETY: termios is plain data; tcgetattr fills it in.
     let mut termios: libc::termios = unsafe { std::mem::zeroed() };
     // SAFETY: `fd` is an open terminal and `termios` a valid termios.

@@ -1,0 +1,219 @@
+//! Secondary MCUs running stock Klipper firmware, on serial devices: the
+//! simulator's side of [`onechip_secondary_mcu`], with real I/O. Host
+//! time is given by the caller in seconds (the main MCU's clock).
+
+pub mod port;
+
+use onechip_protocol::dictionary::Dictionary;
+use onechip_protocol::transport::{DEFAULT_RECEIVE_WINDOW, HostLink, MAX_PENDING_BLOCKS};
+use onechip_secondary_mcu::connection::{Connection, Event, Failure};
+use onechip_secondary_mcu::identify::Identify;
+use port::Port;
+use std::fmt;
+use std::io;
+use std::path::Path;
+use std::time::Duration;
+
+/// Largest inflated data dictionary accepted, bytes (Klipper's are 10–15 KB).
+const DICTIONARY_MAX: usize = 64 * 1024;
+/// Bytes one poll may write.
+const OUT_MAX: usize = 1 + MAX_PENDING_BLOCKS * onechip_protocol::block::MAX_LEN;
+
+/// Why a secondary could not be brought up.
+#[derive(Debug)]
+pub enum ConnectError {
+    /// The device could not be opened or read.
+    Io(io::Error),
+    /// No complete dictionary within the time allowed.
+    Timeout(&'static str),
+    /// The dictionary is not valid.
+    Dictionary(String),
+    /// The config phase failed (Klipper's message).
+    Failed(String),
+}
+
+impl fmt::Display for ConnectError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Io(e) => write!(f, "{e}"),
+            Self::Timeout(phase) => write!(f, "Timeout during {phase}"),
+            Self::Dictionary(e) => write!(f, "invalid data dictionary: {e}"),
+            Self::Failed(m) => f.write_str(m),
+        }
+    }
+}
+
+/// What a secondary said, as text, for the owner to act on.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Heard {
+    /// A response other than the connection's own (`stepper_position …`).
+    Response(String),
+    /// The MCU shut down: its `shutdown` message.
+    Shutdown(String),
+    /// The link failed (Klipper's message).
+    Failed(String),
+}
+
+/// A configured secondary MCU.
+pub struct Secondary {
+    /// Its name in printer.cfg (`[mcu NAME]`).
+    pub name: String,
+    port: Port,
+    conn: Connection<'static>,
+    /// The MCU's move queue length (`get_config`'s `move_count`).
+    pub move_count: u16,
+}
+
+impl Secondary {
+    /// Opens `path`, fetches the dictionary, synchronises the clock and
+    /// sends `config` (klippy's config commands, `allocate_oids` first)
+    /// or, if the MCU holds that config already, `restart`; `now` gives
+    /// host time in seconds. Gives up after `timeout`.
+    pub fn connect(
+        name: &str,
+        path: &Path,
+        config: &[String],
+        restart: &[String],
+        now: &dyn Fn() -> f64,
+        timeout: Duration,
+    ) -> Result<Self, ConnectError> {
+        let mut port = Port::open(path).map_err(ConnectError::Io)?;
+        let deadline = now() + timeout.as_secs_f64();
+        let (link, dict) = identify(&mut port, now, deadline)?;
+        let mut secondary = Self {
+            name: name.to_string(),
+            port,
+            conn: Connection::new(dict, link),
+            move_count: 0,
+        };
+        secondary.configure(config, restart, now, deadline)?;
+        Ok(secondary)
+    }
+
+    /// The connection, for sending commands and reading the clock.
+    pub fn connection(&mut self) -> &mut Connection<'static> {
+        &mut self.conn
+    }
+
+    /// Runs the config phase to its end.
+    fn configure(
+        &mut self,
+        config: &[String],
+        restart: &[String],
+        now: &dyn Fn() -> f64,
+        deadline: f64,
+    ) -> Result<(), ConnectError> {
+        let mut failure = None;
+        while self.move_count == 0 {
+            let t = now();
+            if t > deadline {
+                return Err(ConnectError::Timeout("config"));
+            }
+            let mut configure = None;
+            let mut ready = None;
+            self.exchange(t, &mut |event| match event {
+                Event::Configure(crc) => configure = Some(crc),
+                Event::Ready { move_count } => ready = Some(move_count),
+                Event::Failed(why) => failure = Some(why),
+                Event::Shutdown(_) => failure = Some(Failure::ShutDown),
+                Event::Response(_) => {}
+            })?;
+            if let Some(crc) = configure
+                && let Err(why) = self.conn.configure(
+                    config.iter().map(String::as_str),
+                    restart.iter().map(String::as_str),
+                    crc,
+                )
+            {
+                failure = Some(why);
+            }
+            if let Some(why) = failure {
+                let mut text = String::new();
+                let _ = why.write(&self.name, &mut text);
+                return Err(ConnectError::Failed(text));
+            }
+            if let Some(n) = ready {
+                self.move_count = n;
+            }
+        }
+        Ok(())
+    }
+
+    /// One round of I/O at host time `now`: writes what is due, waits up
+    /// to `wait` for bytes and feeds them in; what the MCU said goes to
+    /// `heard`.
+    pub fn service(&mut self, now: f64, wait: Duration, heard: &mut Vec<Heard>) -> io::Result<()> {
+        let name = self.name.clone();
+        let mut on_event = |event: Event<'_, 'static>| match event {
+            Event::Response(msg) => heard.push(Heard::Response(msg.to_string())),
+            Event::Shutdown(msg) => heard.push(Heard::Shutdown(msg.to_string())),
+            Event::Failed(why) => {
+                let mut text = String::new();
+                let _ = why.write(&name, &mut text);
+                heard.push(Heard::Failed(text));
+            }
+            Event::Configure(_) | Event::Ready { .. } => {}
+        };
+        self.io(now, wait, &mut on_event)
+    }
+
+    fn exchange(
+        &mut self,
+        now: f64,
+        on_event: &mut dyn FnMut(Event<'_, 'static>),
+    ) -> Result<(), ConnectError> {
+        self.io(now, Duration::from_millis(5), on_event)
+            .map_err(ConnectError::Io)
+    }
+
+    fn io(
+        &mut self,
+        now: f64,
+        wait: Duration,
+        on_event: &mut dyn FnMut(Event<'_, 'static>),
+    ) -> io::Result<()> {
+        let mut out = [0u8; OUT_MAX];
+        let n = self.conn.poll(now, &mut out, &mut *on_event);
+        self.port.write_all(&out[..n])?;
+        self.port.wait_readable(wait)?;
+        let mut buf = [0u8; 4096];
+        let got = self.port.read(&mut buf)?;
+        if got > 0 {
+            self.conn.receive(&buf[..got], now, &mut *on_event);
+        }
+        Ok(())
+    }
+}
+
+/// Fetches the dictionary over `port`; it lives as long as the process
+/// (one per connection).
+fn identify(
+    port: &mut Port,
+    now: &dyn Fn() -> f64,
+    deadline: f64,
+) -> Result<(HostLink, &'static Dictionary<'static>), ConnectError> {
+    let buf: &'static mut [u8] = Box::leak(vec![0u8; DICTIONARY_MAX].into_boxed_slice());
+    let mut fetch = Identify::new(buf, DEFAULT_RECEIVE_WINDOW);
+    let mut out = [0u8; OUT_MAX];
+    let mut input = [0u8; 4096];
+    loop {
+        let t = now();
+        if t > deadline {
+            return Err(ConnectError::Timeout("identify"));
+        }
+        let n = fetch.poll(t, &mut out);
+        port.write_all(&out[..n]).map_err(ConnectError::Io)?;
+        port.wait_readable(Duration::from_millis(5))
+            .map_err(ConnectError::Io)?;
+        let got = port.read(&mut input).map_err(ConnectError::Io)?;
+        match fetch.receive(&input[..got], now()) {
+            Ok(Some(_)) => break,
+            Ok(None) => {}
+            Err(e) => return Err(ConnectError::Dictionary(e.to_string())),
+        }
+    }
+    let (link, text) = fetch.finish();
+    let text = std::str::from_utf8(text).map_err(|e| ConnectError::Dictionary(e.to_string()))?;
+    let dict = Dictionary::parse(text).map_err(|e| ConnectError::Dictionary(e.to_string()))?;
+    Ok((link, Box::leak(Box::new(dict))))
+}

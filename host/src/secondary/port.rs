@@ -1,0 +1,79 @@
+//! A secondary MCU's serial device (a tty, or the pseudo-terminal of a
+//! peer process), raw and non-blocking.
+
+use crate::serial::pty::make_raw;
+use std::fs::{File, OpenOptions};
+use std::io::{self, Read, Write};
+use std::os::fd::{AsRawFd, OwnedFd};
+use std::os::unix::fs::OpenOptionsExt;
+use std::path::Path;
+use std::time::Duration;
+
+/// An open serial device.
+pub struct Port {
+    file: File,
+}
+
+impl Port {
+    /// Opens `path` read/write, raw and non-blocking.
+    pub fn open(path: &Path) -> io::Result<Self> {
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOCTTY | libc::O_NONBLOCK)
+            .open(path)?;
+        let fd = OwnedFd::from(file.try_clone()?);
+        make_raw(&fd)?;
+        Ok(Self { file })
+    }
+
+    /// Reads what has arrived: `Ok(0)` if nothing, an error once the other
+    /// side is gone.
+    pub fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        match self.file.read(buf) {
+            Ok(0) => Err(io::ErrorKind::UnexpectedEof.into()),
+            Ok(n) => Ok(n),
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(0),
+            Err(e) if e.raw_os_error() == Some(libc::EIO) => {
+                Err(io::ErrorKind::UnexpectedEof.into())
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Writes all of `bytes`, waiting while the device's buffer is full.
+    pub fn write_all(&mut self, mut bytes: &[u8]) -> io::Result<()> {
+        while !bytes.is_empty() {
+            match self.file.write(bytes) {
+                Ok(n) => bytes = &bytes[n..],
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    self.wait(libc::POLLOUT, Duration::from_millis(10))?;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    }
+
+    /// Waits up to `timeout` for bytes to read.
+    pub fn wait_readable(&self, timeout: Duration) -> io::Result<()> {
+        self.wait(libc::POLLIN, timeout)
+    }
+
+    fn wait(&self, events: libc::c_short, timeout: Duration) -> io::Result<()> {
+        let mut poll = libc::pollfd {
+            fd: self.file.as_raw_fd(),
+            events,
+            revents: 0,
+        };
+        let millis = libc::c_int::try_from(timeout.as_millis()).unwrap_or(libc::c_int::MAX);
+        // SAFETY: one valid pollfd, for the duration of the call.
+        if unsafe { libc::poll(&mut poll, 1, millis) } < 0 {
+            let e = io::Error::last_os_error();
+            if e.kind() != io::ErrorKind::Interrupted {
+                return Err(e);
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,124 @@
+//! The first exchange with a secondary MCU: its data dictionary, fetched
+//! with `identify` over a fresh link. Sans I/O: the caller writes what
+//! [`Identify::poll`] returns and feeds what it reads to
+//! [`Identify::receive`]; times are host seconds.
+
+use onechip_protocol::identify::{CHUNK, Fetcher, IdentifyError, Progress};
+use onechip_protocol::transport::HostLink;
+use onechip_protocol::vlq;
+
+/// Message id of `identify offset=%u count=%c` in every Klipper dictionary.
+const IDENTIFY_ID: i64 = 1;
+/// Message id of `identify_response offset=%u data=%.*s`.
+const IDENTIFY_RESPONSE_ID: i64 = 0;
+/// Seconds without an answer after which a question is asked again: the
+/// first one is lost whenever the MCU's block sequence is not the one a
+/// new link starts with (klippy retries its commands the same way).
+pub const RETRY_TIME: f64 = 0.25;
+
+/// Host seconds as the link's microseconds.
+pub(crate) fn micros(now: f64) -> u64 {
+    (now.max(0.0) * 1e6) as u64
+}
+
+/// A dictionary fetch in progress.
+pub struct Identify<'b> {
+    link: HostLink,
+    fetcher: Fetcher<'b>,
+    /// When to ask (again) for the fetcher's offset, host s.
+    ask_at: f64,
+    /// Offsets asked so far (for diagnostics).
+    pub questions: u32,
+}
+
+impl<'b> Identify<'b> {
+    /// Starts fetching into `out` (the inflated JSON; Klipper's are 10–15
+    /// KB), over a link to an MCU that buffers `receive_window` bytes.
+    pub fn new(out: &'b mut [u8], receive_window: usize) -> Self {
+        Self {
+            link: HostLink::new(receive_window),
+            fetcher: Fetcher::new(out),
+            ask_at: 0.0,
+            questions: 0,
+        }
+    }
+
+    /// Writes into `out` what must go to the MCU now (a question, or a
+    /// retransmission); returns its length. `out` needs
+    /// `1 + MAX_PENDING_BLOCKS × MAX_LEN` bytes.
+    pub fn poll(&mut self, now: f64, out: &mut [u8]) -> usize {
+        if let Some(n) = self.link.poll(micros(now), out) {
+            return n;
+        }
+        if now < self.ask_at || self.link.unacknowledged() > 0 {
+            return 0;
+        }
+        let mut payload = [0u8; 3 * vlq::MAX_LEN];
+        let mut len = 0;
+        for value in [
+            IDENTIFY_ID,
+            i64::from(self.fetcher.offset()),
+            i64::from(CHUNK),
+        ] {
+            let mut buf = [0u8; vlq::MAX_LEN];
+            let n = vlq::encode(value, &mut buf);
+            payload[len..len + n].copy_from_slice(&buf[..n]);
+            len += n;
+        }
+        self.ask_at = now + RETRY_TIME;
+        self.questions += 1;
+        match self.link.send(&payload[..len], micros(now)) {
+            Ok(block) => {
+                let n = block.len().min(out.len());
+                out[..n].copy_from_slice(&block[..n]);
+                n
+            }
+            Err(_) => 0,
+        }
+    }
+
+    /// Takes bytes from the MCU: `Some(length)` of the dictionary text once
+    /// it is complete.
+    pub fn receive(&mut self, bytes: &[u8], now: f64) -> Result<Option<usize>, IdentifyError> {
+        let mut result = Ok(None);
+        let fetcher = &mut self.fetcher;
+        let ask_at = &mut self.ask_at;
+        self.link.receive(bytes, micros(now), |payload| {
+            let Some((offset, data)) = identify_response(payload) else {
+                return;
+            };
+            if result != Ok(None) || offset != fetcher.offset() {
+                return; // an answer to a question asked twice
+            }
+            result = match fetcher.on_response(offset, data) {
+                Ok(Progress::Done(n)) => Ok(Some(n)),
+                Ok(Progress::More) => {
+                    *ask_at = now;
+                    Ok(None)
+                }
+                Err(e) => Err(e),
+            };
+        });
+        result
+    }
+
+    /// Once the dictionary is in: the link to go on with, and the
+    /// dictionary's text.
+    pub fn finish(self) -> (HostLink, &'b [u8]) {
+        (self.link, self.fetcher.into_output())
+    }
+}
+
+/// `(offset, data)` of an `identify_response` payload, if it is one.
+fn identify_response(payload: &[u8]) -> Option<(u32, &[u8])> {
+    let (id, mut at) = vlq::decode(payload).ok()?;
+    if id != IDENTIFY_RESPONSE_ID {
+        return None;
+    }
+    let (offset, n) = vlq::decode(payload.get(at..)?).ok()?;
+    at += n;
+    let (len, n) = vlq::decode(payload.get(at..)?).ok()?;
+    at += n;
+    let data = payload.get(at..at + usize::try_from(len).ok()?)?;
+    Some((u32::try_from(offset).ok()?, data))
+}

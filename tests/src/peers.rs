@@ -1,0 +1,140 @@
+//! Stock Klipper MCU firmware as test peers (`../shared/peers`, its README
+//! says how they work): a peer is started on a fresh pseudo-terminal path
+//! and stopped (SIGTERM, which removes the path) when dropped.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+/// The peers' folder: `ONECHIP_PEERS`, or `../shared/peers`.
+pub fn peers_dir() -> PathBuf {
+    std::env::var_os("ONECHIP_PEERS").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/peers"),
+        PathBuf::from,
+    )
+}
+
+/// Which stock firmware.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Firmware {
+    /// Klipper's Linux MCU process, 50 MHz, fake GPIO chips.
+    Linux,
+    /// The atmega2560 firmware in simavr, 16 MHz, 250000 baud.
+    Avr,
+}
+
+/// A running peer.
+pub struct Peer {
+    child: Child,
+    /// Its serial device (a symlink to the pty).
+    pub path: PathBuf,
+    /// Its pin-edge log.
+    pub pin_log: PathBuf,
+}
+
+impl Peer {
+    /// Starts `firmware` in a fresh folder under the system's temp dir
+    /// named after `test`; waits (up to 5 s) for its device to appear.
+    ///
+    /// # Panics
+    ///
+    /// If the peer cannot be started: the test cannot run.
+    pub fn start(firmware: Firmware, test: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("peer folder");
+        let path = dir.join("mcu");
+        let pin_log = dir.join("pins.log");
+        let mut cmd = match firmware {
+            Firmware::Linux => {
+                let mut c = Command::new(peers_dir().join("start-linux-mcu"));
+                c.arg(&path).env("FAKEGPIO_LOG", &pin_log);
+                // Real-time priority keeps its steps punctual; it needs root.
+                // SAFETY: geteuid has no preconditions.
+                if unsafe { libc_geteuid() } == 0 {
+                    c.arg("-r");
+                }
+                c
+            }
+            Firmware::Avr => {
+                let mut c = Command::new(peers_dir().join("start-avr-mcu"));
+                c.arg(&path).arg("-l").arg(&pin_log);
+                c
+            }
+        };
+        let child = cmd
+            .spawn()
+            .unwrap_or_else(|e| panic!("{}: {e} (set ONECHIP_PEERS)", peers_dir().display()));
+        let start = Instant::now();
+        while !path.exists() {
+            assert!(
+                start.elapsed() < Duration::from_secs(5),
+                "peer did not create {}",
+                path.display()
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        Self {
+            child,
+            path,
+            pin_log,
+        }
+    }
+
+    /// Stops the peer at once (SIGKILL to the launcher's MCU process is
+    /// not used: SIGTERM stops it and removes the device).
+    pub fn stop(&mut self) {
+        if let Ok(pid) = i32::try_from(self.child.id()) {
+            // SAFETY: signalling our own child.
+            unsafe { libc_kill(pid, 15) };
+        }
+        let _ = self.child.wait();
+    }
+
+    /// The rising edges in the pin log for `pin`: their times in seconds
+    /// (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16 MHz).
+    pub fn rising_edges(&self, pin: &str) -> Vec<f64> {
+        edges(&self.pin_log, pin)
+    }
+}
+
+impl Drop for Peer {
+    fn drop(&mut self) {
+        self.stop();
+        if let Some(dir) = self.path.parent() {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+}
+
+/// Rising edges of `pin` in a pin log, s.
+fn edges(log: &Path, pin: &str) -> Vec<f64> {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    let mut last = None;
+    let mut times = Vec::new();
+    for line in text.lines().filter(|l| !l.starts_with('#')) {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        // Linux: "<ns> gpiochipN/gpioM <v>"; AVR: "<cycle> <clock> P<x><n> <v>".
+        let (time, name, value) = match words[..] {
+            [ns, name, v] => (ns.parse::<f64>().unwrap_or(0.0) * 1e-9, name, v),
+            [_, clock, name, v] => (clock.parse::<f64>().unwrap_or(0.0) / 16e6, name, v),
+            _ => continue,
+        };
+        if name != pin {
+            continue;
+        }
+        let high = value == "1";
+        if high && last != Some(true) {
+            times.push(time);
+        }
+        last = Some(high);
+    }
+    times
+}
+
+unsafe extern "C" {
+    #[link_name = "geteuid"]
+    fn libc_geteuid() -> u32;
+    #[link_name = "kill"]
+    fn libc_kill(pid: i32, sig: i32) -> i32;
+}
