@@ -24,6 +24,7 @@ pub mod heaters;
 pub mod idle_timeout;
 pub mod line;
 pub mod line_protocol;
+pub mod mcu_config;
 pub mod pin_check;
 pub mod pins;
 pub mod printer;

@@ -1,0 +1,267 @@
+//! The config commands klippy sends an MCU for the objects printer.cfg
+//! puts on it, in klippy's order and with its object ids, so that a stock
+//! Klipper MCU (a secondary board) is configured exactly as klippy would
+//! configure it, and its `finalize_config` CRC is klippy's.
+//!
+//! Object ids: endstops (with their trsync) and steppers take theirs when
+//! created, rails first, then the extruder's stepper; enable pins, heater
+//! sensors and heater outputs take theirs when their config is written.
+//! Config order: each rail's endstop, trsync, stepper and enable pin; the
+//! extruder's heater (sensor, output) before its stepper and enable pin;
+//! then the other heaters.
+//!
+//! A pin belongs to the MCU its prefix names (`ext:PA4`, `!ext:PA4`);
+//! without one, or with `mcu:`, to the main MCU.
+
+use crate::heaters::McuSetup;
+use core::fmt::{self, Write};
+use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_sched::outputs::OutputKind;
+
+/// The main MCU's name (`[mcu]`).
+pub const MAIN: &str = "mcu";
+
+/// A pin as printer.cfg writes it, split up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PinRef<'a> {
+    /// The MCU it is on ([`MAIN`] or a `[mcu NAME]`'s name).
+    pub mcu: &'a str,
+    /// The pin's name on that MCU.
+    pub pin: &'a str,
+    /// Active low (`!`).
+    pub inverted: bool,
+    /// Pull-up wanted (`^`).
+    pub pull_up: bool,
+}
+
+/// Splits `text` (`[!][^|~]` modifiers, then `[MCU:]PIN`).
+pub fn pin_ref(text: &str) -> PinRef<'_> {
+    let (mut inverted, mut pull_up) = (false, false);
+    let mut rest = text.trim();
+    while let Some(c) = rest.chars().next() {
+        match c {
+            '!' => inverted = true,
+            '^' => pull_up = true,
+            '~' => {}
+            _ => break,
+        }
+        rest = rest[1..].trim_start();
+    }
+    let (mcu, pin) = match rest.split_once(':') {
+        Some((mcu, pin)) => (mcu.trim(), pin.trim()),
+        None => (MAIN, rest),
+    };
+    PinRef {
+        mcu,
+        pin,
+        inverted,
+        pull_up,
+    }
+}
+
+/// The object ids given out on one MCU, by the machine's indices.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Oids {
+    /// Each stepper's (by `machine.steppers` index), if on this MCU.
+    pub steppers: [Option<u8>; MAX_STEPPERS],
+    /// Each stepper's endstop and its trsync, if on this MCU.
+    pub endstops: [Option<(u8, u8)>; MAX_STEPPERS],
+    /// Each stepper's enable pin output, if on this MCU.
+    pub enables: [Option<u8>; MAX_STEPPERS],
+    /// Each heater's sensor and output (by `machine.heaters` index).
+    pub heaters: [Option<(u8, u8)>; 2],
+    /// Object ids in all (`allocate_oids count`).
+    pub count: u8,
+}
+
+/// Writes the config commands for MCU `mcu` (clock `freq` Hz) to `out`,
+/// one line each, `allocate_oids` first and without `finalize_config`;
+/// `pulse_ticks(i)` is stepper `i`'s `step_pulse_ticks`. Returns the ids.
+pub fn write_config(
+    machine: &Machine<'_>,
+    setup: &McuSetup<'_>,
+    mcu: &str,
+    pulse_ticks: &dyn Fn(usize) -> u32,
+    out: &mut dyn FnMut(&str),
+) -> Oids {
+    let oids = assign(machine, setup, mcu);
+    let mut line = Line::new();
+    line.emit(out, format_args!("allocate_oids count={}", oids.count));
+    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
+    for i in 0..rails {
+        write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out);
+    }
+    for (h, heater) in machine.heaters.iter().enumerate() {
+        if let (Some((adc, pwm)), Some((_, output))) = (oids.heaters[h], setup.outputs.get(h)) {
+            let pin = pin_ref(heater.sensor_pin).pin;
+            line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
+            let heater_pin = pin_ref(heater.heater_pin);
+            let (value, max) = (u8::from(heater_pin.inverted), output.max_duration);
+            line.emit(
+                out,
+                format_args!(
+                    "config_digital_out oid={pwm} pin={} value={value} default_value={value} max_duration={max}",
+                    heater_pin.pin
+                ),
+            );
+            if let OutputKind::Digital { cycle_ticks } = output.kind {
+                line.emit(
+                    out,
+                    format_args!("set_digital_out_pwm_cycle oid={pwm} cycle_ticks={cycle_ticks}"),
+                );
+            }
+        }
+        // The extruder's stepper follows its heater.
+        if heater.name == "extruder" {
+            for i in rails..machine.steppers.len() {
+                write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out);
+            }
+        }
+    }
+    if !machine.heaters.iter().any(|h| h.name == "extruder") {
+        for i in rails..machine.steppers.len() {
+            write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out);
+        }
+    }
+    oids
+}
+
+/// Gives out the object ids as klippy does (see the module doc).
+fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
+    let mut oids = Oids::default();
+    let mut next = 0u8;
+    let mut take = || {
+        let oid = next;
+        next += 1;
+        oid
+    };
+    let on_mcu = |pin: Option<&str>| pin.is_some_and(|p| pin_ref(p).mcu == mcu);
+    // Created with their objects.
+    for (i, stepper) in machine.steppers.iter().enumerate() {
+        if on_mcu(stepper.endstop_pin) {
+            oids.endstops[i] = Some((take(), take()));
+        }
+        if on_mcu(Some(stepper.step_pin)) {
+            oids.steppers[i] = Some(take());
+        }
+    }
+    // Given out as the config is written.
+    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
+    let enable = |i: usize, oids: &mut Oids, take: &mut dyn FnMut() -> u8| {
+        let stepper = &machine.steppers[i];
+        if oids.steppers[i].is_some() && on_mcu(stepper.enable_pin) {
+            // Steppers sharing an enable pin share its output.
+            let shared = (0..i).find(|&j| {
+                machine.steppers[j].enable_pin == stepper.enable_pin && oids.enables[j].is_some()
+            });
+            oids.enables[i] = Some(match shared {
+                Some(j) => oids.enables[j].unwrap_or_default(),
+                None => take(),
+            });
+        }
+    };
+    for i in 0..rails {
+        enable(i, &mut oids, &mut take);
+    }
+    for (h, heater) in machine.heaters.iter().enumerate() {
+        if on_mcu(Some(heater.heater_pin)) && setup.outputs.get(h).is_some() {
+            oids.heaters[h] = Some((take(), take()));
+        }
+        if heater.name == "extruder" {
+            for i in rails..machine.steppers.len() {
+                enable(i, &mut oids, &mut take);
+            }
+        }
+    }
+    if !machine.heaters.iter().any(|h| h.name == "extruder") {
+        for i in rails..machine.steppers.len() {
+            enable(i, &mut oids, &mut take);
+        }
+    }
+    oids.count = next;
+    oids
+}
+
+/// Writes stepper `i`'s endstop, trsync, stepper and enable pin, those on
+/// this MCU.
+fn write_stepper(
+    machine: &Machine<'_>,
+    oids: &Oids,
+    i: usize,
+    pulse_ticks: u32,
+    line: &mut Line,
+    out: &mut dyn FnMut(&str),
+) {
+    let stepper = &machine.steppers[i];
+    if let (Some((endstop, trsync)), Some(pin)) = (oids.endstops[i], stepper.endstop_pin) {
+        let pin = pin_ref(pin);
+        line.emit(
+            out,
+            format_args!(
+                "config_endstop oid={endstop} pin={} pull_up={}",
+                pin.pin,
+                u8::from(pin.pull_up)
+            ),
+        );
+        line.emit(out, format_args!("config_trsync oid={trsync}"));
+    }
+    let Some(oid) = oids.steppers[i] else {
+        return;
+    };
+    let (step, dir) = (pin_ref(stepper.step_pin), pin_ref(stepper.dir_pin));
+    line.emit(
+        out,
+        format_args!(
+            "config_stepper oid={oid} step_pin={} dir_pin={} invert_step={} step_pulse_ticks={pulse_ticks}",
+            step.pin,
+            dir.pin,
+            u8::from(step.inverted)
+        ),
+    );
+    let first_user = (0..i).all(|j| oids.enables[j] != oids.enables[i]);
+    if let (Some(enable), Some(pin), true) = (oids.enables[i], stepper.enable_pin, first_user) {
+        let pin = pin_ref(pin);
+        let off = u8::from(pin.inverted);
+        line.emit(
+            out,
+            format_args!(
+                "config_digital_out oid={enable} pin={} value={off} default_value={off} max_duration=0",
+                pin.pin
+            ),
+        );
+    }
+}
+
+/// A command line being written.
+struct Line(heapless::String<128>);
+
+impl Line {
+    fn new() -> Self {
+        Self(heapless::String::new())
+    }
+
+    /// Writes `args` and hands the line to `out`.
+    fn emit(&mut self, out: &mut dyn FnMut(&str), args: fmt::Arguments<'_>) {
+        self.0.clear();
+        let _ = self.0.write_fmt(args);
+        out(&self.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pins_name_their_mcu_after_the_modifiers() {
+        let p = pin_ref("!ext:PA4");
+        assert_eq!(
+            (p.mcu, p.pin, p.inverted, p.pull_up),
+            ("ext", "PA4", true, false)
+        );
+        let p = pin_ref("^PG6");
+        assert_eq!((p.mcu, p.pin, p.pull_up), (MAIN, "PG6", true));
+        let p = pin_ref("~!mcu:PB1");
+        assert_eq!((p.mcu, p.pin, p.inverted), (MAIN, "PB1", true));
+    }
+}

@@ -1,0 +1,57 @@
+//! The config phase a Klipper MCU gets from us is klippy's, command for
+//! command: on every golden case, the commands `mcu_config` writes for the
+//! case's printer.cfg equal klippy's (`mcu-commands.txt` up to
+//! `finalize_config`), and so does their CRC.
+
+use onechip_app::heaters::McuSetup;
+use onechip_app::mcu_config::{MAIN, write_config};
+use onechip_app::step_pulse;
+use onechip_config::Config;
+use onechip_planner::machine::Machine;
+use onechip_secondary_mcu::connection::config_crc;
+use onechip_tests::summary_value;
+
+#[test]
+fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
+    let cases = onechip_golden::cases();
+    assert!(cases.len() >= 15, "golden cases: {cases:?}");
+    for case in &cases {
+        let text = onechip_golden::config(onechip_golden::config_for(case));
+        let config = Config::parse("printer.cfg", &text).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let dict = onechip_golden::dict(onechip_golden::dict_for(case));
+        let adc_max: u16 = dict
+            .split("\"ADC_MAX\":")
+            .nth(1)
+            .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
+            .and_then(|n| n.parse().ok())
+            .expect("ADC_MAX");
+        let freq = summary_value(case, "clock_freq");
+        let setup = McuSetup::new(&machine, freq, adc_max, 0);
+        let pulse = |i: usize| {
+            let duration =
+                step_pulse::step_pulse_duration(machine.steppers[i].step_pulse_duration, false);
+            step_pulse::pulse_ticks(duration, freq)
+        };
+        let mut ours = Vec::new();
+        let oids = write_config(&machine, &setup, MAIN, &pulse, &mut |l| {
+            ours.push(l.to_string())
+        });
+        let log = onechip_golden::read_string(format!("{case}/mcu-commands.txt"));
+        let klippys: Vec<&str> = log
+            .lines()
+            .take_while(|l| !l.starts_with("finalize_config"))
+            .collect();
+        assert_eq!(ours, klippys, "{case}");
+        let crc = log
+            .lines()
+            .find_map(|l| l.strip_prefix("finalize_config crc="))
+            .expect("finalize_config");
+        assert_eq!(
+            config_crc(ours.iter().map(String::as_str)).to_string(),
+            crc,
+            "{case}"
+        );
+        assert_eq!(usize::from(oids.count), 16, "{case}");
+    }
+}
