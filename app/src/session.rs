@@ -94,6 +94,14 @@ pub trait Mcu {
     /// True if the extruder is hot enough to extrude
     /// ([`crate::heaters::Heaters::can_extrude`]).
     fn can_extrude(&mut self) -> bool;
+    /// Steppers on another MCU (a secondary board) count steps on its
+    /// clock: `set(stepper, offset, freq)` gives each one's line from print
+    /// time `t` (s) to its clock, `(t - offset) × freq`, re-fitted as its
+    /// clock drifts, for moves queued up to `print_time` (s). None by
+    /// default.
+    fn stepper_clocks(&mut self, print_time: f64, set: &mut dyn FnMut(usize, f64, f64)) {
+        let _ = (print_time, set);
+    }
     /// A move was planned (toolhead, or extruder if `extruder`); for
     /// simulators that report the plan.
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
@@ -567,6 +575,10 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         out: &mut W,
         f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>, &mut SharedOut<'_, W>) -> R,
     ) -> R {
+        let motion = &mut self.motion;
+        mcu.stepper_clocks(self.printer.print_time(), &mut |i, offset, freq| {
+            motion.set_clock(i, offset, freq);
+        });
         // The step sink writes busy lines between the replies `f` writes.
         let out = RefCell::new(out);
         let mut sink_out = SharedOut(&out);

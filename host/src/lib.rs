@@ -28,9 +28,13 @@ use onechip_app::text::ErrorText;
 use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::outputs::Drive;
+use pace::Pace;
+use secondary::attached::Secondaries;
 use std::fmt;
 use std::io::{BufReader, Read as _};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 use virtual_mcu::{Physics, VirtualMcu};
 
 /// Bytes of one USB full-speed bulk packet, as the board's console reads
@@ -197,6 +201,9 @@ pub struct Summary {
     pub fan_speed: Option<f64>,
     /// Time spent waiting for heaters (M109, M190), s.
     pub heat_wait: f64,
+    /// Each stepper on a secondary MCU: its name and every step's clock
+    /// on that MCU, as sent (ticks).
+    pub secondary_steps: Vec<(String, Vec<u64>)>,
 }
 
 impl fmt::Display for Summary {
@@ -307,6 +314,8 @@ pub enum SimError {
     NoGcode(PathBuf),
     /// The serial port could not be set up or served.
     Serial(PathBuf, std::io::Error),
+    /// A secondary MCU could not be brought up (Klipper's message).
+    Secondary(String),
 }
 
 impl fmt::Display for SimError {
@@ -320,6 +329,7 @@ impl fmt::Display for SimError {
                 dir.display()
             ),
             Self::Serial(path, e) => write!(f, "serial port {}: {e}", path.display()),
+            Self::Secondary(message) => f.write_str(message),
         }
     }
 }
@@ -542,6 +552,31 @@ fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, S
     Ok(mcu)
 }
 
+/// Connects the secondary MCUs of `setup` and hands their steppers to
+/// them; from then on virtual time follows the wall clock, as theirs does.
+fn attach_secondaries(
+    setup: &PrinterSetup<'_>,
+    options: &Options,
+    mcu: &mut VirtualMcu,
+) -> Result<(), SimError> {
+    let freq = options.mcu_freq;
+    let pace = Pace::new(
+        options.clock_origin,
+        freq,
+        1.0,
+        Arc::new(AtomicBool::new(false)),
+    );
+    let wall = pace.clone();
+    let now = move || wall.clock_now() as f64 / freq;
+    let pulses: Vec<f64> = setup.steppers().map(|w| w.step_pulse).collect();
+    let secondaries = Secondaries::connect(setup.machine(), &|i| pulses[i], freq, &now)
+        .map_err(|e| SimError::Secondary(e.to_string()))?;
+    mcu.set_pace(pace);
+    mcu.attach(secondaries);
+    mcu.run_to_wall_clock();
+    Ok(())
+}
+
 /// Carries out a restart `console` was asked for (FIRMWARE_RESTART,
 /// M999): the MCU role and the session start afresh for `machine`.
 fn restart_if_asked<'m, const L: usize>(
@@ -579,6 +614,9 @@ pub(crate) fn with_session<const L: usize>(
         options.clock_origin,
     ));
     let mut mcu = virtual_mcu(machine, options)?;
+    if !machine.secondaries.is_empty() {
+        attach_secondaries(&setup, options, &mut mcu)?;
+    }
     let mut summary = Summary {
         config_path,
         kinematics: machine.kinematics,
@@ -607,6 +645,7 @@ pub(crate) fn with_session<const L: usize>(
         heaters: Vec::new(),
         fan_speed: None,
         heat_wait: 0.0,
+        secondary_steps: Vec::new(),
     };
     input(&mut Run {
         machine,
@@ -658,11 +697,23 @@ pub(crate) fn with_session<const L: usize>(
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
     mcu.flush_steps().map_err(write_error)?;
-    for (stepper, log) in machine.steppers.iter().zip(mcu.logs()) {
+    for (i, (stepper, log)) in machine.steppers.iter().zip(mcu.logs()).enumerate() {
+        let sent = mcu
+            .secondaries()
+            .filter(|s| s.routes(i))
+            .and_then(|s| s.sent(i));
+        let (steps, position) = match sent {
+            Some(sent) => {
+                let name = stepper.name.to_string();
+                summary.secondary_steps.push((name, sent.clocks.clone()));
+                (sent.count as usize, sent.position)
+            }
+            None => (log.count, log.position),
+        };
         summary.steppers.push(StepperSummary {
             name: stepper.name.to_string(),
-            steps: log.count,
-            position: log.position,
+            steps,
+            position,
             peak_rate: log.min_interval.map_or(0.0, |i| freq / i as f64),
             last_step: log.last,
         });

@@ -12,6 +12,7 @@
 
 use crate::pace::Pace;
 use crate::plot::Window;
+use crate::secondary::attached::Secondaries;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
@@ -110,6 +111,10 @@ impl StepPins for Recorder {
     }
 }
 
+/// Longest stretch of virtual time between two services of the secondary
+/// MCUs' links, s.
+const SECONDARY_SERVICE: f64 = 0.001;
+
 /// The virtual MCU.
 pub struct VirtualMcu {
     engine: Box<Engine<Recorder, MAX_STEPPERS, MOVE_QUEUE, OUTBOX>>,
@@ -139,6 +144,8 @@ pub struct VirtualMcu {
     pace: Option<Pace>,
     /// Raised by the serial reader when an M112 arrives.
     emergency: Option<Arc<AtomicBool>>,
+    /// The secondary MCUs and the steppers on them.
+    secondaries: Option<Secondaries>,
 }
 
 impl VirtualMcu {
@@ -157,6 +164,7 @@ impl VirtualMcu {
             thermal: None,
             io_wake: None,
             pace: None,
+            secondaries: None,
             emergency: None,
         };
         mcu.advance_clock(start);
@@ -278,6 +286,70 @@ impl VirtualMcu {
         self.pace = Some(pace);
     }
 
+    /// Runs the next timer event (the engine's or the heaters'), if it
+    /// comes before `until`; else moves time to `until`.
+    fn wait_here(&mut self, until: u64) {
+        self.refresh();
+        let next = match (self.wake, self.io_wake) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        match next {
+            Some(at) if at < until && self.wake == Some(at) => self.run_at(at),
+            Some(at) if at < until => self.run_io(at),
+            _ if until != u64::MAX => self.advance_clock(until),
+            _ => {}
+        }
+    }
+
+    /// Drives the steppers on secondary MCUs through `secondaries` from
+    /// now on (virtual time must be paced: they run in real time).
+    pub fn attach(&mut self, secondaries: Secondaries) {
+        self.secondaries = Some(secondaries);
+    }
+
+    /// The secondary MCUs, if any.
+    pub fn secondaries(&self) -> Option<&Secondaries> {
+        self.secondaries.as_ref()
+    }
+
+    /// Host time for the secondaries: the main clock in seconds, as the
+    /// wall clock has it (virtual time may lag it a little).
+    fn host_time(&self) -> f64 {
+        let clock = self.pace.as_ref().map_or(self.now, Pace::clock_now);
+        self.secondaries
+            .as_ref()
+            .map_or(0.0, |s| clock as f64 / s.freq())
+    }
+
+    /// Runs the secondaries' links; a fault on either side stops both:
+    /// a secondary's shutdown or silence stops this MCU, this MCU's
+    /// shutdown sends every secondary `emergency_stop`.
+    fn service_secondaries(&mut self) {
+        let now = self.host_time();
+        let Some(secondaries) = &mut self.secondaries else {
+            return;
+        };
+        secondaries.service(now);
+        let main_down = self.engine.shutdown_reason().is_some();
+        match secondaries.failure() {
+            Some(reason) if !main_down => self.stop_all(reason),
+            None if main_down => secondaries.emergency_stop(now),
+            _ => {}
+        }
+    }
+
+    /// Every stepper stops and every heater goes off, for `reason`.
+    fn stop_all(&mut self, reason: Shutdown) {
+        self.engine.stop(reason);
+        let now = self.now;
+        if let Some((heaters, plant)) = &mut self.thermal {
+            plant.now = now;
+            heaters.shutdown(reason, plant);
+        }
+        self.update_io_wake();
+    }
+
     /// With a pace: runs every event the wall clock has passed, and moves
     /// virtual time to the wall clock's.
     pub fn run_to_wall_clock(&mut self) {
@@ -290,8 +362,21 @@ impl VirtualMcu {
     /// Sleeps until the wall time of clock `at`, if paced; an M112 seen
     /// meanwhile stops everything before the event.
     fn pace_to(&mut self, at: u64) {
-        if let Some(pace) = &self.pace {
-            pace.sleep_until(at);
+        match (&self.pace, &self.secondaries) {
+            (Some(pace), None) => pace.sleep_until(at),
+            (Some(pace), Some(s)) => {
+                // The secondaries' links are served while time passes.
+                let (pace, step) = (pace.clone(), (s.freq() * SECONDARY_SERVICE) as u64);
+                loop {
+                    self.service_secondaries();
+                    let wall = pace.clock_now();
+                    if wall >= at || pace.released() {
+                        break;
+                    }
+                    pace.sleep_until(at.min(wall + step));
+                }
+            }
+            (None, _) => {}
         }
         self.check_emergency();
     }
@@ -360,7 +445,8 @@ impl VirtualMcu {
 
     /// Why the MCU shut down, if it did.
     pub fn shutdown(&self) -> Option<Shutdown> {
-        self.engine.shutdown_reason().or_else(|| {
+        let secondary = self.secondaries.as_ref().and_then(Secondaries::failure);
+        self.engine.shutdown_reason().or(secondary).or_else(|| {
             self.thermal
                 .as_ref()
                 .and_then(|(heaters, _)| heaters.shutdown_reason())
@@ -428,11 +514,12 @@ impl VirtualMcu {
 }
 
 impl Mcu for VirtualMcu {
-    fn now(&mut self) -> u64 {
-        self.now
-    }
-
     fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
+        if let Some(secondaries) = &mut self.secondaries
+            && secondaries.routes(stepper)
+        {
+            return secondaries.push(stepper, cmd, clock);
+        }
         if stepper >= self.steppers {
             // A stepper the engine does not drive here: dropped.
             return Ok(());
@@ -443,19 +530,28 @@ impl Mcu for VirtualMcu {
     }
 
     /// Runs the next timer event (the engine's or the heaters'), if it
-    /// comes before `until`; else moves time to `until`.
+    /// comes before `until`; else moves time to `until`. With secondaries,
+    /// at most [`SECONDARY_SERVICE`] passes before their links are served.
     fn wait(&mut self, until: u64) {
-        self.refresh();
-        let next = match (self.wake, self.io_wake) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
-        match next {
-            Some(at) if at < until && self.wake == Some(at) => self.run_at(at),
-            Some(at) if at < until => self.run_io(at),
-            _ if until != u64::MAX => self.advance_clock(until),
-            _ => {}
+        if let Some(s) = &self.secondaries {
+            // Their links are served at least once a millisecond.
+            let until = until.min(self.now + (s.freq() * SECONDARY_SERVICE) as u64);
+            self.wait_here(until);
+            self.service_secondaries();
+        } else {
+            self.wait_here(until);
         }
+    }
+
+    fn stepper_clocks(&mut self, print_time: f64, set: &mut dyn FnMut(usize, f64, f64)) {
+        let now = self.host_time();
+        if let Some(s) = &mut self.secondaries {
+            s.calibrate(print_time, now, set);
+        }
+    }
+
+    fn now(&mut self) -> u64 {
+        self.now
     }
 
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
@@ -504,14 +600,8 @@ impl Mcu for VirtualMcu {
     }
 
     fn emergency_stop(&mut self) {
-        let reason = Shutdown::EmergencyStop;
-        self.engine.stop(reason);
-        let now = self.now;
-        if let Some((heaters, plant)) = &mut self.thermal {
-            plant.now = now;
-            heaters.shutdown(reason, plant);
-        }
-        self.update_io_wake();
+        self.stop_all(Shutdown::EmergencyStop);
+        self.service_secondaries();
     }
 
     fn can_extrude(&mut self) -> bool {

@@ -17,6 +17,7 @@ pub mod kinematics;
 pub mod lookahead;
 pub mod machine;
 pub mod math;
+pub mod mcu_section;
 pub mod move_sink;
 pub mod planned_move;
 pub mod shaper_config;

@@ -3,6 +3,7 @@
 
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
+use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
@@ -85,6 +86,9 @@ pub struct Machine<'a> {
     /// What to do when the printer has been idle (`[idle_timeout]`, with
     /// Klipper's defaults when absent).
     pub idle_timeout: IdleTimeoutConfig<'a>,
+    /// The secondary MCUs (`[mcu NAME]`), whose pins are written
+    /// `NAME:PIN`.
+    pub secondaries: heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -258,10 +262,11 @@ impl<'a> Machine<'a> {
         if let Some(section) = config.section("force_move") {
             section.get_bool("enable_force_move", false)?;
         }
-        config.accept_section("mcu");
+        let secondaries = mcu_section::read_all(config)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
+                && !name.starts_with("mcu ")
                 && !verified.contains(&name)
                 && !unsupported.contains(&name)
             {
@@ -283,6 +288,7 @@ impl<'a> Machine<'a> {
             heaters,
             fan,
             idle_timeout,
+            secondaries,
             unsupported,
         })
     }

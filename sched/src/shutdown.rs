@@ -28,6 +28,18 @@ pub enum Shutdown {
     /// A heater did not heat at the rate its `[verify_heater]` checks
     /// expect (in Klipper a host-side check; here the MCU role runs it).
     NotHeating(Heater),
+    /// A secondary MCU (`[mcu NAME]`) shut down with its own message.
+    Secondary {
+        /// Its name.
+        mcu: &'static str,
+        /// Its shutdown message.
+        reason: &'static str,
+    },
+    /// A secondary MCU stopped answering its clock queries.
+    LostCommunication {
+        /// Its name.
+        mcu: &'static str,
+    },
 }
 
 /// The heaters a shutdown can name.
@@ -56,9 +68,12 @@ const HINT_THERMAL: &[&str] = &[
 ];
 
 impl Shutdown {
-    /// Klipper's text for this reason.
+    /// Klipper's text for this reason (for a secondary MCU, its own
+    /// message; [`Shutdown`]'s `Display` names the MCU as Klipper does).
     pub fn message(self) -> &'static str {
         match self {
+            Self::Secondary { reason, .. } => reason,
+            Self::LostCommunication { .. } => "Lost communication with MCU",
             Self::MoveQueueOverflow => "Move queue overflow",
             Self::StepperTooFarInPast => "Stepper too far in past",
             Self::TimerTooClose => "Timer too close",
@@ -83,6 +98,10 @@ impl Shutdown {
 
 impl fmt::Display for Shutdown {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.message())
+        match self {
+            Self::Secondary { mcu, reason } => write!(f, "MCU '{mcu}' shutdown: {reason}"),
+            Self::LostCommunication { mcu } => write!(f, "Lost communication with MCU '{mcu}'"),
+            _ => f.write_str(self.message()),
+        }
     }
 }

@@ -151,6 +151,16 @@ impl<const Q: usize> Compressor<Q> {
         }
     }
 
+    /// Counts time on another clock from now on: `freq` Hz, `max_error`
+    /// ticks (a secondary MCU's clock, re-fitted as it drifts). Steps
+    /// already appended keep the clocks they were given.
+    pub fn set_clock(&mut self, freq: f64, max_error: u32) {
+        let fresh = Self::new(max_error, freq);
+        self.freq = freq;
+        self.max_error = max_error;
+        self.sds_ticks = fresh.sds_ticks;
+    }
+
     /// Adds a step at print time `time` s in direction `dir`. Commands go
     /// to `out` with the 64-bit clock of their first step (for a direction
     /// change: of the last step before it), which the 32-bit interval of

@@ -99,6 +99,9 @@ struct Channel<const Q: usize> {
     compressor: Compressor<Q>,
     /// mm per step.
     step_dist: f64,
+    /// Print time at the compressor's clock 0, s (0 on the main MCU; a
+    /// secondary MCU's clock runs from elsewhere).
+    time_offset: f64,
 }
 
 impl<const Q: usize> Channel<Q> {
@@ -111,10 +114,12 @@ impl<const Q: usize> Channel<Q> {
             shaper,
             margins,
             compressor,
+            time_offset,
             ..
         } = self;
+        let offset = *time_offset;
         let mut out = |cmd, clock| sink.command(index, cmd, clock);
-        let mut emit = |s: crate::solver::Step| compressor.append(s.time, s.dir, &mut out);
+        let mut emit = |s: crate::solver::Step| compressor.append(s.time - offset, s.dir, &mut out);
         match follows {
             Follows::Toolhead(kin) => match kin.linear_weights() {
                 Some(w) if !shaper.is_active() => {
@@ -146,7 +151,7 @@ impl<const Q: usize> Channel<Q> {
         }
         let done = solver.generated_until();
         if done.is_finite() {
-            compressor.flush_until(done - COMPRESS_LAG, &mut out);
+            compressor.flush_until(done - COMPRESS_LAG - offset, &mut out);
         }
     }
 
@@ -273,6 +278,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 margins,
                 compressor: Compressor::new(max_error, freq),
                 step_dist: stepper.step_dist,
+                time_offset: 0.0,
             });
         }
     }
@@ -357,6 +363,18 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     pub fn settle(&mut self, sink: &mut impl StepSink) {
         self.generate_through(sink);
         self.flush_compressors(sink);
+    }
+
+    /// Puts stepper `stepper` on another MCU's clock from now on: step
+    /// clocks are `(t - offset) × freq` for print time `t` (s), within the
+    /// same max_error in time. Steps already generated keep their clocks,
+    /// so a new line must agree with the old one where generation stands.
+    pub fn set_clock(&mut self, stepper: usize, offset: f64, freq: f64) {
+        let max_error = (self.max_error_time * freq) as u32;
+        if let Some(ch) = self.channels.get_mut(stepper) {
+            ch.time_offset = offset;
+            ch.compressor.set_clock(freq, max_error);
+        }
     }
 
     /// Sends every step the compressors hold.

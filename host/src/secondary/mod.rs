@@ -2,6 +2,7 @@
 //! simulator's side of [`onechip_secondary_mcu`], with real I/O. Host
 //! time is given by the caller in seconds (the main MCU's clock).
 
+pub mod attached;
 pub mod port;
 
 use onechip_protocol::dictionary::Dictionary;
@@ -66,14 +67,14 @@ pub struct Secondary {
 
 impl Secondary {
     /// Opens `path`, fetches the dictionary, synchronises the clock and
-    /// sends `config` (klippy's config commands, `allocate_oids` first)
-    /// or, if the MCU holds that config already, `restart`; `now` gives
-    /// host time in seconds. Gives up after `timeout`.
+    /// sends `config(CLOCK_FREQ)` (klippy's config commands for an MCU of
+    /// that clock, Hz, `allocate_oids` first; nothing more to send if the
+    /// MCU holds that config already); `now` gives host time in seconds.
+    /// Gives up after `timeout`.
     pub fn connect(
         name: &str,
         path: &Path,
-        config: &[String],
-        restart: &[String],
+        config: &dyn Fn(f64) -> Vec<String>,
         now: &dyn Fn() -> f64,
         timeout: Duration,
     ) -> Result<Self, ConnectError> {
@@ -86,8 +87,22 @@ impl Secondary {
             conn: Connection::new(dict, link),
             move_count: 0,
         };
-        secondary.configure(config, restart, now, deadline)?;
+        let config = config(secondary.clock_freq());
+        secondary.configure(&config, &[], now, deadline)?;
         Ok(secondary)
+    }
+
+    /// The MCU's nominal clock (`CLOCK_FREQ`), Hz.
+    pub fn clock_freq(&self) -> f64 {
+        self.conn
+            .dictionary()
+            .constant_int("CLOCK_FREQ")
+            .map_or(0.0, |f| f as f64)
+    }
+
+    /// The MCU's data dictionary.
+    pub fn dictionary(&self) -> &'static Dictionary<'static> {
+        self.conn.dictionary()
     }
 
     /// The connection, for sending commands and reading the clock.
@@ -146,7 +161,14 @@ impl Secondary {
         let name = self.name.clone();
         let mut on_event = |event: Event<'_, 'static>| match event {
             Event::Response(msg) => heard.push(Heard::Response(msg.to_string())),
-            Event::Shutdown(msg) => heard.push(Heard::Shutdown(msg.to_string())),
+            Event::Shutdown(msg) => {
+                // `shutdown clock=… static_string_id=Timer too close`.
+                let text = msg.to_string();
+                let reason = text
+                    .split_once("static_string_id=")
+                    .map_or(&*text, |(_, r)| r);
+                heard.push(Heard::Shutdown(reason.to_string()));
+            }
             Event::Failed(why) => {
                 let mut text = String::new();
                 let _ = why.write(&name, &mut text);
