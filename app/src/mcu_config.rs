@@ -74,6 +74,35 @@ pub struct Oids {
     pub count: u8,
 }
 
+/// An object klippy writes config for.
+#[derive(Debug, Clone, Copy)]
+enum Object {
+    /// Stepper `i` of the machine (its endstop, stepper and enable pin).
+    Stepper(usize),
+    /// Heater `h` of the machine (its sensor and output).
+    Heater(usize),
+}
+
+/// Calls `f` with each object in klippy's config order: the rails, then
+/// the heaters, the extruder's stepper right after the extruder's heater
+/// (or after the heaters if it has none).
+fn in_config_order(machine: &Machine<'_>, mut f: impl FnMut(Object)) {
+    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
+    let extruder = rails..machine.steppers.len();
+    (0..rails).for_each(|i| f(Object::Stepper(i)));
+    let mut extruder_done = false;
+    for (h, heater) in machine.heaters.iter().enumerate() {
+        f(Object::Heater(h));
+        if heater.name == "extruder" {
+            extruder.clone().for_each(|i| f(Object::Stepper(i)));
+            extruder_done = true;
+        }
+    }
+    if !extruder_done {
+        extruder.for_each(|i| f(Object::Stepper(i)));
+    }
+}
+
 /// Writes the config commands for MCU `mcu` (clock `freq` Hz) to `out`,
 /// one line each, `allocate_oids` first and without `finalize_config`;
 /// `pulse_ticks(i)` is stepper `i`'s `step_pulse_ticks`. Returns the ids.
@@ -87,43 +116,46 @@ pub fn write_config(
     let oids = assign(machine, setup, mcu);
     let mut line = Line::new();
     line.emit(out, format_args!("allocate_oids count={}", oids.count));
-    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
-    for i in 0..rails {
-        write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out);
-    }
-    for (h, heater) in machine.heaters.iter().enumerate() {
-        if let (Some((adc, pwm)), Some((_, output))) = (oids.heaters[h], setup.outputs.get(h)) {
-            let pin = pin_ref(heater.sensor_pin).pin;
-            line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
-            let heater_pin = pin_ref(heater.heater_pin);
-            let (value, max) = (u8::from(heater_pin.inverted), output.max_duration);
-            line.emit(
-                out,
-                format_args!(
-                    "config_digital_out oid={pwm} pin={} value={value} default_value={value} max_duration={max}",
-                    heater_pin.pin
-                ),
-            );
-            if let OutputKind::Digital { cycle_ticks } = output.kind {
-                line.emit(
-                    out,
-                    format_args!("set_digital_out_pwm_cycle oid={pwm} cycle_ticks={cycle_ticks}"),
-                );
-            }
-        }
-        // The extruder's stepper follows its heater.
-        if heater.name == "extruder" {
-            for i in rails..machine.steppers.len() {
-                write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out);
-            }
-        }
-    }
-    if !machine.heaters.iter().any(|h| h.name == "extruder") {
-        for i in rails..machine.steppers.len() {
-            write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out);
-        }
-    }
+    in_config_order(machine, |object| match object {
+        Object::Stepper(i) => write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out),
+        Object::Heater(h) => write_heater(machine, setup, &oids, h, &mut line, out),
+    });
     oids
+}
+
+/// Writes heater `h`'s sensor and output, if on this MCU.
+fn write_heater(
+    machine: &Machine<'_>,
+    setup: &McuSetup<'_>,
+    oids: &Oids,
+    h: usize,
+    line: &mut Line,
+    out: &mut dyn FnMut(&str),
+) {
+    let (Some((adc, pwm)), Some(heater), Some((_, output))) = (
+        oids.heaters[h],
+        machine.heaters.get(h),
+        setup.outputs.get(h),
+    ) else {
+        return;
+    };
+    let pin = pin_ref(heater.sensor_pin).pin;
+    line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
+    let heater_pin = pin_ref(heater.heater_pin);
+    let (value, max) = (u8::from(heater_pin.inverted), output.max_duration);
+    line.emit(
+        out,
+        format_args!(
+            "config_digital_out oid={pwm} pin={} value={value} default_value={value} max_duration={max}",
+            heater_pin.pin
+        ),
+    );
+    if let OutputKind::Digital { cycle_ticks } = output.kind {
+        line.emit(
+            out,
+            format_args!("set_digital_out_pwm_cycle oid={pwm} cycle_ticks={cycle_ticks}"),
+        );
+    }
 }
 
 /// Gives out the object ids as klippy does (see the module doc).
@@ -146,38 +178,25 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
         }
     }
     // Given out as the config is written.
-    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
-    let enable = |i: usize, oids: &mut Oids, take: &mut dyn FnMut() -> u8| {
-        let stepper = &machine.steppers[i];
-        if oids.steppers[i].is_some() && on_mcu(stepper.enable_pin) {
-            // Steppers sharing an enable pin share its output.
-            let shared = (0..i).find(|&j| {
-                machine.steppers[j].enable_pin == stepper.enable_pin && oids.enables[j].is_some()
-            });
-            oids.enables[i] = Some(match shared {
-                Some(j) => oids.enables[j].unwrap_or_default(),
-                None => take(),
-            });
-        }
-    };
-    for i in 0..rails {
-        enable(i, &mut oids, &mut take);
-    }
-    for (h, heater) in machine.heaters.iter().enumerate() {
-        if on_mcu(Some(heater.heater_pin)) && setup.outputs.get(h).is_some() {
-            oids.heaters[h] = Some((take(), take()));
-        }
-        if heater.name == "extruder" {
-            for i in rails..machine.steppers.len() {
-                enable(i, &mut oids, &mut take);
+    in_config_order(machine, |object| match object {
+        Object::Stepper(i) => {
+            let stepper = &machine.steppers[i];
+            if oids.steppers[i].is_some() && on_mcu(stepper.enable_pin) {
+                // Steppers sharing an enable pin share its output.
+                let shared = (0..i)
+                    .filter(|&j| machine.steppers[j].enable_pin == stepper.enable_pin)
+                    .find_map(|j| oids.enables[j]);
+                oids.enables[i] = Some(shared.unwrap_or_else(&mut take));
             }
         }
-    }
-    if !machine.heaters.iter().any(|h| h.name == "extruder") {
-        for i in rails..machine.steppers.len() {
-            enable(i, &mut oids, &mut take);
+        Object::Heater(h) => {
+            if on_mcu(machine.heaters.get(h).map(|heater| heater.heater_pin))
+                && setup.outputs.get(h).is_some()
+            {
+                oids.heaters[h] = Some((take(), take()));
+            }
         }
-    }
+    });
     oids.count = next;
     oids
 }

@@ -286,22 +286,6 @@ impl VirtualMcu {
         self.pace = Some(pace);
     }
 
-    /// Runs the next timer event (the engine's or the heaters'), if it
-    /// comes before `until`; else moves time to `until`.
-    fn wait_here(&mut self, until: u64) {
-        self.refresh();
-        let next = match (self.wake, self.io_wake) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
-        match next {
-            Some(at) if at < until && self.wake == Some(at) => self.run_at(at),
-            Some(at) if at < until => self.run_io(at),
-            _ if until != u64::MAX => self.advance_clock(until),
-            _ => {}
-        }
-    }
-
     /// Drives the steppers on secondary MCUs through `secondaries` from
     /// now on (virtual time must be paced: they run in real time).
     pub fn attach(&mut self, secondaries: Secondaries) {
@@ -533,13 +517,22 @@ impl Mcu for VirtualMcu {
     /// comes before `until`; else moves time to `until`. With secondaries,
     /// at most [`SECONDARY_SERVICE`] passes before their links are served.
     fn wait(&mut self, until: u64) {
-        if let Some(s) = &self.secondaries {
-            // Their links are served at least once a millisecond.
-            let until = until.min(self.now + (s.freq() * SECONDARY_SERVICE) as u64);
-            self.wait_here(until);
-            self.service_secondaries();
-        } else {
-            self.wait_here(until);
+        // With secondaries, time moves at most SECONDARY_SERVICE, so that
+        // their links are served (by `pace_to`) at least that often.
+        let until = match &self.secondaries {
+            Some(s) => until.min(self.now + (s.freq() * SECONDARY_SERVICE) as u64),
+            None => until,
+        };
+        self.refresh();
+        let next = match (self.wake, self.io_wake) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        match next {
+            Some(at) if at < until && self.wake == Some(at) => self.run_at(at),
+            Some(at) if at < until => self.run_io(at),
+            _ if until != u64::MAX => self.advance_clock(until),
+            _ => {}
         }
     }
 

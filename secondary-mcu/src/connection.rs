@@ -14,8 +14,8 @@ use crate::clock_sync::{ClockSync, QUERY_PERIOD};
 use crate::crc32;
 use crate::identify::{RETRY_TIME, micros};
 use core::fmt;
-use onechip_protocol::block::MAX_PAYLOAD;
-use onechip_protocol::codec::{Decoded, EncodeError};
+use onechip_protocol::block::{MAX_PAYLOAD, MIN_LEN};
+use onechip_protocol::codec::Decoded;
 use onechip_protocol::dictionary::Dictionary;
 use onechip_protocol::transport::HostLink;
 
@@ -107,6 +107,24 @@ struct Queued {
     bytes: [u8; MAX_MESSAGE],
 }
 
+impl Queued {
+    /// `message`, held until clock `min_clock`; None if it is longer than
+    /// [`MAX_MESSAGE`].
+    fn new(message: &[u8], min_clock: u64) -> Option<Self> {
+        let mut bytes = [0; MAX_MESSAGE];
+        bytes.get_mut(..message.len())?.copy_from_slice(message);
+        Some(Self {
+            min_clock,
+            len: message.len() as u8,
+            bytes,
+        })
+    }
+
+    fn message(&self) -> &[u8] {
+        &self.bytes[..usize::from(self.len)]
+    }
+}
+
 /// The host side of one secondary MCU.
 pub struct Connection<'d> {
     dict: &'d Dictionary<'d>,
@@ -151,16 +169,6 @@ impl<'d> Connection<'d> {
         self.sync.as_mut()
     }
 
-    /// True once configured and running.
-    pub fn is_ready(&self) -> bool {
-        self.phase == Phase::Ready
-    }
-
-    /// The link's counters (bytes, retransmissions).
-    pub fn link(&self) -> &HostLink {
-        &self.link
-    }
-
     /// Messages queued and not yet sent.
     pub fn queued(&self) -> usize {
         self.outbox.len()
@@ -181,31 +189,23 @@ impl<'d> Connection<'d> {
     /// Queues an encoded message, to go out once the MCU's clock reaches
     /// `min_clock` (0: at once).
     pub fn send(&mut self, message: &[u8], min_clock: u64) -> Result<(), Full> {
-        let mut queued = Queued {
-            min_clock,
-            len: 0,
-            bytes: [0; MAX_MESSAGE],
-        };
-        let dest = queued.bytes.get_mut(..message.len()).ok_or(Full)?;
-        dest.copy_from_slice(message);
-        queued.len = message.len() as u8;
+        let queued = Queued::new(message, min_clock).ok_or(Full)?;
         self.outbox.push_back(queued).map_err(|_| Full)
     }
 
     /// After [`Event::Configure`]: sends `lines` (klippy's config commands,
     /// `allocate_oids` first) and `finalize_config` with their CRC if the
-    /// MCU is not configured, or `restart` if it is configured with the
-    /// same CRC; then checks with `get_config`.
+    /// MCU is not configured (nothing if it is configured with the same
+    /// CRC); then checks with `get_config`.
     pub fn configure<'l>(
         &mut self,
         lines: impl Iterator<Item = &'l str> + Clone,
-        restart: impl Iterator<Item = &'l str>,
         configured: Option<u32>,
     ) -> Result<(), Failure> {
         let crc = config_crc(lines.clone());
         let commands_ok = match configured {
             Some(old) if old != crc => return self.fail(Failure::CrcMismatch),
-            Some(_) => restart.map(|l| self.send_text(l, 0)).all(|r| r.is_ok()),
+            Some(_) => true,
             None => {
                 let mut fin = heapless::String::<32>::new();
                 let _ = fmt::write(&mut fin, format_args!("finalize_config crc={crc}"));
@@ -289,11 +289,7 @@ impl<'d> Connection<'d> {
     fn ask(&mut self, name: &str, front: bool) -> Result<(), Full> {
         let mut bytes = [0u8; MAX_MESSAGE];
         let len = self.dict.encode_text(name, &mut bytes).map_err(|_| Full)?;
-        let queued = Queued {
-            min_clock: 0,
-            len: len as u8,
-            bytes,
-        };
+        let queued = Queued::new(&bytes[..len], 0).ok_or(Full)?;
         if front {
             self.outbox.push_front(queued)
         } else {
@@ -308,64 +304,33 @@ impl<'d> Connection<'d> {
         let clock = self.sync.as_ref().map_or(0, |s| s.clock_at(now));
         let mut written = 0;
         loop {
-            let mut payload = [0u8; MAX_PAYLOAD];
-            let mut len = 0;
-            while let Some(q) = self.outbox.front() {
+            // The messages due at the front that fill one block.
+            let (mut count, mut len) = (0, 0);
+            for q in self.outbox.iter() {
                 let n = usize::from(q.len);
                 if q.min_clock > clock || len + n > MAX_PAYLOAD {
                     break;
                 }
-                payload[len..len + n].copy_from_slice(&q.bytes[..n]);
-                len += n;
+                (count, len) = (count + 1, len + n);
+            }
+            if len == 0 || !self.link.can_send(len) || out.len() - written < len + MIN_LEN {
+                return written;
+            }
+            let mut payload = [0u8; MAX_PAYLOAD];
+            let mut at = 0;
+            for q in self.outbox.iter().take(count) {
+                payload[at..at + q.message().len()].copy_from_slice(q.message());
+                at += q.message().len();
+            }
+            let Ok(block) = self.link.send(&payload[..len], micros(now)) else {
+                return written;
+            };
+            out[written..written + block.len()].copy_from_slice(block);
+            written += block.len();
+            for _ in 0..count {
                 self.outbox.pop_front();
             }
-            if len == 0 {
-                return written;
-            }
-            if !self.link.can_send(len) || out.len() - written < len + 5 {
-                // Put them back for the next poll.
-                self.requeue(&payload[..len]);
-                return written;
-            }
-            match self.link.send(&payload[..len], micros(now)) {
-                Ok(block) => {
-                    out[written..written + block.len()].copy_from_slice(block);
-                    written += block.len();
-                }
-                Err(_) => {
-                    self.requeue(&payload[..len]);
-                    return written;
-                }
-            }
         }
-    }
-
-    /// Returns packed messages to the front of the outbox, in order.
-    fn requeue(&mut self, payload: &[u8]) {
-        let mut ends = heapless::Vec::<usize, { MAX_PAYLOAD }>::new();
-        let mut at = 0;
-        while at < payload.len() {
-            let Ok((_, n)) = self.dict.decode(&payload[at..]) else {
-                break;
-            };
-            at += n;
-            let _ = ends.push(at);
-        }
-        let mut end = payload.len();
-        for &start in ends.iter().rev().skip(1).chain(core::iter::once(&0)) {
-            let _ = self.send_front(&payload[start..end]);
-            end = start;
-        }
-    }
-
-    fn send_front(&mut self, message: &[u8]) -> Result<(), Full> {
-        let mut queued = Queued {
-            min_clock: 0,
-            len: message.len() as u8,
-            bytes: [0; MAX_MESSAGE],
-        };
-        queued.bytes[..message.len()].copy_from_slice(message);
-        self.outbox.push_front(queued).map_err(|_| Full)
     }
 
     /// Takes bytes from the MCU.
@@ -460,12 +425,6 @@ pub enum SendTextError {
     Encode,
     /// The outbox is full.
     Full,
-}
-
-impl From<EncodeError<'_>> for SendTextError {
-    fn from(_: EncodeError<'_>) -> Self {
-        Self::Encode
-    }
 }
 
 /// klippy's config CRC: CRC-32 of the config commands joined by newlines.

@@ -115,6 +115,18 @@ impl<const Q: usize> Steps<Q> {
     }
 }
 
+/// The step+dir+step filter's window on a `freq` Hz clock: the ticks
+/// strictly below [`SDS_FILTER_TIME`], the ceiling of it.
+fn sds_ticks(freq: f64) -> u64 {
+    let sds = SDS_FILTER_TIME * freq;
+    let whole = to_clock(sds);
+    if (whole as f64) < sds {
+        whole + 1
+    } else {
+        whole
+    }
+}
+
 /// Compression state of one stepper, holding up to `Q` step clocks.
 #[derive(Debug, Clone)]
 pub struct Compressor<const Q: usize> {
@@ -132,18 +144,10 @@ pub struct Compressor<const Q: usize> {
 impl<const Q: usize> Compressor<Q> {
     /// A compressor for an MCU clock of `freq` Hz with `max_error` ticks.
     pub fn new(max_error: u32, freq: f64) -> Self {
-        // Ticks strictly below SDS_FILTER_TIME: the ceiling of it.
-        let sds = SDS_FILTER_TIME * freq;
-        let whole = to_clock(sds);
-        let sds_ticks = if (whole as f64) < sds {
-            whole + 1
-        } else {
-            whole
-        };
         Self {
             max_error,
             freq,
-            sds_ticks,
+            sds_ticks: sds_ticks(freq),
             last_step_clock: 0,
             queue: Steps::new(),
             dir: None,
@@ -155,10 +159,9 @@ impl<const Q: usize> Compressor<Q> {
     /// ticks (a secondary MCU's clock, re-fitted as it drifts). Steps
     /// already appended keep the clocks they were given.
     pub fn set_clock(&mut self, freq: f64, max_error: u32) {
-        let fresh = Self::new(max_error, freq);
         self.freq = freq;
         self.max_error = max_error;
-        self.sds_ticks = fresh.sds_ticks;
+        self.sds_ticks = sds_ticks(freq);
     }
 
     /// Adds a step at print time `time` s in direction `dir`. Commands go

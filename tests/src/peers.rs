@@ -51,7 +51,7 @@ impl Peer {
                 c.arg(&path).env("FAKEGPIO_LOG", &pin_log);
                 // Real-time priority keeps its steps punctual; it needs root.
                 // SAFETY: geteuid has no preconditions.
-                if unsafe { libc_geteuid() } == 0 {
+                if unsafe { libc::geteuid() } == 0 {
                     c.arg("-r");
                 }
                 c
@@ -86,7 +86,7 @@ impl Peer {
     pub fn stop(&mut self) {
         if let Ok(pid) = i32::try_from(self.child.id()) {
             // SAFETY: signalling our own child.
-            unsafe { libc_kill(pid, 15) };
+            unsafe { libc::kill(pid, libc::SIGTERM) };
         }
         let _ = self.child.wait();
     }
@@ -130,11 +130,4 @@ fn edges(log: &Path, pin: &str) -> Vec<f64> {
         last = Some(high);
     }
     times
-}
-
-unsafe extern "C" {
-    #[link_name = "geteuid"]
-    fn libc_geteuid() -> u32;
-    #[link_name = "kill"]
-    fn libc_kill(pid: i32, sig: i32) -> i32;
 }

@@ -7,7 +7,7 @@ use onechip_app::heaters::McuSetup;
 use onechip_config::Config;
 use onechip_planner::machine::Machine;
 use onechip_sched::outputs::OutputKind;
-use onechip_tests::summary_value;
+use onechip_tests::{golden_adc_max, summary_value};
 use std::collections::HashMap;
 
 /// The `key=value` fields of the first line of `commands` starting with
@@ -48,13 +48,7 @@ fn heater_and_thermistor_configuration_matches_klippy() {
         let text = onechip_golden::config(onechip_golden::config_for(case));
         let config = Config::parse("printer.cfg", &text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let dict = onechip_golden::dict(onechip_golden::dict_for(case));
-        let adc_max: u16 = dict
-            .split("\"ADC_MAX\":")
-            .nth(1)
-            .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
-            .and_then(|n| n.parse().ok())
-            .expect("ADC_MAX");
+        let adc_max = golden_adc_max(case);
         let freq = summary_value(case, "clock_freq");
         let setup = McuSetup::new(&machine, freq, adc_max, 0);
         let commands = onechip_golden::read_string(format!("{case}/mcu-commands.txt"));

@@ -9,7 +9,7 @@ use onechip_app::step_pulse;
 use onechip_config::Config;
 use onechip_planner::machine::Machine;
 use onechip_secondary_mcu::connection::config_crc;
-use onechip_tests::summary_value;
+use onechip_tests::{golden_adc_max, summary_value};
 
 #[test]
 fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
@@ -19,13 +19,7 @@ fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
         let text = onechip_golden::config(onechip_golden::config_for(case));
         let config = Config::parse("printer.cfg", &text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let dict = onechip_golden::dict(onechip_golden::dict_for(case));
-        let adc_max: u16 = dict
-            .split("\"ADC_MAX\":")
-            .nth(1)
-            .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
-            .and_then(|n| n.parse().ok())
-            .expect("ADC_MAX");
+        let adc_max = golden_adc_max(case);
         let freq = summary_value(case, "clock_freq");
         let setup = McuSetup::new(&machine, freq, adc_max, 0);
         let pulse = |i: usize| {

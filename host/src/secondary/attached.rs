@@ -4,7 +4,7 @@
 
 use super::{ConnectError, Heard, Secondary};
 use onechip_app::heaters::McuSetup;
-use onechip_app::mcu_config::{pin_ref, write_config};
+use onechip_app::mcu_config::{Oids, pin_ref, write_config};
 use onechip_app::step_pulse::pulse_ticks;
 use onechip_planner::machine::Machine;
 use onechip_sched::engine::Full;
@@ -12,6 +12,7 @@ use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 use onechip_secondary_mcu::connection::OUTBOX;
 use onechip_secondary_mcu::step_commands::StepCommandEncoder;
+use std::cell::Cell;
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::path::Path;
@@ -84,20 +85,21 @@ impl Secondaries {
         for secondary in &machine.secondaries {
             let name: &'static str = Box::leak(secondary.name.to_string().into_boxed_str());
             // The config depends on the MCU's clock (step pulses in its
-            // ticks), which identify tells.
+            // ticks), which identify tells; its object ids are kept.
+            let oids = Cell::new(Oids::default());
             let lines = |mcu_freq: f64| {
                 let setup = McuSetup::new(machine, mcu_freq, 0, 0);
                 let mut lines = Vec::new();
                 let ticks = |i: usize| pulse_ticks(pulse(i), mcu_freq);
-                let oids = write_config(machine, &setup, name, &ticks, &mut |l| {
+                oids.set(write_config(machine, &setup, name, &ticks, &mut |l| {
                     lines.push(l.to_string())
-                });
-                (lines, oids)
+                }));
+                lines
             };
             let path = Path::new(secondary.serial);
-            let mcu = Secondary::connect(name, path, &|f| lines(f).0, now, CONNECT_TIMEOUT)?;
+            let mcu = Secondary::connect(name, path, &lines, now, CONNECT_TIMEOUT)?;
             let dict = mcu.dictionary();
-            let (_, oids) = lines(mcu.clock_freq());
+            let oids = oids.get();
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
                 let invert = pin_ref(machine.steppers[i].dir_pin).inverted;

@@ -10,13 +10,15 @@ use onechip_protocol::transport::{DEFAULT_RECEIVE_WINDOW, HostLink, MAX_PENDING_
 use onechip_secondary_mcu::connection::{Connection, Event, Failure};
 use onechip_secondary_mcu::identify::Identify;
 use port::Port;
-use std::fmt;
+use std::fmt::{self, Write as _};
 use std::io;
 use std::path::Path;
 use std::time::Duration;
 
 /// Largest inflated data dictionary accepted, bytes (Klipper's are 10–15 KB).
 const DICTIONARY_MAX: usize = 64 * 1024;
+/// How long one round of the start-up waits for an answer.
+const EXCHANGE_WAIT: Duration = Duration::from_millis(5);
 /// Bytes one poll may write.
 const OUT_MAX: usize = 1 + MAX_PENDING_BLOCKS * onechip_protocol::block::MAX_LEN;
 
@@ -51,8 +53,8 @@ pub enum Heard {
     Response(String),
     /// The MCU shut down: its `shutdown` message.
     Shutdown(String),
-    /// The link failed (Klipper's message).
-    Failed(String),
+    /// The link failed.
+    Failed(Failure),
 }
 
 /// A configured secondary MCU.
@@ -88,7 +90,7 @@ impl Secondary {
             move_count: 0,
         };
         let config = config(secondary.clock_freq());
-        secondary.configure(&config, &[], now, deadline)?;
+        secondary.configure(&config, now, deadline)?;
         Ok(secondary)
     }
 
@@ -114,7 +116,6 @@ impl Secondary {
     fn configure(
         &mut self,
         config: &[String],
-        restart: &[String],
         now: &dyn Fn() -> f64,
         deadline: f64,
     ) -> Result<(), ConnectError> {
@@ -134,11 +135,7 @@ impl Secondary {
                 Event::Response(_) => {}
             })?;
             if let Some(crc) = configure
-                && let Err(why) = self.conn.configure(
-                    config.iter().map(String::as_str),
-                    restart.iter().map(String::as_str),
-                    crc,
-                )
+                && let Err(why) = self.conn.configure(config.iter().map(String::as_str), crc)
             {
                 failure = Some(why);
             }
@@ -158,22 +155,19 @@ impl Secondary {
     /// to `wait` for bytes and feeds them in; what the MCU said goes to
     /// `heard`.
     pub fn service(&mut self, now: f64, wait: Duration, heard: &mut Vec<Heard>) -> io::Result<()> {
-        let name = self.name.clone();
+        let reasons = self.conn.dictionary().enumeration_for("static_string_id");
         let mut on_event = |event: Event<'_, 'static>| match event {
             Event::Response(msg) => heard.push(Heard::Response(msg.to_string())),
             Event::Shutdown(msg) => {
-                // `shutdown clock=… static_string_id=Timer too close`.
-                let text = msg.to_string();
-                let reason = text
-                    .split_once("static_string_id=")
-                    .map_or(&*text, |(_, r)| r);
-                heard.push(Heard::Shutdown(reason.to_string()));
+                // The message is the MCU's static string for the id.
+                let mut reason = String::new();
+                let _ = match (msg.int("static_string_id"), reasons) {
+                    (Some(id), Some(names)) => names.write_name(id, &mut reason),
+                    _ => write!(reason, "{msg}"),
+                };
+                heard.push(Heard::Shutdown(reason));
             }
-            Event::Failed(why) => {
-                let mut text = String::new();
-                let _ = why.write(&name, &mut text);
-                heard.push(Heard::Failed(text));
-            }
+            Event::Failed(why) => heard.push(Heard::Failed(why)),
             Event::Configure(_) | Event::Ready { .. } => {}
         };
         self.io(now, wait, &mut on_event)
@@ -184,7 +178,7 @@ impl Secondary {
         now: f64,
         on_event: &mut dyn FnMut(Event<'_, 'static>),
     ) -> Result<(), ConnectError> {
-        self.io(now, Duration::from_millis(5), on_event)
+        self.io(now, EXCHANGE_WAIT, on_event)
             .map_err(ConnectError::Io)
     }
 
@@ -196,10 +190,8 @@ impl Secondary {
     ) -> io::Result<()> {
         let mut out = [0u8; OUT_MAX];
         let n = self.conn.poll(now, &mut out, &mut *on_event);
-        self.port.write_all(&out[..n])?;
-        self.port.wait_readable(wait)?;
         let mut buf = [0u8; 4096];
-        let got = self.port.read(&mut buf)?;
+        let got = self.port.round_trip(&out[..n], wait, &mut buf)?;
         if got > 0 {
             self.conn.receive(&buf[..got], now, &mut *on_event);
         }
@@ -224,10 +216,9 @@ fn identify(
             return Err(ConnectError::Timeout("identify"));
         }
         let n = fetch.poll(t, &mut out);
-        port.write_all(&out[..n]).map_err(ConnectError::Io)?;
-        port.wait_readable(Duration::from_millis(5))
+        let got = port
+            .round_trip(&out[..n], EXCHANGE_WAIT, &mut input)
             .map_err(ConnectError::Io)?;
-        let got = port.read(&mut input).map_err(ConnectError::Io)?;
         match fetch.receive(&input[..got], now()) {
             Ok(Some(_)) => break,
             Ok(None) => {}

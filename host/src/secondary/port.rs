@@ -55,9 +55,17 @@ impl Port {
         Ok(())
     }
 
-    /// Waits up to `timeout` for bytes to read.
-    pub fn wait_readable(&self, timeout: Duration) -> io::Result<()> {
-        self.wait(libc::POLLIN, timeout)
+    /// Writes `out`, waits up to `wait` for an answer and reads what has
+    /// arrived into `input`: its length (0 if nothing).
+    pub fn round_trip(
+        &mut self,
+        out: &[u8],
+        wait: Duration,
+        input: &mut [u8],
+    ) -> io::Result<usize> {
+        self.write_all(out)?;
+        self.wait(libc::POLLIN, wait)?;
+        self.read(input)
     }
 
     fn wait(&self, events: libc::c_short, timeout: Duration) -> io::Result<()> {
