@@ -4,7 +4,16 @@
 
 use onechip_host::secondary::{Heard, Secondary};
 use onechip_tests::peers::{Firmware, Peer};
+use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
+
+/// One peer at a time: peers run in real time (the Linux MCU at real-time
+/// priority), so two at once on a 2-core machine would measure each
+/// other's load rather than our timing.
+fn one_peer_at_a_time() -> MutexGuard<'static, ()> {
+    static PEERS: Mutex<()> = Mutex::new(());
+    PEERS.lock().unwrap_or_else(PoisonError::into_inner)
+}
 
 /// Host time for these tests: seconds since the first call.
 fn clock() -> impl Fn() -> f64 {
@@ -35,6 +44,7 @@ fn run_until(mcu: &mut Secondary, now: &dyn Fn() -> f64, until: f64) -> Vec<Hear
 /// Connects to `firmware`, configures one stepper on `step`/`dir`, runs
 /// 100 steps 1 ms apart and checks them on the MCU and on its pins.
 fn hundred_steps(firmware: Firmware, step: &str, dir: &str, pulse_ticks: u32, freq: f64) {
+    let _alone = one_peer_at_a_time();
     let peer = Peer::start(firmware, &format!("{firmware:?}-steps"));
     let now = clock();
     let config = one_stepper(step, dir, pulse_ticks);
@@ -152,6 +162,7 @@ fn percentiles(values: &[f64]) -> (f64, f64, f64) {
 
 #[test]
 fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
+    let _alone = one_peer_at_a_time();
     let peer = Peer::start(Firmware::Linux, "extruder");
     let sd = peer.path.with_file_name("sd");
     // Extrusion and retraction, through direction changes and a dwell.
