@@ -274,14 +274,14 @@ impl<const Q: usize> Compressor<Q> {
     ) {
         // The step held back is a step for good once no step can come
         // within the filter's window after it: it may join a run.
+        let clock = to_clock(time * self.freq);
         let decided = to_clock(generated * self.freq).saturating_sub(self.sds_ticks);
         if let Some((held_clock, held_dir)) = self.held
-            && held_clock < decided
+            && held_clock < decided.max(clock)
         {
             self.held = None;
             self.commit(held_clock, held_dir, out);
         }
-        let clock = to_clock(time * self.freq);
         while self.first_unsent().is_some_and(|c| c < clock) {
             self.send_next(out);
         }
