@@ -1,10 +1,12 @@
 //! Step compression is at least as good as Klipper's: every golden case's
 //! planned moves, streamed through step generation with the board's queue
-//! sizes ([`profile::MOTION_QUEUE`] segments, [`profile::COMPRESS_QUEUE`]
-//! steps per compressor) and generated after every move as the session
-//! generates after every line, give each stepper no more commands
-//! (`queue_step`, `set_next_step_dir`, `reset_step_clock`) than klippy
-//! sent it, and the same steps as klippy's within max_error.
+//! sizes ([`profile::MOTION_QUEUE`] segments, compressors of
+//! [`profile::COMPRESS_QUEUE`]) and generated after every move as the
+//! session generates after every line (homing moves dripped, as the
+//! session runs them, to their end as in klippy's batch mode), give each
+//! stepper no more commands (`queue_step`, `set_next_step_dir`,
+//! `reset_step_clock`) than klippy sent it, and the same steps as klippy's
+//! within max_error.
 //!
 //! `cargo test -p onechip-tests --test compression -- --nocapture` prints
 //! the counts.
@@ -15,7 +17,7 @@ use onechip_golden::{Trapq, TrapqAppend, summary_steppers, summary_value, trapq_
 use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;
-use onechip_planner::move_sink::{MoveSink, TrapqMove};
+use onechip_planner::move_sink::{HomingEnd, HomingMove, MoveSink, TrapqMove};
 use onechip_stepgen::compress::{StepCommand, expand};
 use onechip_stepgen::motion::{Motion, StepSink};
 
@@ -25,14 +27,16 @@ enum Event {
     Toolhead(TrapqMove),
     Extruder(TrapqMove),
     SetPosition([f64; 3]),
+    /// A homing move's segments have all been handed over.
+    Homing(HomingMove),
 }
 
 impl Event {
-    /// The move's start (set_position: none), s.
+    /// The move's start (set_position, homing: none), s.
     fn print_time(&self) -> Option<f64> {
         match self {
             Self::Toolhead(m) | Self::Extruder(m) => Some(m.print_time),
-            Self::SetPosition(_) => None,
+            Self::SetPosition(_) | Self::Homing(_) => None,
         }
     }
 }
@@ -49,6 +53,13 @@ impl MoveSink for Planned {
     }
     fn set_position(&mut self, pos: [f64; 3]) {
         self.0.push(Event::SetPosition(pos));
+    }
+    fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
+        self.0.push(Event::Homing(*homing));
+        HomingEnd {
+            position: homing.target,
+            stopped_at: None,
+        }
     }
 }
 
@@ -85,8 +96,9 @@ fn trapq_move(m: &TrapqAppend) -> TrapqMove {
 }
 
 /// The case's planned moves in the order klippy appended them. moves.tsv
-/// has no set_position: a case that homes is planned again here (the
-/// planner matches klippy's moves), with klippy's start times.
+/// has no set_position nor homing: a case that homes is planned again here
+/// (the planner matches klippy's moves), with klippy's start times (a
+/// homing move's times moved as its segments' are).
 fn events(case: &str) -> Vec<Event> {
     let golden =
         |trapq| -> Vec<TrapqMove> { trapq_moves(case, trapq).iter().map(trapq_move).collect() };
@@ -115,13 +127,23 @@ fn events(case: &str) -> Vec<Event> {
     }
     gcode.finish(&mut toolhead_planner, &mut planned);
     let (mut toolhead, mut extruder) = (toolhead.into_iter(), extruder.into_iter());
+    // How much later klippy started the last toolhead move, s.
+    let mut delay = 0.0;
     for event in &mut planned.0 {
         let (m, golden) = match event {
-            Event::Toolhead(m) => (m, toolhead.next()),
-            Event::Extruder(m) => (m, extruder.next()),
+            Event::Toolhead(m) => {
+                let golden = toolhead.next().expect("klippy planned as many moves");
+                delay = golden.print_time - m.print_time;
+                (m, golden)
+            }
+            Event::Extruder(m) => (m, extruder.next().expect("klippy planned as many moves")),
             Event::SetPosition(_) => continue,
+            Event::Homing(h) => {
+                (h.start_time, h.end_time) = (h.start_time + delay, h.end_time + delay);
+                continue;
+            }
         };
-        m.print_time = golden.expect("klippy planned as many moves").print_time;
+        m.print_time = golden.print_time;
     }
     planned.0
 }
@@ -152,6 +174,9 @@ fn commands(case: &str) -> Vec<Vec<StepCommand>> {
             Event::Toolhead(m) => sink.toolhead(m),
             Event::Extruder(m) => sink.extruder(m),
             Event::SetPosition(pos) => sink.set_position(*pos),
+            Event::Homing(homing) => {
+                sink.homing_move_end(homing);
+            }
         }
         motion.generate(f64::INFINITY, &mut commands);
     }
