@@ -5,6 +5,7 @@ use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
+use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
@@ -219,7 +220,7 @@ impl<'a> Machine<'a> {
                 },
             )?;
             if section.get_opt("heater_pin").is_some() {
-                let _ = heaters.push(thermal::read_heater(&section)?);
+                let _ = heaters.push(thermal::read_heater(config, &section)?);
             }
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
@@ -228,7 +229,7 @@ impl<'a> Machine<'a> {
             None => InputShaperConfig::default(),
         };
         if let Some(section) = config.section("heater_bed") {
-            let _ = heaters.push(thermal::read_heater(&section)?);
+            let _ = heaters.push(thermal::read_heater(config, &section)?);
         }
         let fan = config
             .section("fan")
@@ -259,10 +260,13 @@ impl<'a> Machine<'a> {
             section.get_bool("enable_force_move", false)?;
         }
         config.accept_section("mcu");
+        // Sensor types: Klipper reads every definition, used or not.
+        temperature_sensor::read_definitions(config)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
                 && !verified.contains(&name)
+                && !temperature_sensor::is_definition_section(name)
                 && !unsupported.contains(&name)
             {
                 let _ = unsupported.push(name);
