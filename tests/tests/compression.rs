@@ -82,28 +82,17 @@ fn machine(case: &str) -> Machine<'static> {
     Machine::from_config(&config).unwrap_or_else(|e| panic!("{case}: {e}"))
 }
 
-/// A golden move (a `moves.tsv` line).
-fn trapq_move(m: &TrapqAppend) -> TrapqMove {
-    TrapqMove {
-        print_time: m.print_time,
-        accel_t: m.accel_t,
-        cruise_t: m.cruise_t,
-        decel_t: m.decel_t,
-        start_pos: m.start_pos(),
-        axes_r: m.axes_r(),
-        start_v: m.start_v,
-        cruise_v: m.cruise_v,
-        accel: m.accel,
-    }
-}
-
 /// The case's planned moves in the order klippy appended them. moves.tsv
 /// has no set_position nor homing: a case that homes is planned again here
 /// (the planner matches klippy's moves), with klippy's start times (a
 /// homing move's times moved as its segments' are).
 fn events(case: &str) -> Vec<Event> {
-    let golden =
-        |trapq| -> Vec<TrapqMove> { trapq_moves(case, trapq).iter().map(trapq_move).collect() };
+    let golden = |trapq| -> Vec<TrapqMove> {
+        trapq_moves(case, trapq)
+            .iter()
+            .map(TrapqAppend::trapq_move)
+            .collect()
+    };
     let (toolhead, extruder) = (golden(Trapq::Toolhead), golden(Trapq::Extruder));
     let program = onechip_golden::gcode(case);
     if !program.lines().any(|l| l.trim_start().starts_with("G28")) {
