@@ -1,0 +1,86 @@
+//! The Cortex-M7's instruction and data caches (32 KiB each on the
+//! STM32H723), on from boot, and the MPU region that keeps DMA coherent.
+//!
+//! The D-cache is write-back, write-allocate on the SRAMs (the default
+//! memory map, which the MPU keeps as the background for privileged code):
+//! a bus master other than the core would read stale RAM or have its
+//! writes hidden by cached lines. The firmware's only such masters:
+//!
+//! - SDMMC1's internal DMA (IDMA), which embassy-stm32 points straight at
+//!   the buffers it is given and does no cache maintenance on: its buffers
+//!   live in `.dma_buffers` ([`crate::sd_card`]), a 1 KiB block at the top
+//!   of AXI SRAM that MPU region 0 ([`enable`]) makes normal, shareable,
+//!   non-cacheable memory before the D-cache goes on (so no line of it is
+//!   ever cached);
+//! - USB OTG_HS: embassy's driver moves packets through the core's FIFO
+//!   registers (its internal DMA stays off), so USB needs nothing.
+//!
+//! TCM (the stepper interrupt's code and data, [`crate::tcm`]) is never
+//! cached. Code in flash never changes while the firmware runs, so the
+//! I-cache needs no maintenance after it is invalidated and enabled.
+
+unsafe extern "C" {
+    /// The `DMA` memory region of board/memory.x (its bounds): a power of
+    /// two of at least 32 bytes, aligned to its size (asserted there), as
+    /// one MPU region needs.
+    static __dma_region_start: u8;
+    static __dma_region_end: u8;
+}
+
+/// MPU_RASR fields (ARMv7-M): execute never, full access, normal memory
+/// non-cacheable (TEX 0b001, C 0, B 0), shareable, region enabled.
+const RASR_XN: u32 = 1 << 28;
+const RASR_AP_FULL: u32 = 0b011 << 24;
+const RASR_TEX_NORMAL_NONCACHEABLE: u32 = 0b001 << 19;
+const RASR_SHAREABLE: u32 = 1 << 18;
+const RASR_ENABLE: u32 = 1;
+/// MPU_RBAR: the REGION field holds the region number.
+const RBAR_VALID: u32 = 1 << 4;
+/// MPU_CTRL: enabled, with the default memory map as background for
+/// privileged code (the whole firmware).
+const CTRL_ENABLE: u32 = 1;
+const CTRL_PRIVDEFENA: u32 = 1 << 2;
+
+/// The DMA buffers' MPU region number.
+const DMA_REGION: u32 = 0;
+
+/// Makes the DMA region non-cacheable, then invalidates and enables the
+/// I-cache and the D-cache. Call once at boot with the D-cache off and
+/// no DMA running ([`crate::boot::take_control`]).
+pub fn enable() {
+    onechip_caches_enable();
+}
+
+/// [`enable`]'s work, out of line and by name for `cargo xtask image`'s
+/// boot-path check.
+#[unsafe(no_mangle)]
+#[inline(never)]
+fn onechip_caches_enable() {
+    let base = (&raw const __dma_region_start) as u32;
+    let size = ((&raw const __dma_region_end) as u32).wrapping_sub(base);
+    // SIZE field: the region is 2^(SIZE + 1) bytes.
+    let size_field = size.trailing_zeros().saturating_sub(1);
+    // SAFETY: start-up code owns the core peripherals (nothing else runs);
+    // the MPU is reprogrammed while disabled, and only the DMA region's
+    // attributes change from the default map.
+    let mut core = unsafe { cortex_m::Peripherals::steal() };
+    unsafe {
+        cortex_m::asm::dmb();
+        core.MPU.ctrl.write(0);
+        core.MPU.rnr.write(DMA_REGION);
+        core.MPU.rbar.write(base | RBAR_VALID | DMA_REGION);
+        core.MPU.rasr.write(
+            RASR_XN
+                | RASR_AP_FULL
+                | RASR_TEX_NORMAL_NONCACHEABLE
+                | RASR_SHAREABLE
+                | (size_field << 1)
+                | RASR_ENABLE,
+        );
+        core.MPU.ctrl.write(CTRL_PRIVDEFENA | CTRL_ENABLE);
+    }
+    cortex_m::asm::dsb();
+    cortex_m::asm::isb();
+    core.SCB.enable_icache();
+    core.SCB.enable_dcache(&mut core.CPUID);
+}
