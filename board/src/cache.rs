@@ -62,11 +62,17 @@ fn onechip_caches_enable() {
     let size_field = size.trailing_zeros().saturating_sub(1);
     // SAFETY: start-up code owns the core peripherals (nothing else runs);
     // the MPU is reprogrammed while disabled, and only the DMA region's
-    // attributes change from the default map.
+    // attributes differ from the default map (MPU_TYPE's DREGION field,
+    // bits 15:8, counts the regions).
     let mut core = unsafe { cortex_m::Peripherals::steal() };
     unsafe {
         cortex_m::asm::dmb();
         core.MPU.ctrl.write(0);
+        // Every region off first: the bootloader may have left some on.
+        for region in 0..(core.MPU._type.read() >> 8 & 0xff) {
+            core.MPU.rnr.write(region);
+            core.MPU.rasr.write(0);
+        }
         core.MPU.rnr.write(DMA_REGION);
         core.MPU.rbar.write(base | RBAR_VALID | DMA_REGION);
         core.MPU.rasr.write(

@@ -11,9 +11,10 @@
 //! linked to run from ITCM and stored in flash after `.rodata`; [`load`]
 //! copies it over and zeroes `.dtcm_bss` (the engine's cell) before
 //! anything runs from or reads them. `cargo xtask image` checks that every
-//! function the interrupt reaches (but the panic path and the memory
-//! moves of `stepper_itcm_exempt`) lies in ITCM, that the engine lies in
-//! DTCM, and that [`load`] and the cache set-up are on the boot path.
+//! function the interrupt reaches (but the panic path and the memory move
+//! of `itcm_exempt` in board/budget.toml) lies in ITCM, that the engine
+//! lies in DTCM, and that [`load`] and the cache set-up are on the boot
+//! path.
 //!
 //! Why the engine and not the stack goes to DTCM: the engine is the
 //! interrupt's working set (13 KiB: eight steppers' move queues and
@@ -28,24 +29,31 @@
 //!
 //! # Expected cycles per step at 520 MHz
 //!
-//! The interrupt's path is about 36 instructions per step (QEMU's count:
-//! `cargo m7`, `m7count ... stepper_isr`). From ITCM, with its data in
-//! DTCM, nothing waits on memory: the Cortex-M7 issues up to two
-//! instructions a cycle, call it one a cycle on this branchy, load-bound
-//! path, so about **36 cycles**; exception entry and exit add 12 + 10
-//! (vector fetch from flash through the cache), and the timer's and
-//! GPIO's registers the rest: two reads of TIM5's count over the 130 MHz
-//! APB1 (about 10 cycles each), the status, compare and pin writes
-//! posted. About **80 cycles per step** (0.15 µs at 520 MHz) when every
-//! step is an interrupt of its own, down to the 36 of the body for steps
-//! served in the same wake. From flash without caches, each 64-bit fetch
-//! takes 4 AXI cycles at 260 MHz with the 3 wait states 520 MHz needs
-//! (8 core cycles for about three instructions), and each engine load an
-//! AXI SRAM access: some 150 cycles for the body alone, 250 with entry
-//! and registers; with the I-cache and D-cache but no TCM, the ITCM figure
-//! when the lines are hot and that plus a 32-byte line fill (about 12
-//! cycles from flash, 8 from AXI SRAM) for each of the ~6 code and ~4
-//! data lines thread code evicted.
+//! The interrupt's step path is about 36 instructions per step (QEMU's
+//! count: `cargo m7`, `m7count ... stepper_isr`, with the pins as plain
+//! stores). From ITCM, with the engine in DTCM, no fetch or load waits:
+//! the Cortex-M7 issues up to two instructions a cycle; on this short,
+//! branchy, load-dependent path count one a cycle, **about 36 cycles**.
+//! Around it, per interrupt: exception entry and return, about 12 + 10
+//! cycles (ARM's figures; the frame goes to the interrupted code's stack
+//! lines, hot in the D-cache, and the vector is read from flash through
+//! it); two reads of TIM5's count across the AXI/AHB/APB1 bridges (APB1 at
+//! 130 MHz: about 10 cycles each); the status, compare and pin writes are
+//! posted. So **about 80 cycles per step** (0.15 µs) when each step is an
+//! interrupt of its own, the body's ~36 for further steps served in the
+//! same wake, plus the step pulse the pins hold (`step_pulse_duration`:
+//! 52 cycles for a TMC driver's 100 ns, 1,040 for Klipper's default 2 µs,
+//! which then dominates).
+//!
+//! For comparison, the same path from flash: at 520 MHz flash needs 3
+//! wait states at its 260 MHz AXI clock, so a 64-bit fetch (about three
+//! instructions) takes 8 core cycles: ~100 cycles of fetch for the body
+//! without the I-cache, ~250 per step with entry and registers. With the
+//! caches but no TCM, the ITCM figure while the lines stay cached, plus a
+//! line fill (32 bytes: ~12 cycles from flash, ~8 from AXI SRAM) for each
+//! of the ~6 code and ~4 engine lines that thread code's planning and
+//! step generation evicted in between: up to ~120 cycles more, and not
+//! the same from one step to the next.
 
 /// Proof that [`load`] ran: the ITCM holds its code and `.dtcm_bss` is
 /// zero. Only [`load`] makes one; starting the stepper interrupt takes
@@ -55,10 +63,11 @@ pub struct Loaded(());
 
 unsafe extern "C" {
     /// `.itcm_text` where it runs (ITCM) and where it is stored (flash);
-    /// 4-byte aligned (board/memory.x asserts it).
-    static mut __sitcm: u32;
-    static mut __eitcm: u32;
-    static __siitcm: u32;
+    /// 8-byte aligned, a whole number of 8-byte words (board/memory.x
+    /// asserts it).
+    static mut __sitcm: u64;
+    static mut __eitcm: u64;
+    static __siitcm: u64;
     /// `.dtcm_bss` in DTCM, 4-byte aligned.
     static mut __sdtcm_bss: u32;
     static mut __edtcm_bss: u32;
@@ -73,12 +82,14 @@ pub fn load() -> Loaded {
 }
 
 /// [`load`]'s work, out of line and by name for `cargo xtask image`'s
-/// boot-path check. Word by word with volatile accesses: no call out
-/// (memcpy, memset) and no access merged or dropped.
+/// boot-path check. With volatile accesses: no call out (memcpy, memset)
+/// and no access merged or dropped. ITCM is written in aligned 64-bit
+/// words, its ECC word (RM0468): a narrower write is a read-modify-write
+/// of a word never written since power-on, whose check bits are random.
 #[unsafe(no_mangle)]
 #[inline(never)]
 fn onechip_tcm_load() {
-    // SAFETY: the linker script defines these as word-aligned bounds of
+    // SAFETY: the linker script defines these as aligned bounds of
     // `.itcm_text` (in ITCM and its image in flash, of equal length) and
     // of `.dtcm_bss`; no code in ITCM runs and nothing reads `.dtcm_bss`
     // before this returns (start-up code only, interrupts not yet enabled).

@@ -102,7 +102,7 @@ fn image(elf_path: &Path) -> Result<(), String> {
         budget.flash_kib
     );
     println!(
-        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: .data+.bss+.uninit)",
+        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: every RAM and DTCM section)",
         ram,
         kib(ram),
         budget.ram_kib
