@@ -44,6 +44,26 @@ const CTRL_PRIVDEFENA: u32 = 1 << 2;
 /// The DMA buffers' MPU region number.
 const DMA_REGION: u32 = 0;
 
+/// MPU_RASR for the DMA region of `size` bytes (a power of two of at
+/// least 32): normal, shareable, non-cacheable, read-write, execute
+/// never; the SIZE field (bits 5:1) makes the region 2^(SIZE + 1) bytes.
+const fn dma_rasr(size: u32) -> u32 {
+    let size_field = size.trailing_zeros().saturating_sub(1);
+    RASR_XN
+        | RASR_AP_FULL
+        | RASR_TEX_NORMAL_NONCACHEABLE
+        | RASR_SHAREABLE
+        | size_field << 1
+        | RASR_ENABLE
+}
+
+// The encoding against the ARMv7-M Architecture Reference Manual's
+// MPU_RASR, worked by hand for 1 KiB: XN 0x1000_0000, AP 0b011
+// 0x0300_0000, TEX 0b001 0x0008_0000, S 0x0004_0000, SIZE 9 0x12, ENABLE;
+// for 32 bytes SIZE 4.
+const _: () = assert!(dma_rasr(1024) == 0x130C_0013);
+const _: () = assert!(dma_rasr(32) == 0x130C_0009);
+
 /// Makes the DMA region non-cacheable, then invalidates and enables the
 /// I-cache and the D-cache. Call once at boot with the D-cache off and
 /// no DMA running ([`crate::boot::take_control`]).
@@ -58,13 +78,12 @@ pub fn enable() {
 fn onechip_caches_enable() {
     let base = (&raw const __dma_region_start) as u32;
     let size = ((&raw const __dma_region_end) as u32).wrapping_sub(base);
-    // SIZE field: the region is 2^(SIZE + 1) bytes.
-    let size_field = size.trailing_zeros().saturating_sub(1);
-    // SAFETY: start-up code owns the core peripherals (nothing else runs);
-    // the MPU is reprogrammed while disabled, and only the DMA region's
-    // attributes differ from the default map (MPU_TYPE's DREGION field,
-    // bits 15:8, counts the regions).
+    // SAFETY: start-up code owns the core peripherals (nothing else runs).
     let mut core = unsafe { cortex_m::Peripherals::steal() };
+    // SAFETY: the MPU is reprogrammed while disabled, and only the DMA
+    // region's attributes differ from the default map, which the rest of
+    // the firmware runs on (MPU_TYPE's DREGION field, bits 15:8, counts
+    // the regions).
     unsafe {
         cortex_m::asm::dmb();
         core.MPU.ctrl.write(0);
@@ -75,14 +94,7 @@ fn onechip_caches_enable() {
         }
         core.MPU.rnr.write(DMA_REGION);
         core.MPU.rbar.write(base | RBAR_VALID | DMA_REGION);
-        core.MPU.rasr.write(
-            RASR_XN
-                | RASR_AP_FULL
-                | RASR_TEX_NORMAL_NONCACHEABLE
-                | RASR_SHAREABLE
-                | (size_field << 1)
-                | RASR_ENABLE,
-        );
+        core.MPU.rasr.write(dma_rasr(size));
         core.MPU.ctrl.write(CTRL_PRIVDEFENA | CTRL_ENABLE);
     }
     cortex_m::asm::dsb();
