@@ -38,8 +38,13 @@ pub fn check(image: &Image<'_>, budget: &Budget) -> Result<String, String> {
         Err(e) => problems.push(e),
     }
 
-    let dma_start = image.symbol("__dma_region_start")?;
-    let dma = dma_start..image.symbol("__dma_region_end")?;
+    let dma = image
+        .symbol("__dma_region_start")
+        .and_then(|start| Ok(start..image.symbol("__dma_region_end")?));
+    let dma = dma.unwrap_or_else(|e| {
+        problems.push(format!("the non-cacheable DMA region: {e}"));
+        0..0
+    });
     for (paths, range, memory) in [
         (&budget.dtcm_data, &dtcm, "DTCM"),
         (&budget.dma_data, &dma, "the non-cacheable DMA region"),
@@ -97,7 +102,7 @@ fn hot_path_in_itcm(
     let outside: Vec<String> = reached
         .iter()
         .filter(|&&f| !is_exempt(f) && !itcm.contains(&graph.addrs[f]))
-        .map(|&f| format!("{} at {:#010x}", graph.names[f], graph.addrs[f]))
+        .map(|&f| format!("{} at {:#010x}", demangle(&graph.names[f]), graph.addrs[f]))
         .collect();
     if outside.is_empty() {
         Ok(reached.len() - reached.iter().filter(|&&f| is_exempt(f)).count())
@@ -105,7 +110,7 @@ fn hot_path_in_itcm(
         Err(format!(
             "the stepper interrupt `{}` reaches functions outside ITCM \
              ({:#010x}..{:#010x}): {}",
-            graph.names[root],
+            demangle(&graph.names[root]),
             itcm.start,
             itcm.end,
             outside.join(", ")
