@@ -2,9 +2,10 @@
 //! the ELF.
 //!
 //! Each function's frame is what its code pushes and subtracts from SP
-//! ([`thumb::frame`]); its depth is its frame plus the deepest of the
-//! functions it calls or jumps to directly (`bl`, `b.w`, `b`: a tail call
-//! counts as a call, keeping the caller's frame). Thread mode's figure is
+//! ([`crate::thumb::frame`]); its depth is its frame plus the deepest of
+//! the functions it calls or jumps to directly (`bl`, `b.w`, `b`: a tail
+//! call counts as a call, keeping the caller's frame; the [`Graph`]
+//! follows linker thunks between flash and ITCM). Thread mode's figure is
 //! the deepest function of the image that is not an exception handler:
 //! embassy polls task futures through function pointers, so every
 //! function counts as a root rather than only `Reset`'s tree. Interrupts
