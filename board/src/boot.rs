@@ -23,8 +23,9 @@
 //!   PLL off, kernel clock muxes at reset), because PLL registers are
 //!   write-protected while the PLL runs and embassy-stm32 0.6's
 //!   `rcc::init` switches the core to HSI but reprograms PLL1 without
-//!   stopping it; then the DMA buffers' MPU region and both caches on
-//!   ([`crate::cache`]), with no DMA running.
+//!   stopping it; then the MPU's regions (the DMA buffers non-cacheable,
+//!   the loaded ITCM read-only) and both caches on ([`crate::cache`]),
+//!   with no DMA running.
 //!
 //! `cargo xtask image` checks that the reset handler calls this
 //! `__pre_init` and that it begins with `cpsid i` and writes SP and VTOR,
@@ -104,7 +105,7 @@ pub fn take_control() -> crate::tcm::Loaded {
     stop_bus_masters();
     let loaded = crate::tcm::load();
     reset_clock_tree();
-    crate::cache::enable();
+    crate::cache::enable(&loaded);
     loaded
 }
 
