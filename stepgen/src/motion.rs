@@ -406,6 +406,17 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         }
     }
 
+    /// Print time up to which some stepper's steps are generated, s
+    /// (negative infinity before any): a move starting before this less the
+    /// look-back would change steps already generated.
+    pub fn generated_until(&self) -> f64 {
+        self.channels
+            .iter()
+            .map(|ch| ch.solver.generated_until())
+            .filter(|t| t.is_finite())
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
     /// Print time before which every step is due has gone to the sink, s:
     /// each stepper has sent every step [`COMPRESS_LAG`] or more behind its
     /// generation; the steps its compressor still holds (queued, or in its
