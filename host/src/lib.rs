@@ -204,6 +204,10 @@ pub struct Summary {
     /// Each stepper on a secondary MCU: its name and every step's clock
     /// on that MCU, as sent (ticks).
     pub secondary_steps: Vec<(String, Vec<u64>)>,
+    /// Each secondary MCU's name and link counters at the end.
+    pub secondary_links: Vec<(String, onechip_protocol::transport::LinkStats)>,
+    /// When (wall clock) a secondary's shutdown or silence was noticed.
+    pub secondary_fault_at: Option<std::time::Instant>,
 }
 
 impl fmt::Display for Summary {
@@ -646,6 +650,8 @@ pub(crate) fn with_session<const L: usize>(
         fan_speed: None,
         heat_wait: 0.0,
         secondary_steps: Vec::new(),
+        secondary_links: Vec::new(),
+        secondary_fault_at: None,
     };
     input(&mut Run {
         machine,
@@ -697,6 +703,13 @@ pub(crate) fn with_session<const L: usize>(
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
     mcu.flush_steps().map_err(write_error)?;
+    if let Some(secondaries) = mcu.secondaries() {
+        summary.secondary_fault_at = secondaries.failed_at();
+        let links = secondaries
+            .links()
+            .map(|(name, stats)| (name.to_string(), stats));
+        summary.secondary_links = links.collect();
+    }
     for (i, (stepper, log)) in machine.steppers.iter().zip(mcu.logs()).enumerate() {
         let sent = mcu
             .secondaries()

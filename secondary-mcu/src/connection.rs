@@ -17,7 +17,7 @@ use core::fmt;
 use onechip_protocol::block::{MAX_PAYLOAD, MIN_LEN};
 use onechip_protocol::codec::Decoded;
 use onechip_protocol::dictionary::Dictionary;
-use onechip_protocol::transport::HostLink;
+use onechip_protocol::transport::{HostLink, LinkStats};
 
 /// Longest message queued, bytes (a `queue_step` is at most 17).
 pub const MAX_MESSAGE: usize = 32;
@@ -167,6 +167,12 @@ impl<'d> Connection<'d> {
     /// The same, to re-fit its print time line.
     pub fn clock_mut(&mut self) -> Option<&mut ClockSync> {
         self.sync.as_mut()
+    }
+
+    /// The link's counters: bytes written and retransmitted, timeouts
+    /// and naks.
+    pub fn link_stats(&self) -> LinkStats {
+        self.link.stats
     }
 
     /// Messages queued and not yet sent.

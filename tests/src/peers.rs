@@ -81,9 +81,44 @@ impl Peer {
         }
     }
 
+    /// The firmware's own process (the Linux MCU, or the simulator): the
+    /// launcher's child if it has one, else the launcher itself (the AVR
+    /// launcher `exec`s the simulator).
+    pub fn mcu_pid(&self) -> i32 {
+        let launcher = i32::try_from(self.child.id()).unwrap_or(0);
+        let children = format!("/proc/{launcher}/task/{launcher}/children");
+        std::fs::read_to_string(children)
+            .ok()
+            .and_then(|c| c.split_whitespace().next()?.parse().ok())
+            .unwrap_or(launcher)
+    }
+
+    /// Sends `signal` to the firmware's process (SIGKILL: it dies as a
+    /// board pulled off its cable; SIGSTOP/SIGCONT: it freezes and goes
+    /// on, as a board whose clock stopped).
+    pub fn signal_mcu(&self, signal: i32) {
+        // SAFETY: signalling a process this peer started.
+        unsafe { libc::kill(self.mcu_pid(), signal) };
+    }
+
+    /// Waits until `pin` has made `count` rising edges, up to `timeout`;
+    /// false if it did not.
+    pub fn wait_for_edges(&self, pin: &str, count: usize, timeout: Duration) -> bool {
+        let start = Instant::now();
+        while start.elapsed() < timeout {
+            if self.rising_edges(pin).len() >= count {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        false
+    }
+
     /// Stops the peer at once (SIGKILL to the launcher's MCU process is
     /// not used: SIGTERM stops it and removes the device).
     pub fn stop(&mut self) {
+        // A frozen MCU would hold the signal until it runs again.
+        self.signal_mcu(libc::SIGCONT);
         if let Ok(pid) = i32::try_from(self.child.id()) {
             // SAFETY: signalling our own child.
             unsafe { libc::kill(pid, libc::SIGTERM) };

@@ -3,6 +3,7 @@
 //! clock synchronisation and step commands, checked on the peer's pins.
 
 use onechip_host::secondary::{Heard, Secondary};
+use onechip_secondary_mcu::clock_sync::{MAX_PENDING_QUERIES, QUERY_PERIOD};
 use onechip_tests::peers::{Firmware, Peer};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
@@ -210,4 +211,134 @@ fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
     // edge within a tenth of a millisecond, the odd one a few ms late.
     assert!(p99 < 0.000_500, "p99 {p99} s");
     assert!(max < 0.010, "an edge {max} s away from its planned time");
+}
+
+/// klippy's limit for a silent MCU, s: it is lost once more than
+/// `MAX_PENDING_QUERIES` of its clock queries (one every `QUERY_PERIOD`)
+/// are unanswered, as its once-a-second stats check notices.
+fn klippy_timeout() -> f64 {
+    f64::from(MAX_PENDING_QUERIES + 1) * QUERY_PERIOD + 1.0
+}
+
+/// The extruder's step pin on the Linux MCU (see [`extruder_on_secondary`]).
+const EXTRUDER_STEP: &str = "gpiochip0/gpio10";
+
+/// A print with the extruder on a fresh Linux MCU and its hot end heating
+/// on the main MCU; once the peer has made `edges` extruder steps,
+/// `fault` does something to it and says when. Returns the run, when
+/// the fault came and the peer (still running, for its pin log).
+fn print_with_fault(
+    test: &str,
+    edges: usize,
+    fault: impl FnOnce(&Peer) + Send,
+) -> (onechip_host::Summary, Instant, Peer) {
+    let peer = Peer::start(Firmware::Linux, test);
+    let sd = peer.path.with_file_name("sd");
+    // 30 mm at 5 mm/s: 6 s of extrusion, 2866 steps.
+    extruder_on_secondary(&sd, &peer.path, "M104 S200\nM83\nG1 E30 F300\nM400\n");
+    let (summary, at) = std::thread::scope(|s| {
+        let injector = s.spawn(|| {
+            let started = peer.wait_for_edges(EXTRUDER_STEP, edges, Duration::from_secs(20));
+            assert!(started, "the peer never stepped");
+            fault(&peer);
+            Instant::now()
+        });
+        let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
+        (summary, injector.join().expect("fault injected"))
+    });
+    (summary, at, peer)
+}
+
+/// The extruder heater was heating, and is off now.
+fn assert_heater_was_on_and_is_off(summary: &onechip_host::Summary) {
+    let hot_end = summary
+        .heaters
+        .iter()
+        .find(|h| h.name == "extruder")
+        .expect("extruder heater");
+    assert!(hot_end.duty > 0.0, "the hot end never heated: {hot_end:?}");
+    assert!(!hot_end.on_at_end, "the hot end is still on: {hot_end:?}");
+}
+
+/// The console's `!!` line for `message`, and the printer stopped with it.
+fn assert_shut_down_with(summary: &onechip_host::Summary, message: &str) {
+    assert_eq!(summary.shutdown.as_deref(), Some(message));
+    assert!(
+        summary.transcript.contains(&format!("!! {message}\n")),
+        "{}",
+        summary.transcript
+    );
+}
+
+#[test]
+fn killing_the_peer_mid_print_loses_communication_and_turns_heaters_off() {
+    let _alone = one_peer_at_a_time();
+    let (summary, killed, peer) = print_with_fault("killed", 300, |peer| {
+        peer.signal_mcu(libc::SIGKILL);
+    });
+    assert_shut_down_with(&summary, "Lost communication with MCU 'ext'");
+    let noticed = summary.secondary_fault_at.expect("fault noticed");
+    let detection = noticed.saturating_duration_since(killed).as_secs_f64();
+    println!(
+        "killed peer: Lost communication noticed {:.1} ms after the kill (klippy: within {:.1} s)",
+        detection * 1e3,
+        klippy_timeout()
+    );
+    assert!(detection < klippy_timeout(), "{detection} s");
+    assert_heater_was_on_and_is_off(&summary);
+    // It died mid-print: fewer steps than planned.
+    let made = peer.rising_edges(EXTRUDER_STEP).len();
+    assert!(made >= 300 && made < 2866, "{made} steps");
+}
+
+#[test]
+fn a_frozen_peer_is_lost_after_klippys_clock_query_timeout() {
+    let _alone = one_peer_at_a_time();
+    let (summary, frozen, _peer) = print_with_fault("frozen", 300, |peer| {
+        peer.signal_mcu(libc::SIGSTOP);
+    });
+    assert_shut_down_with(&summary, "Lost communication with MCU 'ext'");
+    let noticed = summary.secondary_fault_at.expect("fault noticed");
+    let detection = noticed.saturating_duration_since(frozen).as_secs_f64();
+    println!(
+        "frozen peer: Lost communication noticed {detection:.2} s after it froze (klippy: {:.1}..{:.1} s)",
+        f64::from(MAX_PENDING_QUERIES - 1) * QUERY_PERIOD,
+        klippy_timeout()
+    );
+    // Four or five queries unanswered (one may have been on its way).
+    let earliest = f64::from(MAX_PENDING_QUERIES - 1) * QUERY_PERIOD;
+    assert!(
+        (earliest..klippy_timeout()).contains(&detection),
+        "{detection} s"
+    );
+    assert_heater_was_on_and_is_off(&summary);
+}
+
+#[test]
+fn a_shutdown_of_the_peer_reaches_the_console_and_stops_the_printer() {
+    let _alone = one_peer_at_a_time();
+    // Frozen for 0.3 s while stepping: its next step timers are far in
+    // the past when it runs again, and the firmware shuts itself down.
+    let (summary, _, peer) = print_with_fault("shutdown", 300, |peer| {
+        peer.signal_mcu(libc::SIGSTOP);
+        std::thread::sleep(Duration::from_millis(300));
+        peer.signal_mcu(libc::SIGCONT);
+    });
+    let message = summary.shutdown.clone().expect("shut down");
+    println!("peer shutdown: {message}");
+    let reason = message
+        .strip_prefix("MCU 'ext' shutdown: ")
+        .unwrap_or_else(|| panic!("{message}"));
+    // The reason is one of the firmware's own shutdown strings.
+    let dict =
+        std::fs::read_to_string(onechip_tests::peers::peers_dir().join("linux/klipper.dict"))
+            .expect("dictionary");
+    assert!(
+        !reason.is_empty() && dict.contains(&format!("\"{reason}\"")),
+        "{reason}"
+    );
+    assert_shut_down_with(&summary, &message);
+    assert_heater_was_on_and_is_off(&summary);
+    let made = peer.rising_edges(EXTRUDER_STEP).len();
+    assert!(made < 2866, "{made} steps");
 }

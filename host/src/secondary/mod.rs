@@ -6,7 +6,9 @@ pub mod attached;
 pub mod port;
 
 use onechip_protocol::dictionary::Dictionary;
-use onechip_protocol::transport::{DEFAULT_RECEIVE_WINDOW, HostLink, MAX_PENDING_BLOCKS};
+use onechip_protocol::transport::{
+    DEFAULT_RECEIVE_WINDOW, HostLink, LinkStats, MAX_PENDING_BLOCKS,
+};
 use onechip_secondary_mcu::connection::{Connection, Event, Failure};
 use onechip_secondary_mcu::identify::Identify;
 use port::Port;
@@ -110,6 +112,12 @@ impl Secondary {
     /// The connection, for sending commands and reading the clock.
     pub fn connection(&mut self) -> &mut Connection<'static> {
         &mut self.conn
+    }
+
+    /// The link's counters (bytes written and retransmitted, timeouts,
+    /// naks).
+    pub fn link_stats(&self) -> LinkStats {
+        self.conn.link_stats()
     }
 
     /// Runs the config phase to its end.
