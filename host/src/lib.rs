@@ -408,8 +408,12 @@ pub fn run_replaying<const L: usize>(
                 ran = true;
             }
             if ran {
-                // The MCU runs the steps as far as they have all been sent.
-                run.mcu.run_until(clock_at(run.session.sent_until(), freq));
+                if run.mcu.is_paced() {
+                    keep_ahead(run, freq);
+                } else {
+                    // The MCU runs the steps as far as they have all been sent.
+                    run.mcu.run_until(clock_at(run.session.sent_until(), freq));
+                }
                 if stopped(run.session, run.mcu, run.summary) {
                     break;
                 }
@@ -417,6 +421,28 @@ pub fn run_replaying<const L: usize>(
         }
         Ok(())
     })
+}
+
+/// Longest sleep between two runs of the session's timers while a paced
+/// run reads ahead, s.
+const READ_AHEAD_POLL: f64 = 0.1;
+
+/// In real time (secondary MCUs run in it): the next line is read once
+/// less than klippy's `BUFFER_TIME_HIGH` of steps is sent ahead of the
+/// clock, and the session's timers (lookahead flush, priming) run
+/// meanwhile, so steps reach every MCU well before they are due.
+fn keep_ahead<const L: usize>(run: &mut Run<'_, '_, L>, freq: f64) {
+    loop {
+        run.poll(&mut NoOutput);
+        let now = run.mcu.now();
+        let ahead = run.session.sent_until() - onechip_planner::toolhead::BUFFER_TIME_HIGH;
+        let until = clock_at(ahead, freq);
+        if now >= until || run.mcu.shutdown().is_some() {
+            return;
+        }
+        run.mcu
+            .run_until(until.min(now + (READ_AHEAD_POLL * freq) as u64));
+    }
 }
 
 /// A printer set up for a run, as its input drives it: the machine, the

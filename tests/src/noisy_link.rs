@@ -29,12 +29,14 @@ pub struct Damage {
 }
 
 /// What the cable did: towards the peer and back from it.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Report {
     /// Host to peer.
     pub to_peer: Damage,
     /// Peer to host.
     pub from_peer: Damage,
+    /// Why the relay stopped before it was asked to, if it did.
+    pub broken: Option<String>,
 }
 
 /// A running noisy cable; stopped (and its path removed) when dropped.

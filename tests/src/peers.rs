@@ -101,6 +101,21 @@ impl Peer {
         unsafe { libc::kill(self.mcu_pid(), signal) };
     }
 
+    /// Where the stepper on pins `step`/`dir` went, by the pin log: +1 for
+    /// each rising step edge while `dir` is high, −1 while low.
+    pub fn position(&self, step: &str, dir: &str) -> i64 {
+        let mut forward = false;
+        let mut position = 0;
+        for (name, high, rising) in pin_changes(&self.pin_log) {
+            if name == dir {
+                forward = high;
+            } else if name == step && rising {
+                position += if forward { 1 } else { -1 };
+            }
+        }
+        position
+    }
+
     /// Waits until `pin` has made `count` rising edges, up to `timeout`;
     /// false if it did not.
     pub fn wait_for_edges(&self, pin: &str, count: usize, timeout: Duration) -> bool {
@@ -145,24 +160,52 @@ impl Drop for Peer {
 /// Rising edges of `pin` in a pin log, s.
 fn edges(log: &Path, pin: &str) -> Vec<f64> {
     let text = std::fs::read_to_string(log).unwrap_or_default();
-    let mut last = None;
-    let mut times = Vec::new();
-    for line in text.lines().filter(|l| !l.starts_with('#')) {
-        let words: Vec<&str> = line.split_whitespace().collect();
-        // Linux: "<ns> gpiochipN/gpioM <v>"; AVR: "<cycle> <clock> P<x><n> <v>".
-        let (time, name, value) = match words[..] {
-            [ns, name, v] => (ns.parse::<f64>().unwrap_or(0.0) * 1e-9, name, v),
-            [_, clock, name, v] => (clock.parse::<f64>().unwrap_or(0.0) / 16e6, name, v),
-            _ => continue,
-        };
-        if name != pin {
-            continue;
-        }
-        let high = value == "1";
-        if high && last != Some(true) {
-            times.push(time);
-        }
-        last = Some(high);
-    }
-    times
+    changes(&text)
+        .filter(|c| c.name == pin && c.rising)
+        .map(|c| c.time)
+        .collect()
+}
+
+/// Every change of every pin in a pin log: name, level, rising edge.
+fn pin_changes(log: &Path) -> Vec<(String, bool, bool)> {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    changes(&text)
+        .map(|c| (c.name.to_string(), c.high, c.rising))
+        .collect()
+}
+
+/// One line of a pin log.
+struct Change<'t> {
+    /// When, s (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16
+    /// MHz).
+    time: f64,
+    name: &'t str,
+    high: bool,
+    /// Low (or unknown) before, high now.
+    rising: bool,
+}
+
+/// The pin log's lines as changes (a write of the level a pin already
+/// has is no edge).
+fn changes(text: &str) -> impl Iterator<Item = Change<'_>> {
+    let mut levels: std::collections::HashMap<&str, bool> = std::collections::HashMap::new();
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(move |line| {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            // Linux: "<ns> gpiochipN/gpioM <v>"; AVR: "<cycle> <clock> P<x><n> <v>".
+            let (time, name, value) = match words[..] {
+                [ns, name, v] => (ns.parse::<f64>().ok()? * 1e-9, name, v),
+                [_, clock, name, v] => (clock.parse::<f64>().ok()? / 16e6, name, v),
+                _ => return None,
+            };
+            let high = value == "1";
+            let was = levels.insert(name, high);
+            Some(Change {
+                time,
+                name,
+                high,
+                rising: high && was != Some(true),
+            })
+        })
 }

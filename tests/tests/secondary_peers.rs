@@ -4,6 +4,7 @@
 
 use onechip_host::secondary::{Heard, Secondary};
 use onechip_secondary_mcu::clock_sync::{MAX_PENDING_QUERIES, QUERY_PERIOD};
+use onechip_tests::noisy_link::NoisyLink;
 use onechip_tests::peers::{Firmware, Peer};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
@@ -161,34 +162,33 @@ fn percentiles(values: &[f64]) -> (f64, f64, f64) {
     (at(0.5), at(0.99), at(1.0))
 }
 
-#[test]
-fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
-    let _alone = one_peer_at_a_time();
-    let peer = Peer::start(Firmware::Linux, "extruder");
-    let sd = peer.path.with_file_name("sd");
-    // Extrusion and retraction, through direction changes and a dwell.
-    let gcode =
-        "M83\nG1 E5 F300\nG1 E-2 F1800\nG1 E4 F600\nG4 P200\nG1 E-1 F1200\nG1 E3 F240\nM400\n";
-    extruder_on_secondary(&sd, &peer.path, gcode);
-    let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!(summary.shutdown, None, "{}", summary.transcript);
-    assert!(summary.errors.is_empty(), "{:?}", summary.errors);
+/// The extruder's step and direction pins on the Linux MCU (see
+/// [`extruder_on_secondary`]).
+const EXTRUDER_STEP: &str = "gpiochip0/gpio10";
+const EXTRUDER_DIR: &str = "gpiochip0/gpio11";
+
+/// The extruder's steps on the peer's pins against the plan: every
+/// planned step made, nothing more, ending where planned; returns how far
+/// each edge was from its planned time (p50, p99, max, s), less the
+/// constant offset between the peer's clock and CLOCK_MONOTONIC.
+fn extruder_steps_as_planned(summary: &onechip_host::Summary, peer: &Peer) -> (f64, f64, f64) {
     let extruder = summary
         .steppers
         .iter()
         .find(|s| s.name == "extruder")
         .expect("extruder");
-    // 9 mm forward net at 16 × 200 / 33.5 steps per mm.
-    let per_mm: f64 = 16.0 * 200.0 / 33.5;
-    assert_eq!(extruder.position, (9.0 * per_mm).round() as i64);
     let (_, clocks) = &summary.secondary_steps[0];
     assert_eq!(clocks.len(), extruder.steps);
-    // What the peer's pin did: every step, nothing more.
+    // The peer's log is written as it steps; give it its last edges.
     std::thread::sleep(Duration::from_millis(100));
-    let edges = peer.rising_edges("gpiochip0/gpio10");
+    let edges = peer.rising_edges(EXTRUDER_STEP);
     assert_eq!(edges.len(), clocks.len(), "step edges on the peer's pin");
-    // When: each edge against its planned clock (50 MHz), less the
-    // constant offset between the peer's clock and CLOCK_MONOTONIC.
+    assert_eq!(
+        peer.position(EXTRUDER_STEP, EXTRUDER_DIR),
+        extruder.position,
+        "final position on the peer's pins"
+    );
+    // Each edge against its planned clock (50 MHz).
     let offsets: Vec<f64> = edges
         .iter()
         .zip(clocks)
@@ -198,11 +198,35 @@ fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
     sorted.sort_by(f64::total_cmp);
     let median = sorted[sorted.len() / 2];
     let late: Vec<f64> = offsets.iter().map(|o| o - median).collect();
-    let (p50, p99, max) = percentiles(&late);
+    percentiles(&late)
+}
+
+/// Extrusion and retraction, through direction changes and a dwell: 9 mm
+/// forward net.
+const EXTRUDE_GCODE: &str =
+    "M83\nG1 E5 F300\nG1 E-2 F1800\nG1 E4 F600\nG4 P200\nG1 E-1 F1200\nG1 E3 F240\nM400\n";
+
+/// The extruder's planned position after [`EXTRUDE_GCODE`]: 9 mm at 16 ×
+/// 200 / 33.5 steps per mm.
+fn extrude_gcode_steps() -> i64 {
+    (9.0 * 16.0 * 200.0 / 33.5_f64).round() as i64
+}
+
+#[test]
+fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
+    let _alone = one_peer_at_a_time();
+    let peer = Peer::start(Firmware::Linux, "extruder");
+    let sd = peer.path.with_file_name("sd");
+    extruder_on_secondary(&sd, &peer.path, EXTRUDE_GCODE);
+    let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(summary.shutdown, None, "{}", summary.transcript);
+    assert!(summary.errors.is_empty(), "{:?}", summary.errors);
+    let (p50, p99, max) = extruder_steps_as_planned(&summary, &peer);
+    let position = peer.position(EXTRUDER_STEP, EXTRUDER_DIR);
+    assert_eq!(position, extrude_gcode_steps());
     println!(
-        "extruder on the Linux MCU: {} steps, final position {}; edge vs plan p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
-        clocks.len(),
-        extruder.position,
+        "extruder on the Linux MCU: {} steps, final position {position}; edge vs plan p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
+        summary.secondary_steps[0].1.len(),
         p50 * 1e6,
         p99 * 1e6,
         max * 1e6
@@ -213,15 +237,55 @@ fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
     assert!(max < 0.010, "an edge {max} s away from its planned time");
 }
 
+#[test]
+fn a_print_through_a_cable_damaging_one_byte_in_a_hundred_loses_and_repeats_nothing() {
+    let _alone = one_peer_at_a_time();
+    let peer = Peer::start(Firmware::Linux, "noisy");
+    let cable = peer.path.with_file_name("cable");
+    let mut noisy = NoisyLink::start(&peer.path, &cable, 0.01, 0x5eed).expect("noisy cable");
+    let sd = peer.path.with_file_name("sd");
+    extruder_on_secondary(&sd, &cable, EXTRUDE_GCODE);
+    let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
+    let damage = noisy.stop();
+    let (_, link) = &summary.secondary_links[0];
+    println!(
+        "1 % noise: to the peer {:?}, from it {:?}; link: {} bytes written, {} retransmitted, {} timeouts, {} naks, {} invalid bytes dropped",
+        damage.to_peer,
+        damage.from_peer,
+        link.bytes_written,
+        link.bytes_retransmitted,
+        link.timeouts,
+        link.naks,
+        link.bytes_invalid,
+    );
+    assert_eq!(damage.broken, None);
+    assert_eq!(summary.shutdown, None, "{}", summary.transcript);
+    assert!(summary.errors.is_empty(), "{:?}", summary.errors);
+    let (p50, p99, max) = extruder_steps_as_planned(&summary, &peer);
+    assert_eq!(
+        peer.position(EXTRUDER_STEP, EXTRUDER_DIR),
+        extrude_gcode_steps()
+    );
+    println!(
+        "1 % noise: edge vs plan p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
+        p50 * 1e6,
+        p99 * 1e6,
+        max * 1e6
+    );
+    // The noise really hit both ways, and the link repaired it.
+    for d in [damage.to_peer, damage.from_peer] {
+        assert!(d.flipped + d.dropped > 0, "{damage:?}");
+    }
+    assert!(link.timeouts + link.naks > 0, "{link:?}");
+    assert!(max < 0.010, "an edge {max} s away from its planned time");
+}
+
 /// klippy's limit for a silent MCU, s: it is lost once more than
 /// `MAX_PENDING_QUERIES` of its clock queries (one every `QUERY_PERIOD`)
 /// are unanswered, as its once-a-second stats check notices.
 fn klippy_timeout() -> f64 {
     f64::from(MAX_PENDING_QUERIES + 1) * QUERY_PERIOD + 1.0
 }
-
-/// The extruder's step pin on the Linux MCU (see [`extruder_on_secondary`]).
-const EXTRUDER_STEP: &str = "gpiochip0/gpio10";
 
 /// A print with the extruder on a fresh Linux MCU and its hot end heating
 /// on the main MCU; once the peer has made `edges` extruder steps,
@@ -288,7 +352,7 @@ fn killing_the_peer_mid_print_loses_communication_and_turns_heaters_off() {
     assert_heater_was_on_and_is_off(&summary);
     // It died mid-print: fewer steps than planned.
     let made = peer.rising_edges(EXTRUDER_STEP).len();
-    assert!(made >= 300 && made < 2866, "{made} steps");
+    assert!((300..2866).contains(&made), "{made} steps");
 }
 
 #[test]

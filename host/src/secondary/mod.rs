@@ -9,7 +9,7 @@ use onechip_protocol::dictionary::Dictionary;
 use onechip_protocol::transport::{
     DEFAULT_RECEIVE_WINDOW, HostLink, LinkStats, MAX_PENDING_BLOCKS,
 };
-use onechip_secondary_mcu::connection::{Connection, Event, Failure};
+use onechip_secondary_mcu::connection::{Connection, Event, Failure, POLL_OUT};
 use onechip_secondary_mcu::identify::Identify;
 use port::Port;
 use std::fmt::{self, Write as _};
@@ -196,7 +196,7 @@ impl Secondary {
         wait: Duration,
         on_event: &mut dyn FnMut(Event<'_, 'static>),
     ) -> io::Result<()> {
-        let mut out = [0u8; OUT_MAX];
+        let mut out = [0u8; POLL_OUT];
         let n = self.conn.poll(now, &mut out, &mut *on_event);
         let mut buf = [0u8; 4096];
         let got = self.port.round_trip(&out[..n], wait, &mut buf)?;
