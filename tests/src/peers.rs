@@ -40,6 +40,18 @@ impl Peer {
     ///
     /// If the peer cannot be started: the test cannot run.
     pub fn start(firmware: Firmware, test: &str) -> Self {
+        Self::start_with_inputs(firmware, test, 0)
+    }
+
+    /// [`Self::start`] with every input pin reading `level` (the Linux
+    /// MCU's fake GPIO; the AVR's inputs always read 0): an endstop that
+    /// triggers at that level is pressed from the start, so it triggers
+    /// as soon as its `endstop_home` starts sampling.
+    ///
+    /// # Panics
+    ///
+    /// As [`Self::start`].
+    pub fn start_with_inputs(firmware: Firmware, test: &str, level: u8) -> Self {
         let dir = std::env::temp_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("peer folder");
@@ -48,7 +60,9 @@ impl Peer {
         let mut cmd = match firmware {
             Firmware::Linux => {
                 let mut c = Command::new(peers_dir().join("start-linux-mcu"));
-                c.arg(&path).env("FAKEGPIO_LOG", &pin_log);
+                c.arg(&path)
+                    .env("FAKEGPIO_LOG", &pin_log)
+                    .env("FAKEGPIO_IN", level.to_string());
                 // Real-time priority keeps its steps punctual; it needs root.
                 // SAFETY: geteuid has no preconditions.
                 if unsafe { libc::geteuid() } == 0 {
@@ -65,6 +79,17 @@ impl Peer {
         let child = cmd
             .spawn()
             .unwrap_or_else(|e| panic!("{}: {e} (set ONECHIP_PEERS)", peers_dir().display()));
+        if firmware == Firmware::Avr {
+            // The simulator keeps the AVR's time only while it gets the
+            // CPU: at real-time priority when allowed, as the Linux peer
+            // runs with `-r` (else a loaded machine makes its clock lag
+            // and its trsync reports come late).
+            let param = libc::sched_param { sched_priority: 1 };
+            if let Ok(pid) = i32::try_from(child.id()) {
+                // SAFETY: a valid sched_param, for a process we started.
+                unsafe { libc::sched_setscheduler(pid, libc::SCHED_FIFO, &param) };
+            }
+        }
         let start = Instant::now();
         while !path.exists() {
             assert!(
@@ -153,6 +178,45 @@ impl Drop for Peer {
         self.stop();
         if let Some(dir) = self.path.parent() {
             let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+}
+
+/// The calling thread at real-time priority (`SCHED_FIFO`, one level
+/// above the AVR simulator's) while this lives, if the process may (root): a host serving
+/// real-time peers under deadlines (trsync's 25 ms) on a loaded machine,
+/// as the Linux peer runs with `-r`.
+pub struct RealtimeGuard {
+    raised: bool,
+}
+
+impl RealtimeGuard {
+    /// Raises the calling thread's priority (nothing if not allowed).
+    pub fn new() -> Self {
+        let param = libc::sched_param { sched_priority: 2 };
+        // SAFETY: a valid sched_param for the calling thread (pid 0).
+        let raised = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } == 0;
+        Self { raised }
+    }
+
+    /// True if the thread runs at real-time priority.
+    pub fn is_raised(&self) -> bool {
+        self.raised
+    }
+}
+
+impl Default for RealtimeGuard {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Drop for RealtimeGuard {
+    fn drop(&mut self) {
+        if self.raised {
+            let param = libc::sched_param { sched_priority: 0 };
+            // SAFETY: as in `new`.
+            unsafe { libc::sched_setscheduler(0, libc::SCHED_OTHER, &param) };
         }
     }
 }

@@ -5,7 +5,7 @@
 use onechip_host::secondary::{Heard, Secondary};
 use onechip_secondary_mcu::clock_sync::{MAX_PENDING_QUERIES, QUERY_PERIOD};
 use onechip_tests::noisy_link::NoisyLink;
-use onechip_tests::peers::{Firmware, Peer};
+use onechip_tests::peers::{Firmware, Peer, RealtimeGuard};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -405,4 +405,198 @@ fn a_shutdown_of_the_peer_reaches_the_console_and_stops_the_printer() {
     assert_heater_was_on_and_is_off(&summary);
     let made = peer.rising_edges(EXTRUDER_STEP).len();
     assert!(made < 2866, "{made} steps");
+}
+
+/// Connects to `peer` as MCU `name` with config `lines`, and serves the
+/// link a little so its clock settles.
+fn connect_peer(name: &str, peer: &Peer, lines: &[&str], now: &dyn Fn() -> f64) -> Secondary {
+    let config: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
+    let mut mcu = Secondary::connect(
+        name,
+        &peer.path,
+        &|_| config.clone(),
+        now,
+        Duration::from_secs(10),
+    )
+    .unwrap_or_else(|e| panic!("connect {name}: {e}"));
+    run_until(&mut mcu, now, now() + 0.2);
+    mcu
+}
+
+/// `count` steps `interval` s apart on stepper oid 0 of `mcu`, forward,
+/// the first at host time `first` (s).
+fn queue_steps(mcu: &mut Secondary, first: f64, interval: f64, count: u16) {
+    let sync = *mcu.connection().clock().expect("synced");
+    let ticks = (interval * sync.mcu_freq()) as u32;
+    let start = sync.clock_at(first) & 0xffff_ffff;
+    for line in [
+        "set_next_step_dir oid=0 dir=1".to_string(),
+        format!("queue_step oid=0 interval={start} count=1 add=0"),
+        format!(
+            "queue_step oid=0 interval={ticks} count={} add=0",
+            count - 1
+        ),
+    ] {
+        mcu.connection().send_text(&line, 0).expect("queued");
+    }
+}
+
+/// Seconds from `trigger` to the last step edge in `edges` (s on the
+/// peer's clock), the first edge being the step planned at host time
+/// `first`.
+fn last_step_after(edges: &[f64], first: f64, trigger: f64) -> f64 {
+    let (Some(&start), Some(&last)) = (edges.first(), edges.last()) else {
+        return f64::NAN;
+    };
+    first + (last - start) - trigger
+}
+
+/// How long clock syncs run before a homing across MCUs, s.
+const SYNC_SETTLE: f64 = 3.0;
+
+#[test]
+fn an_endstop_on_one_stock_mcu_stops_the_steppers_of_another_through_trsync() {
+    use onechip_host::secondary::homing::Homing;
+    use onechip_secondary_mcu::trsync::{REPORT_FRACTION, TIMEOUT, reason};
+    let _alone = one_peer_at_a_time();
+    // The Linux MCU's inputs read 1: its endstop is pressed as soon as
+    // homing samples it.
+    let linux_peer = Peer::start_with_inputs(Firmware::Linux, "home-linux", 1);
+    let avr_peer = Peer::start(Firmware::Avr, "home-avr");
+    let now = clock();
+    let mut linux = connect_peer(
+        "ext",
+        &linux_peer,
+        &[
+            "allocate_oids count=3",
+            "config_stepper oid=0 step_pin=gpiochip0/gpio1 dir_pin=gpiochip0/gpio2 invert_step=0 step_pulse_ticks=100",
+            "config_endstop oid=1 pin=gpiochip0/gpio5 pull_up=0",
+            "config_trsync oid=2",
+        ],
+        &now,
+    );
+    let mut avr = connect_peer(
+        "avr",
+        &avr_peer,
+        &[
+            "allocate_oids count=2",
+            "config_stepper oid=0 step_pin=PA4 dir_pin=PA6 invert_step=0 step_pulse_ticks=32",
+            "config_trsync oid=1",
+        ],
+        &now,
+    );
+    // The clock syncs settle (a few of the once-a-second samples), as
+    // before any homing of a printer: homing across MCUs is as tight as
+    // the syncs agree.
+    let settle = now() + SYNC_SETTLE;
+    while now() < settle {
+        for mcu in [&mut linux, &mut avr] {
+            mcu.service(now(), Duration::from_millis(1), &mut Vec::new())
+                .expect("link");
+        }
+    }
+    // Both steppers: 5000 steps at 5 kHz from `first`; the endstop is
+    // sampled from 0.5 s on.
+    let (interval, planned) = (0.000_2, 5000);
+    let first = now() + 0.4;
+    queue_steps(&mut linux, first, interval, planned);
+    queue_steps(&mut avr, first, interval, planned);
+    let mut homing = Homing::start(&mut [&mut linux, &mut avr], &[2, 1], &[&[0], &[0]], first)
+        .unwrap_or_else(|e| panic!("{e}"));
+    let sync = *linux.connection().clock().expect("synced");
+    let ticks = |s: f64| (s * sync.mcu_freq()) as u32;
+    let armed = first + 0.5;
+    // The relay must keep trsync's 25 ms deadline on a loaded machine.
+    let realtime = RealtimeGuard::new();
+    let home = format!(
+        "endstop_home oid=1 clock={} sample_ticks={} sample_count=4 rest_ticks={} pin_value=1 trsync_oid=2 trigger_reason={}",
+        sync.clock_at(armed) & 0xffff_ffff,
+        ticks(0.000_015),
+        ticks(0.000_1),
+        reason::ENDSTOP_HIT
+    );
+    linux.connection().send_text(&home, 0).expect("queued");
+    let mut heard = Vec::new();
+    while now() < first + 1.2 {
+        homing
+            .service(
+                &mut [&mut linux, &mut avr],
+                now(),
+                Duration::from_millis(1),
+                &mut heard,
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+    let (trigger, why) = homing.triggered().expect("the endstop triggered");
+    assert_eq!(
+        why,
+        reason::ENDSTOP_HIT,
+        "{:?}, {} s after arming",
+        homing.stop_reasons(),
+        trigger - armed
+    );
+    assert!(
+        (armed..armed + 0.005).contains(&trigger),
+        "triggered {} s after it was armed",
+        trigger - armed
+    );
+    // The endstop's MCU stopped by itself, the other because the host
+    // relayed the trigger (not by its own timeout).
+    assert_eq!(
+        homing.stop_reasons(),
+        [Some(reason::ENDSTOP_HIT), Some(reason::HOST_REQUEST)]
+    );
+    let relay = homing.relayed_at().expect("relayed") - trigger;
+    // What each MCU's pins did, and where each stepper says it is.
+    for mcu in [&mut linux, &mut avr] {
+        mcu.connection()
+            .send_text("stepper_get_position oid=0", 0)
+            .expect("queued");
+    }
+    let positions: Vec<Vec<Heard>> = [&mut linux, &mut avr]
+        .into_iter()
+        .map(|mcu| run_until(mcu, &now, now() + 0.2))
+        .collect();
+    let mut report = Vec::new();
+    for (name, peer, step, heard) in [
+        (
+            "ext (Linux, endstop)",
+            &linux_peer,
+            "gpiochip0/gpio1",
+            &positions[0],
+        ),
+        ("avr (atmega2560)", &avr_peer, "PA4", &positions[1]),
+    ] {
+        let edges = peer.rising_edges(step);
+        let made = edges.len();
+        assert!(
+            made < usize::from(planned),
+            "{name}: {made} steps, never stopped"
+        );
+        assert!(
+            heard.contains(&Heard::Response(format!(
+                "stepper_position oid=0 pos={made}"
+            ))),
+            "{name}: {heard:?} vs {made} edges"
+        );
+        let after = last_step_after(&edges, first, trigger);
+        report.push(format!(
+            "{name}: {made} steps, the last {:.2} ms after the trigger",
+            after * 1e3
+        ));
+        // Every MCU stopped within a trsync report period (the endstop's
+        // at once, the other when the relay reached it), as far as the
+        // two clock syncs can tell (their errors add up: a few ms for
+        // the AVR at 250 kbaud).
+        assert!(
+            after.abs() < TIMEOUT * REPORT_FRACTION,
+            "{name}: its last step {after} s from the trigger"
+        );
+    }
+    println!(
+        "trsync homing (host relay at real-time priority: {}): trigger relayed {:.2} ms after it; {}",
+        realtime.is_raised(),
+        relay * 1e3,
+        report.join("; ")
+    );
 }

@@ -3,6 +3,7 @@
 //! time is given by the caller in seconds (the main MCU's clock).
 
 pub mod attached;
+pub mod homing;
 pub mod port;
 
 use onechip_protocol::dictionary::Dictionary;
