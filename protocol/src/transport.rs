@@ -164,6 +164,9 @@ pub struct HostLink {
     rto_us: u32,
     /// The timeout the round-trip estimate gives, before any backoff, µs.
     base_rto_us: u32,
+    /// A nak behind a retransmission may still cut the timeout short
+    /// (once per acknowledgement that makes progress).
+    early_retry: bool,
     /// Unacknowledged blocks, oldest first, with their send times.
     sent: heapless::Deque<(heapless::Vec<u8, MAX_LEN>, u64), MAX_PENDING_BLOCKS>,
     sent_bytes: usize,
@@ -211,6 +214,7 @@ impl HostLink {
             rttvar_us: 0,
             rto_us: MIN_RTO_US,
             base_rto_us: MIN_RTO_US,
+            early_retry: true,
             sent: heapless::Deque::new(),
             sent_bytes: 0,
             last_ack_bytes: 0,
@@ -303,13 +307,16 @@ impl HostLink {
             } else if rseq > self.ignore_nak_seq && !self.sent.is_empty() {
                 // A repeated ack is a nak: retransmit now.
                 self.retransmit_at = Some(0);
-            } else if !self.sent.is_empty() {
+            } else if !self.sent.is_empty() && self.early_retry {
                 // A nak behind a retransmission: the peer may be answering
                 // blocks it had already (its acks will follow within a
                 // round trip), or a retransmitted block was lost again.
                 // klippy waits out its whole timeout; here the timeout is
                 // cut to a round trip, which the acks of the first case
-                // put off again.
+                // put off again; once until the peer takes a block (the
+                // retransmission itself may take longer than a round trip
+                // on the wire, and its naks must not retrigger it).
+                self.early_retry = false;
                 let soon = now_us.saturating_add(u64::from(self.nak_hold_off_us()));
                 self.retransmit_at = self.retransmit_at.map(|at| at.min(soon));
             }
@@ -356,6 +363,7 @@ impl HostLink {
             // lost one are answered by naks it ignores, so each timeout
             // doubles the last, to seconds, and steps arrive too late.)
             self.rto_us = self.base_rto_us;
+            self.early_retry = true;
         }
         if self.rtt_sample_seq != 0 && rseq > self.rtt_sample_seq {
             if let Some(sent_at) = acked_sent_at {
