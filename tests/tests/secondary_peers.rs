@@ -454,11 +454,29 @@ fn last_step_after(edges: &[f64], first: f64, trigger: f64) -> f64 {
 /// How long clock syncs run before a homing across MCUs, s.
 const SYNC_SETTLE: f64 = 3.0;
 
+/// Homing attempts before the trsync test gives up.
+const HOMING_ATTEMPTS: usize = 3;
+
 #[test]
 fn an_endstop_on_one_stock_mcu_stops_the_steppers_of_another_through_trsync() {
+    let _alone = one_peer_at_a_time();
+    // A host stalled past trsync's 25 ms (a loaded CI machine) aborts a
+    // homing as on a printer ("Communication timeout during homing"):
+    // every MCU stops by itself, checked by the attempt; it is retried.
+    for attempt in 1..=HOMING_ATTEMPTS {
+        if let Some(report) = trsync_homing_attempt() {
+            println!("trsync homing, attempt {attempt}: {report}");
+            return;
+        }
+    }
+    panic!("{HOMING_ATTEMPTS} homings aborted by communication timeouts");
+}
+
+/// One homing across a fresh Linux MCU (the endstop) and AVR; its figures,
+/// or None if a communication timeout aborted it (every MCU stopped).
+fn trsync_homing_attempt() -> Option<String> {
     use onechip_host::secondary::homing::Homing;
     use onechip_secondary_mcu::trsync::{REPORT_FRACTION, TIMEOUT, reason};
-    let _alone = one_peer_at_a_time();
     // The Linux MCU's inputs read 1: its endstop is pressed as soon as
     // homing samples it.
     let linux_peer = Peer::start_with_inputs(Firmware::Linux, "home-linux", 1);
@@ -528,13 +546,25 @@ fn an_endstop_on_one_stock_mcu_stops_the_steppers_of_another_through_trsync() {
             .unwrap_or_else(|e| panic!("{e}"));
     }
     let (trigger, why) = homing.triggered().expect("the endstop triggered");
-    assert_eq!(
-        why,
-        reason::ENDSTOP_HIT,
-        "{:?}, {} s after arming",
-        homing.stop_reasons(),
-        trigger - armed
-    );
+    if why == reason::COMMS_TIMEOUT {
+        // Both MCUs stopped: by their own timeout or the relay.
+        let stopped =
+            |r: &Option<u8>| matches!(*r, Some(reason::COMMS_TIMEOUT) | Some(reason::HOST_REQUEST));
+        assert!(
+            homing.stop_reasons().iter().all(stopped),
+            "{:?}",
+            homing.stop_reasons()
+        );
+        for (peer, step) in [(&linux_peer, "gpiochip0/gpio1"), (&avr_peer, "PA4")] {
+            assert!(peer.rising_edges(step).len() < usize::from(planned));
+        }
+        println!(
+            "homing aborted by a communication timeout {:.3} s after it started; every MCU stopped",
+            trigger - first
+        );
+        return None;
+    }
+    assert_eq!(why, reason::ENDSTOP_HIT);
     assert!(
         (armed..armed + 0.005).contains(&trigger),
         "triggered {} s after it was armed",
@@ -593,10 +623,10 @@ fn an_endstop_on_one_stock_mcu_stops_the_steppers_of_another_through_trsync() {
             "{name}: its last step {after} s from the trigger"
         );
     }
-    println!(
-        "trsync homing (host relay at real-time priority: {}): trigger relayed {:.2} ms after it; {}",
+    Some(format!(
+        "host relay at real-time priority: {}; trigger relayed {:.2} ms after it; {}",
         realtime.is_raised(),
         relay * 1e3,
         report.join("; ")
-    );
+    ))
 }
