@@ -6,7 +6,7 @@
 
 use super::{Heard, Secondary};
 use onechip_secondary_mcu::connection::SendTextError;
-use onechip_secondary_mcu::trsync::{Dispatch, Member, Relay};
+use onechip_secondary_mcu::trsync::{Dispatch, MAX_MCUS, Member, Relay};
 use std::time::Duration;
 
 /// A homing in progress over some secondaries (`mcus[i]` with trsync
@@ -49,6 +49,13 @@ impl Homing {
         steppers: &[&[u8]],
         start: f64,
     ) -> Result<Self, HomingError> {
+        if trsyncs.len() != mcus.len() || mcus.len() > MAX_MCUS {
+            return Err(HomingError(format!(
+                "{} MCUs with {} trsyncs (one each, at most {MAX_MCUS})",
+                mcus.len(),
+                trsyncs.len()
+            )));
+        }
         let mut members = Vec::new();
         for (mcu, &trsync) in mcus.iter_mut().zip(trsyncs) {
             let sync =
@@ -58,12 +65,11 @@ impl Homing {
             members.push(Member::new(trsync, sync));
         }
         let dispatch = Dispatch::new(&members, start);
-        for (i, mcu) in mcus.iter_mut().enumerate() {
+        for (i, (mcu, &trsync)) in mcus.iter_mut().zip(trsyncs).enumerate() {
             for line in dispatch.start_lines(i, start) {
                 send(mcu, &line)?;
             }
             for oid in steppers.get(i).copied().unwrap_or_default() {
-                let trsync = trsyncs[i];
                 send(
                     mcu,
                     &format!("stepper_stop_on_trigger oid={oid} trsync_oid={trsync}"),
@@ -119,8 +125,10 @@ impl Homing {
                     heard.push((i, h));
                     continue;
                 };
-                if !state.can_trigger && self.stopped[i].is_none() {
-                    self.stopped[i] = Some(state.reason);
+                if let Some(stopped @ None) = self.stopped.get_mut(i)
+                    && !state.can_trigger
+                {
+                    *stopped = Some(state.reason);
                 }
                 let relay = self
                     .dispatch
