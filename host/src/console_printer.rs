@@ -159,6 +159,17 @@ impl ConsolePrinter {
         })
     }
 
+    /// The probe's control pin so far: each change's clock and pulse
+    /// width (s; 0: off).
+    pub fn probe_servo_log(&self) -> &[(u64, f64)] {
+        self.mcu.probe_servo_log()
+    }
+
+    /// The toolhead's real position now, mm.
+    pub fn real_position(&self) -> Option<[f64; 3]> {
+        self.mcu.real_position()
+    }
+
     /// The G-code position (X, Y, Z, E), mm.
     pub fn position(&mut self) -> [f64; 4] {
         self.session.printer().position()

@@ -75,15 +75,16 @@ impl<const N: usize> Toolhead<N> {
     }
 
     /// One homing move of `axis` to `target`, ending where the endstop
-    /// triggers (the sink tells where the steppers stopped).
-    fn homing_move(
+    /// triggers (the sink tells where the steppers stopped); true if it
+    /// triggered.
+    pub(crate) fn homing_move(
         &mut self,
         axis: usize,
         hi: &HomingInfo,
         target: [f64; 4],
         speed: f64,
         sink: &mut impl MoveSink,
-    ) -> Result<(), MoveError> {
+    ) -> Result<bool, MoveError> {
         self.flush_step_generation(sink);
         let start_time = self.last_move_time(sink);
         self.dwell(HOMING_START_DELAY, sink);
@@ -98,6 +99,7 @@ impl<const N: usize> Toolhead<N> {
             position_endstop: hi.position_endstop,
             positive_dir: hi.positive_dir,
             speed,
+            probe: hi.probe,
             start_time,
             end_time,
         });
@@ -107,6 +109,6 @@ impl<const N: usize> Toolhead<N> {
         }
         let halt = end.position;
         self.set_position([halt[0], halt[1], halt[2], target[E]], sink);
-        Ok(())
+        Ok(end.stopped_at.is_some())
     }
 }

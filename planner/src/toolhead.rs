@@ -46,6 +46,8 @@ pub struct HomingInfo {
     pub retract_speed: f64,
     /// The axis' travel (position_min, position_max), mm.
     pub range: (f64, f64),
+    /// The axis homes on the probe (`probe:z_virtual_endstop`).
+    pub probe: bool,
 }
 
 /// Why a move was refused.
@@ -328,6 +330,23 @@ impl Travel {
     pub fn set_axis_homed(&mut self, axis: usize) {
         if let Self::Cartesian(c) = self {
             c.set_homed(&[axis]);
+        }
+    }
+
+    /// True once `axis` is homed (a delta: all or none).
+    pub fn axis_homed(&self, axis: usize) -> bool {
+        match self {
+            Self::Cartesian(c) => c.range.get(axis).is_some_and(|r| r.0 <= r.1),
+            Self::Delta(d) => !d.need_home,
+        }
+    }
+
+    /// Forgets that `axis` is homed (cartesian-style machines).
+    pub fn clear_axis_homed(&mut self, axis: usize) {
+        if let Self::Cartesian(c) = self
+            && let Some(r) = c.range.get_mut(axis)
+        {
+            *r = NOT_HOMED;
         }
     }
 
