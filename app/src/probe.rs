@@ -57,6 +57,37 @@ impl<'a> Probing<'a> {
     }
 }
 
+/// True if `pin` is `probe:z_virtual_endstop` (the rail homes on the
+/// probe's input, not a pin of its own).
+pub fn is_virtual_endstop(pin: &str) -> bool {
+    pin.trim().eq_ignore_ascii_case(onechip_planner::probe::VIRTUAL_ENDSTOP)
+}
+
+/// The probe's input to wire: its engine slot and pin (as written).
+pub fn input<'a>(machine: &Machine<'a>) -> Option<(usize, &'a str)> {
+    Some((machine.probe_slot()?, machine.probe.as_ref()?.pin))
+}
+
+/// The probe's pins for the pin check: its input, and a BLTouch's control
+/// pin.
+pub(crate) fn pin_uses<'m, 'a>(
+    machine: &'m Machine<'a>,
+) -> impl Iterator<Item = crate::pin_check::PinUse<'a>> + 'm {
+    machine.probe.iter().flat_map(|p| {
+        let input = if p.bltouch.is_some() { "sensor_pin" } else { "pin" };
+        let control = p.bltouch.map(|b| b.control_pin);
+        [(input, Some(p.pin)), ("control_pin", control)]
+            .into_iter()
+            .filter_map(move |(option, pin)| {
+                pin.map(|pin| crate::pin_check::PinUse {
+                    section: p.section,
+                    option,
+                    pin,
+                })
+            })
+    })
+}
+
 /// QUERY_PROBE's reply for an input reading `triggered`.
 pub fn query(triggered: bool, out: &mut impl Write) {
     let state = if triggered { "TRIGGERED" } else { "open" };

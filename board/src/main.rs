@@ -212,6 +212,14 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
             *slot = slot.with_endstop(endstop);
         }
     }
+    // The probe's input: an endstop on the slot after the steppers.
+    if let Some((i, pin)) = onechip_app::probe::input(setup.machine())
+        && let Some(slot) = slots.get_mut(i)
+    {
+        let endstop = step_pins::InPin::new(pin)
+            .map_err(|e| error_text(&format_args!("[probe] {e}")))?;
+        *slot = slot.with_endstop(endstop);
+    }
     step_timer::install(step_timer::BoardEngine::new(slots));
     Ok(())
 }
