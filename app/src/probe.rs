@@ -60,7 +60,8 @@ impl<'a> Probing<'a> {
 /// True if `pin` is `probe:z_virtual_endstop` (the rail homes on the
 /// probe's input, not a pin of its own).
 pub fn is_virtual_endstop(pin: &str) -> bool {
-    pin.trim().eq_ignore_ascii_case(onechip_planner::probe::VIRTUAL_ENDSTOP)
+    pin.trim()
+        .eq_ignore_ascii_case(onechip_planner::probe::VIRTUAL_ENDSTOP)
 }
 
 /// The probe's input to wire: its engine slot and pin (as written).
@@ -74,7 +75,11 @@ pub(crate) fn pin_uses<'m, 'a>(
     machine: &'m Machine<'a>,
 ) -> impl Iterator<Item = crate::pin_check::PinUse<'a>> + 'm {
     machine.probe.iter().flat_map(|p| {
-        let input = if p.bltouch.is_some() { "sensor_pin" } else { "pin" };
+        let input = if p.bltouch.is_some() {
+            "sensor_pin"
+        } else {
+            "pin"
+        };
         let control = p.bltouch.map(|b| b.control_pin);
         [(input, Some(p.pin)), ("control_pin", control)]
             .into_iter()

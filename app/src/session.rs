@@ -375,6 +375,9 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if let Some(slot) = self.engine.probe_slot
             && word.eq_ignore_ascii_case(b"QUERY_PROBE")
         {
+            // Read once the queued moves have run (Klipper queries at the
+            // last move's time).
+            self.run("M400", mcu, out)?;
             crate::probe::query(mcu.endstop_triggered(slot), out);
             return Ok(());
         }

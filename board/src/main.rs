@@ -216,8 +216,8 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     if let Some((i, pin)) = onechip_app::probe::input(setup.machine())
         && let Some(slot) = slots.get_mut(i)
     {
-        let endstop = step_pins::InPin::new(pin)
-            .map_err(|e| error_text(&format_args!("[probe] {e}")))?;
+        let endstop =
+            step_pins::InPin::new(pin).map_err(|e| error_text(&format_args!("[probe] {e}")))?;
         *slot = slot.with_endstop(endstop);
     }
     step_timer::install(step_timer::BoardEngine::new(slots));

@@ -165,6 +165,12 @@ impl ConsolePrinter {
         self.mcu.probe_servo_log()
     }
 
+    /// Every endstop trigger so far: axis, the toolhead's real position
+    /// (mm) and the clock.
+    pub fn triggers(&self) -> &[(usize, [f64; 3], u64)] {
+        self.mcu.triggers()
+    }
+
     /// The toolhead's real position now, mm.
     pub fn real_position(&self) -> Option<[f64; 3]> {
         self.mcu.real_position()

@@ -10,7 +10,7 @@
 //! ([`MoveSink::probe_pin`]).
 
 use crate::bltouch::{self, Bltouch, BltouchConfig};
-use crate::move_sink::MoveSink;
+use crate::move_sink::{HomingEnd, HomingMove, MoveSink, TrapqMove};
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
 use onechip_config::{Bounds, Config, ConfigError, Section};
 
@@ -258,6 +258,50 @@ impl crate::machine::Machine<'_> {
     }
 }
 
+/// A sink that passes everything on and notes the last toolhead move and
+/// how the homing move ended.
+struct Watch<'s, S> {
+    sink: &'s mut S,
+    last_move: Option<TrapqMove>,
+    end: Option<HomingEnd>,
+}
+
+impl<S: MoveSink> MoveSink for Watch<'_, S> {
+    fn toolhead(&mut self, m: &TrapqMove) {
+        self.last_move = Some(*m);
+        self.sink.toolhead(m);
+    }
+    fn extruder(&mut self, m: &TrapqMove) {
+        self.sink.extruder(m);
+    }
+    fn set_position(&mut self, pos: [f64; 3]) {
+        self.sink.set_position(pos);
+    }
+    fn probe_pin(&mut self, print_time: f64, pulse_width: f64) {
+        self.sink.probe_pin(print_time, pulse_width);
+    }
+    fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
+        let end = self.sink.homing_move_end(homing);
+        self.end = Some(end);
+        end
+    }
+}
+
+/// Where move `m` is at print time `t` (s), mm.
+fn position_at(m: &TrapqMove, t: f64) -> [f64; 3] {
+    let t = (t - m.print_time).max(0.0);
+    let accel_d = (m.start_v + 0.5 * m.accel * m.accel_t) * m.accel_t;
+    let dist = if t < m.accel_t {
+        (m.start_v + 0.5 * m.accel * t) * t
+    } else if t < m.accel_t + m.cruise_t {
+        accel_d + m.cruise_v * (t - m.accel_t)
+    } else {
+        let td = (t - m.accel_t - m.cruise_t).min(m.decel_t);
+        accel_d + m.cruise_v * m.cruise_t + (m.cruise_v - 0.5 * m.accel * td) * td
+    };
+    core::array::from_fn(|i| m.start_pos[i] + m.axes_r[i] * dist)
+}
+
 fn error(reason: &'static str, end: [f64; 4]) -> MoveError {
     MoveError {
         reason,
@@ -303,7 +347,19 @@ impl<const N: usize> Toolhead<N> {
             range: (min, max),
             probe: true,
         };
-        let triggered = self.homing_move(2, &info, target, speed, sink)?;
+        let mut watch = Watch {
+            sink: &mut *sink,
+            last_move: None,
+            end: None,
+        };
+        let triggered = self.homing_move(2, &info, target, speed, &mut watch)?;
+        if let (Some(m), Some(t)) = (watch.last_move, watch.end.and_then(|e| e.stopped_at)) {
+            // Klipper's probe_pos: where the toolhead was at the trigger,
+            // not the move's target.
+            let at = position_at(&m, t);
+            let e = self.position()[crate::planned_move::E];
+            self.set_position([at[0], at[1], at[2], e], sink);
+        }
         if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &probe.bltouch)
             && !state.down
         {

@@ -1,0 +1,236 @@
+//! The Z probe in virtual time: the shipped printer with its Z endstop
+//! replaced by a probe (`probe:z_virtual_endstop`) over a simulated bed
+//! that is a tilted plane. Homing Z stops where the probe touches the bed
+//! and sets Z = z_offset; PROBE elsewhere measures the bed's height there
+//! (relative to where Z homed); PROBE_ACCURACY reports as Klipper; a probe
+//! that never reaches the bed ends with Klipper's error; a BLTouch's servo
+//! pulses follow Klipper's timings.
+
+use onechip_host::console_printer::ConsolePrinter;
+use onechip_host::{Options, Start};
+use std::path::PathBuf;
+
+/// Z mm per step of the shipped printer.
+const Z_STEP: f64 = 0.0025;
+/// The probe's offsets from the nozzle, mm.
+const OFFSETS: [f64; 3] = [-30.0, 10.0, 1.5];
+/// Where Z homes ([safe_z_home] home_xy_position), mm.
+const HOME_XY: [f64; 2] = [150.0, 150.0];
+/// The bed: 0.3 mm at X = Y = 0, rising 2 µm per mm of X, falling 1 µm
+/// per mm of Y.
+const BED: [f64; 3] = [0.3, 0.002, -0.001];
+/// The shipped printer's clock, Hz.
+const FREQ: f64 = 260_000_000.0;
+
+fn bed(x: f64, y: f64, plane: [f64; 3]) -> f64 {
+    plane[0] + plane[1] * x + plane[2] * y
+}
+
+/// The shipped printer.cfg with Z homing on `probe` (a section).
+fn printer(name: &str, probe: &str, plane: [f64; 3]) -> ConsolePrinter {
+    let dir = std::env::temp_dir().join(format!("onechip-probe-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let shipped =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
+    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let cfg = cfg.replace(
+        "endstop_pin: PG10\nposition_endstop: 0.5\n",
+        "endstop_pin: probe:z_virtual_endstop\nposition_min: -2\n",
+    );
+    assert!(
+        cfg.contains("probe:z_virtual_endstop"),
+        "the shipped Z moved"
+    );
+    let [x, y] = HOME_XY;
+    let cfg = format!("{cfg}\n{probe}\n[safe_z_home]\nhome_xy_position: {x}, {y}\nspeed: 100\n");
+    std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
+    let options = Options {
+        start: Start::At([100.0, 120.0, 40.0]),
+        bed: plane,
+        ..Options::default()
+    };
+    ConsolePrinter::new(&dir, &options).expect("loads")
+}
+
+fn probe_section() -> String {
+    let [x, y, z] = OFFSETS;
+    format!("[probe]\npin: ^PG10\nx_offset: {x}\ny_offset: {y}\nz_offset: {z}\nspeed: 5\n")
+}
+
+/// The `z=` value of the first reply line starting with `prefix`.
+fn z_of(replies: &str, prefix: &str) -> f64 {
+    let line = replies
+        .lines()
+        .find(|l| l.starts_with(prefix))
+        .unwrap_or_else(|| panic!("no {prefix:?} in {replies}"));
+    line.rsplit("z=")
+        .next()
+        .and_then(|z| z.trim().parse().ok())
+        .expect("z=")
+}
+
+#[test]
+fn z_homes_on_the_probe_at_the_bed_and_probe_measures_the_bed() {
+    let mut p = printer("home", &probe_section(), BED);
+    let home = p.send("G28");
+    assert!(home.ends_with("ok\n") && !home.contains("!!"), "{home}");
+    // Z = z_offset at the trigger, with the probe on the bed at HOME_XY.
+    assert_eq!(p.send("M114"), "X:150.000 Y:150.000 Z:1.500 E:0.000\nok\n");
+    let probe_at = |x: f64, y: f64| bed(x + OFFSETS[0], y + OFFSETS[1], BED);
+    let home_bed = probe_at(HOME_XY[0], HOME_XY[1]);
+    let real = p.real_position().expect("physics");
+    assert!(
+        (real[2] - (home_bed + OFFSETS[2])).abs() <= Z_STEP + 1e-9,
+        "nozzle at {real:?}, bed under the probe at {home_bed}"
+    );
+    let z_triggers = p.triggers().iter().filter(|t| t.0 == 2).count();
+    assert_eq!(
+        z_triggers, 2,
+        "two homing moves of Z, each stopped by the probe"
+    );
+    // PROBE elsewhere: the bed's height there relative to where Z homed.
+    let (x, y) = (60.0, 40.0);
+    let r = p.send(&format!("G1 X{x} Y{y} Z8 F6000\nPROBE"));
+    let expected = OFFSETS[2] + probe_at(x, y) - home_bed;
+    let at = z_of(&r, "// probe at 60.000,40.000 is z=");
+    let result = z_of(&r, "// Result is z=");
+    assert_eq!(at, result, "one sample: the result is the sample");
+    assert!(
+        (result - expected).abs() <= Z_STEP + 1e-9,
+        "{result} vs {expected}\n{r}"
+    );
+    // QUERY_PROBE: pressed on the bed, open 2 mm above it.
+    assert!(p.send("QUERY_PROBE").starts_with("// probe: TRIGGERED\n"));
+    p.send("G1 Z5");
+    assert_eq!(p.send("QUERY_PROBE"), "// probe: open\nok\n");
+    // G-code position follows the probing: a relative move goes from it.
+    assert_eq!(p.send("M114"), "X:60.000 Y:40.000 Z:5.000 E:0.000\nok\n");
+}
+
+#[test]
+fn probe_accuracy_reports_as_klipper() {
+    let mut p = printer("accuracy", &probe_section(), BED);
+    p.send("G28");
+    let r = p.send("G1 X100 Y100 Z10 F6000\nPROBE_ACCURACY SAMPLES=5 SAMPLE_RETRACT_DIST=1.5");
+    let lines: Vec<&str> = r.lines().collect();
+    assert!(
+        lines.contains(
+            &"// PROBE_ACCURACY at X:100.000 Y:100.000 Z:10.000 (samples=5 retract=1.500 \
+          speed=5.0 lift_speed=5.0)"
+        ),
+        "{r}"
+    );
+    let samples: Vec<f64> = lines
+        .iter()
+        .filter(|l| l.starts_with("// probe at 100.000,100.000 is z="))
+        .map(|l| z_of(l, "// probe at"))
+        .collect();
+    assert_eq!(samples.len(), 5, "{r}");
+    let results = lines
+        .iter()
+        .find(|l| l.starts_with("// probe accuracy results: "))
+        .expect("results line");
+    let max = samples.iter().cloned().fold(f64::MIN, f64::max);
+    let min = samples.iter().cloned().fold(f64::MAX, f64::min);
+    let avg = samples.iter().sum::<f64>() / 5.0;
+    let mut sorted = samples.clone();
+    sorted.sort_by(f64::total_cmp);
+    let sigma = (samples.iter().map(|z| (z - avg).powi(2)).sum::<f64>() / 5.0).sqrt();
+    assert_eq!(
+        *results,
+        format!(
+            "// probe accuracy results: maximum {max:.6}, minimum {min:.6}, range {:.6}, \
+             average {avg:.6}, median {:.6}, standard deviation {sigma:.6}",
+            max - min,
+            sorted[2]
+        )
+    );
+    // A simulated probe repeats within a step.
+    assert!(max - min <= Z_STEP, "{r}");
+    // After the last sample the toolhead is lifted by the retract.
+    let last = p.send("M114");
+    let z: f64 = last
+        .split("Z:")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|z| z.parse().ok())
+        .expect("M114 Z");
+    assert!((z - (samples[4] + 1.5)).abs() < 0.001, "{last}");
+}
+
+#[test]
+fn a_probe_that_never_reaches_the_bed_ends_with_klippers_error() {
+    // A bed falling 5 mm per 100 mm towards X 0: Z homes (on the probe) at
+    // X 150; at X 40 the bed is 5.5 mm lower, beyond position_min (-2)
+    // from z_offset (1.5): the probe meets nothing.
+    let mut p = printer("no-trigger", &probe_section(), [0.0, 0.05, 0.0]);
+    p.send("G28");
+    let r = p.send("G1 X40 F6000\nPROBE");
+    assert!(
+        r.contains("!! No trigger on probe after full movement"),
+        "{r}"
+    );
+    // It went all the way down to position_min.
+    assert!(p.send("M114").contains("Z:-2.000"));
+    // Before homing, probing is refused as Klipper does.
+    let mut p = printer("unhomed", &probe_section(), BED);
+    assert!(p.send("PROBE").contains("!! Must home before probe"));
+}
+
+#[test]
+fn bltouch_deploys_probes_and_stows_with_klippers_timings() {
+    let [x, y, z] = OFFSETS;
+    let section = format!(
+        "[bltouch]\nsensor_pin: ^PG10\ncontrol_pin: PB6\nx_offset: {x}\ny_offset: {y}\n\
+         z_offset: {z}\n"
+    );
+    let mut p = printer("bltouch", &section, BED);
+    p.send("G28");
+    let before = p.probe_servo_log().len();
+    let r = p.send("G1 X100 Y100 Z5 F6000\nPROBE");
+    assert!(r.contains("// Result is z="), "{r}");
+    let log: Vec<(f64, f64)> = p.probe_servo_log()[before..]
+        .iter()
+        .map(|&(clock, width)| (clock as f64 / FREQ, width))
+        .collect();
+    let widths: Vec<f64> = log.iter().map(|e| e.1).collect();
+    // Sensor test (pin up, touch mode), pin down, then pin up after the
+    // trigger; each pulse train followed by the signal off.
+    assert_eq!(
+        widths,
+        [
+            0.001_475, 0.0, 0.001_165, 0.0, 0.000_650, 0.0, 0.001_475, 0.0
+        ],
+        "{log:?}"
+    );
+    let t = |i: usize| log[i].0;
+    let close = |a: f64, b: f64| (a - b).abs() < 2e-6;
+    // pin_move_time 0.68 s: the signal held 0.58 s (whole 20 ms periods
+    // past the 0.1 s minimum), the next command after the 0.68 s.
+    assert!(
+        close(t(1) - t(0), 0.58) && close(t(2) - t(0), 0.68),
+        "{log:?}"
+    );
+    assert!(close(t(3) - t(2), 0.10), "{log:?}");
+    // After touch mode: 0.1 s held, 0.1 s before the next command.
+    assert!(
+        close(t(4) - t(3), 0.10) && close(t(5) - t(4), 0.58),
+        "{log:?}"
+    );
+    // The probing move starts once the pin is down, and the pin goes up
+    // 0.1 s after the trigger.
+    let trigger = p.triggers().last().expect("probe triggered").2 as f64 / FREQ;
+    assert!(
+        trigger > t(4) + 0.68,
+        "trigger {trigger} vs pin down {}",
+        t(4)
+    );
+    assert!(
+        close(t(6) - trigger, 0.10) || t(6) - trigger < 0.1 + 0.001,
+        "{log:?}"
+    );
+    assert!(t(6) >= trigger + 0.1 - 1e-6, "{log:?}");
+    assert!(close(t(7) - t(6), 0.58), "{log:?}");
+    // The toolhead waits for the pin: nothing moves before it is up.
+    assert!(p.send("M400").ends_with("ok\n"));
+}
