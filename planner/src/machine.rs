@@ -443,7 +443,7 @@ fn read_stepper<'c, 'a>(
 
 /// For a rail homing on `probe:z_virtual_endstop`: the probe's z_offset
 /// (its position_endstop, as in Klipper), or why it cannot.
-fn probe_z<'c>(
+fn probe_z(
     stepper: &Stepper<'_>,
     axis: usize,
     probe: &Option<ProbeConfig<'_>>,
