@@ -454,7 +454,11 @@ fn probe_z(
             Some(_) => Err("probe:z_virtual_endstop can only home Z"),
             None => Err("names chip 'probe': add a [probe] or [bltouch] section"),
         },
-        Some(pin) if pin.contains("probe:") => {
+        Some(pin)
+            if pin
+                .trim_start_matches(['^', '~', '!', ' '])
+                .eq_ignore_ascii_case(probe::VIRTUAL_ENDSTOP) =>
+        {
             Err("probe:z_virtual_endstop can not be inverted or pulled up")
         }
         _ => Ok(None),
