@@ -665,20 +665,24 @@ mod tests {
         let text = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
             [stepper_x]\nstep_pin: PF13\ndir_pin: !PF12\nenable_pin: !PF14\nendstop_pin: ^PG6\n\
             microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nendstop_pin: probe:z_virtual_endstop\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\n\
             microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
             [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-            position_endstop: 0\nposition_max: 200\n";
+            endstop_pin: probe:z_virtual_endstop\nposition_max: 200\n\
+            [probe]\npin: ^PG10\nz_offset: 1.25\n";
         let config = onechip_config::Config::parse("printer.cfg", text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
         let x = &machine.steppers[0];
         assert_eq!((x.step_pin, x.dir_pin), ("PF13", "!PF12"));
         assert_eq!((x.enable_pin, x.endstop_pin), (Some("!PF14"), Some("^PG6")));
+        assert_eq!(machine.steppers[1].endstop_pin, None);
         assert_eq!(
-            machine.steppers[1].endstop_pin,
+            machine.steppers[2].endstop_pin,
             Some("probe:z_virtual_endstop")
         );
-        assert_eq!(machine.steppers[2].endstop_pin, None);
+        // Z homes on the probe: its position_endstop is the z_offset.
+        let z = machine.travel.homing_info(2).expect("z homes");
+        assert!(z.probe && z.position_endstop == 1.25);
     }
 
     #[test]
