@@ -9,10 +9,13 @@ use core::fmt::Write;
 use onechip_planner::bltouch::Command as BltCommand;
 use onechip_planner::gcode::{self, Command, Extended, Line};
 use onechip_planner::gcode_move::CommandError;
+use onechip_planner::homing::NoHooks;
 use onechip_planner::machine::Machine;
 use onechip_planner::math::sqrt;
 use onechip_planner::move_sink::MoveSink;
-use onechip_planner::probe::{MAX_SAMPLES, ProbeConfig, ProbeState, SamplesResult, Sampling};
+use onechip_planner::probe::{
+    MAX_SAMPLES, ProbeConfig, ProbeHooks, ProbeState, SamplesResult, Sampling,
+};
 use onechip_planner::safe_home::{G28, requested};
 
 /// Lift before PROBE_CALIBRATE's manual probe, mm (Klipper's).
@@ -203,33 +206,76 @@ impl<'a, const N: usize> Printer<'a, N> {
     where
         'a: 'l,
     {
-        if self.probing.in_override {
-            return Ok(false);
-        }
-        match self.probing.g28 {
-            G28::Plain => Ok(false),
-            G28::SafeZ(cfg) => {
-                let homed = self.toolhead.home_safe_z(&cfg, named, sink);
-                self.gcode.reset_last_position(&self.toolhead);
-                homed.map_err(CommandError::Move)?;
-                Ok(true)
+        let Probing {
+            probe,
+            state,
+            now,
+            g28,
+            in_override,
+            ..
+        } = &mut self.probing;
+        // Inside `[homing_override]`'s gcode, G28 homes plainly.
+        let g28 = if *in_override { G28::Plain } else { *g28 };
+        let homed = match (&g28, probe.as_ref()) {
+            (G28::SafeZ(cfg), Some(probe)) => {
+                let mut hooks = ProbeHooks {
+                    probe,
+                    state,
+                    now: *now,
+                };
+                self.toolhead.home_safe_z(cfg, named, sink, &mut hooks)
             }
-            G28::Override(cfg) => {
+            (G28::SafeZ(cfg), None) => self.toolhead.home_safe_z(cfg, named, sink, &mut NoHooks),
+            (G28::Plain, Some(probe)) => {
+                // As gcode_move's G28, with the probe deployed around its
+                // homing moves.
                 let need = requested(named);
-                if !(0..3).any(|a| need[a] && cfg.axes[a]) {
-                    return Ok(false);
-                }
-                self.toolhead.force_override_position(&cfg, sink);
-                self.gcode.reset_last_position(&self.toolhead);
-                self.probing.in_override = true;
-                let ran = cfg.gcode.lines().try_for_each(|text| {
-                    let line = gcode::parse(text)?;
-                    self.execute(&line, sink, out)
-                });
-                self.probing.in_override = false;
-                ran.map(|()| true)
+                let axes: heapless::Vec<usize, 3> = (0..3).filter(|&a| need[a]).collect();
+                let mut hooks = ProbeHooks {
+                    probe,
+                    state,
+                    now: *now,
+                };
+                self.toolhead.home_with(&axes, sink, &mut hooks)
             }
+            (G28::Plain, None) => return Ok(false),
+            (G28::Override(_), _) => return self.g28_override(named, sink, out),
+        };
+        self.gcode.reset_last_position(&self.toolhead);
+        homed.map_err(CommandError::Move)?;
+        Ok(true)
+    }
+
+    /// G28 through `[homing_override]`.
+    fn g28_override<'l>(
+        &mut self,
+        named: [bool; 3],
+        sink: &mut impl MoveSink,
+        out: &mut impl Write,
+    ) -> Result<bool, LineError<'l>>
+    where
+        'a: 'l,
+    {
+        let G28::Override(cfg) = self.probing.g28 else {
+            return Ok(false);
+        };
+        let need = requested(named);
+        if !(0..3).any(|a| need[a] && cfg.axes[a]) {
+            // Not overridden: G28 as without the section.
+            self.probing.in_override = true;
+            let homed = self.g28(named, sink, out);
+            self.probing.in_override = false;
+            return homed;
         }
+        self.toolhead.force_override_position(&cfg, sink);
+        self.gcode.reset_last_position(&self.toolhead);
+        self.probing.in_override = true;
+        let ran = cfg.gcode.lines().try_for_each(|text| {
+            let line = gcode::parse(text)?;
+            self.execute(&line, sink, out)
+        });
+        self.probing.in_override = false;
+        ran.map(|()| true)
     }
 
     fn probe_extended<'l>(

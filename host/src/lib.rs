@@ -846,7 +846,7 @@ fn physics(machine: &Machine<'_>, options: &Options) -> Option<Physics> {
             // A rail homing on the probe has no switch of its own.
             (!info.probe).then_some((info.position_endstop, info.positive_dir))
         }),
-        probe: probe_physics::for_machine(machine, options.bed),
+        probe: probe_physics::for_machine(machine, options.bed, options.mcu_freq),
     })
 }
 

@@ -26,7 +26,7 @@ use onechip_sched::engine::{Engine, Full};
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 use onechip_sched::stepper::StepPins;
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
 use std::path::Path;
 use std::rc::Rc;
 use std::sync::Arc;
@@ -68,6 +68,8 @@ impl Physics {
 struct Rails {
     physics: Physics,
     steps: Cell<[i64; 3]>,
+    /// The probe's control pin: each change's clock and pulse width (s).
+    servo: RefCell<Vec<(u64, f64)>>,
 }
 
 impl Rails {
@@ -80,12 +82,13 @@ impl Rails {
         if above { coord >= at } else { coord <= at }
     }
 
-    /// True while the probe touches the bed.
-    fn probe_pressed(&self) -> bool {
+    /// True while the probe's input reads triggered at clock `now`.
+    fn probe_pressed(&self, now: u64) -> bool {
         let Some((_, probe)) = &self.physics.probe else {
             return false;
         };
-        probe.pressed(self.physics.toolhead(self.steps.get()))
+        let servo = self.servo.borrow();
+        probe.pressed(self.physics.toolhead(self.steps.get()), now, &servo)
     }
 }
 
@@ -118,7 +121,7 @@ impl StepPins for Recorder {
 
     fn endstop_triggered(&mut self) -> bool {
         if let Some(rails) = &self.probe {
-            return rails.probe_pressed();
+            return rails.probe_pressed(self.clock);
         }
         self.rail
             .as_ref()
@@ -248,6 +251,7 @@ impl VirtualMcu {
         let rails = Rc::new(Rails {
             physics,
             steps: Cell::new([0; 3]),
+            servo: RefCell::new(Vec::new()),
         });
         for (k, pins) in self.engine.pins_mut().take(3).enumerate() {
             pins.rail = Some((k, Rc::clone(&rails)));
@@ -633,6 +637,9 @@ impl Mcu for VirtualMcu {
 
     fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
         self.servo.push((clock, pulse_width));
+        if let Some(rails) = &self.rails {
+            rails.servo.borrow_mut().push((clock, pulse_width));
+        }
     }
 
     fn emergency_stop(&mut self) {

@@ -201,11 +201,9 @@ impl Bltouch {
     pub fn lower<const N: usize>(
         &mut self,
         cfg: &BltouchConfig<'_>,
-        now: f64,
         toolhead: &mut Toolhead<N>,
         sink: &mut impl MoveSink,
     ) {
-        let _ = now;
         if cfg.pin_up_touch_mode_reports_triggered {
             let print_time = toolhead.last_move_time(sink);
             if print_time < self.next_test_time {

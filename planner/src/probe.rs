@@ -10,6 +10,7 @@
 //! ([`MoveSink::probe_pin`]).
 
 use crate::bltouch::{self, Bltouch, BltouchConfig};
+use crate::homing::HomingHooks;
 use crate::move_sink::{HomingEnd, HomingMove, MoveSink, TrapqMove};
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -258,6 +259,47 @@ impl crate::machine::Machine<'_> {
     }
 }
 
+/// The probe's part of homing and probing moves: a BLTouch's pin goes
+/// down before each move on the probe and up after it, or (with
+/// stow_on_each_sample off) stays down for all the moves of one command.
+pub struct ProbeHooks<'p, 'c> {
+    /// The probe.
+    pub probe: &'p ProbeConfig<'c>,
+    /// Its state.
+    pub state: &'p mut ProbeState,
+    /// The MCU's print time when the command started, s.
+    pub now: f64,
+}
+
+impl<const N: usize> HomingHooks<N> for ProbeHooks<'_, '_> {
+    fn rails_begin(&mut self) {
+        self.state.begin_multi();
+    }
+
+    fn rails_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        toolhead.end_multi_probe(self.probe, self.state, self.now, sink);
+    }
+
+    fn move_begin(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        let state = &mut *self.state;
+        if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &self.probe.bltouch)
+            && !state.down
+        {
+            blt.lower(cfg, toolhead, sink);
+            state.down = state.multi && !cfg.stow_on_each_sample;
+        }
+    }
+
+    fn move_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        let state = &mut *self.state;
+        if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &self.probe.bltouch)
+            && !state.down
+        {
+            blt.raise(cfg, self.now, toolhead, sink);
+        }
+    }
+}
+
 /// A sink that passes everything on and notes the last toolhead move and
 /// how the homing move ended.
 struct Watch<'s, S> {
@@ -328,12 +370,6 @@ impl<const N: usize> Toolhead<N> {
         if !self.kinematics.axis_homed(2) {
             return Err(error(MUST_HOME, start));
         }
-        if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &probe.bltouch)
-            && !state.down
-        {
-            blt.lower(cfg, now, self, sink);
-            state.down = state.multi && !cfg.stow_on_each_sample;
-        }
         let mut target = start;
         target[2] = probe.z_position;
         let (min, max) = (probe.z_position, start[2].max(probe.z_position));
@@ -352,18 +388,14 @@ impl<const N: usize> Toolhead<N> {
             last_move: None,
             end: None,
         };
-        let triggered = self.homing_move(2, &info, target, speed, &mut watch)?;
+        let mut hooks = ProbeHooks { probe, state, now };
+        let triggered = self.homing_move(2, &info, target, speed, &mut watch, &mut hooks)?;
         if let (Some(m), Some(t)) = (watch.last_move, watch.end.and_then(|e| e.stopped_at)) {
             // Klipper's probe_pos: where the toolhead was at the trigger,
             // not the move's target.
             let at = position_at(&m, t);
             let e = self.position()[crate::planned_move::E];
             self.set_position([at[0], at[1], at[2], e], sink);
-        }
-        if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &probe.bltouch)
-            && !state.down
-        {
-            blt.raise(cfg, now, self, sink);
         }
         if !triggered {
             return Err(error(NO_TRIGGER, self.position()));

@@ -10,6 +10,7 @@
 //!   that gcode homes as usual. The lines are run by the caller (they may
 //!   be any command); this module reads the section.
 
+use crate::homing::HomingHooks;
 use crate::move_sink::MoveSink;
 use crate::toolhead::{Detail, MoveError, Toolhead};
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -139,6 +140,7 @@ impl<const N: usize> Toolhead<N> {
         cfg: &SafeZHome,
         named: [bool; 3],
         sink: &mut impl MoveSink,
+        hooks: &mut impl HomingHooks<N>,
     ) -> Result<(), MoveError> {
         let need = requested(named);
         if cfg.z_hop != 0.0 {
@@ -157,7 +159,7 @@ impl<const N: usize> Toolhead<N> {
         }
         let xy: heapless::Vec<usize, 2> = (0..2).filter(|&a| need[a]).collect();
         if !xy.is_empty() {
-            self.home(&xy, sink)?;
+            self.home_with(&xy, sink, hooks)?;
         }
         if !need[2] {
             return Ok(());
@@ -174,7 +176,7 @@ impl<const N: usize> Toolhead<N> {
         over[0] = cfg.home_xy[0];
         over[1] = cfg.home_xy[1];
         self.move_to(over, cfg.speed, sink)?;
-        self.home(&[2], sink)?;
+        self.home_with(&[2], sink, hooks)?;
         if cfg.z_hop != 0.0 && self.position()[2] < cfg.z_hop {
             self.lift_to(cfg.z_hop, cfg.z_hop_speed, sink)?;
         }
