@@ -26,8 +26,20 @@ fn bed(x: f64, y: f64, plane: [f64; 3]) -> f64 {
     plane[0] + plane[1] * x + plane[2] * y
 }
 
-/// The shipped printer.cfg with Z homing on `probe` (a section).
+/// `[safe_z_home]` at [`HOME_XY`], with `extra` options.
+fn safe_z_home(extra: &str) -> String {
+    let [x, y] = HOME_XY;
+    format!("[safe_z_home]\nhome_xy_position: {x}, {y}\nspeed: 100\n{extra}")
+}
+
+/// The shipped printer.cfg with Z homing on `probe` (sections), and
+/// `[safe_z_home]` at [`HOME_XY`].
 fn printer(name: &str, probe: &str, plane: [f64; 3]) -> ConsolePrinter {
+    printer_with(name, &format!("{probe}\n{}", safe_z_home("")), plane)
+}
+
+/// The shipped printer.cfg with Z homing on a probe, and `sections`.
+fn printer_with(name: &str, sections: &str, plane: [f64; 3]) -> ConsolePrinter {
     let dir = std::env::temp_dir().join(format!("onechip-probe-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let shipped =
@@ -41,8 +53,7 @@ fn printer(name: &str, probe: &str, plane: [f64; 3]) -> ConsolePrinter {
         cfg.contains("probe:z_virtual_endstop"),
         "the shipped Z moved"
     );
-    let [x, y] = HOME_XY;
-    let cfg = format!("{cfg}\n{probe}\n[safe_z_home]\nhome_xy_position: {x}, {y}\nspeed: 100\n");
+    let cfg = format!("{cfg}\n{sections}\n");
     std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
     let options = Options {
         start: Start::At([100.0, 120.0, 40.0]),
@@ -251,4 +262,78 @@ fn bltouch_deploys_probes_and_stows_with_klippers_timings() {
     );
     // The toolhead waits for the pin: nothing moves before it is up.
     assert!(p.send("M400").ends_with("ok\n"));
+}
+
+/// The G-code position M114 reports (X, Y, Z), mm.
+fn m114(p: &mut ConsolePrinter) -> [f64; 3] {
+    let r = p.send("M114");
+    let mut xyz = [f64::NAN; 3];
+    for (k, axis) in ["X:", "Y:", "Z:"].iter().enumerate() {
+        xyz[k] = r
+            .split(axis)
+            .nth(1)
+            .and_then(|v| v.split(' ').next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("{r}"));
+    }
+    xyz
+}
+
+#[test]
+fn safe_z_home_hops_homes_z_over_its_point_and_goes_back() {
+    let sections = format!(
+        "{}\n{}",
+        probe_section(),
+        safe_z_home("z_hop: 10\nz_hop_speed: 15\nmove_to_previous: True\n")
+    );
+    let mut p = printer_with("z-hop", &sections, BED);
+    // Z is not homed yet: Z homes only after X and Y.
+    let r = p.send("G28 Z");
+    assert!(r.contains("!! Must home X and Y axes first"), "{r}");
+    let r = p.send("G28");
+    assert!(!r.contains("!!"), "{r}");
+    // After homing: Z lifted to z_hop, XY back where X and Y homed (0, 0).
+    assert_eq!(m114(&mut p), [0.0, 0.0, 10.0]);
+    p.send("M400");
+    let real = p.real_position().expect("physics");
+    assert!(
+        real[0].abs() <= 0.0125 && real[1].abs() <= 0.0125,
+        "{real:?}"
+    );
+    let home_bed = bed(HOME_XY[0] + OFFSETS[0], HOME_XY[1] + OFFSETS[1], BED);
+    // Z = 10 is 8.5 mm above where the probe triggered (Z = z_offset).
+    let expected = home_bed + OFFSETS[2] + (10.0 - OFFSETS[2]);
+    assert!(
+        (real[2] - expected).abs() <= Z_STEP + 1e-9,
+        "{real:?} vs {expected}"
+    );
+    // The Z triggers happened with the probe over HOME_XY.
+    for t in p.triggers().iter().filter(|t| t.0 == 2) {
+        assert_eq!([t.1[0], t.1[1]], HOME_XY);
+    }
+}
+
+#[test]
+fn homing_override_runs_its_gcode_for_its_axes() {
+    let sections = format!(
+        "{}\n[homing_override]\naxes: z\nset_position_z: 0\ngcode:\n  G1 Z5 F600\n  \
+         G28 X0 Y0\n  G1 X120 Y130 F6000\n  G28 Z0\n  G1 Z10 F600\n",
+        probe_section()
+    );
+    let mut p = printer_with("override", &sections, BED);
+    // G28 X: not one of its axes, X homes as usual.
+    assert!(!p.send("G28 X").contains("!!"));
+    assert_eq!(m114(&mut p)[0], 0.0);
+    // G28: the script (Z may move first: set_position_z marks it homed).
+    let r = p.send("G28");
+    assert!(!r.contains("!!"), "{r}");
+    assert_eq!(m114(&mut p), [120.0, 130.0, 10.0]);
+    p.send("M400");
+    let real = p.real_position().expect("physics");
+    let probe_bed = bed(120.0 + OFFSETS[0], 130.0 + OFFSETS[1], BED);
+    let expected = probe_bed + 10.0;
+    assert!(
+        (real[2] - expected).abs() <= Z_STEP + 1e-9,
+        "{real:?} vs {expected}"
+    );
 }
