@@ -118,8 +118,8 @@ impl<const N: usize> Toolhead<N> {
     }
 
     /// One homing move of `axis` to `target`, ending where the endstop
-    /// triggers (the sink tells where the steppers stopped); true if it
-    /// triggered.
+    /// triggers (the sink tells where the steppers stopped); the print
+    /// time of the trigger, if it triggered.
     pub(crate) fn homing_move(
         &mut self,
         axis: usize,
@@ -128,7 +128,7 @@ impl<const N: usize> Toolhead<N> {
         speed: f64,
         sink: &mut impl MoveSink,
         hooks: &mut impl HomingHooks<N>,
-    ) -> Result<bool, MoveError> {
+    ) -> Result<Option<f64>, MoveError> {
         if hi.probe {
             hooks.move_begin(self, sink);
         }
@@ -159,6 +159,6 @@ impl<const N: usize> Toolhead<N> {
         if hi.probe {
             hooks.move_end(self, sink);
         }
-        Ok(end.stopped_at.is_some())
+        Ok(end.stopped_at)
     }
 }

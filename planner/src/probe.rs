@@ -11,7 +11,7 @@
 
 use crate::bltouch::{self, Bltouch, BltouchConfig};
 use crate::homing::HomingHooks;
-use crate::move_sink::{HomingEnd, HomingMove, MoveSink, TrapqMove};
+use crate::move_sink::MoveSink;
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
 use onechip_config::{Bounds, Config, ConfigError, Section};
 
@@ -300,50 +300,6 @@ impl<const N: usize> HomingHooks<N> for ProbeHooks<'_, '_> {
     }
 }
 
-/// A sink that passes everything on and notes the last toolhead move and
-/// how the homing move ended.
-struct Watch<'s, S> {
-    sink: &'s mut S,
-    last_move: Option<TrapqMove>,
-    end: Option<HomingEnd>,
-}
-
-impl<S: MoveSink> MoveSink for Watch<'_, S> {
-    fn toolhead(&mut self, m: &TrapqMove) {
-        self.last_move = Some(*m);
-        self.sink.toolhead(m);
-    }
-    fn extruder(&mut self, m: &TrapqMove) {
-        self.sink.extruder(m);
-    }
-    fn set_position(&mut self, pos: [f64; 3]) {
-        self.sink.set_position(pos);
-    }
-    fn probe_pin(&mut self, print_time: f64, pulse_width: f64) {
-        self.sink.probe_pin(print_time, pulse_width);
-    }
-    fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
-        let end = self.sink.homing_move_end(homing);
-        self.end = Some(end);
-        end
-    }
-}
-
-/// Where move `m` is at print time `t` (s), mm.
-fn position_at(m: &TrapqMove, t: f64) -> [f64; 3] {
-    let t = (t - m.print_time).max(0.0);
-    let accel_d = (m.start_v + 0.5 * m.accel * m.accel_t) * m.accel_t;
-    let dist = if t < m.accel_t {
-        (m.start_v + 0.5 * m.accel * t) * t
-    } else if t < m.accel_t + m.cruise_t {
-        accel_d + m.cruise_v * (t - m.accel_t)
-    } else {
-        let td = (t - m.accel_t - m.cruise_t).min(m.decel_t);
-        accel_d + m.cruise_v * m.cruise_t + (m.cruise_v - 0.5 * m.accel * td) * td
-    };
-    core::array::from_fn(|i| m.start_pos[i] + m.axes_r[i] * dist)
-}
-
 fn error(reason: &'static str, end: [f64; 4]) -> MoveError {
     MoveError {
         reason,
@@ -383,21 +339,15 @@ impl<const N: usize> Toolhead<N> {
             range: (min, max),
             probe: true,
         };
-        let mut watch = Watch {
-            sink: &mut *sink,
-            last_move: None,
-            end: None,
-        };
         let mut hooks = ProbeHooks { probe, state, now };
-        let triggered = self.homing_move(2, &info, target, speed, &mut watch, &mut hooks)?;
-        if let (Some(m), Some(t)) = (watch.last_move, watch.end.and_then(|e| e.stopped_at)) {
-            // Klipper's probe_pos: where the toolhead was at the trigger,
-            // not the move's target.
-            let at = position_at(&m, t);
-            let e = self.position()[crate::planned_move::E];
-            self.set_position([at[0], at[1], at[2], e], sink);
+        let trigger = self.homing_move(2, &info, target, speed, sink, &mut hooks)?;
+        // Klipper's probe_pos: where the toolhead was at the trigger, not
+        // the move's target.
+        if let Some(mut at) = trigger.and_then(|t| self.released_position_at(t)) {
+            at[crate::planned_move::E] = self.position()[crate::planned_move::E];
+            self.set_position(at, sink);
         }
-        if !triggered {
+        if trigger.is_none() {
             return Err(error(NO_TRIGGER, self.position()));
         }
         let p = self.position();
