@@ -18,6 +18,9 @@ use onechip_planner::probe::{
 };
 use onechip_planner::safe_home::{G28, requested};
 
+/// The BLTouch's servo signal period, s (for the board's control pin).
+pub use onechip_planner::bltouch::SIGNAL_PERIOD;
+
 /// Lift before PROBE_CALIBRATE's manual probe, mm (Klipper's).
 const CALIBRATE_LIFT: f64 = 5.0;
 /// PROBE_ACCURACY's samples when not given (Klipper's).

@@ -18,6 +18,7 @@ mod handler_cell;
 mod heater_io;
 mod octopus_pro_v1_1;
 mod priority;
+mod probe_servo;
 mod safety;
 mod sd_card;
 mod step_pins;
@@ -182,6 +183,16 @@ fn load_printer(
     }
     install_engine(&setup)?;
     install_heaters(&mut setup, thermistors)?;
+    if let Some(pin) = setup
+        .machine()
+        .probe
+        .and_then(|p| p.bltouch)
+        .map(|b| b.control_pin)
+    {
+        let pin = step_pins::OutPin::new_safe_off(pin)
+            .map_err(|e| error_text(&format_args!("[bltouch] {e}")))?;
+        probe_servo::install(pin);
+    }
     let session = BoardSession::init_in(
         SESSION.uninit(),
         setup.machine(),
