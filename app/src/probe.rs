@@ -38,6 +38,8 @@ pub struct Probing<'a> {
     now: f64,
     /// PROBE_CALIBRATE's probed Z while its manual probe runs, mm.
     calibrating: Option<f64>,
+    /// A BLTouch's start-up (output mode, pin up) has been sent.
+    connected: bool,
 }
 
 impl<'a> Probing<'a> {
@@ -54,6 +56,7 @@ impl<'a> Probing<'a> {
             in_override: false,
             now: 0.0,
             calibrating: None,
+            connected: false,
         }
     }
 
@@ -183,6 +186,15 @@ impl<'a, const N: usize> Printer<'a, N> {
     where
         'a: 'l,
     {
+        let p = &mut self.probing;
+        if !p.connected
+            && let (Some(cfg), Some(blt)) = (p.probe.and_then(|p| p.bltouch), &mut p.state.bltouch)
+        {
+            // Klipper's start-up: the output mode if set, then the pin up
+            // (here with the first line that is not a heater command).
+            blt.connect(&cfg, p.now, sink);
+            p.connected = true;
+        }
         match line.command {
             Command::Traditional(t) if t.is(b'G', 28) && t.sub.is_none() => {
                 let named = ["X", "Y", "Z"].map(|a| t.param(a).is_some());

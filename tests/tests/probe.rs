@@ -188,6 +188,11 @@ fn a_probe_that_never_reaches_the_bed_ends_with_klippers_error() {
     assert!(p.send("PROBE").contains("!! Must home before probe"));
 }
 
+/// The sensor test starts once the start-up's pin up has run (0.68 s).
+fn close_start(start_up: f64, test: f64) -> bool {
+    test >= start_up + 0.68 - 1e-6
+}
+
 #[test]
 fn bltouch_deploys_probes_and_stows_with_klippers_timings() {
     let [x, y, z] = OFFSETS;
@@ -213,14 +218,22 @@ fn bltouch_deploys_probes_and_stows_with_klippers_timings() {
     assert_eq!(z_triggers.len(), 2);
     let (up, touch, down) = (0.001_475, 0.001_165, 0.000_650);
     let widths: Vec<f64> = homing.iter().map(|e| e.1).collect();
-    // The sensor test (pin up, touch mode), then for each of Z's two
-    // homing moves the pin down before and up after; each command's
-    // pulses followed by the signal off.
+    // Start-up (pin up), the sensor test (pin up, touch mode), then for
+    // each of Z's two homing moves the pin down before and up after; each
+    // command's pulses followed by the signal off.
     assert_eq!(
         widths,
-        [up, 0.0, touch, 0.0, down, 0.0, up, 0.0, down, 0.0, up, 0.0],
+        [
+            up, 0.0, up, 0.0, touch, 0.0, down, 0.0, up, 0.0, down, 0.0, up, 0.0
+        ],
         "{homing:?}"
     );
+    // Start-up: 0.3 s after the first line (Klipper's 0.1 s + 0.2 s).
+    assert!(
+        homing[0].0 >= 0.3 && close_start(homing[0].0, homing[2].0),
+        "{homing:?}"
+    );
+    let homing = &homing[2..];
     let t = |i: usize| homing[i].0;
     let close = |a: f64, b: f64| (a - b).abs() < 2e-6;
     // pin_move_time 0.68 s: the signal held 0.58 s (whole 20 ms periods
