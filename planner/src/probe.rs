@@ -186,9 +186,7 @@ impl ProbeConfig<'_> {
     }
 }
 
-/// Where a probe result's samples went, for PROBE_ACCURACY: their count,
-/// sum, sum of squares, extremes, and the samples themselves (for the
-/// median), up to [`MAX_SAMPLES`].
+/// Most samples one probe command takes (SAMPLES= above is refused).
 pub const MAX_SAMPLES: usize = 64;
 
 /// Probe samples (toolhead positions at the trigger, mm).
