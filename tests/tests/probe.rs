@@ -4,7 +4,9 @@
 //! and sets Z = z_offset; PROBE elsewhere measures the bed's height there
 //! (relative to where Z homed); PROBE_ACCURACY reports as Klipper; a probe
 //! that never reaches the bed ends with Klipper's error; a BLTouch's servo
-//! pulses follow Klipper's timings.
+//! pulses follow Klipper's timings; PROBE_CALIBRATE finds the z_offset from
+//! the nozzle lowered onto the bed; [safe_z_home] and [homing_override]
+//! home as Klipper.
 
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start};
@@ -349,4 +351,33 @@ fn homing_override_runs_its_gcode_for_its_axes() {
         (real[2] - expected).abs() <= Z_STEP + 1e-9,
         "{real:?} vs {expected}"
     );
+}
+
+#[test]
+fn probe_calibrate_accepts_the_nozzle_height_as_the_new_z_offset() {
+    let mut p = printer("calibrate", &probe_section(), BED);
+    p.send("G28");
+    let (x, y) = (80.0, 90.0);
+    let r = p.send(&format!("G1 X{x} Y{y} Z10 F6000\nPROBE_CALIBRATE"));
+    let probed = z_of(&r, "// probe at");
+    assert!(r.contains("// Starting manual Z probe."), "{r}");
+    // The nozzle is now over the point the probe touched, 5 mm up.
+    let at = m114(&mut p);
+    assert_eq!([at[0], at[1]], [x + OFFSETS[0], y + OFFSETS[1]]);
+    assert!((at[2] - (probed + 5.0)).abs() < 0.001, "{at:?} vs {probed}");
+    // Lower it until it touches the bed there (the "paper test"): the bed
+    // is at that height in the coordinates Z homed in.
+    let home_bed = bed(HOME_XY[0] + OFFSETS[0], HOME_XY[1] + OFFSETS[1], BED);
+    let touch = bed(x + OFFSETS[0], y + OFFSETS[1], BED) - home_bed;
+    p.send(&format!("TESTZ Z={:.4}", touch - at[2]));
+    let r = p.send("ACCEPT");
+    // The probe triggers z_offset above the bed: that is what it finds,
+    // within the step the trigger is seen in.
+    let found: f64 = r
+        .strip_prefix("// probe: z_offset: ")
+        .and_then(|rest| rest.lines().next())
+        .and_then(|z| z.parse().ok())
+        .unwrap_or_else(|| panic!("{r}"));
+    assert!((found - OFFSETS[2]).abs() <= Z_STEP, "{r}");
+    assert!(r.contains("// The SAVE_CONFIG command will update the printer config file\n"));
 }
