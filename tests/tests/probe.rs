@@ -42,19 +42,28 @@ fn printer(name: &str, probe: &str, plane: [f64; 3]) -> ConsolePrinter {
 
 /// The shipped printer.cfg with Z homing on a probe, and `sections`.
 fn printer_with(name: &str, sections: &str, plane: [f64; 3]) -> ConsolePrinter {
+    let z_on_probe = (
+        "endstop_pin: PG10\nposition_endstop: 0.5\n",
+        "endstop_pin: probe:z_virtual_endstop\nposition_min: -2\n",
+    );
+    shipped_with(name, z_on_probe, sections, plane)
+}
+
+/// The shipped printer.cfg with `replace.0` replaced by `replace.1`, and
+/// `sections`.
+fn shipped_with(
+    name: &str,
+    replace: (&str, &str),
+    sections: &str,
+    plane: [f64; 3],
+) -> ConsolePrinter {
     let dir = std::env::temp_dir().join(format!("onechip-probe-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let shipped =
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
     let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
-    let cfg = cfg.replace(
-        "endstop_pin: PG10\nposition_endstop: 0.5\n",
-        "endstop_pin: probe:z_virtual_endstop\nposition_min: -2\n",
-    );
-    assert!(
-        cfg.contains("probe:z_virtual_endstop"),
-        "the shipped Z moved"
-    );
+    assert!(cfg.contains(replace.0), "the shipped config changed");
+    let cfg = cfg.replace(replace.0, replace.1);
     let cfg = format!("{cfg}\n{sections}\n");
     std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
     let options = Options {
@@ -380,4 +389,32 @@ fn probe_calibrate_accepts_the_nozzle_height_as_the_new_z_offset() {
         .unwrap_or_else(|| panic!("{r}"));
     assert!((found - OFFSETS[2]).abs() <= Z_STEP, "{r}");
     assert!(r.contains("// The SAVE_CONFIG command will update the printer config file\n"));
+}
+
+#[test]
+fn a_probe_beside_a_z_endstop_probes_on_its_own_input() {
+    // Z keeps its switch (at 0.5); the probe is on another pin.
+    let keep = (
+        "position_max: 250\n\n[extruder]",
+        "position_min: -2\nposition_max: 250\n\n[extruder]",
+    );
+    let section = probe_section().replace("^PG10", "^PG11");
+    let mut p = shipped_with("beside", keep, &section, BED);
+    p.send("G28");
+    assert_eq!(m114(&mut p)[2], 0.5);
+    let real = p.real_position().expect("physics");
+    assert!((real[2] - 0.5).abs() <= Z_STEP + 1e-9, "{real:?}");
+    let (x, y) = (70.0, 110.0);
+    let r = p.send(&format!("G1 X{x} Y{y} Z6 F6000\nPROBE"));
+    // Z homed on its switch: the result is the bed's own height plus
+    // z_offset.
+    let expected = bed(x + OFFSETS[0], y + OFFSETS[1], BED) + OFFSETS[2];
+    let result = z_of(&r, "// Result is z=");
+    assert!(
+        (result - expected).abs() <= Z_STEP + 1e-9,
+        "{result} vs {expected}\n{r}"
+    );
+    // M119 reads Z's switch, QUERY_PROBE the probe.
+    assert_eq!(p.send("M119"), "x:open y:open z:open\nok\n");
+    assert!(p.send("QUERY_PROBE").starts_with("// probe: TRIGGERED"));
 }
