@@ -201,8 +201,13 @@ pub fn mean(samples: &[[f64; 3]]) -> [f64; 3] {
 /// The median of `samples` by Z (Klipper's: the mean of the middle two for
 /// an even count).
 pub fn median(samples: &[[f64; 3]]) -> [f64; 3] {
-    let mut sorted: Samples = samples.iter().copied().collect();
-    sorted.sort_unstable_by(|a, b| a[2].total_cmp(&b[2]));
+    // An insertion sort by Z: at most MAX_SAMPLES samples, and far less
+    // code than the library's sort.
+    let mut sorted = Samples::new();
+    for &p in samples {
+        let at = sorted.iter().position(|q| q[2] > p[2]).unwrap_or(sorted.len());
+        let _ = sorted.insert(at, p);
+    }
     let middle = sorted.len() / 2;
     if sorted.len() % 2 == 1 {
         sorted[middle]
