@@ -205,7 +205,10 @@ pub fn median(samples: &[[f64; 3]]) -> [f64; 3] {
     // code than the library's sort.
     let mut sorted = Samples::new();
     for &p in samples {
-        let at = sorted.iter().position(|q| q[2] > p[2]).unwrap_or(sorted.len());
+        let at = sorted
+            .iter()
+            .position(|q| q[2] > p[2])
+            .unwrap_or(sorted.len());
         let _ = sorted.insert(at, p);
     }
     let middle = sorted.len() / 2;
