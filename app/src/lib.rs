@@ -28,6 +28,7 @@ pub mod mcu_config;
 pub mod pin_check;
 pub mod pins;
 pub mod printer;
+pub mod probe;
 pub mod sd_print;
 pub mod sdcard;
 pub mod session;

@@ -190,7 +190,10 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
         option: "pin",
         pin: f.pin,
     });
-    steppers.chain(heaters).chain(fan)
+    steppers
+        .chain(heaters)
+        .chain(fan)
+        .chain(crate::probe::pin_uses(machine))
 }
 
 /// True if Klipper lets `a` and `b` name one pin: steppers' enable pins,

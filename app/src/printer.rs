@@ -63,8 +63,10 @@ pub const PRIMING_TIME: f64 = 0.100;
 /// The motion side of a printer.
 #[derive(Debug, Clone)]
 pub struct Printer<'a, const N: usize> {
-    toolhead: Toolhead<N>,
-    gcode: GcodeMove,
+    pub(crate) toolhead: Toolhead<N>,
+    pub(crate) gcode: GcodeMove,
+    /// The probe, G28's variant and their state ([`crate::probe`]).
+    pub(crate) probing: crate::probe::Probing<'a>,
     heaters: heapless::Vec<HeaterName<'a>, MAX_HEATERS>,
     has_fan: bool,
     /// Heater and fan commands not yet taken.
@@ -102,6 +104,7 @@ impl<'a, const N: usize> Printer<'a, N> {
                 .toolhead_in(toolhead)
                 .set_can_extrude(machine.can_extrude_cold());
             addr_of_mut!((*p).gcode).write(GcodeMove::default());
+            addr_of_mut!((*p).probing).write(crate::probe::Probing::new(machine));
             addr_of_mut!((*p).heaters).write(heaters);
             addr_of_mut!((*p).has_fan).write(machine.fan.is_some());
             addr_of_mut!((*p).thermal).write(heapless::Deque::new());
@@ -150,8 +153,11 @@ impl<'a, const N: usize> Printer<'a, N> {
         line: &Line<'l>,
         sink: &mut impl MoveSink,
         out: &mut impl Write,
-    ) -> Result<(), LineError<'l>> {
-        if self.thermal(line, sink)? {
+    ) -> Result<(), LineError<'l>>
+    where
+        'a: 'l,
+    {
+        if self.thermal(line, sink)? || self.probe_command(line, sink, out)? {
             return Ok(());
         }
         Ok(self.gcode.execute(line, &mut self.toolhead, sink, out)?)

@@ -87,8 +87,16 @@ pub trait Mcu {
     fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
     /// Why the MCU role shut down, if it did.
     fn shutdown_reason(&mut self) -> Option<Shutdown>;
-    /// True while stepper `stepper`'s endstop reads pressed (M119).
+    /// True while stepper `stepper`'s endstop reads pressed (M119; the
+    /// probe's input is the slot after the steppers, see
+    /// `Machine::probe_slot`).
     fn endstop_triggered(&mut self, stepper: usize) -> bool;
+    /// The probe's control pin (a BLTouch's servo) takes `pulse_width` s
+    /// pulses every 20 ms (0: off) from 64-bit clock `clock` on. Ignored
+    /// by default (no servo output).
+    fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
+        let _ = (clock, pulse_width);
+    }
     /// M112: every stepper stops and every heater goes off at once, and
     /// the MCU role stays shut down ([`Shutdown::EmergencyStop`]).
     fn emergency_stop(&mut self);
@@ -133,6 +141,10 @@ struct EngineLink {
     rails: u32,
     /// The finest of their step distances, mm.
     finest_step: f64,
+    /// The engine slot of the probe's input, if there is a probe.
+    probe_slot: Option<usize>,
+    /// Z homes on the probe (`probe:z_virtual_endstop`).
+    z_on_probe: bool,
     /// The start clock of the homing move whose endstop is watched.
     watching: Option<u64>,
     /// When the running line next reports that it is busy (clock).
@@ -147,6 +159,8 @@ impl EngineLink {
             endstops: [false; 3],
             rails: (1 << rails) - 1,
             finest_step: f64::INFINITY,
+            probe_slot: machine.probe_slot(),
+            z_on_probe: machine.homes_on_probe(2),
             watching: None,
             busy_at: u64::MAX,
         };
@@ -173,6 +187,14 @@ impl EngineLink {
     }
 
     /// Writes the busy line to `out` if it is due at clock `now`.
+    /// The engine slot whose endstop input axis `axis` homes on.
+    fn endstop_slot(&self, axis: usize, probe: bool) -> usize {
+        match self.probe_slot {
+            Some(slot) if probe || (axis == 2 && self.z_on_probe) => slot,
+            _ => axis,
+        }
+    }
+
     fn keepalive(&mut self, now: u64, out: &mut dyn Write) {
         if now >= self.busy_at {
             let _ = writeln!(out, "{BUSY_LINE}");
@@ -350,7 +372,17 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             self.query_endstops(mcu, out);
             return Ok(());
         }
+        if let Some(slot) = self.engine.probe_slot
+            && word.eq_ignore_ascii_case(b"QUERY_PROBE")
+        {
+            // Read once the queued moves have run (Klipper queries at the
+            // last move's time).
+            self.run("M400", mcu, out)?;
+            crate::probe::query(mcu.endstop_triggered(slot), out);
+            return Ok(());
+        }
         let now = mcu.now() as f64 / self.engine.freq;
+        self.printer.set_probe_now(now);
         let line = gcode::parse(text)
             .map_err(|e| error_text(&SessionError::Command(LineError::from(e))))?;
         match self.idle.command(&line, now, out) {
@@ -388,7 +420,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         let mut sep = "";
         for (axis, name) in ["x", "y", "z"].iter().enumerate() {
             if self.engine.endstops[axis] {
-                let state = if mcu.endstop_triggered(axis) {
+                let state = if mcu.endstop_triggered(self.engine.endstop_slot(axis, false)) {
                     "TRIGGERED"
                 } else {
                     "open"
@@ -657,6 +689,11 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
     fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
         self.motion.sink(self.steps).homing_move_end(homing)
     }
+
+    fn probe_pin(&mut self, print_time: f64, pulse_width: f64) {
+        let clock = (print_time.max(0.0) * self.steps.link.freq) as u64;
+        self.steps.mcu.probe_servo(clock, pulse_width);
+    }
 }
 
 /// Step commands into the MCU role's engine, waiting (asleep) while a
@@ -697,7 +734,8 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 homing.speed,
                 link.finest_step,
             );
-            self.mcu.watch_endstop(homing.axis, endstop, link.rails);
+            let slot = link.endstop_slot(homing.axis, homing.probe);
+            self.mcu.watch_endstop(slot, endstop, link.rails);
             link.watching = Some(start_clock);
         }
         loop {

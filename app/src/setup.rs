@@ -91,7 +91,10 @@ impl<'a> PrinterSetup<'a> {
                 step_pin: s.step_pin,
                 dir_pin: s.dir_pin,
                 enable_pin: s.enable_pin,
-                endstop_pin: s.endstop_pin.filter(|_| i < rails),
+                // A rail homing on the probe reads the probe's slot.
+                endstop_pin: s
+                    .endstop_pin
+                    .filter(|p| i < rails && !crate::probe::is_virtual_endstop(p)),
                 step_pulse,
             })
     }

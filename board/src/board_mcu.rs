@@ -76,6 +76,10 @@ impl Mcu for BoardMcu {
         emergency_stop();
     }
 
+    fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
+        crate::probe_servo::set(clock, pulse_width);
+    }
+
     fn can_extrude(&mut self) -> bool {
         heater_io::can_extrude()
     }

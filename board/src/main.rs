@@ -20,6 +20,7 @@ mod handler_cell;
 mod heater_io;
 mod octopus_pro_v1_1;
 mod priority;
+mod probe_servo;
 mod safety;
 mod sd_card;
 mod step_pins;
@@ -198,6 +199,16 @@ fn load_printer(
     }
     install_engine(&setup)?;
     install_heaters(&mut setup, thermistors)?;
+    if let Some(pin) = setup
+        .machine()
+        .probe
+        .and_then(|p| p.bltouch)
+        .map(|b| b.control_pin)
+    {
+        let pin = step_pins::OutPin::new_safe_off(pin)
+            .map_err(|e| error_text(&format_args!("[bltouch] {e}")))?;
+        probe_servo::install(pin);
+    }
     let session = BoardSession::init_in(
         SESSION.uninit(),
         setup.machine(),
@@ -227,6 +238,14 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
             let endstop = step_pins::InPin::new(pin).map_err(|e| fail(&e))?;
             *slot = slot.with_endstop(endstop);
         }
+    }
+    // The probe's input: an endstop on the slot after the steppers.
+    if let Some((i, pin)) = onechip_app::probe::input(setup.machine())
+        && let Some(slot) = slots.get_mut(i)
+    {
+        let endstop =
+            step_pins::InPin::new(pin).map_err(|e| error_text(&format_args!("[probe] {e}")))?;
+        *slot = slot.with_endstop(endstop);
     }
     step_timer::install(step_timer::BoardEngine::new(slots));
     Ok(())

@@ -14,6 +14,8 @@ pub const STEPPER: Priority = Priority::P0;
 /// The heaters' and fan's timer (TIM2): output edges, thermistor
 /// readings, safety timeouts and heater control.
 pub const HEATERS: Priority = Priority::P1;
+/// A BLTouch's servo signal (TIM23): its pulse edges.
+pub const PROBE_SERVO: Priority = Priority::P2;
 /// embassy-time's timer (TIM4): wakes async tasks.
 pub const TIME_DRIVER: Priority = Priority::P2;
 /// USB, SDMMC and DMA.

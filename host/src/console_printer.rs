@@ -159,6 +159,23 @@ impl ConsolePrinter {
         })
     }
 
+    /// The probe's control pin so far: each change's clock and pulse
+    /// width (s; 0: off).
+    pub fn probe_servo_log(&self) -> &[(u64, f64)] {
+        self.mcu.probe_servo_log()
+    }
+
+    /// Every endstop trigger so far: axis, the toolhead's real position
+    /// (mm) and the clock.
+    pub fn triggers(&self) -> &[(usize, [f64; 3], u64)] {
+        self.mcu.triggers()
+    }
+
+    /// The toolhead's real position now, mm.
+    pub fn real_position(&self) -> Option<[f64; 3]> {
+        self.mcu.real_position()
+    }
+
     /// The G-code position (X, Y, Z, E), mm.
     pub fn position(&mut self) -> [f64; 4] {
         self.session.printer().position()

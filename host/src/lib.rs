@@ -13,6 +13,7 @@ pub mod console_printer;
 pub mod files;
 pub mod pace;
 pub mod plot;
+pub mod probe_physics;
 pub mod secondary;
 pub mod serial;
 pub mod step_log;
@@ -79,6 +80,10 @@ pub struct Options {
     /// The G-code arrives on the console, in USB packets as the board's
     /// console reads them, instead of from the SD card.
     pub console: bool,
+    /// The simulated bed under the probe: its height at X = Y = 0 and its
+    /// slopes along X and Y (mm, mm/mm): the probe triggers where it
+    /// touches it.
+    pub bed: [f64; 3],
     /// printer.cfg's pins are checked against those the board uses itself
     /// (USB, SD card, crystal, SWD), as on the board; off for a config
     /// written for another board (Klipper's stock `generic-*` configs),
@@ -109,6 +114,7 @@ impl Default for Options {
             plot: None,
             open_sensor: None,
             weak_heater: None,
+            bed: [0.0; 3],
             console: false,
             board_pins: true,
         }
@@ -570,7 +576,7 @@ fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, S
     let origin = options.clock_origin as f64 / freq;
     let mut mcu =
         VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(machine, freq);
-    if let Some(physics) = physics(machine, options.start) {
+    if let Some(physics) = physics(machine, options) {
         mcu = mcu.with_physics(physics);
     }
     if let Some((_, w)) = &options.plot {
@@ -855,8 +861,8 @@ impl Progress {
 
 /// Where the motion steppers really are, and their endstops (none for a
 /// delta, which does not home yet, or with [`Start::Ideal`]).
-fn physics(machine: &Machine<'_>, start: Start) -> Option<Physics> {
-    let toolhead = match start {
+fn physics(machine: &Machine<'_>, options: &Options) -> Option<Physics> {
+    let toolhead = match options.start {
         Start::Ideal => return None,
         Start::At(pos) => pos,
         Start::MidTravel => core::array::from_fn(|k| {
@@ -876,8 +882,10 @@ fn physics(machine: &Machine<'_>, start: Start) -> Option<Physics> {
         start: core::array::from_fn(|k| kinematics[k].position(toolhead)),
         endstops: core::array::from_fn(|axis| {
             let info = machine.travel.homing_info(axis)?;
-            Some((info.position_endstop, info.positive_dir))
+            // A rail homing on the probe has no switch of its own.
+            (!info.probe).then_some((info.position_endstop, info.positive_dir))
         }),
+        probe: probe_physics::for_machine(machine, options.bed, options.mcu_freq),
     })
 }
 

@@ -26,7 +26,7 @@ use onechip_sched::engine::{Engine, Full};
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 use onechip_sched::stepper::StepPins;
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
 use std::path::Path;
 use std::rc::Rc;
 use std::sync::Arc;
@@ -49,6 +49,8 @@ pub struct Physics {
     /// Each rail's endstop: the toolhead coordinate it is pressed at (mm)
     /// and whether it is pressed above (true) or below it.
     pub endstops: [Option<(f64, bool)>; 3],
+    /// The Z probe, if any: its engine slot and where it triggers.
+    pub probe: Option<(usize, crate::probe_physics::ProbePhysics)>,
 }
 
 impl Physics {
@@ -66,6 +68,8 @@ impl Physics {
 struct Rails {
     physics: Physics,
     steps: Cell<[i64; 3]>,
+    /// The probe's control pin: each change's clock and pulse width (s).
+    servo: RefCell<Vec<(u64, f64)>>,
 }
 
 impl Rails {
@@ -76,6 +80,15 @@ impl Rails {
         };
         let coord = self.physics.toolhead(self.steps.get())[axis];
         if above { coord >= at } else { coord <= at }
+    }
+
+    /// True while the probe's input reads triggered at clock `now`.
+    fn probe_pressed(&self, now: u64) -> bool {
+        let Some((_, probe)) = &self.physics.probe else {
+            return false;
+        };
+        let servo = self.servo.borrow();
+        probe.pressed(self.physics.toolhead(self.steps.get()), now, &servo)
     }
 }
 
@@ -88,6 +101,8 @@ struct Recorder {
     log: StepLog,
     /// Which motion stepper this is, and the rails it shares.
     rail: Option<(usize, Rc<Rails>)>,
+    /// This slot's endstop input is the probe's, which sees the rails.
+    probe: Option<Rc<Rails>>,
 }
 
 impl StepPins for Recorder {
@@ -105,6 +120,9 @@ impl StepPins for Recorder {
     }
 
     fn endstop_triggered(&mut self) -> bool {
+        if let Some(rails) = &self.probe {
+            return rails.probe_pressed(self.clock);
+        }
         self.rail
             .as_ref()
             .is_some_and(|(k, rails)| rails.pressed(*k))
@@ -132,6 +150,8 @@ pub struct VirtualMcu {
     triggers: Vec<(usize, [f64; 3], u64)>,
     /// The axis whose endstop is watched.
     watched: usize,
+    /// The probe's control pin: each change's clock and pulse width (s).
+    servo: Vec<(u64, f64)>,
     /// Planned moves kept for a plot, and the print-time window they
     /// must touch (s).
     plan: Option<(Window, Vec<TrapqMove>)>,
@@ -160,6 +180,7 @@ impl VirtualMcu {
             rails: None,
             triggers: Vec::new(),
             watched: 0,
+            servo: Vec::new(),
             plan: None,
             thermal: None,
             io_wake: None,
@@ -230,9 +251,15 @@ impl VirtualMcu {
         let rails = Rc::new(Rails {
             physics,
             steps: Cell::new([0; 3]),
+            servo: RefCell::new(Vec::new()),
         });
         for (k, pins) in self.engine.pins_mut().take(3).enumerate() {
             pins.rail = Some((k, Rc::clone(&rails)));
+        }
+        if let Some((slot, _)) = rails.physics.probe
+            && let Some(pins) = self.engine.pins_mut().nth(slot)
+        {
+            pins.probe = Some(Rc::clone(&rails));
         }
         self.rails = Some(rails);
         self
@@ -453,6 +480,12 @@ impl VirtualMcu {
         &self.triggers
     }
 
+    /// The probe's control pin so far: each change's clock and pulse
+    /// width (s; 0: signal off).
+    pub fn probe_servo_log(&self) -> &[(u64, f64)] {
+        &self.servo
+    }
+
     /// The toolhead's real position now, if physics is modelled, mm.
     pub fn real_position(&self) -> Option<[f64; 3]> {
         let rails = self.rails.as_ref()?;
@@ -553,7 +586,17 @@ impl Mcu for VirtualMcu {
     }
 
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
-        self.watched = stepper;
+        // The probe's slot stops Z: its triggers are reported as Z's.
+        let probe_slot = self
+            .rails
+            .as_ref()
+            .and_then(|r| r.physics.probe)
+            .map(|p| p.0);
+        self.watched = if probe_slot == Some(stepper) {
+            2
+        } else {
+            stepper
+        };
         self.engine.watch_endstop(stepper, endstop, stops);
         self.pushed = true;
     }
@@ -595,6 +638,13 @@ impl Mcu for VirtualMcu {
             .pins_mut()
             .nth(stepper)
             .is_some_and(|pins| pins.endstop_triggered())
+    }
+
+    fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
+        self.servo.push((clock, pulse_width));
+        if let Some(rails) = &self.rails {
+            rails.servo.borrow_mut().push((clock, pulse_width));
+        }
     }
 
     fn emergency_stop(&mut self) {

@@ -117,6 +117,13 @@ impl GcodeMove {
         p
     }
 
+    /// Takes the toolhead's position as the last one after the toolhead
+    /// moved on its own (probing, homing), as Klipper's
+    /// `reset_last_position`.
+    pub fn reset_last_position<const N: usize>(&mut self, toolhead: &Toolhead<N>) {
+        self.last_position = toolhead.position();
+    }
+
     /// Runs one parsed line; text replies (M114, SET_VELOCITY_LIMIT) go to
     /// `out`. Unknown commands get Klipper's `Unknown command` reply. An
     /// error whose message has a hint line (see [`CommandError::hint`])

@@ -17,9 +17,44 @@ use crate::toolhead::{HomingInfo, MoveError, Toolhead};
 /// Delay between arming endstops and starting a homing move, s.
 pub const HOMING_START_DELAY: f64 = 0.001;
 
+/// What runs around homing moves on a probe (a BLTouch's deploy and
+/// stow), as Klipper's homing events: around all of an axis' homing moves
+/// (`home_rails_begin`/`_end`) and around each (`homing_move_begin`/`_end`).
+pub trait HomingHooks<const N: usize> {
+    /// Before the homing moves of an axis homing on the probe.
+    fn rails_begin(&mut self) {}
+    /// After them.
+    fn rails_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        let _ = (toolhead, sink);
+    }
+    /// Before a homing move whose endstop is the probe's.
+    fn move_begin(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        let _ = (toolhead, sink);
+    }
+    /// After it.
+    fn move_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+        let _ = (toolhead, sink);
+    }
+}
+
+/// No probe to deploy.
+pub struct NoHooks;
+
+impl<const N: usize> HomingHooks<N> for NoHooks {}
+
 impl<const N: usize> Toolhead<N> {
     /// Homes each of `axes` (0 = X, 1 = Y, 2 = Z) in turn.
     pub fn home(&mut self, axes: &[usize], sink: &mut impl MoveSink) -> Result<(), MoveError> {
+        self.home_with(axes, sink, &mut NoHooks)
+    }
+
+    /// [`Self::home`], with `hooks` run around the moves on the probe.
+    pub fn home_with(
+        &mut self,
+        axes: &[usize],
+        sink: &mut impl MoveSink,
+        hooks: &mut impl HomingHooks<N>,
+    ) -> Result<(), MoveError> {
         for &axis in axes {
             let Some(info) = self.kinematics.homing_info(axis) else {
                 return Err(MoveError {
@@ -28,7 +63,14 @@ impl<const N: usize> Toolhead<N> {
                     detail: crate::toolhead::Detail::Position,
                 });
             };
-            self.home_axis(axis, &info, sink)?;
+            if info.probe {
+                hooks.rails_begin();
+            }
+            let homed = self.home_axis(axis, &info, sink, hooks);
+            if info.probe {
+                hooks.rails_end(self, sink);
+            }
+            homed?;
         }
         Ok(())
     }
@@ -38,6 +80,7 @@ impl<const N: usize> Toolhead<N> {
         axis: usize,
         hi: &HomingInfo,
         sink: &mut impl MoveSink,
+        hooks: &mut impl HomingHooks<N>,
     ) -> Result<(), MoveError> {
         let (min, max) = hi.range;
         let mut force = self.position();
@@ -50,7 +93,7 @@ impl<const N: usize> Toolhead<N> {
         home[axis] = hi.position_endstop;
         self.set_position(force, sink);
         self.kinematics.set_axis_homed(axis);
-        self.homing_move(axis, hi, home, hi.speed, sink)?;
+        self.homing_move(axis, hi, home, hi.speed, sink, hooks)?;
         if hi.retract_dist > 0.0 {
             let mut axes_d = [0.0; 4];
             for i in 0..3 {
@@ -68,22 +111,27 @@ impl<const N: usize> Toolhead<N> {
             }
             self.move_to(retract, hi.retract_speed, sink)?;
             self.set_position(start, sink);
-            self.homing_move(axis, hi, home, hi.second_speed, sink)?;
+            self.homing_move(axis, hi, home, hi.second_speed, sink, hooks)?;
         }
         self.flush_step_generation(sink);
         Ok(())
     }
 
     /// One homing move of `axis` to `target`, ending where the endstop
-    /// triggers (the sink tells where the steppers stopped).
-    fn homing_move(
+    /// triggers (the sink tells where the steppers stopped); the print
+    /// time of the trigger, if it triggered.
+    pub(crate) fn homing_move(
         &mut self,
         axis: usize,
         hi: &HomingInfo,
         target: [f64; 4],
         speed: f64,
         sink: &mut impl MoveSink,
-    ) -> Result<(), MoveError> {
+        hooks: &mut impl HomingHooks<N>,
+    ) -> Result<Option<f64>, MoveError> {
+        if hi.probe {
+            hooks.move_begin(self, sink);
+        }
         self.flush_step_generation(sink);
         let start_time = self.last_move_time(sink);
         self.dwell(HOMING_START_DELAY, sink);
@@ -98,6 +146,7 @@ impl<const N: usize> Toolhead<N> {
             position_endstop: hi.position_endstop,
             positive_dir: hi.positive_dir,
             speed,
+            probe: hi.probe,
             start_time,
             end_time,
         });
@@ -107,6 +156,9 @@ impl<const N: usize> Toolhead<N> {
         }
         let halt = end.position;
         self.set_position([halt[0], halt[1], halt[2], target[E]], sink);
-        Ok(())
+        if hi.probe {
+            hooks.move_end(self, sink);
+        }
+        Ok(end.stopped_at)
     }
 }

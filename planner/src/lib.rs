@@ -11,6 +11,7 @@
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod adc_temperature;
+pub mod bltouch;
 pub mod gcode;
 pub mod gcode_move;
 pub mod homing;
@@ -21,6 +22,8 @@ pub mod math;
 pub mod mcu_section;
 pub mod move_sink;
 pub mod planned_move;
+pub mod probe;
+pub mod safe_home;
 pub mod shaper_config;
 pub mod temperature_sensor;
 pub mod thermal;

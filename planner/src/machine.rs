@@ -5,6 +5,8 @@ use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
+use crate::probe::{self, ProbeConfig};
+use crate::safe_home::{self, G28};
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
@@ -90,6 +92,10 @@ pub struct Machine<'a> {
     /// The secondary MCUs (`[mcu NAME]`), whose pins are written
     /// `NAME:PIN`.
     pub secondaries: heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>,
+    /// The Z probe (`[probe]` or `[bltouch]`), if any.
+    pub probe: Option<ProbeConfig<'a>>,
+    /// How G28 homes (`[safe_z_home]`, `[homing_override]`).
+    pub g28: G28<'a>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -108,7 +114,11 @@ const STEPPER_OTHER: [&str; 8] = [
 ];
 
 /// Sections whose options the motion pipeline reads.
-const MOTION_SECTIONS: [&str; 14] = [
+const MOTION_SECTIONS: [&str; 18] = [
+    "probe",
+    "bltouch",
+    "safe_z_home",
+    "homing_override",
     "printer",
     "stepper_x",
     "stepper_y",
@@ -176,6 +186,8 @@ impl<'a> Machine<'a> {
         )?;
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
         let mut steppers = heapless::Vec::new();
+        let probe = probe::read(config)?;
+        let g28 = safe_home::read(config)?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
@@ -194,7 +206,11 @@ impl<'a> Machine<'a> {
                 let section = config.require(name)?;
                 let stepper = read_stepper(&section, StepperKind::Rail)?;
                 ranges[i] = (stepper.position_min, stepper.position_max);
-                homing[i] = Some(read_homing(&section, ranges[i])?);
+                homing[i] = Some(read_homing(
+                    &section,
+                    ranges[i],
+                    probe_z(&stepper, i, &probe),
+                )?);
                 let _ = steppers.push(stepper);
             }
             let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
@@ -293,6 +309,8 @@ impl<'a> Machine<'a> {
             fan,
             idle_timeout,
             secondaries,
+            probe,
+            g28,
             unsupported,
         })
     }
@@ -423,12 +441,43 @@ fn read_stepper<'c, 'a>(
     })
 }
 
-/// Reads how a rail homes, with Klipper's defaults.
+/// For a rail homing on `probe:z_virtual_endstop`: the probe's z_offset
+/// (its position_endstop, as in Klipper), or why it cannot.
+fn probe_z(
+    stepper: &Stepper<'_>,
+    axis: usize,
+    probe: &Option<ProbeConfig<'_>>,
+) -> Result<Option<f64>, &'static str> {
+    match stepper.endstop_pin.map(str::trim) {
+        Some(pin) if pin.eq_ignore_ascii_case(probe::VIRTUAL_ENDSTOP) => match probe {
+            Some(p) if axis == 2 => Ok(Some(p.offsets[2])),
+            Some(_) => Err("probe:z_virtual_endstop can only home Z"),
+            None => Err("names chip 'probe': add a [probe] or [bltouch] section"),
+        },
+        Some(pin)
+            if pin
+                .trim_start_matches(['^', '~', '!', ' '])
+                .eq_ignore_ascii_case(probe::VIRTUAL_ENDSTOP) =>
+        {
+            Err("probe:z_virtual_endstop can not be inverted or pulled up")
+        }
+        _ => Ok(None),
+    }
+}
+
+/// Reads how a rail homes, with Klipper's defaults; `probe_z` is the
+/// probe's z_offset if the rail homes on it (then position_endstop is not
+/// read).
 fn read_homing<'c>(
     section: &Section<'c, '_>,
     (min, max): (f64, f64),
+    probe_z: Result<Option<f64>, &'static str>,
 ) -> Result<HomingInfo, ConfigError<'c>> {
-    let position_endstop = section.get_float("position_endstop", None, Bounds::NONE)?;
+    let probe_z = probe_z.map_err(|reason| bad(section, "endstop_pin", reason))?;
+    let position_endstop = match probe_z {
+        Some(z) => z,
+        None => section.get_float("position_endstop", None, Bounds::NONE)?,
+    };
     if position_endstop < min || position_endstop > max {
         return Err(bad(
             section,
@@ -466,6 +515,7 @@ fn read_homing<'c>(
         retract_dist,
         retract_speed,
         range: (min, max),
+        probe: probe_z.is_some(),
     })
 }
 
@@ -615,20 +665,24 @@ mod tests {
         let text = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
             [stepper_x]\nstep_pin: PF13\ndir_pin: !PF12\nenable_pin: !PF14\nendstop_pin: ^PG6\n\
             microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nendstop_pin: probe:z_virtual_endstop\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\n\
             microsteps: 16\nrotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
             [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-            position_endstop: 0\nposition_max: 200\n";
+            endstop_pin: probe:z_virtual_endstop\nposition_max: 200\n\
+            [probe]\npin: ^PG10\nz_offset: 1.25\n";
         let config = onechip_config::Config::parse("printer.cfg", text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
         let x = &machine.steppers[0];
         assert_eq!((x.step_pin, x.dir_pin), ("PF13", "!PF12"));
         assert_eq!((x.enable_pin, x.endstop_pin), (Some("!PF14"), Some("^PG6")));
+        assert_eq!(machine.steppers[1].endstop_pin, None);
         assert_eq!(
-            machine.steppers[1].endstop_pin,
+            machine.steppers[2].endstop_pin,
             Some("probe:z_virtual_endstop")
         );
-        assert_eq!(machine.steppers[2].endstop_pin, None);
+        // Z homes on the probe: its position_endstop is the z_offset.
+        let z = machine.travel.homing_info(2).expect("z homes");
+        assert!(z.probe && z.position_endstop == 1.25);
     }
 
     #[test]

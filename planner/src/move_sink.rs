@@ -38,6 +38,12 @@ pub trait MoveSink {
     fn set_position(&mut self, pos: [f64; 3]) {
         let _ = pos;
     }
+    /// The probe's control pin (a BLTouch's servo signal) takes
+    /// `pulse_width` s pulses (0: signal off) from print time `print_time`
+    /// s on. Sinks without a probe ignore it.
+    fn probe_pin(&mut self, print_time: f64, pulse_width: f64) {
+        let _ = (print_time, pulse_width);
+    }
     /// A homing move has been handed over entirely: the sink runs it with
     /// the endstop armed and returns where and when the steppers stopped.
     /// Sinks without endstops let the move complete: at the target, at
@@ -63,6 +69,9 @@ pub struct HomingMove {
     pub positive_dir: bool,
     /// The move's speed, mm/s.
     pub speed: f64,
+    /// The endstop is the probe's input (probing, or homing on
+    /// `probe:z_virtual_endstop`), not the rail's own.
+    pub probe: bool,
     /// Print time the endstop is armed at (just before the move), s.
     pub start_time: f64,
     /// Print time at the end of the move, s.

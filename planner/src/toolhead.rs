@@ -46,6 +46,8 @@ pub struct HomingInfo {
     pub retract_speed: f64,
     /// The axis' travel (position_min, position_max), mm.
     pub range: (f64, f64),
+    /// The axis homes on the probe (`probe:z_virtual_endstop`).
+    pub probe: bool,
 }
 
 /// Why a move was refused.
@@ -331,6 +333,23 @@ impl Travel {
         }
     }
 
+    /// True once `axis` is homed (a delta: all or none).
+    pub fn axis_homed(&self, axis: usize) -> bool {
+        match self {
+            Self::Cartesian(c) => c.range.get(axis).is_some_and(|r| r.0 <= r.1),
+            Self::Delta(d) => !d.need_home,
+        }
+    }
+
+    /// Forgets that `axis` is homed (cartesian-style machines).
+    pub fn clear_axis_homed(&mut self, axis: usize) {
+        if let Self::Cartesian(c) = self
+            && let Some(r) = c.range.get_mut(axis)
+        {
+            *r = NOT_HOMED;
+        }
+    }
+
     /// Forgets homing (M84: the motors may move freely): every axis must
     /// be homed again before it moves.
     pub fn clear_homed(&mut self) {
@@ -471,6 +490,9 @@ pub struct Toolhead<const N: usize> {
     /// Step-generation scan window (the later of SDS_CHECK_TIME and the
     /// machine's pressure advance / input shaper windows), s.
     kin_flush_delay: f64,
+    /// The last move released: its start print time (s) and the move
+    /// (where a probing move was at its trigger).
+    last_released: Option<(f64, Move)>,
 }
 
 impl<const N: usize> Toolhead<N> {
@@ -519,6 +541,7 @@ impl<const N: usize> Toolhead<N> {
             addr_of_mut!((*p).need_step_gen_time).write(0.0);
             addr_of_mut!((*p).last_step_gen_time).write(0.0);
             addr_of_mut!((*p).kin_flush_delay).write(scan_delay.max(SDS_CHECK_TIME));
+            addr_of_mut!((*p).last_released).write(None);
             slot.assume_init_mut()
         }
     }
@@ -741,6 +764,24 @@ impl<const N: usize> Toolhead<N> {
         }
     }
 
+    /// Where the last released move was at print time `t` (s), mm.
+    pub(crate) fn released_position_at(&self, t: f64) -> Option<[f64; 4]> {
+        let (start, m) = self.last_released.as_ref()?;
+        let t = (t - start).clamp(0.0, m.accel_t + m.cruise_t + m.decel_t);
+        let accel_d = (m.start_v + 0.5 * m.accel * m.accel_t) * m.accel_t;
+        let dist = if t < m.accel_t {
+            (m.start_v + 0.5 * m.accel * t) * t
+        } else if t < m.accel_t + m.cruise_t {
+            accel_d + m.cruise_v * (t - m.accel_t)
+        } else {
+            let td = t - m.accel_t - m.cruise_t;
+            accel_d + m.cruise_v * m.cruise_t + (m.cruise_v - 0.5 * m.accel * td) * td
+        };
+        Some(core::array::from_fn(|i| {
+            m.start_pos[i] + m.axes_r[i] * dist
+        }))
+    }
+
     pub(crate) fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {
         self.flush_lookahead(sink);
         self.last_step_gen_time = self.last_step_gen_time.max(self.need_step_gen_time);
@@ -775,6 +816,7 @@ impl<const N: usize> Toolhead<N> {
         self.hold = f64::NEG_INFINITY;
         self.lookahead.take(count, |m| {
             emit(m, next_move_time, sink);
+            self.last_released = Some((next_move_time, *m));
             // Same summation order as klippy, so times match to the last bit.
             next_move_time = next_move_time + m.accel_t + m.cruise_t + m.decel_t;
         });

@@ -38,11 +38,13 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// sensor, 122 after). Three files with an `[mcu NAME]` secondary
 /// (generic-cramps, generic-replicape, kit-voron2-250mm) now connect to
 /// it, as Klipper does, and are refused naming its `serial` option: no
-/// such device exists here.
-const MIN_LOADED: usize = 119;
+/// such device exists here. 137 since `[probe]`/`[bltouch]` and
+/// `probe:z_virtual_endstop` load.
+const MIN_LOADED: usize = 137;
 /// Files that must load, home and move (111 before the sensors, 114 after,
-/// less the three above).
-const MIN_HOMED_AND_MOVED: usize = 111;
+/// less the three above; 129 once Z homes on the probe, with
+/// `[safe_z_home]` and `[homing_override]`).
+const MIN_HOMED_AND_MOVED: usize = 129;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;

@@ -1,0 +1,420 @@
+//! The Z probe in virtual time: the shipped printer with its Z endstop
+//! replaced by a probe (`probe:z_virtual_endstop`) over a simulated bed
+//! that is a tilted plane. Homing Z stops where the probe touches the bed
+//! and sets Z = z_offset; PROBE elsewhere measures the bed's height there
+//! (relative to where Z homed); PROBE_ACCURACY reports as Klipper; a probe
+//! that never reaches the bed ends with Klipper's error; a BLTouch's servo
+//! pulses follow Klipper's timings; PROBE_CALIBRATE finds the z_offset from
+//! the nozzle lowered onto the bed; [safe_z_home] and [homing_override]
+//! home as Klipper.
+
+use onechip_host::console_printer::ConsolePrinter;
+use onechip_host::{Options, Start};
+use std::path::PathBuf;
+
+/// Z mm per step of the shipped printer.
+const Z_STEP: f64 = 0.0025;
+/// The probe's offsets from the nozzle, mm.
+const OFFSETS: [f64; 3] = [-30.0, 10.0, 1.5];
+/// Where Z homes ([safe_z_home] home_xy_position), mm.
+const HOME_XY: [f64; 2] = [150.0, 150.0];
+/// The bed: 0.3 mm at X = Y = 0, rising 2 µm per mm of X, falling 1 µm
+/// per mm of Y.
+const BED: [f64; 3] = [0.3, 0.002, -0.001];
+/// The shipped printer's clock, Hz.
+const FREQ: f64 = 260_000_000.0;
+
+fn bed(x: f64, y: f64, plane: [f64; 3]) -> f64 {
+    plane[0] + plane[1] * x + plane[2] * y
+}
+
+/// `[safe_z_home]` at [`HOME_XY`], with `extra` options.
+fn safe_z_home(extra: &str) -> String {
+    let [x, y] = HOME_XY;
+    format!("[safe_z_home]\nhome_xy_position: {x}, {y}\nspeed: 100\n{extra}")
+}
+
+/// The shipped printer.cfg with Z homing on `probe` (sections), and
+/// `[safe_z_home]` at [`HOME_XY`].
+fn printer(name: &str, probe: &str, plane: [f64; 3]) -> ConsolePrinter {
+    printer_with(name, &format!("{probe}\n{}", safe_z_home("")), plane)
+}
+
+/// The shipped printer.cfg with Z homing on a probe, and `sections`.
+fn printer_with(name: &str, sections: &str, plane: [f64; 3]) -> ConsolePrinter {
+    let z_on_probe = (
+        "endstop_pin: PG10\nposition_endstop: 0.5\n",
+        "endstop_pin: probe:z_virtual_endstop\nposition_min: -2\n",
+    );
+    shipped_with(name, z_on_probe, sections, plane)
+}
+
+/// The shipped printer.cfg with `replace.0` replaced by `replace.1`, and
+/// `sections`.
+fn shipped_with(
+    name: &str,
+    replace: (&str, &str),
+    sections: &str,
+    plane: [f64; 3],
+) -> ConsolePrinter {
+    let dir = std::env::temp_dir().join(format!("onechip-probe-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let shipped =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
+    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    assert!(cfg.contains(replace.0), "the shipped config changed");
+    let cfg = cfg.replace(replace.0, replace.1);
+    let cfg = format!("{cfg}\n{sections}\n");
+    std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
+    let options = Options {
+        start: Start::At([100.0, 120.0, 40.0]),
+        bed: plane,
+        ..Options::default()
+    };
+    ConsolePrinter::new(&dir, &options).expect("loads")
+}
+
+fn probe_section() -> String {
+    let [x, y, z] = OFFSETS;
+    format!("[probe]\npin: ^PG10\nx_offset: {x}\ny_offset: {y}\nz_offset: {z}\nspeed: 5\n")
+}
+
+/// The `z=` value of the first reply line starting with `prefix`.
+fn z_of(replies: &str, prefix: &str) -> f64 {
+    let line = replies
+        .lines()
+        .find(|l| l.starts_with(prefix))
+        .unwrap_or_else(|| panic!("no {prefix:?} in {replies}"));
+    line.rsplit("z=")
+        .next()
+        .and_then(|z| z.trim().parse().ok())
+        .expect("z=")
+}
+
+#[test]
+fn z_homes_on_the_probe_at_the_bed_and_probe_measures_the_bed() {
+    let mut p = printer("home", &probe_section(), BED);
+    let home = p.send("G28");
+    assert!(home.ends_with("ok\n") && !home.contains("!!"), "{home}");
+    // Z = z_offset at the trigger, with the probe on the bed at HOME_XY.
+    assert_eq!(p.send("M114"), "X:150.000 Y:150.000 Z:1.500 E:0.000\nok\n");
+    let probe_at = |x: f64, y: f64| bed(x + OFFSETS[0], y + OFFSETS[1], BED);
+    let home_bed = probe_at(HOME_XY[0], HOME_XY[1]);
+    let real = p.real_position().expect("physics");
+    assert!(
+        (real[2] - (home_bed + OFFSETS[2])).abs() <= Z_STEP + 1e-9,
+        "nozzle at {real:?}, bed under the probe at {home_bed}"
+    );
+    let z_triggers = p.triggers().iter().filter(|t| t.0 == 2).count();
+    assert_eq!(
+        z_triggers, 2,
+        "two homing moves of Z, each stopped by the probe"
+    );
+    // PROBE elsewhere: the bed's height there relative to where Z homed.
+    let (x, y) = (60.0, 40.0);
+    let r = p.send(&format!("G1 X{x} Y{y} Z8 F6000\nPROBE"));
+    let expected = OFFSETS[2] + probe_at(x, y) - home_bed;
+    let at = z_of(&r, "// probe at 60.000,40.000 is z=");
+    let result = z_of(&r, "// Result is z=");
+    assert_eq!(at, result, "one sample: the result is the sample");
+    assert!(
+        (result - expected).abs() <= Z_STEP + 1e-9,
+        "{result} vs {expected}\n{r}"
+    );
+    // QUERY_PROBE: pressed on the bed, open 2 mm above it.
+    assert!(p.send("QUERY_PROBE").starts_with("// probe: TRIGGERED\n"));
+    p.send("G1 Z5");
+    assert_eq!(p.send("QUERY_PROBE"), "// probe: open\nok\n");
+    // G-code position follows the probing: a relative move goes from it.
+    assert_eq!(p.send("M114"), "X:60.000 Y:40.000 Z:5.000 E:0.000\nok\n");
+}
+
+#[test]
+fn probe_accuracy_reports_as_klipper() {
+    let mut p = printer("accuracy", &probe_section(), BED);
+    p.send("G28");
+    let r = p.send("G1 X100 Y100 Z10 F6000\nPROBE_ACCURACY SAMPLES=5 SAMPLE_RETRACT_DIST=1.5");
+    let lines: Vec<&str> = r.lines().collect();
+    assert!(
+        lines.contains(
+            &"// PROBE_ACCURACY at X:100.000 Y:100.000 Z:10.000 (samples=5 retract=1.500 \
+          speed=5.0 lift_speed=5.0)"
+        ),
+        "{r}"
+    );
+    let samples: Vec<f64> = lines
+        .iter()
+        .filter(|l| l.starts_with("// probe at 100.000,100.000 is z="))
+        .map(|l| z_of(l, "// probe at"))
+        .collect();
+    assert_eq!(samples.len(), 5, "{r}");
+    let results = lines
+        .iter()
+        .find(|l| l.starts_with("// probe accuracy results: "))
+        .expect("results line");
+    let max = samples.iter().cloned().fold(f64::MIN, f64::max);
+    let min = samples.iter().cloned().fold(f64::MAX, f64::min);
+    let avg = samples.iter().sum::<f64>() / 5.0;
+    let mut sorted = samples.clone();
+    sorted.sort_by(f64::total_cmp);
+    let sigma = (samples.iter().map(|z| (z - avg).powi(2)).sum::<f64>() / 5.0).sqrt();
+    assert_eq!(
+        *results,
+        format!(
+            "// probe accuracy results: maximum {max:.6}, minimum {min:.6}, range {:.6}, \
+             average {avg:.6}, median {:.6}, standard deviation {sigma:.6}",
+            max - min,
+            sorted[2]
+        )
+    );
+    // A simulated probe repeats within a step.
+    assert!(max - min <= Z_STEP, "{r}");
+    // After the last sample the toolhead is lifted by the retract.
+    let last = p.send("M114");
+    let z: f64 = last
+        .split("Z:")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|z| z.parse().ok())
+        .expect("M114 Z");
+    assert!((z - (samples[4] + 1.5)).abs() < 0.001, "{last}");
+}
+
+#[test]
+fn a_probe_that_never_reaches_the_bed_ends_with_klippers_error() {
+    // A bed falling 5 mm per 100 mm towards X 0: Z homes (on the probe) at
+    // X 150; at X 40 the bed is 5.5 mm lower, beyond position_min (-2)
+    // from z_offset (1.5): the probe meets nothing.
+    let mut p = printer("no-trigger", &probe_section(), [0.0, 0.05, 0.0]);
+    p.send("G28");
+    let r = p.send("G1 X40 F6000\nPROBE");
+    assert!(
+        r.contains("!! No trigger on probe after full movement"),
+        "{r}"
+    );
+    // It went all the way down to position_min.
+    assert!(p.send("M114").contains("Z:-2.000"));
+    // Before homing, probing is refused as Klipper does.
+    let mut p = printer("unhomed", &probe_section(), BED);
+    assert!(p.send("PROBE").contains("!! Must home before probe"));
+}
+
+/// The sensor test starts once the start-up's pin up has run (0.68 s).
+fn close_start(start_up: f64, test: f64) -> bool {
+    test >= start_up + 0.68 - 1e-6
+}
+
+#[test]
+fn bltouch_deploys_probes_and_stows_with_klippers_timings() {
+    let [x, y, z] = OFFSETS;
+    let section = format!(
+        "[bltouch]\nsensor_pin: ^PG10\ncontrol_pin: PB6\nx_offset: {x}\ny_offset: {y}\n\
+         z_offset: {z}\n"
+    );
+    let mut p = printer("bltouch", &section, BED);
+    // The simulated BLTouch reads the bed only with its pin down: homing Z
+    // works only if the pin is lowered before each homing move.
+    let home = p.send("G28");
+    assert!(!home.contains("!!"), "{home}");
+    let seconds = |log: &[(u64, f64)]| -> Vec<(f64, f64)> {
+        log.iter().map(|&(c, w)| (c as f64 / FREQ, w)).collect()
+    };
+    let homing = seconds(p.probe_servo_log());
+    let z_triggers: Vec<f64> = p
+        .triggers()
+        .iter()
+        .filter(|t| t.0 == 2)
+        .map(|t| t.2 as f64 / FREQ)
+        .collect();
+    assert_eq!(z_triggers.len(), 2);
+    let (up, touch, down) = (0.001_475, 0.001_165, 0.000_650);
+    let widths: Vec<f64> = homing.iter().map(|e| e.1).collect();
+    // Start-up (pin up), the sensor test (pin up, touch mode), then for
+    // each of Z's two homing moves the pin down before and up after; each
+    // command's pulses followed by the signal off.
+    assert_eq!(
+        widths,
+        [
+            up, 0.0, up, 0.0, touch, 0.0, down, 0.0, up, 0.0, down, 0.0, up, 0.0
+        ],
+        "{homing:?}"
+    );
+    // Start-up: 0.3 s after the first line (Klipper's 0.1 s + 0.2 s).
+    assert!(
+        homing[0].0 >= 0.3 && close_start(homing[0].0, homing[2].0),
+        "{homing:?}"
+    );
+    let homing = &homing[2..];
+    let t = |i: usize| homing[i].0;
+    let close = |a: f64, b: f64| (a - b).abs() < 2e-6;
+    // pin_move_time 0.68 s: the signal held 0.58 s (whole 20 ms periods
+    // past the 0.1 s minimum), the next command after the 0.68 s.
+    assert!(
+        close(t(1) - t(0), 0.58) && close(t(2) - t(0), 0.68),
+        "{homing:?}"
+    );
+    // Touch mode: held 0.1 s, the next command 0.1 s after it stopped.
+    assert!(
+        close(t(3) - t(2), 0.10) && close(t(4) - t(3), 0.10),
+        "{homing:?}"
+    );
+    for (k, &trigger) in z_triggers.iter().enumerate() {
+        let (pin_down, pin_up) = (t(4 + 4 * k), t(6 + 4 * k));
+        assert!(close(t(5 + 4 * k) - pin_down, 0.58), "{homing:?}");
+        // The homing move starts once the pin is down; the pin goes up
+        // 0.1 s after the trigger.
+        assert!(trigger > pin_down + 0.68, "trigger {trigger} vs {homing:?}");
+        assert!(
+            close(pin_up - trigger, 0.10),
+            "trigger {trigger} vs {homing:?}"
+        );
+        assert!(close(t(7 + 4 * k) - pin_up, 0.58), "{homing:?}");
+    }
+    // PROBE within TEST_TIME of the test: no new test, pin down, probe,
+    // pin up.
+    let before = p.probe_servo_log().len();
+    let r = p.send("G1 X100 Y100 Z5 F6000\nPROBE");
+    assert!(r.contains("// Result is z="), "{r}");
+    let probing = seconds(&p.probe_servo_log()[before..]);
+    let widths: Vec<f64> = probing.iter().map(|e| e.1).collect();
+    assert_eq!(widths, [down, 0.0, up, 0.0], "{probing:?}");
+    let trigger = p.triggers().last().expect("probe triggered").2 as f64 / FREQ;
+    assert!(trigger > probing[0].0 + 0.68, "{trigger} vs {probing:?}");
+    assert!(
+        close(probing[2].0 - trigger, 0.10),
+        "{trigger} vs {probing:?}"
+    );
+    // The toolhead waits for the pin: nothing moves before it is up.
+    assert!(p.send("M400").ends_with("ok\n"));
+}
+
+/// The G-code position M114 reports (X, Y, Z), mm.
+fn m114(p: &mut ConsolePrinter) -> [f64; 3] {
+    let r = p.send("M114");
+    let mut xyz = [f64::NAN; 3];
+    for (k, axis) in ["X:", "Y:", "Z:"].iter().enumerate() {
+        xyz[k] = r
+            .split(axis)
+            .nth(1)
+            .and_then(|v| v.split(' ').next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("{r}"));
+    }
+    xyz
+}
+
+#[test]
+fn safe_z_home_hops_homes_z_over_its_point_and_goes_back() {
+    let sections = format!(
+        "{}\n{}",
+        probe_section(),
+        safe_z_home("z_hop: 10\nz_hop_speed: 15\nmove_to_previous: True\n")
+    );
+    let mut p = printer_with("z-hop", &sections, BED);
+    // Z is not homed yet: Z homes only after X and Y.
+    let r = p.send("G28 Z");
+    assert!(r.contains("!! Must home X and Y axes first"), "{r}");
+    let r = p.send("G28");
+    assert!(!r.contains("!!"), "{r}");
+    // After homing: Z lifted to z_hop, XY back where X and Y homed (0, 0).
+    assert_eq!(m114(&mut p), [0.0, 0.0, 10.0]);
+    p.send("M400");
+    let real = p.real_position().expect("physics");
+    assert!(
+        real[0].abs() <= 0.0125 && real[1].abs() <= 0.0125,
+        "{real:?}"
+    );
+    let home_bed = bed(HOME_XY[0] + OFFSETS[0], HOME_XY[1] + OFFSETS[1], BED);
+    // Z = 10 is 8.5 mm above where the probe triggered (Z = z_offset).
+    let expected = home_bed + OFFSETS[2] + (10.0 - OFFSETS[2]);
+    assert!(
+        (real[2] - expected).abs() <= Z_STEP + 1e-9,
+        "{real:?} vs {expected}"
+    );
+    // The Z triggers happened with the probe over HOME_XY.
+    for t in p.triggers().iter().filter(|t| t.0 == 2) {
+        assert_eq!([t.1[0], t.1[1]], HOME_XY);
+    }
+}
+
+#[test]
+fn homing_override_runs_its_gcode_for_its_axes() {
+    let sections = format!(
+        "{}\n[homing_override]\naxes: z\nset_position_z: 0\ngcode:\n  G1 Z5 F600\n  \
+         G28 X0 Y0\n  G1 X120 Y130 F6000\n  G28 Z0\n  G1 Z10 F600\n",
+        probe_section()
+    );
+    let mut p = printer_with("override", &sections, BED);
+    // G28 X: not one of its axes, X homes as usual.
+    assert!(!p.send("G28 X").contains("!!"));
+    assert_eq!(m114(&mut p)[0], 0.0);
+    // G28: the script (Z may move first: set_position_z marks it homed).
+    let r = p.send("G28");
+    assert!(!r.contains("!!"), "{r}");
+    assert_eq!(m114(&mut p), [120.0, 130.0, 10.0]);
+    p.send("M400");
+    let real = p.real_position().expect("physics");
+    let probe_bed = bed(120.0 + OFFSETS[0], 130.0 + OFFSETS[1], BED);
+    let expected = probe_bed + 10.0;
+    assert!(
+        (real[2] - expected).abs() <= Z_STEP + 1e-9,
+        "{real:?} vs {expected}"
+    );
+}
+
+#[test]
+fn probe_calibrate_accepts_the_nozzle_height_as_the_new_z_offset() {
+    let mut p = printer("calibrate", &probe_section(), BED);
+    p.send("G28");
+    let (x, y) = (80.0, 90.0);
+    let r = p.send(&format!("G1 X{x} Y{y} Z10 F6000\nPROBE_CALIBRATE"));
+    let probed = z_of(&r, "// probe at");
+    assert!(r.contains("// Starting manual Z probe."), "{r}");
+    // The nozzle is now over the point the probe touched, 5 mm up.
+    let at = m114(&mut p);
+    assert_eq!([at[0], at[1]], [x + OFFSETS[0], y + OFFSETS[1]]);
+    assert!((at[2] - (probed + 5.0)).abs() < 0.001, "{at:?} vs {probed}");
+    // Lower it until it touches the bed there (the "paper test"): the bed
+    // is at that height in the coordinates Z homed in.
+    let home_bed = bed(HOME_XY[0] + OFFSETS[0], HOME_XY[1] + OFFSETS[1], BED);
+    let touch = bed(x + OFFSETS[0], y + OFFSETS[1], BED) - home_bed;
+    p.send(&format!("TESTZ Z={:.4}", touch - at[2]));
+    let r = p.send("ACCEPT");
+    // The probe triggers z_offset above the bed: that is what it finds,
+    // within the step the trigger is seen in.
+    let found: f64 = r
+        .strip_prefix("// probe: z_offset: ")
+        .and_then(|rest| rest.lines().next())
+        .and_then(|z| z.parse().ok())
+        .unwrap_or_else(|| panic!("{r}"));
+    assert!((found - OFFSETS[2]).abs() <= Z_STEP, "{r}");
+    assert!(r.contains("// The SAVE_CONFIG command will update the printer config file\n"));
+}
+
+#[test]
+fn a_probe_beside_a_z_endstop_probes_on_its_own_input() {
+    // Z keeps its switch (at 0.5); the probe is on another pin.
+    let keep = (
+        "position_max: 250\n\n[extruder]",
+        "position_min: -2\nposition_max: 250\n\n[extruder]",
+    );
+    let section = probe_section().replace("^PG10", "^PG11");
+    let mut p = shipped_with("beside", keep, &section, BED);
+    p.send("G28");
+    assert_eq!(m114(&mut p)[2], 0.5);
+    let real = p.real_position().expect("physics");
+    assert!((real[2] - 0.5).abs() <= Z_STEP + 1e-9, "{real:?}");
+    let (x, y) = (70.0, 110.0);
+    let r = p.send(&format!("G1 X{x} Y{y} Z6 F6000\nPROBE"));
+    // Z homed on its switch: the result is the bed's own height plus
+    // z_offset.
+    let expected = bed(x + OFFSETS[0], y + OFFSETS[1], BED) + OFFSETS[2];
+    let result = z_of(&r, "// Result is z=");
+    assert!(
+        (result - expected).abs() <= Z_STEP + 1e-9,
+        "{result} vs {expected}\n{r}"
+    );
+    // M119 reads Z's switch, QUERY_PROBE the probe.
+    assert_eq!(p.send("M119"), "x:open y:open z:open\nok\n");
+    assert!(p.send("QUERY_PROBE").starts_with("// probe: TRIGGERED"));
+}
