@@ -7,6 +7,7 @@ use crate::config_files::ConfigFiles;
 use crate::pin_check;
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
 use crate::text::cut_text;
+use core::fmt::Write as _;
 use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
@@ -14,6 +15,9 @@ use onechip_planner::machine::{MAX_STEPPERS, Machine};
 /// A config error, with its file, line and option, as text (cut to fit; the config it
 /// quotes is gone once the machine is built).
 pub type SetupError = heapless::String<192>;
+
+/// A pin name with its alias resolved (modifiers, chip and name).
+pub type PinText = heapless::String<32>;
 
 /// What a board wires for one stepper.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -96,25 +100,57 @@ impl<'a> PrinterSetup<'a> {
             })
     }
 
+    /// `pin` as printer.cfg writes it, with its `[board_pins]` alias
+    /// resolved (`!EXP1_1` → `!PE8`); an alias reserved with `<NAME>` is
+    /// an error (the pin check refused those already).
+    pub fn resolve_pin(&self, pin: &'a str) -> Result<PinText, SetupError> {
+        let resolved = self
+            .machine
+            .accessories
+            .board_pins
+            .resolve(pin)
+            .map_err(|e| cut_text(&e))?;
+        let mut text = PinText::new();
+        write!(text, "{resolved}")
+            .map_err(|_| cut_text(&format_args!("pin name too long: {pin}")))?;
+        Ok(text)
+    }
+
     /// Sections printer.cfg has that are not supported yet (ignored).
     pub fn unsupported(&self) -> &[&'a str] {
         &self.machine.unsupported
     }
 
-    /// True if there is a heater or a fan to run.
+    /// True if there is a heater, a fan or a pin to run.
     pub fn has_thermal(&self) -> bool {
-        !self.machine.heaters.is_empty() || self.machine.fan.is_some()
+        !self.machine.heaters.is_empty()
+            || self.machine.fan.is_some()
+            || self.machine.accessories.output_count() > 0
     }
 
-    /// For a board without hardware PWM outputs: a fan configured with
-    /// `hard_pwm` runs software PWM instead. True if one was changed.
+    /// For a board without hardware PWM outputs: a fan or output pin
+    /// configured with `hardware_pwm` runs software PWM instead (of its
+    /// cycle_time). True if one was changed.
     pub fn without_hard_pwm(&mut self) -> bool {
-        match self.machine.fan.as_mut().filter(|f| f.hard_pwm) {
-            Some(fan) => {
-                fan.hard_pwm = false;
-                true
-            }
-            None => false,
+        let accessories = &mut self.machine.accessories;
+        let fans = self
+            .machine
+            .fan
+            .iter_mut()
+            .chain(accessories.fans.iter_mut().map(|f| &mut f.fan));
+        let mut changed = false;
+        for fan in fans.filter(|f| f.hard_pwm) {
+            fan.hard_pwm = false;
+            changed = true;
         }
+        for pin in accessories
+            .output_pins
+            .iter_mut()
+            .filter(|p| p.hardware_pwm)
+        {
+            pin.hardware_pwm = false;
+            changed = true;
+        }
+        changed
     }
 }

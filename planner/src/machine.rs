@@ -1,6 +1,7 @@
 //! The machine as `printer.cfg` describes it: kinematics, limits, steppers
 //! and the extruder, read and checked the way Klipper reads them.
 
+use crate::accessories::{self, Accessories};
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
@@ -90,6 +91,8 @@ pub struct Machine<'a> {
     /// The secondary MCUs (`[mcu NAME]`), whose pins are written
     /// `NAME:PIN`.
     pub secondaries: heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>,
+    /// Named fans, output pins, board pin aliases, filament sensors.
+    pub accessories: Accessories<'a>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -266,9 +269,14 @@ impl<'a> Machine<'a> {
         let secondaries = mcu_section::read_all(config)?;
         // Sensor types: Klipper reads every definition, used or not.
         temperature_sensor::read_definitions(config)?;
+        let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
+        let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
+            steppers.iter().map(|s| s.name).collect();
+        let accessories = Accessories::read(config, &heater_names, &stepper_names)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
+                && !accessories::is_section(name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
                 && !temperature_sensor::is_definition_section(name)
@@ -293,6 +301,7 @@ impl<'a> Machine<'a> {
             fan,
             idle_timeout,
             secondaries,
+            accessories,
             unsupported,
         })
     }
