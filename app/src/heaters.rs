@@ -557,10 +557,13 @@ impl Heaters {
         if self.io.shutdown_reason().is_some() {
             return io;
         }
-        match (io, self.accessories.next_wake()) {
-            (Some(a), Some(b)) => Some(if is_before(b, a) { b } else { a }),
-            (a, b) => a.or(b),
-        }
+        let fan = self.fan.and_then(|f| f.busy_until());
+        [self.accessories.next_wake(), fan]
+            .into_iter()
+            .fold(io, |a, b| match (a, b) {
+                (Some(a), Some(b)) => Some(if is_before(b, a) { b } else { a }),
+                (a, b) => a.or(b),
+            })
     }
 
     /// The timer's work at clock `now`: outputs, readings, and each new
@@ -576,6 +579,9 @@ impl Heaters {
         }
         if self.io.shutdown_reason().is_some() {
             return Ok(());
+        }
+        if let Some(fan) = &mut self.fan {
+            fan.expire(now);
         }
         let readings: heapless::Vec<(f64, f64), MAX_HEATERS> = self
             .heaters

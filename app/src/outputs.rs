@@ -146,6 +146,25 @@ impl FanControl {
         self.full
     }
 
+    /// The clock before which a new update must wait ([`PIN_MIN_TIME`]
+    /// after the last), while it matters: the owner runs
+    /// [`Self::expire`] then, so that no clock kept here is ever old
+    /// enough for the 32-bit clock's wrap to make it look ahead.
+    pub fn busy_until(&self) -> Option<u32> {
+        self.last_at.map(|at| at.wrapping_add(self.min_ticks))
+    }
+
+    /// Forgets the last update's time once `now` is past
+    /// [`Self::busy_until`].
+    pub fn expire(&mut self, now: u32) {
+        if self
+            .busy_until()
+            .is_some_and(|until| !is_before(now, until))
+        {
+            self.last_at = None;
+        }
+    }
+
     /// The fan to `speed` (0..1) at `clock` (not before `now`): the
     /// output values to queue, in time order.
     pub fn set(&mut self, speed: f64, clock: u32, now: u32) -> Updates {
@@ -155,9 +174,10 @@ impl FanControl {
         if power == self.power {
             return updates;
         }
+        self.expire(now);
         let mut at = later(clock, now);
-        if let Some(last) = self.last_at {
-            at = later(at, last.wrapping_add(self.min_ticks));
+        if let Some(until) = self.busy_until() {
+            at = later(at, until);
         }
         let starting = self.power == 0.0 || power - self.power > 0.5;
         if power > 0.0 && power < max_power && self.kick_ticks > 0 && starting {
@@ -371,6 +391,48 @@ enum State {
     Static,
 }
 
+impl State {
+    /// True for a pin whose value is repeated (maximum_mcu_duration, away
+    /// from its shutdown value).
+    fn resending(&self) -> bool {
+        matches!(*self, State::Pin { resend_ticks, value, shutdown_value, .. }
+            if resend_ticks > 0 && value != shutdown_value)
+    }
+
+    /// The clock by which this output needs a poll, if any: a repeat, or
+    /// the end of its update spacing.
+    fn deadline(&self, min_ticks: u32) -> Option<u32> {
+        match *self {
+            State::Fan { control, .. } => control.busy_until(),
+            State::Pin {
+                last_at: Some(last),
+                resend_ticks,
+                ..
+            } => Some(last.wrapping_add(if self.resending() {
+                resend_ticks
+            } else {
+                min_ticks
+            })),
+            _ => None,
+        }
+    }
+
+    /// Forgets clocks that no longer matter at `now` (so that none is old
+    /// enough for the 32-bit clock's wrap to make it look ahead).
+    fn expire(&mut self, now: u32, min_ticks: u32) {
+        let resending = self.resending();
+        match self {
+            State::Fan { control, .. } => control.expire(now),
+            State::Pin { last_at, .. } if !resending => {
+                if last_at.is_some_and(|at| !is_before(now, at.wrapping_add(min_ticks))) {
+                    *last_at = None;
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
 /// What the fan checks read of each heater: (target, smoothed
 /// temperature), °C.
 pub type HeaterReadings<'h> = &'h [(f64, f64)];
@@ -441,23 +503,19 @@ impl AccessoryOutputs {
         self.first + fan
     }
 
-    /// When [`Self::poll`] must run next (clock), if ever.
+    /// When [`Self::poll`] must run next (clock), if ever: the next
+    /// check of heater and controller fans, a pin's repeat, or the end of
+    /// an output's [`PIN_MIN_TIME`] spacing (to forget its clock).
     pub fn next_wake(&self) -> Option<u32> {
         let checks = self
             .states
             .iter()
             .any(|s| matches!(s, State::Fan { role, .. } if *role != FanRole::Generic));
-        let resends = self.states.iter().filter_map(|s| match *s {
-            State::Pin {
-                last_at: Some(at),
-                resend_ticks,
-                value,
-                shutdown_value,
-                ..
-            } if resend_ticks > 0 && value != shutdown_value => Some(at.wrapping_add(resend_ticks)),
-            _ => None,
-        });
-        resends.fold(checks.then_some(self.next_check), |a, b| match a {
+        let deadlines = self
+            .states
+            .iter()
+            .filter_map(|s| s.deadline(self.min_ticks));
+        deadlines.fold(checks.then_some(self.next_check), |a, b| match a {
             Some(a) if is_before(a, b) => Some(a),
             _ => Some(b),
         })
@@ -483,6 +541,7 @@ impl AccessoryOutputs {
         }
         for index in 0..self.states.len() {
             let output = self.first + index;
+            self.states[index].expire(now, self.min_ticks);
             match &mut self.states[index] {
                 State::Fan {
                     control,
@@ -602,7 +661,7 @@ impl AccessoryOutputs {
                     return Ok(());
                 }
                 let mut at = later(at, now);
-                if let Some(last) = *last_at {
+                if let Some(last) = last_at.filter(|&l| is_before(now, l.wrapping_add(min_ticks))) {
                     at = later(at, last.wrapping_add(min_ticks));
                 }
                 *value = new;
@@ -628,5 +687,87 @@ impl AccessoryOutputs {
             State::Fan { control, .. } => Some(control.power()),
             _ => None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::heaters::{Heaters, ThermalCommand};
+    use onechip_config::Config;
+    use onechip_planner::machine::Machine;
+    use onechip_sched::io::Peripherals;
+    use onechip_sched::outputs::Drive;
+
+    /// The board's step clock, Hz: its 32-bit count wraps in 16.5 s.
+    const FREQ: f64 = 260_000_000.0;
+    /// A printer with a generic fan only.
+    const CONFIG: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [fan_generic aux]\npin: PA8\nkick_start_time: 0\n";
+
+    /// Hardware that ignores outputs.
+    struct Hw;
+
+    impl Peripherals for Hw {
+        fn drive(&mut self, _: usize, _: Drive) {}
+        fn read_adc(&mut self, _: usize) -> u16 {
+            2048
+        }
+    }
+
+    /// Runs `heaters` at each wake up to `until` (clock, unwrapped s).
+    fn run_to(heaters: &mut Heaters, now: &mut f64, until: f64) {
+        while let Some(wake) = heaters.next_wake() {
+            let ahead = f64::from(wake.wrapping_sub((*now * FREQ) as u64 as u32)) / FREQ;
+            if *now + ahead > until {
+                break;
+            }
+            *now += ahead;
+            heaters
+                .run((*now * FREQ) as u64 as u32, &mut Hw)
+                .expect("runs");
+        }
+        *now = until;
+    }
+
+    #[test]
+    fn a_fan_set_long_after_its_last_update_changes_at_once() {
+        let config = Config::parse("printer.cfg", CONFIG).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let set = |heaters: &mut Heaters, speed, at: f64| {
+            let command = AccessoryCommand::Fan {
+                fan: 0,
+                speed,
+                print_time: at,
+            };
+            let now = (at * FREQ) as u64 as u32;
+            heaters
+                .command(ThermalCommand::Accessory(command), now, &mut Hw)
+                .expect("queued");
+        };
+        let mut now = 0.0;
+        set(&mut heaters, 1.0, 1.0);
+        run_to(&mut heaters, &mut now, 1.001);
+        assert_eq!(heaters.named_fan_power(0), Some(1.0));
+        // 12 s later (more than half the clock's wrap): no spacing from
+        // a clock that long gone.
+        run_to(&mut heaters, &mut now, 13.0);
+        set(&mut heaters, 0.0, 13.0);
+        run_to(&mut heaters, &mut now, 13.001);
+        assert_eq!(heaters.output_value(0), Some(0));
+        // Two updates 10 ms apart: the second waits for PIN_MIN_TIME.
+        set(&mut heaters, 0.5, 14.0);
+        set(&mut heaters, 1.0, 14.01);
+        run_to(&mut heaters, &mut now, 14.05);
+        assert_eq!(heaters.output_value(0), Some(1_300_000));
+        run_to(&mut heaters, &mut now, 14.101);
+        assert_eq!(heaters.output_value(0), Some(2_600_000));
     }
 }

@@ -11,7 +11,7 @@ use onechip_config::{Config, ConfigError};
 
 /// Most outputs all these sections drive together (fans, output pins,
 /// static pins).
-pub const MAX_OUTPUTS: usize = 12;
+pub const MAX_OUTPUTS: usize = 24;
 
 /// Everything this module reads from printer.cfg.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -57,7 +57,7 @@ impl<'a> Accessories<'a> {
             };
             let full = "is in one section too many of its kind for onechip";
             if fan_sections::is_section(name) {
-                let fan = fan_sections::read(&section, heaters, steppers)?;
+                let fan = fan_sections::read(config, &section, heaters, steppers)?;
                 this.fans
                     .push(fan)
                     .map_err(|_| section.error_for("pin", full))?;
@@ -82,7 +82,7 @@ impl<'a> Accessories<'a> {
             if let Some(s) = config.section(section) {
                 return Err(s.error_for(
                     option,
-                    "is one output too many: onechip drives at most 12 fans and pins besides [fan]",
+                    "is one output too many: onechip drives at most 24 fans and pins besides [fan]",
                 ));
             }
         }

@@ -8,7 +8,7 @@
 //! is kept and searched when a pin is resolved, so a board with many
 //! aliases costs nothing more.
 
-use crate::output_pin::unique_sections;
+use crate::output_pin::{list_items, unique_sections};
 use core::fmt;
 use onechip_config::{Config, ConfigError, Section};
 
@@ -69,12 +69,10 @@ impl fmt::Display for ReservedPin<'_> {
     }
 }
 
-/// The `NAME=VALUE` pairs of an `aliases` text (a trailing comma allowed);
-/// `None` for a pair without `=`.
+/// The `NAME=VALUE` pairs of an `aliases` text (over several lines,
+/// comments left out); `None` for an entry without `=`.
 fn pairs(aliases: &str) -> impl Iterator<Item = Option<(&str, &str)>> {
-    let text = aliases.trim();
-    let text = text.strip_suffix(',').unwrap_or(text);
-    text.split(',').map(|pair| {
+    list_items(aliases).map(|pair| {
         pair.split_once('=')
             .map(|(name, value)| (name.trim(), value.trim()))
     })
@@ -231,7 +229,7 @@ mod tests {
     extern crate std;
     use super::*;
 
-    const BOARD: &str = "[board_pins]\naliases:\n    EXP1_1=PE8, EXP1_2=PE7,\n    EXP1_9=<GND>, BEEPER=EXP1_1,\n\
+    const BOARD: &str = "[board_pins]\naliases:\n    # EXP1\n    EXP1_1=PE8, EXP1_2=PE7, # a comment\n    EXP1_9=<GND>, BEEPER=EXP1_1,\n\
         [board_pins second]\nmcu: extra\naliases: EXP1_1=PA1\n";
 
     #[test]

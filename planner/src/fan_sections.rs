@@ -6,7 +6,7 @@
 
 use crate::output_pin::named;
 use crate::thermal::{self, Fan};
-use onechip_config::{Bounds, ConfigError, Section};
+use onechip_config::{Bounds, Config, ConfigError, Section};
 
 /// Most named fans (all kinds together).
 pub const MAX_FANS: usize = 8;
@@ -72,21 +72,24 @@ pub fn is_section(section: &str) -> bool {
     PREFIXES.iter().any(|p| named(section, p).is_some())
 }
 
-/// The bits of the names in the comma-separated `list` among `names`;
-/// a name not among them is an error naming `option`.
+/// The bits of the names in the comma-separated `list` among `names`.
+/// A name not among them is an error naming `option`, unless `config`
+/// has a section of that name (a heater or stepper onechip does not drive
+/// yet, itself reported unsupported): it has no bit.
 fn bits<'c>(
+    config: &Config<'_>,
     section: &Section<'c, '_>,
     option: &'c str,
     list: &str,
     names: &[&str],
 ) -> Result<u32, ConfigError<'c>> {
     let mut mask = 0;
-    for item in list.split(',').map(str::trim).filter(|n| !n.is_empty()) {
-        let index = names
-            .iter()
-            .position(|n| *n == item)
-            .ok_or_else(|| section.error_for(option, "names one that is not configured"))?;
-        mask |= 1 << index;
+    for item in crate::output_pin::list_items(list) {
+        match names.iter().position(|n| *n == item) {
+            Some(index) => mask |= 1 << index,
+            None if config.has_section(item) => {}
+            None => return Err(section.error_for(option, "names one that is not configured")),
+        }
     }
     Ok(mask)
 }
@@ -94,6 +97,7 @@ fn bits<'c>(
 /// Reads the named fan `section`; `heaters` and `steppers` are the
 /// machine's heater and stepper names, in order.
 pub fn read<'c, 'a>(
+    config: &Config<'a>,
     section: &Section<'c, 'a>,
     heaters: &[&str],
     steppers: &[&str],
@@ -105,7 +109,7 @@ pub fn read<'c, 'a>(
         .unwrap_or(("fan_generic", written));
     let heater_list = |section: &Section<'c, 'a>| {
         let list = section.get_opt("heater").unwrap_or("extruder");
-        bits(section, "heater", list, heaters).map(|m| m as u8)
+        bits(config, section, "heater", list, heaters).map(|m| m as u8)
     };
     let (role, shutdown) = match kind {
         "heater_fan" => (
@@ -119,7 +123,7 @@ pub fn read<'c, 'a>(
         "controller_fan" => {
             let fan_speed = section.get_float("fan_speed", Some(1.0), UNIT)?;
             let steppers = match section.get_opt("stepper") {
-                Some(list) => bits(section, "stepper", list, steppers)? as u16,
+                Some(list) => bits(config, section, "stepper", list, steppers)? as u16,
                 None => u16::MAX,
             };
             let idle_timeout = section.get_int("idle_timeout", Some(30), Some(0))?;
@@ -148,7 +152,6 @@ pub fn read<'c, 'a>(
 mod tests {
     extern crate std;
     use super::*;
-    use onechip_config::Config;
 
     const HEATERS: [&str; 2] = ["extruder", "heater_bed"];
     const STEPPERS: [&str; 4] = ["stepper_x", "stepper_y", "stepper_z", "extruder"];
@@ -159,7 +162,7 @@ mod tests {
             Config::parse("printer.cfg", text).expect("parses"),
         ));
         let section = config.section(section).expect("section");
-        read(&section, &HEATERS, &STEPPERS).map_err(|e| std::format!("{e}"))
+        read(config, &section, &HEATERS, &STEPPERS).map_err(|e| std::format!("{e}"))
     }
 
     #[test]

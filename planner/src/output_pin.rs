@@ -8,7 +8,7 @@ use onechip_config::{Bounds, Config, ConfigError, Section};
 /// Most `[output_pin]` sections.
 pub const MAX_OUTPUT_PINS: usize = 8;
 /// Most pins all `[static_digital_output]` sections list together.
-pub const MAX_STATIC_PINS: usize = 8;
+pub const MAX_STATIC_PINS: usize = 16;
 /// Longest PWM cycle and maximum_mcu_duration, s (Klipper's
 /// MAX_SCHEDULE_TIME).
 pub const MAX_SCHEDULE_TIME: f64 = 5.0;
@@ -56,6 +56,17 @@ pub fn named<'s>(section: &'s str, prefix: &str) -> Option<&'s str> {
     let rest = section.strip_prefix(prefix)?;
     let name = rest.trim();
     (rest.starts_with(char::is_whitespace) && !name.is_empty()).then_some(name)
+}
+
+/// The items of a comma-separated list option (`pins`, `aliases`,
+/// `heater`), over several lines if need be: comments (`#` or `;` to the
+/// line's end) and empty items left out.
+pub fn list_items(text: &str) -> impl Iterator<Item = &str> {
+    text.lines()
+        .map(|line| line.split(['#', ';']).next().unwrap_or(""))
+        .flat_map(|line| line.split(','))
+        .map(str::trim)
+        .filter(|item| !item.is_empty())
 }
 
 /// Each section name of `config` once, in file order (a section written
@@ -153,13 +164,13 @@ pub fn read_static_outputs<'c, 'a>(
             continue;
         };
         let pins = section.get("pins")?;
-        for pin in pins.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        for pin in list_items(pins) {
             out.push(StaticPin {
                 section: section.name_in_file(),
                 pin,
             })
             .map_err(|_| {
-                section.error_for("pins", "lists more pins than onechip holds (8 in all)")
+                section.error_for("pins", "lists more pins than onechip holds (16 in all)")
             })?;
         }
     }
@@ -200,11 +211,12 @@ mod tests {
 
     #[test]
     fn static_outputs_list_every_pin() {
-        let text = "[static_digital_output leds]\npins: PA1, !PA2,PA3\n";
+        let text =
+            "[static_digital_output leds]\npins: PA1, !PA2,PA3\n  # more\n  PB1, PB2, ; last\n";
         let config = Config::parse("printer.cfg", text).expect("parses");
         let mut pins = heapless::Vec::new();
         read_static_outputs(&config, &mut pins).expect("reads");
         let written: heapless::Vec<&str, 8> = pins.iter().map(|p| p.pin).collect();
-        assert_eq!(written.as_slice(), ["PA1", "!PA2", "PA3"]);
+        assert_eq!(written.as_slice(), ["PA1", "!PA2", "PA3", "PB1", "PB2"]);
     }
 }
