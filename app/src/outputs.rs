@@ -423,10 +423,11 @@ impl State {
         let resending = self.resending();
         match self {
             State::Fan { control, .. } => control.expire(now),
-            State::Pin { last_at, .. } if !resending => {
-                if last_at.is_some_and(|at| !is_before(now, at.wrapping_add(min_ticks))) {
-                    *last_at = None;
-                }
+            State::Pin { last_at, .. }
+                if !resending
+                    && last_at.is_some_and(|at| !is_before(now, at.wrapping_add(min_ticks))) =>
+            {
+                *last_at = None;
             }
             _ => {}
         }

@@ -10,6 +10,7 @@ use crate::text::cut_text;
 use core::fmt::Write as _;
 use core::mem::MaybeUninit;
 pub use onechip_config::Config;
+use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
@@ -102,17 +103,12 @@ impl<'a> PrinterSetup<'a> {
 
     /// `pin` as printer.cfg writes it, with its `[board_pins]` alias
     /// resolved (`!EXP1_1` → `!PE8`); an alias reserved with `<NAME>` is
-    /// an error (the pin check refused those already).
-    pub fn resolve_pin(&self, pin: &'a str) -> Result<PinText, SetupError> {
-        let resolved = self
-            .machine
-            .accessories
-            .board_pins
-            .resolve(pin)
-            .map_err(|e| cut_text(&e))?;
+    /// an error (the pin check refused those already). A name too long
+    /// for [`PinText`] is cut (and then names no pin).
+    pub fn resolve_pin(&self, pin: &'a str) -> Result<PinText, ReservedPin<'a>> {
+        let resolved = self.machine.accessories.board_pins.resolve(pin)?;
         let mut text = PinText::new();
-        write!(text, "{resolved}")
-            .map_err(|_| cut_text(&format_args!("pin name too long: {pin}")))?;
+        let _ = write!(text, "{resolved}");
         Ok(text)
     }
 
