@@ -17,6 +17,10 @@ use onechip_planner::machine::{MAX_STEPPERS, Machine};
 /// quotes is gone once the machine is built).
 pub type SetupError = heapless::String<192>;
 
+/// The shortest software PWM cycle a `hardware_pwm` output gets on a
+/// board without hardware PWM, s.
+pub const MIN_SOFTWARE_CYCLE: f64 = 0.001;
+
 /// A pin name with its alias resolved (modifiers, chip and name).
 pub type PinText = heapless::String<32>;
 
@@ -125,8 +129,10 @@ impl<'a> PrinterSetup<'a> {
     }
 
     /// For a board without hardware PWM outputs: a fan or output pin
-    /// configured with `hardware_pwm` runs software PWM instead (of its
-    /// cycle_time). True if one was changed.
+    /// configured with `hardware_pwm` runs software PWM instead, of its
+    /// cycle_time but at least [`MIN_SOFTWARE_CYCLE`] (a hardware cycle of
+    /// tens of µs would have the heaters' interrupt run at every edge).
+    /// True if one was changed.
     pub fn without_hard_pwm(&mut self) -> bool {
         let accessories = &mut self.machine.accessories;
         let fans = self
@@ -137,6 +143,7 @@ impl<'a> PrinterSetup<'a> {
         let mut changed = false;
         for fan in fans.filter(|f| f.hard_pwm) {
             fan.hard_pwm = false;
+            fan.cycle_time = fan.cycle_time.max(MIN_SOFTWARE_CYCLE);
             changed = true;
         }
         for pin in accessories
@@ -145,6 +152,7 @@ impl<'a> PrinterSetup<'a> {
             .filter(|p| p.hardware_pwm)
         {
             pin.hardware_pwm = false;
+            pin.cycle_time = pin.cycle_time.max(MIN_SOFTWARE_CYCLE);
             changed = true;
         }
         changed

@@ -93,40 +93,41 @@ pub fn is_section(section: &str) -> bool {
 }
 
 impl<'a> BoardPins<'a> {
-    /// Reads every `[board_pins]` section of `config`.
+    /// Reads every `[board_pins]` section of `config`: every entry must be
+    /// `NAME=PIN` (a plain pin name, or `<NAME>`), and no alias may map to
+    /// two pins on one chip.
+    #[inline(never)]
     pub fn read<'c>(config: &'c Config<'a>) -> Result<Self, ConfigError<'c>> {
         let mut pins = Self::default();
         for name in unique_sections(config).filter(|n| is_section(n)) {
             let Some(section) = config.section(name) else {
                 continue;
             };
-            let default_chip = name.strip_prefix("board_pins").map_or("mcu", str::trim);
-            let default_chip = if default_chip.is_empty() {
-                "mcu"
-            } else {
-                default_chip
-            };
-            let chips = section.get_opt("mcu").unwrap_or(default_chip);
+            let chip = name.strip_prefix("board_pins").map_or("", str::trim);
+            let chips =
+                section
+                    .get_opt("mcu")
+                    .unwrap_or(if chip.is_empty() { "mcu" } else { chip });
             let aliases = section.get("aliases")?;
-            Self::check(&section, aliases)?;
             pins.sections
                 .push(AliasSection { chips, aliases })
                 .map_err(|_| {
                     section.error_for("aliases", "is in one [board_pins] too many (at most 4)")
                 })?;
-        }
-        for (i, a) in pins.sections.iter().enumerate() {
-            for b in &pins.sections[..i] {
-                pins.check_against(config, a, b)?;
-            }
+            pins.check(&section, chips, aliases)?;
         }
         Ok(pins)
     }
 
-    /// Every pair of `aliases` parses, maps to a plain pin name, and no
-    /// alias is mapped twice to different pins.
-    fn check<'c>(section: &Section<'c, 'a>, aliases: &'a str) -> Result<(), ConfigError<'c>> {
-        for (i, pair) in pairs(aliases).enumerate() {
+    /// The entries of `aliases` (of the section just added, for `chips`)
+    /// parse, and each alias' first mapping on each chip is this one.
+    fn check<'c>(
+        &self,
+        section: &Section<'c, 'a>,
+        chips: &str,
+        aliases: &'a str,
+    ) -> Result<(), ConfigError<'c>> {
+        for pair in pairs(aliases) {
             let Some((name, value)) = pair else {
                 return Err(section.error_for("aliases", "has an entry that is not NAME=PIN"));
             };
@@ -134,59 +135,19 @@ impl<'a> BoardPins<'a> {
             if name.is_empty() || !(reserved || valid_target(value)) {
                 return Err(section.error_for("aliases", "has an invalid pin alias"));
             }
-            let remapped = pairs(aliases)
-                .take(i)
-                .flatten()
-                .any(|(n, v)| n == name && v != value);
-            if remapped {
+            if list_items(chips).any(|chip| self.lookup(chip, name) != Some(value)) {
                 return Err(section.error_for("aliases", "maps one alias to two pins"));
             }
         }
         Ok(())
     }
 
-    /// Two sections for a common chip do not map one alias to two pins.
-    fn check_against<'c>(
-        &self,
-        config: &'c Config<'a>,
-        a: &AliasSection<'a>,
-        b: &AliasSection<'a>,
-    ) -> Result<(), ConfigError<'c>> {
-        let shares_chip = a.chips.split(',').any(|c| chip_listed(b.chips, c.trim()));
-        let clash = shares_chip
-            && pairs(a.aliases).flatten().any(|(name, value)| {
-                pairs(b.aliases)
-                    .flatten()
-                    .any(|(n, v)| n == name && v != value)
-            });
-        if !clash {
-            return Ok(());
-        }
-        let section = config
-            .section_names()
-            .filter(|n| is_section(n))
-            .filter_map(|n| config.section(n))
-            .find(|s| s.get_opt("aliases") == Some(a.aliases));
-        Err(match section {
-            Some(s) => s.error_for(
-                "aliases",
-                "maps an alias another [board_pins] maps to another pin",
-            ),
-            None => ConfigError {
-                file: config.file(),
-                line: 0,
-                kind: onechip_config::ConfigErrorKind::Syntax,
-            },
-        })
-    }
-
     /// The alias `name` has on `chip`, if any: its value as written.
     fn lookup(&self, chip: &str, name: &str) -> Option<&'a str> {
         self.sections
             .iter()
-            .filter(|s| chip_listed(s.chips, chip))
-            .flat_map(|s| pairs(s.aliases).flatten())
-            .find(|(n, _)| *n == name)
+            .filter(|s| list_items(s.chips).any(|c| c == chip))
+            .find_map(|s| pairs(s.aliases).flatten().find(|(n, _)| *n == name))
             .map(|(_, v)| v)
     }
 
@@ -217,11 +178,6 @@ impl<'a> BoardPins<'a> {
             name,
         })
     }
-}
-
-/// True if the comma-separated `chips` lists `chip`.
-fn chip_listed(chips: &str, chip: &str) -> bool {
-    chips.split(',').any(|c| c.trim() == chip)
 }
 
 #[cfg(test)]
@@ -267,6 +223,13 @@ mod tests {
         let twice = "[board_pins]\naliases: A=PE8, A=PE7\n";
         let config = Config::parse("printer.cfg", twice).expect("parses");
         assert!(BoardPins::read(&config).is_err());
+        let across = "[board_pins]\naliases: A=PE8\n[board_pins b]\nmcu: mcu\naliases: A=PE7\n";
+        let config = Config::parse("printer.cfg", across).expect("parses");
+        let e = BoardPins::read(&config).expect_err("refused");
+        assert_eq!(e.line, 5, "{e}");
+        let other_chip = "[board_pins]\naliases: A=PE8\n[board_pins b]\naliases: A=PE7\n";
+        let config = Config::parse("printer.cfg", other_chip).expect("parses");
+        assert!(BoardPins::read(&config).is_ok());
         let modifier = "[board_pins]\naliases: A=!PE8\n";
         let config = Config::parse("printer.cfg", modifier).expect("parses");
         assert!(BoardPins::read(&config).is_err());

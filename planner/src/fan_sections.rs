@@ -96,6 +96,7 @@ fn bits<'c>(
 
 /// Reads the named fan `section`; `heaters` and `steppers` are the
 /// machine's heater and stepper names, in order.
+#[inline(never)]
 pub fn read<'c, 'a>(
     config: &Config<'a>,
     section: &Section<'c, 'a>,

@@ -61,12 +61,36 @@ pub fn named<'s>(section: &'s str, prefix: &str) -> Option<&'s str> {
 /// The items of a comma-separated list option (`pins`, `aliases`,
 /// `heater`), over several lines if need be: comments (`#` or `;` to the
 /// line's end) and empty items left out.
-pub fn list_items(text: &str) -> impl Iterator<Item = &str> {
-    text.lines()
-        .map(|line| line.split(['#', ';']).next().unwrap_or(""))
-        .flat_map(|line| line.split(','))
-        .map(str::trim)
-        .filter(|item| !item.is_empty())
+pub fn list_items(text: &str) -> ListItems<'_> {
+    ListItems { rest: text }
+}
+
+/// The iterator [`list_items`] returns.
+#[derive(Debug, Clone)]
+pub struct ListItems<'a> {
+    rest: &'a str,
+}
+
+impl<'a> Iterator for ListItems<'a> {
+    type Item = &'a str;
+
+    fn next(&mut self) -> Option<&'a str> {
+        while !self.rest.is_empty() {
+            let rest = self.rest;
+            // Every delimiter is one byte: slicing next to it is safe.
+            let end = rest.find([',', '\n', '#', ';']).unwrap_or(rest.len());
+            let item = rest[..end].trim();
+            self.rest = match rest.as_bytes().get(end) {
+                Some(b'#' | b';') => rest[end..].find('\n').map_or("", |n| &rest[end + n + 1..]),
+                Some(_) => &rest[end + 1..],
+                None => "",
+            };
+            if !item.is_empty() {
+                return Some(item);
+            }
+        }
+        None
+    }
 }
 
 /// Each section name of `config` once, in file order (a section written
@@ -80,6 +104,7 @@ pub fn unique_sections<'c, 'a>(config: &'c Config<'a>) -> impl Iterator<Item = &
 }
 
 /// Reads an `[output_pin NAME]` section.
+#[inline(never)]
 pub fn read_output_pin<'c, 'a>(
     section: &Section<'c, 'a>,
 ) -> Result<OutputPin<'a>, ConfigError<'c>> {
@@ -152,6 +177,7 @@ pub fn read_output_pin<'c, 'a>(
 
 /// Reads every `[static_digital_output]` section's `pins` into `out`;
 /// more than [`MAX_STATIC_PINS`] in all is an error.
+#[inline(never)]
 pub fn read_static_outputs<'c, 'a>(
     config: &'c Config<'a>,
     out: &mut heapless::Vec<StaticPin<'a>, MAX_STATIC_PINS>,
