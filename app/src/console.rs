@@ -12,6 +12,7 @@
 //! runs its lines one at a time between console lines.
 
 use crate::card::Card;
+use crate::filament::FilamentEvent;
 use crate::line::{LineEvent, command_word};
 use crate::line_protocol::{Checked, LineNumbers, write_refusal};
 use crate::sd_print::{SdError, SdPrint};
@@ -176,6 +177,9 @@ impl Console {
         {
             session.idle(mcu, out);
             self.idle_due = now + (IDLE_PERIOD * self.freq) as u64;
+            if let Some(event) = session.filament_event(mcu, self.sd.is_printing()) {
+                self.filament(event, session, card, mcu, out)?;
+            }
         }
         if due(&mut self.temperatures, now) {
             mcu.report_temperatures(out)?;
@@ -227,6 +231,47 @@ impl Console {
                 Ok(())
             }
         }
+    }
+
+    /// A filament sensor's event, as Klipper's runout helper: on runout
+    /// the print pauses (a print from the card as PAUSE does; a host's
+    /// print is told `action:paused`), then the event's G-code runs, each
+    /// line as a file line would.
+    fn filament<const L: usize, const N: usize, const Q: usize>(
+        &mut self,
+        event: FilamentEvent<'_>,
+        session: &mut Session<'_, L, N, Q>,
+        card: &mut impl Card,
+        mcu: &mut impl Mcu,
+        out: &mut impl Write,
+    ) -> fmt::Result {
+        let gcode = match event {
+            FilamentEvent::Runout { pause, gcode } => {
+                if pause && self.sd.is_printing() {
+                    let _ = self.sd.pause::<()>();
+                } else if pause {
+                    writeln!(out, "// action:paused")?;
+                }
+                gcode
+            }
+            FilamentEvent::Insert { gcode } => Some(gcode),
+        };
+        let no_printer = ErrorText::new();
+        for line in gcode.into_iter().flat_map(str::lines) {
+            let line = strip_comment(line);
+            if !line.is_empty() {
+                self.command(
+                    line,
+                    Source::File,
+                    Some(&mut *session),
+                    &no_printer,
+                    card,
+                    mcu,
+                    out,
+                )?;
+            }
+        }
+        Ok(())
     }
 
     /// A file line failed: the print pauses after reporting it (RESUME or

@@ -19,12 +19,14 @@
 
 use core::fmt::Write;
 use onechip_planner::machine::Machine;
-use onechip_planner::thermal::{Control, Fan, Heater, PWM_DELAY, VerifyHeater};
+use onechip_planner::thermal::{Control, Heater, PWM_DELAY, VerifyHeater};
 use onechip_sched::adc::{AdcQuery, AdcReport};
 use onechip_sched::clock::is_before;
 use onechip_sched::io::{Io, Peripherals};
 use onechip_sched::outputs::{OutputConfig, OutputKind, QueueError};
 use onechip_sched::shutdown::{self, Shutdown};
+
+use crate::outputs::{AccessoryCommand, AccessoryOutputs, FanControl, fan_config};
 
 /// Time between a thermistor's readings, s.
 pub const SAMPLE_TIME: f64 = 0.001;
@@ -51,8 +53,9 @@ const PID_SETTLE_SLOPE: f64 = 0.1;
 
 /// Heaters: the extruder's and the bed's.
 pub const MAX_HEATERS: usize = 2;
-/// Outputs: the heaters and the fan.
-pub const OUTPUTS: usize = MAX_HEATERS + 1;
+/// Outputs: the heaters, the fan, then the named fans and pins
+/// ([`crate::outputs`]).
+pub const OUTPUTS: usize = MAX_HEATERS + 1 + onechip_planner::accessories::MAX_OUTPUTS;
 
 /// Each heater's label (`T`, `B`), smoothed temperature and target (°C)
 /// and power (0..1); displayed as the M105 report, Marlin's
@@ -96,6 +99,8 @@ pub enum ThermalCommand {
         /// When, s of print time.
         print_time: f64,
     },
+    /// A named fan, an output pin, or the motors' state.
+    Accessory(AccessoryCommand),
 }
 
 /// -1, 0 or 1.
@@ -323,25 +328,9 @@ struct HeaterState {
     verify: Verify,
 }
 
-/// The fan: configuration and last speed.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct FanState {
-    config: FanSetup,
-    speed: f64,
-}
-
-/// The fan's options that matter once it runs.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct FanSetup {
-    max_power: f64,
-    off_below: f64,
-    kick_ticks: u32,
-    /// Full-scale value: cycle ticks (software PWM) or [`PWM_MAX`].
-    full: u32,
-}
-
 /// The MCU configuration of the heaters and fan, as Klipper sends it:
-/// outputs (in [`Heaters`] order: heaters, then fan) and ADC queries.
+/// outputs (in [`Heaters`] order: heaters, the fan, then the named fans
+/// and pins) and ADC queries.
 #[derive(Debug, Clone, PartialEq)]
 pub struct McuSetup<'a> {
     /// Each output's pin (as printer.cfg writes it) and configuration.
@@ -352,12 +341,12 @@ pub struct McuSetup<'a> {
 
 /// A fraction (0..1) of an output's full scale, rounded, as Klipper's
 /// `set_pwm` computes on ticks or duty.
-fn scaled(fraction: f64, full: u32) -> u32 {
+pub(crate) fn scaled(fraction: f64, full: u32) -> u32 {
     (fraction * f64::from(full) + 0.5) as u32
 }
 
 /// Seconds to ticks, as Klipper's `seconds_to_clock` (truncated).
-fn ticks(seconds: f64, freq: f64) -> u32 {
+pub(crate) fn ticks(seconds: f64, freq: f64) -> u32 {
     (seconds * freq) as u32
 }
 
@@ -385,34 +374,19 @@ impl<'a> McuSetup<'a> {
                 .push((heater.sensor_pin, adc_query(heater, freq, adc_max, start)));
         }
         if let Some(fan) = &machine.fan {
-            let kind = fan_output(fan, freq);
-            let default = scaled(fan.shutdown_speed.min(fan.max_power), full_scale(kind));
-            let output = OutputConfig {
-                kind,
-                value: 0,
-                default,
-                max_duration: 0,
-            };
-            let _ = setup.outputs.push((fan.pin, output));
+            let _ = setup.outputs.push((fan.pin, fan_config(fan, freq)));
         }
+        let accessories = crate::outputs::output_configs(&machine.accessories, freq);
         setup
-    }
-}
-
-/// The fan's output kind.
-fn fan_output(fan: &Fan<'_>, freq: f64) -> OutputKind {
-    if fan.hard_pwm {
-        OutputKind::HardPwm
-    } else {
-        OutputKind::Digital {
-            cycle_ticks: ticks(fan.cycle_time, freq),
-        }
+            .outputs
+            .extend(accessories.take(setup.outputs.capacity() - setup.outputs.len()));
+        setup
     }
 }
 
 /// An output's full-scale value: its cycle ticks (software PWM) or
 /// [`PWM_MAX`] (hardware PWM).
-fn full_scale(kind: OutputKind) -> u32 {
+pub fn full_scale(kind: OutputKind) -> u32 {
     match kind {
         OutputKind::Digital { cycle_ticks } => cycle_ticks,
         OutputKind::HardPwm => PWM_MAX,
@@ -422,6 +396,22 @@ fn full_scale(kind: OutputKind) -> u32 {
 /// A report's full scale: the sum of its readings at 0..=`adc_max`.
 fn adc_full(adc_max: u16) -> f64 {
     f64::from(SAMPLE_COUNT) * f64::from(adc_max)
+}
+
+/// Queues an output update on `io`; a full queue drops it (the next
+/// report or check repeats it), a late one has shut everything down.
+fn queue_on(
+    io: &mut Io<OUTPUTS, MAX_HEATERS>,
+    index: usize,
+    clock: u32,
+    value: u32,
+    now: u32,
+    hw: &mut impl Peripherals,
+) -> Result<(), Shutdown> {
+    match io.queue(index, clock, value, now, hw) {
+        Err(QueueError::Late) => Err(Shutdown::TimerTooClose),
+        _ => Ok(()),
+    }
 }
 
 /// A heater's sensor query: 8 readings 1 ms apart every 0.3 s, the sum
@@ -475,7 +465,9 @@ impl core::fmt::Display for ThermalError {
 pub struct Heaters {
     io: Io<OUTPUTS, MAX_HEATERS>,
     heaters: heapless::Vec<HeaterState, MAX_HEATERS>,
-    fan: Option<FanState>,
+    fan: Option<FanControl>,
+    /// The named fans and pins, io outputs after the fan.
+    accessories: AccessoryOutputs,
     /// Ticks from a report to the update it causes.
     pwm_delay: u32,
     /// Ticks after which a heater's unchanged power is sent again.
@@ -543,19 +535,14 @@ impl Heaters {
         let fan = machine
             .fan
             .zip(fan_config)
-            .map(|(f, (_, output))| FanState {
-                config: FanSetup {
-                    max_power: f.max_power,
-                    off_below: f.off_below,
-                    kick_ticks: ticks(f.kick_start_time, freq),
-                    full: full_scale(output.kind),
-                },
-                speed: 0.0,
-            });
+            .map(|(f, (_, output))| FanControl::new(&f, full_scale(output.kind), freq));
+        let first = machine.heaters.len() + usize::from(fan.is_some());
+        let accessories = AccessoryOutputs::new(&machine.accessories, first, freq, start);
         Self {
             io,
             heaters,
             fan,
+            accessories,
             pwm_delay: ticks(PWM_DELAY, freq),
             refresh_ticks: ticks(0.75 * MAX_HEAT_TIME, freq),
             verify_ticks: ticks(VERIFY_TIME, freq),
@@ -566,7 +553,17 @@ impl Heaters {
 
     /// When [`Self::run`] must run next (MCU clock), if ever.
     pub fn next_wake(&self) -> Option<u32> {
-        self.io.next_wake()
+        let io = self.io.next_wake();
+        if self.io.shutdown_reason().is_some() {
+            return io;
+        }
+        let fan = self.fan.and_then(|f| f.busy_until());
+        [self.accessories.next_wake(), fan]
+            .into_iter()
+            .fold(io, |a, b| match (a, b) {
+                (Some(a), Some(b)) => Some(if is_before(b, a) { b } else { a }),
+                (a, b) => a.or(b),
+            })
     }
 
     /// The timer's work at clock `now`: outputs, readings, and each new
@@ -580,7 +577,22 @@ impl Heaters {
                 self.control(index, report, now, hw)?;
             }
         }
-        Ok(())
+        if self.io.shutdown_reason().is_some() {
+            return Ok(());
+        }
+        if let Some(fan) = &mut self.fan {
+            fan.expire(now);
+        }
+        let readings: heapless::Vec<(f64, f64), MAX_HEATERS> = self
+            .heaters
+            .iter()
+            .map(|h| (h.target, h.smoothed))
+            .collect();
+        let io = &mut self.io;
+        self.accessories
+            .poll(now, &readings, &mut |index, clock, value| {
+                queue_on(io, index, clock, value, now, hw)
+            })
     }
 
     /// A heater's report: new temperature, control, and the update it
@@ -655,10 +667,7 @@ impl Heaters {
         now: u32,
         hw: &mut impl Peripherals,
     ) -> Result<(), Shutdown> {
-        match self.io.queue(index, clock, value, now, hw) {
-            Err(QueueError::Late) => Err(Shutdown::TimerTooClose),
-            _ => Ok(()),
-        }
+        queue_on(&mut self.io, index, clock, value, now, hw)
     }
 
     /// Carries out `command` at clock `now`.
@@ -682,12 +691,17 @@ impl Heaters {
                 self.set_fan(speed, clock, now, hw)
             }
             ThermalCommand::Report => Ok(()),
+            ThermalCommand::Accessory(command) => {
+                let io = &mut self.io;
+                self.accessories
+                    .command(command, now, &mut |index, clock, value| {
+                        queue_on(io, index, clock, value, now, hw)
+                    })
+            }
         }
     }
 
-    /// Klipper's fan `set_speed`: off below off_below, scaled by
-    /// max_power, with a full-power kick when starting from still or
-    /// rising by more than half.
+    /// The part fan to `speed` (0..1) at `clock` ([`FanControl`]).
     fn set_fan(
         &mut self,
         speed: f64,
@@ -695,29 +709,12 @@ impl Heaters {
         now: u32,
         hw: &mut impl Peripherals,
     ) -> Result<(), Shutdown> {
-        let Some(fan) = self.fan else {
+        let index = self.heaters.len();
+        let Some(fan) = &mut self.fan else {
             return Ok(());
         };
-        let index = self.heaters.len();
-        let c = fan.config;
-        let speed = if speed < c.off_below { 0.0 } else { speed };
-        let speed = (speed * c.max_power).clamp(0.0, c.max_power);
-        if speed == fan.speed {
-            return Ok(());
-        }
-        // Never before now (a command may name a time already past).
-        let clock = if is_before(clock, now) { now } else { clock };
-        let mut at = clock;
-        // Kick from standstill, or on a rise of more than half (Klipper's
-        // `not last_fan_value or value - last_fan_value > .5`).
-        let starting = fan.speed == 0.0 || speed - fan.speed > 0.5;
-        if speed > 0.0 && speed < c.max_power && c.kick_ticks > 0 && starting {
-            self.queue(index, at, scaled(c.max_power, c.full), now, hw)?;
-            at = at.wrapping_add(c.kick_ticks);
-        }
-        self.queue(index, at, scaled(speed, c.full), now, hw)?;
-        if let Some(f) = &mut self.fan {
-            f.speed = speed;
+        for (at, value) in fan.set(speed, clock, now) {
+            queue_on(&mut self.io, index, at, value, now, hw)?;
         }
         Ok(())
     }
@@ -748,9 +745,20 @@ impl Heaters {
         self.heaters.get(heater).map(|h| (h.smoothed, h.target))
     }
 
-    /// The fan's speed (0..1).
+    /// The fan's power (0..1).
     pub fn fan_speed(&self) -> Option<f64> {
-        self.fan.map(|f| f.speed)
+        self.fan.map(|f| f.power())
+    }
+
+    /// Named fan `fan`'s power (0..1), as last set.
+    pub fn named_fan_power(&self, fan: usize) -> Option<f64> {
+        self.accessories.fan_power(fan)
+    }
+
+    /// Output `index`'s value now (on ticks, or duty), in the io's order
+    /// ([`McuSetup::outputs`]).
+    pub fn output_value(&self, index: usize) -> Option<u32> {
+        self.io.value(index)
     }
 
     /// The M105 report: `T:<temp> /<target> B:<temp> /<target>`.
@@ -865,7 +873,7 @@ mod tests {
         let heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
         let scales = setup.outputs.iter().map(|(_, c)| full_scale(c.kind));
         let used = heaters.heaters.iter().map(|h| h.cycle_ticks);
-        let used = used.chain(heaters.fan.map(|f| f.config.full));
+        let used = used.chain(heaters.fan.map(|f| f.full()));
         assert!(scales.clone().eq(used));
         // Klipper's defaults: heaters 0.1 s cycles, the fan 0.010 s.
         assert!(scales.eq([100_000, 100_000, 10_000]));

@@ -16,6 +16,7 @@
 //! `[duplicate_pin_override]` is not supported.
 
 use core::fmt;
+use onechip_planner::board_pins::{BoardPins, ReservedPin};
 use onechip_planner::machine::Machine;
 
 /// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
@@ -88,6 +89,13 @@ pub enum PinConflict<'a> {
         /// What the board uses it for (`USB D-`).
         by: &'a str,
     },
+    /// The option names a `[board_pins]` alias reserved with `<NAME>`.
+    ReservedAlias {
+        /// The option naming it.
+        used: PinUse<'a>,
+        /// The alias and what it is reserved for.
+        reserved: ReservedPin<'a>,
+    },
 }
 
 impl<'a> PinConflict<'a> {
@@ -96,7 +104,7 @@ impl<'a> PinConflict<'a> {
     pub fn at(&self) -> PinUse<'a> {
         match *self {
             Self::Duplicate { second, .. } | Self::Modifiers { second, .. } => second,
-            Self::Reserved { used, .. } => used,
+            Self::Reserved { used, .. } | Self::ReservedAlias { used, .. } => used,
         }
     }
 }
@@ -125,6 +133,7 @@ impl fmt::Display for PinConflict<'_> {
                     used.bare_pin()
                 )
             }
+            Self::ReservedAlias { used, reserved } => write!(f, "{reserved} ({used})"),
         }
     }
 }
@@ -136,8 +145,13 @@ pub fn check<'a>(
     machine: &Machine<'a>,
     reserved: &[(&'a str, &'a str)],
 ) -> Result<(), PinConflict<'a>> {
+    let aliases = &machine.accessories.board_pins;
+    let resolve = |used: PinUse<'a>| {
+        Pin::resolve(aliases, used.pin)
+            .map_err(|reserved| PinConflict::ReservedAlias { used, reserved })
+    };
     for (i, used) in uses(machine).enumerate() {
-        let pin = Pin::parse(used.pin);
+        let pin = resolve(used)?;
         if let Some(&(_, by)) = reserved
             .iter()
             .find(|(name, _)| Pin::parse(name).same_as(&pin))
@@ -145,7 +159,7 @@ pub fn check<'a>(
             return Err(PinConflict::Reserved { used, by });
         }
         for first in uses(machine).take(i) {
-            let earlier = Pin::parse(first.pin);
+            let earlier = resolve(first)?;
             if !earlier.same_as(&pin) {
                 continue;
             }
@@ -190,10 +204,19 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
         option: "pin",
         pin: f.pin,
     });
+    let accessories = machine
+        .accessories
+        .pins()
+        .map(|(section, option, pin)| PinUse {
+            section,
+            option,
+            pin,
+        });
     steppers
         .chain(heaters)
         .chain(fan)
         .chain(crate::probe::pin_uses(machine))
+        .chain(accessories)
 }
 
 /// True if Klipper lets `a` and `b` name one pin: steppers' enable pins,
@@ -246,6 +269,17 @@ impl<'a> Pin<'a> {
             bare: rest,
             modifiers: (inverted, pull),
         }
+    }
+
+    /// `text` with its `[board_pins]` alias resolved.
+    fn resolve(aliases: &BoardPins<'a>, text: &'a str) -> Result<Self, ReservedPin<'a>> {
+        let resolved = aliases.resolve(text)?;
+        let written = Self::parse(text);
+        Ok(Self {
+            chip: resolved.chip.unwrap_or("mcu"),
+            name: resolved.name,
+            ..written
+        })
     }
 
     /// True if `self` and `other` are one pin of one chip.

@@ -9,6 +9,7 @@
 //! out by [`Printer::take_thermal`] to whoever runs the heaters.
 
 use crate::heaters::{MAX_HEATERS, ThermalCommand, ThermalError};
+use crate::outputs::{AccessoryCommand, AccessoryError, AccessoryNames};
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
@@ -25,6 +26,8 @@ pub enum LineError<'l> {
     Command(CommandError<'l>),
     /// A heater command was refused.
     Thermal(ThermalError),
+    /// A fan or pin command was refused.
+    Accessory(AccessoryError<'l>),
 }
 
 impl<'l> From<CommandError<'l>> for LineError<'l> {
@@ -44,6 +47,7 @@ impl fmt::Display for LineError<'_> {
         match self {
             Self::Command(e) => e.fmt(f),
             Self::Thermal(e) => e.fmt(f),
+            Self::Accessory(e) => e.fmt(f),
         }
     }
 }
@@ -71,6 +75,10 @@ pub struct Printer<'a, const N: usize> {
     has_fan: bool,
     /// Heater and fan commands not yet taken.
     thermal: heapless::Deque<ThermalCommand, MAX_HEATERS>,
+    /// The named fans and output pins G-code may set.
+    accessories: AccessoryNames<'a>,
+    /// The stepper drivers are enabled (moves since start or M84/M18).
+    motors: bool,
 }
 
 impl<'a, const N: usize> Printer<'a, N> {
@@ -108,6 +116,8 @@ impl<'a, const N: usize> Printer<'a, N> {
             addr_of_mut!((*p).heaters).write(heaters);
             addr_of_mut!((*p).has_fan).write(machine.fan.is_some());
             addr_of_mut!((*p).thermal).write(heapless::Deque::new());
+            addr_of_mut!((*p).accessories).write(AccessoryNames::new(&machine.accessories));
+            addr_of_mut!((*p).motors).write(false);
             slot.assume_init_mut()
         }
     }
@@ -160,7 +170,35 @@ impl<'a, const N: usize> Printer<'a, N> {
         if self.thermal(line, sink)? || self.probe_command(line, sink, out)? {
             return Ok(());
         }
-        Ok(self.gcode.execute(line, &mut self.toolhead, sink, out)?)
+        let print_time = self.toolhead.print_time();
+        if let Some(command) = self
+            .accessories
+            .parse(line, print_time)
+            .map_err(LineError::Accessory)?
+        {
+            self.push_thermal(ThermalCommand::Accessory(command));
+            return Ok(());
+        }
+        self.gcode.execute(line, &mut self.toolhead, sink, out)?;
+        self.note_motors(line);
+        Ok(())
+    }
+
+    /// Klipper enables the stepper drivers with a move and disables them
+    /// with M84/M18: controller fans follow.
+    fn note_motors(&mut self, line: &Line<'_>) {
+        let Command::Traditional(t) = line.command else {
+            return;
+        };
+        let on = match (t.letter, t.number) {
+            (b'G', 0..=3 | 28) => true,
+            (b'M', 18 | 84) => false,
+            _ => return,
+        };
+        if on != self.motors && self.accessories.watches_motors() {
+            self.motors = on;
+            self.push_thermal(ThermalCommand::Accessory(AccessoryCommand::Motors(on)));
+        }
     }
 
     /// The next heater or fan command of the lines run so far.

@@ -8,6 +8,7 @@
 //! run), the host build in virtual time (a wait runs the next timer event).
 //! Everything a user can observe is decided here, once, for both.
 
+use crate::filament::{FilamentEvent, FilamentSensors};
 use crate::heaters::ThermalCommand;
 use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
 use crate::line::command_word;
@@ -103,6 +104,9 @@ pub trait Mcu {
     /// True if the extruder is hot enough to extrude
     /// ([`crate::heaters::Heaters::can_extrude`]).
     fn can_extrude(&mut self) -> bool;
+    /// True while filament switch sensor `sensor` (in
+    /// `Machine::accessories` order) reads filament present.
+    fn filament_present(&mut self, sensor: usize) -> bool;
     /// Steppers on another MCU (a secondary board) count steps on its
     /// clock: `set(stepper, offset, freq)` gives each one's line from print
     /// time `t` (s) to its clock, `(t - offset) × freq`, re-fitted as its
@@ -281,6 +285,8 @@ pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
     /// When the first move since the toolhead was idle was queued (clock):
     /// the priming timer runs.
     priming_since: Option<u64>,
+    /// The filament switch sensors.
+    filament: FilamentSensors<'a>,
 }
 
 /// The session with the board's queue sizes.
@@ -327,6 +333,8 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             addr_of_mut!((*p).heat_wait).write(0.0);
             addr_of_mut!((*p).idle).write(IdleTimeout::new(&machine.idle_timeout));
             addr_of_mut!((*p).priming_since).write(None);
+            let sensors = &machine.accessories.filament_sensors;
+            addr_of_mut!((*p).filament).write(FilamentSensors::new(sensors, start as f64 / freq));
             slot.assume_init_mut()
         }
     }
@@ -385,6 +393,11 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         self.printer.set_probe_now(now);
         let line = gcode::parse(text)
             .map_err(|e| error_text(&SessionError::Command(LineError::from(e))))?;
+        match self.filament.command(&line, out) {
+            Ok(true) => return Ok(()),
+            Ok(false) => {}
+            Err(e) => return Err(error_text(&e)),
+        }
         match self.idle.command(&line, now, out) {
             Ok(true) => return Ok(()),
             Ok(false) => {}
@@ -546,6 +559,23 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 .settle(&mut self.engine.steps(mcu, &mut Discard));
         }
         self.idle_timeout(mcu, out);
+    }
+
+    /// Reads the filament switch sensors (between lines, as
+    /// [`Self::idle`]); `printing`: a print from the card runs. The event
+    /// a change causes, for the console to act on (pause, G-code).
+    pub fn filament_event(
+        &mut self,
+        mcu: &mut impl Mcu,
+        printing: bool,
+    ) -> Option<FilamentEvent<'a>> {
+        if self.filament.is_empty() {
+            return None;
+        }
+        let now = mcu.now() as f64 / self.engine.freq;
+        let printing = printing || !self.printer.is_idle();
+        self.filament
+            .poll(now, |i| mcu.filament_present(i), printing)
     }
 
     /// Klipper's priming timeout, now: the moves queued since the toolhead

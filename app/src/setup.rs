@@ -7,13 +7,22 @@ use crate::config_files::ConfigFiles;
 use crate::pin_check;
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
 use crate::text::cut_text;
+use core::fmt::Write as _;
 use core::mem::MaybeUninit;
 pub use onechip_config::Config;
+use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
 /// quotes is gone once the machine is built).
 pub type SetupError = heapless::String<192>;
+
+/// The shortest software PWM cycle a `hardware_pwm` output gets on a
+/// board without hardware PWM, s.
+pub const MIN_SOFTWARE_CYCLE: f64 = 0.001;
+
+/// A pin name with its alias resolved (modifiers, chip and name).
+pub type PinText = heapless::String<32>;
 
 /// What a board wires for one stepper.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -99,25 +108,56 @@ impl<'a> PrinterSetup<'a> {
             })
     }
 
+    /// `pin` as printer.cfg writes it, with its `[board_pins]` alias
+    /// resolved (`!EXP1_1` → `!PE8`); an alias reserved with `<NAME>` is
+    /// an error (the pin check refused those already). A name too long
+    /// for [`PinText`] is cut (and then names no pin).
+    pub fn resolve_pin(&self, pin: &'a str) -> Result<PinText, ReservedPin<'a>> {
+        let resolved = self.machine.accessories.board_pins.resolve(pin)?;
+        let mut text = PinText::new();
+        let _ = write!(text, "{resolved}");
+        Ok(text)
+    }
+
     /// Sections printer.cfg has that are not supported yet (ignored).
     pub fn unsupported(&self) -> &[&'a str] {
         &self.machine.unsupported
     }
 
-    /// True if there is a heater or a fan to run.
+    /// True if there is a heater, a fan or a pin to run.
     pub fn has_thermal(&self) -> bool {
-        !self.machine.heaters.is_empty() || self.machine.fan.is_some()
+        !self.machine.heaters.is_empty()
+            || self.machine.fan.is_some()
+            || self.machine.accessories.output_count() > 0
     }
 
-    /// For a board without hardware PWM outputs: a fan configured with
-    /// `hard_pwm` runs software PWM instead. True if one was changed.
+    /// For a board without hardware PWM outputs: a fan or output pin
+    /// configured with `hardware_pwm` runs software PWM instead, of its
+    /// cycle_time but at least [`MIN_SOFTWARE_CYCLE`] (a hardware cycle of
+    /// tens of µs would have the heaters' interrupt run at every edge).
+    /// True if one was changed.
     pub fn without_hard_pwm(&mut self) -> bool {
-        match self.machine.fan.as_mut().filter(|f| f.hard_pwm) {
-            Some(fan) => {
-                fan.hard_pwm = false;
-                true
-            }
-            None => false,
+        let accessories = &mut self.machine.accessories;
+        let fans = self
+            .machine
+            .fan
+            .iter_mut()
+            .chain(accessories.fans.iter_mut().map(|f| &mut f.fan));
+        let mut changed = false;
+        for fan in fans.filter(|f| f.hard_pwm) {
+            fan.hard_pwm = false;
+            fan.cycle_time = fan.cycle_time.max(MIN_SOFTWARE_CYCLE);
+            changed = true;
         }
+        for pin in accessories
+            .output_pins
+            .iter_mut()
+            .filter(|p| p.hardware_pwm)
+        {
+            pin.hardware_pwm = false;
+            pin.cycle_time = pin.cycle_time.max(MIN_SOFTWARE_CYCLE);
+            changed = true;
+        }
+        changed
     }
 }

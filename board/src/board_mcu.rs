@@ -13,8 +13,13 @@ use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 
-/// The board's MCU role.
-pub struct BoardMcu;
+/// The board's MCU role, with the filament switch sensors' inputs.
+#[derive(Default)]
+pub struct BoardMcu {
+    /// Each filament switch sensor's switch_pin (active: filament).
+    pub filament:
+        heapless::Vec<crate::step_pins::InPin, { onechip_app::filament::MAX_FILAMENT_SENSORS }>,
+}
 
 /// M112: every stepper stops and every heater and fan output goes off at
 /// once. Called by thread code, and by the USB receive path the moment an
@@ -82,5 +87,9 @@ impl Mcu for BoardMcu {
 
     fn can_extrude(&mut self) -> bool {
         heater_io::can_extrude()
+    }
+
+    fn filament_present(&mut self, sensor: usize) -> bool {
+        self.filament.get(sensor).is_none_or(|pin| pin.is_active())
     }
 }

@@ -3,10 +3,10 @@
 //! without a lock, other code only while that handler is masked.
 //!
 //! The lock masks no more than it must: a cell owned by a handler below
-//! the top priority ([`HandlerCell::masking`]) raises BASEPRI to the
-//! owner's priority, which holds off the owner and everything at or below
+//! the top priority (`MASK`, its priority as BASEPRI writes it) raises
+//! BASEPRI to the owner's priority, which holds off the owner and everything at or below
 //! it while interrupts above it (the stepper timer) keep running; a cell
-//! owned by a top-priority handler ([`HandlerCell::new`]) masks every
+//! owned by a top-priority handler (`MASK` 0) masks every
 //! interrupt (BASEPRI cannot mask priority 0). The STM32H7's Cortex-M7 is
 //! r1p1 or later, so BASEPRI needs no erratum 837070 workaround.
 
@@ -25,14 +25,13 @@ use embassy_stm32::interrupt::Priority;
 /// (priority at or below the owner's; checked); the handler does not
 /// preempt itself.
 ///
-/// All-zero bytes are an empty cell that masks every interrupt, the same
-/// as [`Self::new`] ([`Self::ZEROED_IS_NEW`], checked at compile time
-/// where a cell is placed in memory zeroed at boot), so a cell may live in
-/// a section that start-up code zeroes (the stepper engine's, in DTCM).
-pub struct HandlerCell<T> {
+/// The owner's priority is in the type (`MASK`, as BASEPRI writes it; 0:
+/// the top priority, every interrupt masked), so an empty cell is all
+/// zero bytes, the same as [`Self::new`] ([`Self::ZEROED_IS_NEW`],
+/// checked at compile time): a cell lives in memory zeroed at boot (the
+/// stepper engine's in DTCM), and takes no flash for initial contents.
+pub struct HandlerCell<T, const MASK: u8 = 0> {
     slot: UnsafeCell<Slot<T>>,
-    /// The owner's priority as BASEPRI writes it; 0: mask every interrupt.
-    mask: u8,
 }
 
 /// The value, once installed.
@@ -64,40 +63,33 @@ impl<T> Slot<T> {
 }
 
 // SAFETY: by the invariant above, no two accesses ever overlap.
-unsafe impl<T> Sync for HandlerCell<T> {}
+unsafe impl<T, const MASK: u8> Sync for HandlerCell<T, MASK> {}
 
-impl<T> HandlerCell<T> {
-    /// Empty until [`Self::install`]; for a handler at the top priority,
-    /// so the lock masks every interrupt.
+/// `MASK` for a cell owned by a handler at `owner` priority: the lock
+/// masks that priority and below only.
+pub const fn mask_of(owner: Priority) -> u8 {
+    owner as u8
+}
+
+impl<T, const MASK: u8> HandlerCell<T, MASK> {
+    /// Empty until [`Self::install`].
     pub const fn new() -> Self {
-        Self::masking_raw(0)
-    }
-
-    /// Empty until [`Self::install`]; for a handler at `owner` priority,
-    /// so the lock masks that priority and below only.
-    pub const fn masking(owner: Priority) -> Self {
-        Self::masking_raw(owner as u8)
-    }
-
-    const fn masking_raw(mask: u8) -> Self {
         Self {
             slot: UnsafeCell::new(Slot {
                 installed: false,
                 value: MaybeUninit::uninit(),
             }),
-            mask,
         }
     }
 
-    /// True: a cell of all-zero bytes is empty and masks every interrupt,
-    /// as [`Self::new`] makes it. Evaluated at compile time (an invalid
-    /// all-zero value would fail the build).
+    /// True: a cell of all-zero bytes is empty, as [`Self::new`] makes
+    /// it. Evaluated at compile time (an invalid all-zero value would fail
+    /// the build).
     pub const ZEROED_IS_NEW: bool = {
         // SAFETY: every field takes zero bytes: `MaybeUninit` any bytes,
-        // `bool` false, `u8` 0.
+        // `bool` false.
         let zeroed: Self = unsafe { core::mem::zeroed() };
-        let mask = zeroed.mask;
-        !zeroed.slot.into_inner().installed && mask == 0
+        !zeroed.slot.into_inner().installed
     };
 
     /// Puts `value` in the cell (replacing any earlier one).
@@ -128,10 +120,10 @@ impl<T> HandlerCell<T> {
     /// Runs `f` on the slot with the owner held off.
     fn lock<R>(&self, f: impl FnOnce(&mut Slot<T>) -> R) -> R {
         assert!(
-            caller_below(self.mask),
+            caller_below(MASK),
             "HandlerCell locked from above its owner's priority"
         );
-        if self.mask == 0 {
+        if MASK == 0 {
             critical_section::with(|_| {
                 // SAFETY: interrupts are masked, so the owner is not
                 // running and cannot start; this is the only reference
@@ -141,7 +133,7 @@ impl<T> HandlerCell<T> {
         } else {
             let before = cortex_m::register::basepri::read();
             // Raises the mask only (never lowers one already stricter).
-            cortex_m::register::basepri_max::write(self.mask);
+            cortex_m::register::basepri_max::write(MASK);
             compiler_fence(Ordering::SeqCst);
             // SAFETY: BASEPRI masks the owner's priority, the caller runs
             // at or below it (checked above), so the owner is not running

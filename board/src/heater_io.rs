@@ -15,7 +15,7 @@
 //! every interrupt: the stepper interrupt keeps running. The M105 report
 //! copies the heaters under that lock and formats the copy after it.
 
-use crate::handler_cell::HandlerCell;
+use crate::handler_cell::{HandlerCell, mask_of};
 use crate::step_pins::OutPin;
 use crate::step_timer;
 use embassy_stm32::Peri;
@@ -191,7 +191,7 @@ struct Io {
 
 /// The io, once installed; it belongs to TIM2's handler, and thread code
 /// reaches it with TIM2's priority masked.
-static IO: HandlerCell<Io> = HandlerCell::masking(crate::priority::HEATERS);
+static IO: HandlerCell<Io, { mask_of(crate::priority::HEATERS) }> = HandlerCell::new();
 
 /// Runs `f` on the io with TIM2 (and everything below it) masked; None
 /// before it is installed.

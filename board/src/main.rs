@@ -133,13 +133,12 @@ async fn start_io(usb: octopus_pro_v1_1::UsbPins) {
 /// sent and the board restarted with M999.
 fn serve(
     mut card: Option<BoardCard>,
-    session: Result<&'static mut BoardSession<'static>, ErrorText>,
+    session: Result<(&'static mut BoardSession<'static>, board_mcu::BoardMcu), ErrorText>,
 ) -> ! {
-    let (mut session, no_printer) = match session {
-        Ok(session) => (Some(session), ErrorText::new()),
-        Err(e) => (None, e),
+    let (mut session, mut mcu, no_printer) = match session {
+        Ok((session, mcu)) => (Some(session), mcu, ErrorText::new()),
+        Err(e) => (None, board_mcu::BoardMcu::default(), e),
     };
-    let mut mcu = board_mcu::BoardMcu;
     let mut out = usb_console::ConsoleOut;
     let mut console = Console::new(step_timer::TIMER_HZ);
     console.autostart();
@@ -185,7 +184,7 @@ const RESTART_DELAY: f64 = 0.05;
 fn load_printer(
     card: &mut Result<BoardCard, ErrorText>,
     thermistors: octopus_pro_v1_1::ThermistorPins,
-) -> Result<&'static mut BoardSession<'static>, ErrorText> {
+) -> Result<(&'static mut BoardSession<'static>, board_mcu::BoardMcu), ErrorText> {
     static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
     // Where printer.cfg is indexed while the machine is read from it.
@@ -205,9 +204,19 @@ fn load_printer(
         .and_then(|p| p.bltouch)
         .map(|b| b.control_pin)
     {
-        let pin = step_pins::OutPin::new_safe_off(pin)
+        let pin = setup.resolve_pin(pin).map_err(|e| error_text(&e))?;
+        let pin = step_pins::OutPin::new_safe_off(&pin)
             .map_err(|e| error_text(&format_args!("[bltouch] {e}")))?;
         probe_servo::install(pin);
+    }
+    let mut mcu = board_mcu::BoardMcu::default();
+    for sensor in &setup.machine().accessories.filament_sensors {
+        let pin = setup
+            .resolve_pin(sensor.switch_pin)
+            .map_err(|e| error_text(&e))?;
+        let input = step_pins::InPin::new(&pin)
+            .map_err(|e| error_text(&format_args!("[{}] {e}", sensor.section)))?;
+        let _ = mcu.filament.push(input);
     }
     let session = BoardSession::init_in(
         SESSION.uninit(),
@@ -216,7 +225,7 @@ fn load_printer(
         profile::MAX_STEP_ERROR,
         step_timer::now64(),
     );
-    Ok(session)
+    Ok((session, mcu))
 }
 
 /// Configures every stepper's step, direction and enable pins (drivers
@@ -226,16 +235,17 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
         let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
-        let pins =
-            step_pins::StepperPins::new(stepper.step_pin, stepper.dir_pin).map_err(|e| fail(&e))?;
-        if let Some(pin) = stepper.enable_pin {
-            step_pins::OutPin::new_safe_off(pin)
+        let pin = |written| setup.resolve_pin(written).map_err(|e| fail(&e));
+        let (step, dir) = (pin(stepper.step_pin)?, pin(stepper.dir_pin)?);
+        let pins = step_pins::StepperPins::new(&step, &dir).map_err(|e| fail(&e))?;
+        if let Some(enable) = stepper.enable_pin {
+            step_pins::OutPin::new_safe_off(&pin(enable)?)
                 .map_err(|e| fail(&e))?
                 .set(true);
         }
         *slot = pins.with_step_pulse(stepper.step_pulse);
-        if let Some(pin) = stepper.endstop_pin {
-            let endstop = step_pins::InPin::new(pin).map_err(|e| fail(&e))?;
+        if let Some(endstop) = stepper.endstop_pin {
+            let endstop = step_pins::InPin::new(&pin(endstop)?).map_err(|e| fail(&e))?;
             *slot = slot.with_endstop(endstop);
         }
     }
@@ -262,7 +272,7 @@ fn install_heaters(
         return Ok(());
     }
     if setup.without_hard_pwm() {
-        defmt::warn!("[fan] hard_pwm is not supported on this board yet: software PWM");
+        defmt::warn!("hardware_pwm is not supported on this board yet: software PWM");
     }
     let machine = setup.machine();
     let start = step_timer::now()
@@ -275,7 +285,8 @@ fn install_heaters(
     );
     let (mut outputs, mut channels) = (heapless::Vec::new(), heapless::Vec::new());
     for (pin, _) in &mcu_setup.outputs {
-        let out = step_pins::OutPin::new(pin).map_err(|e| error_text(&e))?;
+        let pin = setup.resolve_pin(pin).map_err(|e| error_text(&e))?;
+        let out = step_pins::OutPin::new(&pin).map_err(|e| error_text(&e))?;
         let _ = outputs.push(out);
     }
     for (pin, _) in &mcu_setup.inputs {

@@ -6,7 +6,7 @@
 //! clock has passed is dropped (logged): the BLTouch then misses it, as a
 //! late servo command would on Klipper's MCU.
 
-use crate::handler_cell::HandlerCell;
+use crate::handler_cell::{HandlerCell, mask_of};
 use crate::step_pins::OutPin;
 use crate::step_timer;
 use embassy_stm32::interrupt;
@@ -28,7 +28,7 @@ struct Servo {
 
 /// The servo, once installed; it belongs to TIM23's handler, and thread
 /// code reaches it with TIM23's priority masked.
-static SERVO: HandlerCell<Servo> = HandlerCell::masking(crate::priority::PROBE_SERVO);
+static SERVO: HandlerCell<Servo, { mask_of(crate::priority::PROBE_SERVO) }> = HandlerCell::new();
 
 /// Drives `pin` as the control pin (signal off until the first command)
 /// and starts TIM23's interrupt. The pin is turned off by the panic and

@@ -31,8 +31,8 @@ use embassy_stm32::pac::iwdg::vals::{Key, Pr};
 use embassy_time::{Duration, Ticker};
 
 /// Pins the handlers can drive safe: every stepper's enable pin and every
-/// heater and fan output fit, with room to spare.
-pub const MAX_SAFE_PINS: usize = 24;
+/// heater, fan and pin output fit.
+pub const MAX_SAFE_PINS: usize = 40;
 
 /// An entry is in use.
 const VALID: u32 = 1 << 31;

@@ -6,15 +6,17 @@
 
 use crate::files::Folder;
 use crate::step_log::StepLog;
+use crate::thermal_plant::ADC_MAX;
 use crate::virtual_mcu::VirtualMcu;
 use crate::{HostSession, Options, SimError, load_setup, restart_if_asked, virtual_mcu};
 use onechip_app::console::Console;
 use onechip_app::emergency::EmergencyParser;
+use onechip_app::heaters::{McuSetup, full_scale};
 use onechip_app::line::LineAssembler;
 use onechip_app::session::{Mcu, profile};
 use onechip_app::text::ErrorText;
 use onechip_planner::machine::Machine;
-use onechip_sched::outputs::Drive;
+use onechip_sched::outputs::{Drive, OutputKind};
 use std::path::Path;
 
 /// The board's thread code wakes at least this often, s.
@@ -174,6 +176,36 @@ impl ConsolePrinter {
     /// The toolhead's real position now, mm.
     pub fn real_position(&self) -> Option<[f64; 3]> {
         self.mcu.real_position()
+    }
+
+    /// Every output the heaters' io drives (heaters, the fan, then the
+    /// named fans, output pins and static pins): its pin as printer.cfg
+    /// writes it and its value now, 0..1 of full scale (on/off pins: 0 or
+    /// 1).
+    pub fn outputs(&mut self) -> Vec<(&'static str, f64)> {
+        let setup = McuSetup::new(self.machine, self.freq, ADC_MAX, 0);
+        let Some((heaters, _)) = self.mcu.thermal() else {
+            return Vec::new();
+        };
+        setup
+            .outputs
+            .iter()
+            .enumerate()
+            .map(|(i, (pin, config))| {
+                let full = match config.kind {
+                    OutputKind::Digital { cycle_ticks: 0 } => 1,
+                    kind => full_scale(kind),
+                };
+                let value = heaters.output_value(i).unwrap_or(0);
+                (*pin, f64::from(value) / f64::from(full.max(1)))
+            })
+            .collect()
+    }
+
+    /// Filament switch sensor `sensor` reads filament `present` from now
+    /// on.
+    pub fn set_filament(&mut self, sensor: usize, present: bool) {
+        self.mcu.set_filament(sensor, present);
     }
 
     /// The G-code position (X, Y, Z, E), mm.

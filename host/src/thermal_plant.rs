@@ -91,7 +91,7 @@ pub struct Plant {
     freq: f64,
     /// Heaters, in the machine's order (outputs and ADC inputs 0..).
     lumps: Vec<Lump>,
-    /// Every output's log: heaters, then the fan.
+    /// Every output's log: heaters, the fan, then the named fans and pins.
     pub outputs: Vec<OutputLog>,
     /// From this clock on, heater `.1`'s thermistor reads as open circuit
     /// (fault injection).
@@ -118,7 +118,8 @@ impl Plant {
                 peak: AMBIENT,
             })
             .collect::<Vec<_>>();
-        let outputs = lumps.len() + usize::from(machine.fan.is_some());
+        let outputs =
+            lumps.len() + usize::from(machine.fan.is_some()) + machine.accessories.output_count();
         Self {
             now: 0,
             freq,

@@ -164,6 +164,9 @@ pub struct VirtualMcu {
     pace: Option<Pace>,
     /// Raised by the serial reader when an M112 arrives.
     emergency: Option<Arc<AtomicBool>>,
+    /// Filament switch sensors reading no filament (all others read
+    /// filament present).
+    no_filament: Vec<usize>,
     /// The secondary MCUs and the steppers on them.
     secondaries: Option<Secondaries>,
 }
@@ -187,6 +190,7 @@ impl VirtualMcu {
             pace: None,
             secondaries: None,
             emergency: None,
+            no_filament: Vec::new(),
         };
         mcu.advance_clock(start);
         mcu
@@ -238,6 +242,15 @@ impl VirtualMcu {
                 self.engine.stop(reason);
             }
             self.update_io_wake();
+        }
+    }
+
+    /// Filament switch sensor `sensor`'s switch reads filament `present`
+    /// from now on.
+    pub fn set_filament(&mut self, sensor: usize, present: bool) {
+        self.no_filament.retain(|&s| s != sensor);
+        if !present {
+            self.no_filament.push(sensor);
         }
     }
 
@@ -654,6 +667,10 @@ impl Mcu for VirtualMcu {
 
     fn can_extrude(&mut self) -> bool {
         self.thermal.as_ref().is_none_or(|(h, _)| h.can_extrude())
+    }
+
+    fn filament_present(&mut self, sensor: usize) -> bool {
+        !self.no_filament.contains(&sensor)
     }
 
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {

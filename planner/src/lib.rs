@@ -10,8 +10,12 @@
 //! without allocation.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod accessories;
 pub mod adc_temperature;
 pub mod bltouch;
+pub mod board_pins;
+pub mod fan_sections;
+pub mod filament_sensor;
 pub mod gcode;
 pub mod gcode_move;
 pub mod homing;
@@ -21,6 +25,7 @@ pub mod machine;
 pub mod math;
 pub mod mcu_section;
 pub mod move_sink;
+pub mod output_pin;
 pub mod planned_move;
 pub mod probe;
 pub mod safe_home;

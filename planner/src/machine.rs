@@ -1,6 +1,7 @@
 //! The machine as `printer.cfg` describes it: kinematics, limits, steppers
 //! and the extruder, read and checked the way Klipper reads them.
 
+use crate::accessories::{self, Accessories};
 use crate::kinematics::{StepperKinematics, delta_tower};
 use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
@@ -96,6 +97,8 @@ pub struct Machine<'a> {
     pub probe: Option<ProbeConfig<'a>>,
     /// How G28 homes (`[safe_z_home]`, `[homing_override]`).
     pub g28: G28<'a>,
+    /// Named fans, output pins, board pin aliases, filament sensors.
+    pub accessories: Accessories<'a>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -282,9 +285,14 @@ impl<'a> Machine<'a> {
         let secondaries = mcu_section::read_all(config)?;
         // Sensor types: Klipper reads every definition, used or not.
         temperature_sensor::read_definitions(config)?;
+        let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
+        let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
+            steppers.iter().map(|s| s.name).collect();
+        let accessories = Accessories::read(config, &heater_names, &stepper_names)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
+                && !accessories::is_section(name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
                 && !temperature_sensor::is_definition_section(name)
@@ -311,6 +319,7 @@ impl<'a> Machine<'a> {
             secondaries,
             probe,
             g28,
+            accessories,
             unsupported,
         })
     }

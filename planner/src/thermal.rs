@@ -1,5 +1,6 @@
 //! Heaters and the part-cooling fan as printer.cfg describes them: the
-//! heater options of `[extruder]`, `[heater_bed]` and `[fan]`, each
+//! heater options of `[extruder]`, `[heater_bed]` and `[fan]` (whose
+//! options every fan section shares), each
 //! heater's `[verify_heater NAME]` checks and the `[idle_timeout]` that
 //! turns the heaters off, with Klipper's option names, defaults and
 //! limits. A heater's sensor is [`crate::temperature_sensor`]'s.
@@ -177,9 +178,12 @@ pub struct Fan<'a> {
     pub pin: &'a str,
     /// Highest power, 0..1 (M106 S255 gives this).
     pub max_power: f64,
+    /// Lowest power of a running fan, 0..1 (`min_power`: any speed above
+    /// 0 maps onto min_power..max_power).
+    pub min_power: f64,
     /// PWM cycle, s.
     pub cycle_time: f64,
-    /// The pin is a hardware PWM channel.
+    /// The pin is a hardware PWM channel (`hardware_pwm`).
     pub hard_pwm: bool,
     /// Speed at shutdown, 0..1.
     pub shutdown_speed: f64,
@@ -279,13 +283,57 @@ const UNIT: Bounds = Bounds {
 
 /// Reads `[fan]`.
 pub fn read_fan<'c, 'a>(section: &Section<'c, 'a>) -> Result<Fan<'a>, ConfigError<'c>> {
+    read_fan_options(section, 0.0)
+}
+
+/// Reads the options every Klipper fan section has (`[fan]`,
+/// `[heater_fan]`, `[controller_fan]`, `[fan_generic]`,
+/// `[temperature_fan]`) from `section`; `default_shutdown_speed` (0..1)
+/// is the section kind's default for `shutdown_speed`. A tachometer
+/// (`tachometer_pin`, `tachometer_ppr`, `tachometer_poll_interval`) is
+/// accepted but its speed is not measured yet.
+pub fn read_fan_options<'c, 'a>(
+    section: &Section<'c, 'a>,
+    default_shutdown_speed: f64,
+) -> Result<Fan<'a>, ConfigError<'c>> {
+    let min_power = section.get_float(
+        "min_power",
+        Some(0.0),
+        Bounds {
+            minval: Some(0.0),
+            below: Some(1.0),
+            ..Bounds::NONE
+        },
+    )?;
+    section.accept(&[
+        "tachometer_pin",
+        "tachometer_ppr",
+        "tachometer_poll_interval",
+    ]);
     Ok(Fan {
         pin: section.get("pin")?,
         max_power: section.get_float("max_power", Some(1.0), UNIT_ABOVE_ZERO)?,
+        min_power,
         cycle_time: section.get_float("cycle_time", Some(0.010), Bounds::POSITIVE)?,
-        hard_pwm: section.get_bool("hard_pwm", false)?,
-        shutdown_speed: section.get_float("shutdown_speed", Some(0.0), UNIT)?,
+        hard_pwm: section.get_bool("hardware_pwm", false)?,
+        shutdown_speed: section.get_float("shutdown_speed", Some(default_shutdown_speed), UNIT)?,
         kick_start_time: section.get_float("kick_start_time", Some(0.1), Bounds::NON_NEGATIVE)?,
         off_below: section.get_float("off_below", Some(0.0), UNIT)?,
     })
+}
+
+impl Fan<'_> {
+    /// The power (0..1) a requested speed (0..1) gives, as Klipper's
+    /// `Fan.set_speed`: 0 below off_below, else mapped onto
+    /// min_power..max_power.
+    pub fn power(&self, speed: f64) -> f64 {
+        let speed = if speed < self.off_below { 0.0 } else { speed };
+        let power = if speed > 0.0 {
+            ((self.max_power - self.min_power) * speed + self.min_power)
+                .clamp(self.min_power, self.max_power)
+        } else {
+            speed
+        };
+        power.clamp(0.0, 1.0)
+    }
 }

@@ -41,6 +41,16 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// such device exists here. 137 since `[probe]`/`[bltouch]` and
 /// `probe:z_virtual_endstop` load.
 const MIN_LOADED: usize = 137;
+/// Section kinds supported now, which no file may list as unsupported.
+const NOW_SUPPORTED: [&str; 7] = [
+    "heater_fan",
+    "controller_fan",
+    "fan_generic",
+    "output_pin",
+    "static_digital_output",
+    "board_pins",
+    "filament_switch_sensor",
+];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with
 /// `[safe_z_home]` and `[homing_override]`).
@@ -377,6 +387,30 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
     grouped.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
     for (reason, count) in &grouped {
         println!("{count:>4}  {reason}");
+    }
+    // Sections still unsupported, by kind: how many files list each.
+    let mut kinds: BTreeMap<&str, usize> = BTreeMap::new();
+    for row in &rows {
+        let mut seen: Vec<&str> = row
+            .unsupported
+            .iter()
+            .filter_map(|s| s.split_whitespace().next())
+            .collect();
+        seen.sort();
+        seen.dedup();
+        for kind in seen {
+            *kinds.entry(kind).or_default() += 1;
+            if NOW_SUPPORTED.contains(&kind) {
+                bad.push(format!("{}: [{kind}] reported unsupported", row.name));
+            }
+        }
+    }
+    let mut kinds: Vec<_> = kinds.into_iter().collect();
+    kinds.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+    let listing = rows.iter().filter(|r| !r.unsupported.is_empty()).count();
+    println!("{listing} files list an unsupported section; the most common (files):");
+    for (kind, count) in kinds.iter().take(12) {
+        println!("{count:>4}  [{kind}]");
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
     assert!(
