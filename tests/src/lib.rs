@@ -2,6 +2,7 @@
 //! they read comes from `onechip-golden`, re-exported here.
 
 pub mod peers;
+pub mod qemu;
 
 pub use onechip_golden::{golden_dir, summary_value};
 

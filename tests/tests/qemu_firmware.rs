@@ -1,0 +1,265 @@
+//! The whole firmware executes: the `onechip-qemu` image (the board's
+//! printer session on QEMU's emulated Cortex-M7) is built with a golden
+//! machine's printer.cfg, a golden case's G-code is streamed over the
+//! emulated UART with the console protocol (line numbers, checksums, an
+//! `ok` awaited per line), and the step edges the TCG plugin logged from
+//! the pins are compared with klippy's: the same steps, in the same
+//! directions, ending at the same position, for every stepper; and their
+//! times, up to where the streamed print re-timed a move.
+//!
+//! Timing: klippy's batch run and a streamed print start at different
+//! times and can take different lookahead decisions (see
+//! golden_end_to_end.rs: klippy's own depended on its processing speed),
+//! which re-time a move and shift every later step. So the step
+//! intervals are compared: each must equal klippy's within twice the
+//! tolerance (max_error, the measured interrupt latency and a 40 ns tick,
+//! at either end), but for at most 0.1 % of them (re-timed moves, which
+//! are printed with the absolute offsets before the first).
+//!
+//! The golden machines' extruder heaters cannot heat here (the
+//! thermistors read 25 °C): the image's printer.cfg adds
+//! `min_extrude_temp: 0`, as klippy's batch mode lets them extrude cold.
+//!
+//! Figures (printed, `--nocapture`): steps and pin writes, interrupt
+//! latency, CPU share of the stepper and heater interrupts, thread code
+//! and idle, stack and static RAM.
+
+use onechip_tests::qemu::{self, NS_PER_INSN, Qemu, Run};
+
+/// Klipper's step time tolerance (`MAX_STEPCOMPRESS_ERROR`), s.
+const MAX_ERROR: f64 = 0.000_025;
+
+/// A golden machine's printer.cfg, extruding cold.
+fn config(case: &str) -> String {
+    let machine = onechip_golden::config(onechip_golden::config_for(case));
+    format!("{machine}\n[extruder]\nmin_extrude_temp: 0\n")
+}
+
+/// Share of the run's instructions spent in `context`, %.
+fn share(run: &Run, context: &str) -> f64 {
+    let insns = run.cpu(context).map_or(0, |c| c.insns);
+    100.0 * insns as f64 / run.total.max(1) as f64
+}
+
+/// Seconds of virtual time after `insns` instructions.
+fn seconds(insns: u64) -> f64 {
+    (insns * NS_PER_INSN) as f64 * 1e-9
+}
+
+/// The step intervals (from each step to the stepper's next) that
+/// differ from klippy's by more than `2 * tol` s: (klippy time of the
+/// step, s; the difference, s), and how many intervals there are.
+/// `steppers` holds each stepper's pin steps (instructions) and klippy's
+/// (clocks at `freq`).
+fn retimed(steppers: &Compared, freq: f64, tol: f64) -> (Vec<(f64, f64)>, usize) {
+    let mut outliers = Vec::new();
+    let mut intervals = 0;
+    for (_, made, golden) in steppers {
+        let at = |k: usize| (seconds(made[k].0), golden[k].0 as f64 / freq);
+        for k in 1..made.len().min(golden.len()) {
+            let ((m, g), (pm, pg)) = (at(k), at(k - 1));
+            let error = (m - pm) - (g - pg);
+            if error.abs() > 2.0 * tol {
+                outliers.push((g, error));
+            }
+            intervals += 1;
+        }
+    }
+    outliers.sort_by(|a, b| a.0.total_cmp(&b.0));
+    (outliers, intervals)
+}
+
+/// The least and most offset of a step from klippy's (pin time less
+/// klippy's time, s) over the steps klippy made before `until` (s), and
+/// how many there are.
+fn offsets(steppers: &Compared, freq: f64, until: f64) -> (f64, f64, usize) {
+    steppers
+        .iter()
+        .flat_map(|(_, made, golden)| made.iter().zip(golden))
+        .map(|(&(m, _), &(g, _))| (seconds(m), g as f64 / freq))
+        .filter(|&(_, g)| g < until)
+        .fold(
+            (f64::INFINITY, f64::NEG_INFINITY, 0),
+            |(lo, hi, n), (m, g)| (lo.min(m - g), hi.max(m - g), n + 1),
+        )
+}
+
+/// A finished run of golden case `case`'s G-code on printer.cfg
+/// `config`, with what the test needs of it.
+struct Streamed {
+    case: &'static str,
+    config: String,
+    run: Run,
+    lines: usize,
+    /// The firmware's measured interrupt latency, most, s.
+    latency: f64,
+}
+
+/// Builds the image for `config` (named `name`), streams golden case
+/// `case`'s G-code through it on QEMU: every line must be acknowledged
+/// without an error, nothing may panic or shut down, the stack guard
+/// must be intact.
+fn stream(name: &str, case: &'static str, config: String) -> Streamed {
+    let elf = qemu::build_firmware(name, &config);
+    let mut machine = Qemu::start(&elf, name);
+    let transcript = machine.stream(&onechip_golden::gcode(case));
+    // Asked after the print's M400: a shutdown is reported on the line.
+    let last = machine.send("M114");
+    let run = machine.finish();
+    assert!(
+        !run.reports.contains("panic") && !run.reports.contains("fault"),
+        "{}",
+        run.reports
+    );
+    let errors: Vec<_> = transcript
+        .iter()
+        .filter(|(_, replies)| {
+            replies
+                .iter()
+                .any(|r| r.starts_with("!!") || r.starts_with("Error"))
+        })
+        .collect();
+    assert!(errors.is_empty(), "{name}: {errors:?}");
+    assert!(
+        last.iter().all(|r| !r.starts_with("!!")),
+        "{name}: {last:?}"
+    );
+    assert_eq!(run.stat("guard"), Some("intact"), "stack guard touched");
+    let latency_ticks: f64 = run
+        .stat("latency_max_ticks")
+        .and_then(|v| v.parse().ok())
+        .expect("the firmware's latency report");
+    Streamed {
+        case,
+        config,
+        run,
+        lines: transcript.len(),
+        latency: latency_ticks / qemu::CLOCK_HZ,
+    }
+}
+
+/// Each stepper's name, steps from the pins and klippy's steps.
+type Compared = Vec<(String, Vec<(u64, bool)>, Vec<(u64, bool)>)>;
+
+impl Streamed {
+    /// Each stepper's steps, from the pins and from klippy.
+    fn steppers(&self) -> Compared {
+        qemu::stepper_pins(&self.config)
+            .into_iter()
+            .map(|pins| {
+                let made = self.run.steps(pins.step, pins.dir, pins.dir_inverted);
+                let golden = onechip_golden::steps(self.case, &pins.name);
+                (pins.name, made, golden)
+            })
+            .collect()
+    }
+
+    /// Asserts every stepper's final position equals klippy's; returns
+    /// the steps made in all.
+    fn check_positions(&self, steppers: &Compared) -> usize {
+        let summaries = onechip_golden::summary_steppers(self.case);
+        let position = |s: &[(u64, bool)]| {
+            s.iter()
+                .map(|&(_, d)| if d { 1i64 } else { -1 })
+                .sum::<i64>()
+        };
+        for (name, made, golden) in steppers {
+            let summary = summaries
+                .iter()
+                .find(|s| &s.name == name)
+                .expect("golden stepper");
+            assert_eq!(position(made), summary.final_mcu_pos, "{name}: position");
+            println!(
+                "{} {name}: {} steps (klippy {}), final position {}",
+                self.case,
+                made.len(),
+                golden.len(),
+                summary.final_mcu_pos
+            );
+        }
+        steppers.iter().map(|(_, made, _)| made.len()).sum()
+    }
+
+    /// Prints the run's figures and checks the CPU accounting saw the
+    /// interrupts and some idle time.
+    fn report(&self, steps: usize) {
+        let (case, run) = (self.case, &self.run);
+        let edges = qemu::stepper_pins(&self.config)
+            .iter()
+            .map(|p| {
+                run.writes
+                    .iter()
+                    .filter(|w| w.pin == p.step || w.pin == p.dir)
+                    .count()
+            })
+            .sum::<usize>();
+        println!(
+            "{case} on QEMU mps2-an500: {} lines, {steps} steps, {edges} step/dir pin writes, \
+             {:.3} s virtual ({} M instructions)",
+            self.lines,
+            seconds(run.total),
+            run.total / 1_000_000
+        );
+        for context in ["stepper", "heaters", "console", "thread", "idle"] {
+            if let Some(c) = run.cpu(context) {
+                println!(
+                    "{case} cpu {context}: {:.2} % ({} runs, longest {} instructions = {:.2} us)",
+                    share(run, context),
+                    c.runs,
+                    c.longest,
+                    seconds(c.longest) * 1e6
+                );
+            }
+        }
+        let stepper = run.cpu("stepper").expect("stepper interrupt accounted");
+        println!(
+            "{case} stepper interrupt: {:.0} instructions per step (with the 2 us step pulse)",
+            stepper.insns as f64 / steps.max(1) as f64
+        );
+        println!(
+            "{case} stepper interrupt latency: most {:.2} us, mean {} ticks of 40 ns; stack \
+             used {} bytes (guard {}), static RAM {} bytes",
+            self.latency * 1e6,
+            run.stat("latency_mean_ticks").unwrap_or("?"),
+            run.stat("stack_used").unwrap_or("?"),
+            run.stat("guard").unwrap_or("?"),
+            run.static_ram.unwrap_or(0)
+        );
+        assert!(stepper.runs as usize >= steps / 64, "the engine ran");
+        assert!(share(run, "idle") > 0.0, "the CPU was never idle");
+    }
+}
+
+#[test]
+fn a_golden_print_streamed_over_the_uart_steps_the_pins_as_klippy() {
+    let case = "cart_extrude";
+    let streamed = stream(case, case, config(case));
+    let steppers = streamed.steppers();
+    for (name, made, golden) in &steppers {
+        assert_eq!(made.len(), golden.len(), "{name}: steps");
+        let dirs = |s: &[(u64, bool)]| s.iter().map(|&(_, d)| d).collect::<Vec<_>>();
+        assert!(dirs(made) == dirs(golden), "{name}: directions");
+    }
+    let steps = streamed.check_positions(&steppers);
+
+    let tol = MAX_ERROR + streamed.latency + 1.0 / qemu::CLOCK_HZ;
+    let freq = onechip_golden::summary_value(case, "clock_freq");
+    let (outliers, intervals) = retimed(&steppers, freq, tol);
+    let until = outliers.first().map_or(f64::INFINITY, |o| o.0);
+    let (lo, hi, timed) = offsets(&steppers, freq, until);
+    println!(
+        "{case}: {} of {intervals} step intervals differ from klippy's by more than {:.2} us \
+         (re-timed moves: {:?}); the {timed} steps before the first lie within {:.2} us of \
+         klippy's after an offset of {:.6} s",
+        outliers.len(),
+        2.0 * tol * 1e6,
+        &outliers[..outliers.len().min(8)],
+        (hi - lo) / 2.0 * 1e6,
+        (hi + lo) / 2.0,
+    );
+    assert!(
+        outliers.len() * 1000 <= intervals,
+        "more than 0.1 % of the step intervals differ from klippy's"
+    );
+    streamed.report(steps);
+}
