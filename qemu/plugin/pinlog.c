@@ -8,7 +8,8 @@
  *
  * FILE gets one line per pin store, "<insns> <offset>" (offset from
  * PINS in hex: port * 0x1000 + 4 * (pin + 16 * level)), then at exit
- * "cpu <context> <insns> <runs> <longest run>" lines and "total <insns>".
+ * "cpu <context> <insns> <runs> <longest run> <its start>" lines (in
+ * instructions) and "total <insns>".
  * With -icount shift=1 and a guest that never sleeps, insns * 2 ns is
  * the virtual time.
  *
@@ -61,6 +62,7 @@ static int depth;
 static uint64_t since;              /* `total` at the last context change */
 static uint64_t insns[CONTEXTS], runs[CONTEXTS], longest[CONTEXTS];
 static uint64_t started[CONTEXTS];  /* `total` when each context was entered */
+static uint64_t longest_at[CONTEXTS]; /* `total` when the longest run started */
 
 static int current(void) { return depth ? stack[depth - 1] : THREAD; }
 
@@ -89,7 +91,7 @@ static void on_store(unsigned int vcpu, qemu_plugin_meminfo_t info, uint64_t vad
     } else if (depth > 0 && stack[depth - 1] == context) {
         depth--;
         uint64_t run = total - started[context];
-        if (run > longest[context]) longest[context] = run;
+        if (run > longest[context]) { longest[context] = run; longest_at[context] = started[context]; }
     }
 }
 
@@ -109,7 +111,8 @@ static void at_exit(qemu_plugin_id_t id, void *u)
     (void)id; (void)u;
     charge();
     for (int c = 0; c < CONTEXTS; c++)
-        fprintf(out, "cpu %s %" PRIu64 " %" PRIu64 " %" PRIu64 "\n", names[c], insns[c], runs[c], longest[c]);
+        fprintf(out, "cpu %s %" PRIu64 " %" PRIu64 " %" PRIu64 " %" PRIu64 "\n", names[c], insns[c], runs[c],
+                longest[c], longest_at[c]);
     fprintf(out, "total %" PRIu64 "\n", total);
     fclose(out);
 }

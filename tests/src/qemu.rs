@@ -257,6 +257,8 @@ pub struct CpuShare {
     pub runs: u64,
     /// Its longest run, instructions.
     pub longest: u64,
+    /// When that run started, instructions.
+    pub longest_at: u64,
 }
 
 /// What a run did: the pin stores, the CPU's time and the firmware's own
@@ -296,6 +298,7 @@ impl Run {
                     insns: num(2).expect("cpu insns"),
                     runs: num(3).expect("cpu runs"),
                     longest: num(4).expect("cpu longest"),
+                    longest_at: num(5).expect("cpu longest's start"),
                 }),
                 ["total", _] => run.total = num(1).expect("total"),
                 [insns, offset] => {
@@ -312,7 +315,7 @@ impl Run {
                 _ => panic!("pin log: {line:?}"),
             }
         }
-        if let Some(stats) = reports.lines().filter(|l| l.starts_with("stats ")).last() {
+        if let Some(stats) = reports.lines().rfind(|l| l.starts_with("stats ")) {
             run.stats = stats
                 .split_whitespace()
                 .filter_map(|kv| kv.split_once('='))
@@ -392,7 +395,9 @@ fn parse_pin(text: &str) -> Option<(Pin, bool)> {
 ///
 /// If a stepper section lacks a pin or a pin does not parse.
 pub fn stepper_pins(config: &str) -> Vec<StepperPins> {
-    let mut steppers: Vec<(String, Option<(Pin, bool)>, Option<(Pin, bool)>)> = Vec::new();
+    /// A pin and its `!`, once read.
+    type Named = Option<(Pin, bool)>;
+    let mut steppers: Vec<(String, Named, Named)> = Vec::new();
     let mut current: Option<usize> = None;
     for line in config.lines() {
         let line = line.split(['#', ';']).next().unwrap_or_default().trim();

@@ -203,11 +203,13 @@ impl Streamed {
         for context in ["stepper", "heaters", "console", "thread", "idle"] {
             if let Some(c) = run.cpu(context) {
                 println!(
-                    "{case} cpu {context}: {:.2} % ({} runs, longest {} instructions = {:.2} us)",
+                    "{case} cpu {context}: {:.2} % ({} runs, longest {} instructions = {:.2} us \
+                     at {:.4} s)",
                     share(run, context),
                     c.runs,
                     c.longest,
-                    seconds(c.longest) * 1e6
+                    seconds(c.longest) * 1e6,
+                    seconds(c.longest_at)
                 );
             }
         }
@@ -231,6 +233,7 @@ impl Streamed {
 }
 
 #[test]
+#[ignore = "needs qemu-system-arm and gcc (CI: .ci/run)"]
 fn a_golden_print_streamed_over_the_uart_steps_the_pins_as_klippy() {
     let case = "cart_extrude";
     let streamed = stream(case, case, config(case));
@@ -262,4 +265,29 @@ fn a_golden_print_streamed_over_the_uart_steps_the_pins_as_klippy() {
         "more than 0.1 % of the step intervals differ from klippy's"
     );
     streamed.report(steps);
+}
+
+/// The goal for the CPU's busy share over a print at 520 MHz-equivalent
+/// (issue 18), %.
+const BUSY_GOAL: f64 = 25.0;
+
+#[test]
+#[ignore = "needs qemu-system-arm and gcc (CI: .ci/run)"]
+fn the_worst_case_with_input_shaping_and_pressure_advance_keeps_up() {
+    // The delta (the most instructions per step) with klippy's cartesian
+    // shaper settings and corexy's pressure advance added.
+    let case = "delta_extrude";
+    let config = format!(
+        "{}\n[input_shaper]\nshaper_type_x: mzv\nshaper_freq_x: 40\nshaper_type_y: ei\n\
+         shaper_freq_y: 35\n[extruder]\npressure_advance: 0.04\nmin_extrude_temp: 0\n",
+        onechip_golden::config(onechip_golden::config_for(case))
+    );
+    let streamed = stream("delta_shaper_pa", case, config);
+    // Shaping and pressure advance move the steps in time (and add back
+    // and forth steps), not where each stepper ends.
+    let steps = streamed.check_positions(&streamed.steppers());
+    streamed.report(steps);
+    let busy = 100.0 - share(&streamed.run, "idle");
+    println!("{case} with input shaping and pressure advance: {busy:.2} % busy");
+    assert!(busy <= BUSY_GOAL, "{busy:.2} % busy");
 }
