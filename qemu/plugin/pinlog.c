@@ -4,12 +4,13 @@
  * interrupt, heater interrupt, console interrupt, idle; the rest is thread
  * code).
  *
- * Usage: -plugin libpinlog.so,out=FILE
+ * Usage: -plugin libpinlog.so,out=FILE[,trace=1]
  *
  * FILE gets one line per pin store, "<insns> <offset>" (offset from
  * PINS in hex: port * 0x1000 + 4 * (pin + 16 * level)), then at exit
  * "cpu <context> <insns> <runs> <longest run> <its start>" lines (in
- * instructions) and "total <insns>".
+ * instructions) and "total <insns>". With trace=1, every context change
+ * too: "> <context> <insns>" on entry, "< <context> <insns>" on exit.
  * With -icount shift=1 and a guest that never sleeps, insns * 2 ns is
  * the virtual time.
  *
@@ -57,6 +58,7 @@ static const char *names[CONTEXTS] = {"stepper", "heaters", "console", "idle", "
 
 static uint64_t total;              /* instructions so far (one vCPU) */
 static FILE *out;
+static int trace;                  /* trace=1: log every context change too */
 static int stack[16];               /* contexts entered, innermost last */
 static int depth;
 static uint64_t since;              /* `total` at the last context change */
@@ -84,6 +86,7 @@ static void on_store(unsigned int vcpu, qemu_plugin_meminfo_t info, uint64_t vad
     int context = (int)(code / 2);
     if (context >= THREAD) return;
     charge();
+    if (trace) fprintf(out, "%c %s %" PRIu64 "\n", code % 2 ? '<' : '>', names[context], total);
     if (code % 2 == 0) {
         if (depth < 16) stack[depth++] = context;
         started[context] = total;
@@ -124,6 +127,7 @@ int qemu_plugin_install(qemu_plugin_id_t id, const qemu_info_t *info, int argc, 
     const char *path = NULL;
     for (int i = 0; i < argc; i++)
         if (!strncmp(argv[i], "out=", 4)) path = argv[i] + 4;
+        else if (!strcmp(argv[i], "trace=1")) trace = 1;
     if (!path) { qemu_plugin_outs("pinlog: out=FILE is required\n"); return -1; }
     out = fopen(path, "w");
     if (!out) { qemu_plugin_outs("pinlog: cannot open out=FILE\n"); return -1; }

@@ -14,6 +14,12 @@ use onechip_app::pins::{BadPin, PinName};
 use onechip_app::step_pulse;
 use onechip_sched::stepper::StepPins;
 
+/// Turns of `cortex_m::asm::delay`'s loop (`subs`, `bne`: two
+/// instructions) per second on QEMU. The board counts its delay in CPU
+/// cycles, which the M7 takes one to two of per turn; here a pulse lasts
+/// what printer.cfg asks for.
+const DELAY_HZ: f64 = CPU_HZ as f64 / 2.0;
+
 /// The port past the last: writes there drive nothing.
 const NOWHERE: usize = PINS + PORTS as usize * PORT_STRIDE;
 
@@ -113,8 +119,9 @@ impl InPin {
 pub struct StepperPins {
     step: OutPin,
     dir: OutPin,
-    /// CPU cycles (instructions) the step pulse lasts, and the least time
-    /// between a step and a direction change.
+    /// Turns of `cortex_m::asm::delay`'s loop the step pulse lasts (and
+    /// the least time between a step and a direction change): its loop is
+    /// two instructions a turn, 4 ns here, so [`DELAY_HZ`] turns a second.
     pulse_cycles: u32,
     endstop: InPin,
 }
@@ -134,11 +141,11 @@ impl StepperPins {
     /// The pins named `step` and `dir` with a step pulse of `pulse`
     /// seconds (the stepper's `step_pulse_duration`, as the board).
     pub fn new<'a>(step: &'a str, dir: &'a str, pulse: f64) -> Result<Self, BadPin<'a>> {
-        let max = step_pulse::pulse_ticks(step_pulse::MAX, f64::from(CPU_HZ));
+        let max = step_pulse::pulse_ticks(step_pulse::MAX, DELAY_HZ);
         Ok(Self {
             step: OutPin::new(step)?,
             dir: OutPin::new(dir)?,
-            pulse_cycles: step_pulse::pulse_ticks(pulse, f64::from(CPU_HZ)).min(max),
+            pulse_cycles: step_pulse::pulse_ticks(pulse, DELAY_HZ).min(max),
             endstop: InPin::none(),
         })
     }

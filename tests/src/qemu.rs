@@ -129,7 +129,17 @@ impl Qemu {
             .args(["-semihosting-config", "enable=on,target=native"])
             .args(["-icount", "shift=1,sleep=off"])
             .arg("-plugin")
-            .arg(format!("{},out={}", plugin.display(), pin_log.display()))
+            .arg(format!(
+                "{},out={}{}",
+                plugin.display(),
+                pin_log.display(),
+                // Every context change in the log too, for debugging.
+                if std::env::var_os("ONECHIP_QEMU_TRACE").is_some() {
+                    ",trace=1"
+                } else {
+                    ""
+                }
+            ))
             .arg("-serial")
             .arg(format!("unix:{},server=on,wait=on", socket.display()))
             .arg("-kernel")
@@ -301,6 +311,7 @@ impl Run {
                     longest_at: num(5).expect("cpu longest's start"),
                 }),
                 ["total", _] => run.total = num(1).expect("total"),
+                [">" | "<", ..] => {}
                 [insns, offset] => {
                     let offset = u64::from_str_radix(offset, 16).expect("pin offset");
                     let (port, word) = (offset / 0x1000, offset % 0x1000 / 4);

@@ -180,6 +180,38 @@ impl Streamed {
         steppers.iter().map(|(_, made, _)| made.len()).sum()
     }
 
+    /// Each stepper's steps that came faster than twice klippy's peak
+    /// for it in this case (printed with the shortest intervals): steps
+    /// due before the interrupt could make them (an underrun, or a burst
+    /// of steps queued at one clock) come out back to back, as fast as
+    /// the interrupt can make them.
+    fn bursts(&self, steppers: &Compared) -> Vec<(String, usize)> {
+        let intervals = |s: &[(u64, bool)], ticks: &dyn Fn(u64) -> f64| {
+            s.windows(2)
+                .map(|w| ticks(w[1].0) - ticks(w[0].0))
+                .collect::<Vec<_>>()
+        };
+        let freq = onechip_golden::summary_value(self.case, "clock_freq");
+        steppers
+            .iter()
+            .map(|(name, made, golden)| {
+                let pins = intervals(made, &|i| seconds(i));
+                let klippy = intervals(golden, &|c| c as f64 / freq)
+                    .into_iter()
+                    .fold(f64::INFINITY, f64::min);
+                let fast = pins.iter().filter(|&&t| t < klippy / 2.0).count();
+                println!(
+                    "{} {name}: shortest step interval {:.1} us (klippy {:.1} us), {fast} \
+                     steps faster than twice klippy's peak",
+                    self.case,
+                    pins.iter().copied().fold(f64::INFINITY, f64::min) * 1e6,
+                    klippy * 1e6
+                );
+                (name.clone(), fast)
+            })
+            .collect()
+    }
+
     /// Prints the run's figures and checks the CPU accounting saw the
     /// interrupts and some idle time.
     fn report(&self, steps: usize) {
@@ -244,6 +276,12 @@ fn a_golden_print_streamed_over_the_uart_steps_the_pins_as_klippy() {
         assert!(dirs(made) == dirs(golden), "{name}: directions");
     }
     let steps = streamed.check_positions(&steppers);
+    for (name, fast) in streamed.bursts(&steppers) {
+        assert_eq!(
+            fast, 0,
+            "{name}: steps faster than klippy's peak (an underrun)"
+        );
+    }
 
     let tol = MAX_ERROR + streamed.latency + 1.0 / qemu::CLOCK_HZ;
     let freq = onechip_golden::summary_value(case, "clock_freq");
@@ -285,7 +323,15 @@ fn the_worst_case_with_input_shaping_and_pressure_advance_keeps_up() {
     let streamed = stream("delta_shaper_pa", case, config);
     // Shaping and pressure advance move the steps in time (and add back
     // and forth steps), not where each stepper ends.
-    let steps = streamed.check_positions(&streamed.steppers());
+    let steppers = streamed.steppers();
+    let steps = streamed.check_positions(&steppers);
+    // Reported, not asserted: with input shaping, a streamed print whose
+    // toolhead goes idle and starts again can get steps queued at one
+    // clock from the session (seen: `Steps { interval: 0, count: 13 }`
+    // on stepper_a after a direction change), which the engine makes
+    // back to back, 7 us apart; when depends on when the lines arrive.
+    let fast: usize = streamed.bursts(&steppers).iter().map(|b| b.1).sum();
+    println!("{case} with input shaping and pressure advance: {fast} steps in bursts");
     streamed.report(steps);
     let busy = 100.0 - share(&streamed.run, "idle");
     println!("{case} with input shaping and pressure advance: {busy:.2} % busy");
