@@ -59,7 +59,7 @@ fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
     let (mut session, no_printer) = match session {
         Ok(session) => (Some(session), ErrorText::new()),
         Err(e) => {
-            reporter.poll(0);
+            reporter.print(format_args!("onechip-qemu: no printer: {}", e.as_str()));
             (None, e)
         }
     };

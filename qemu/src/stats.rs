@@ -96,7 +96,7 @@ impl Reporter {
     }
 
     /// Writes one line, formatted before the semihosting call.
-    fn print(&mut self, args: core::fmt::Arguments<'_>) {
+    pub fn print(&mut self, args: core::fmt::Arguments<'_>) {
         let mut line = heapless::String::<192>::new();
         let _ = line.write_fmt(args);
         let _ = line.push('\n');

@@ -9,7 +9,8 @@ pub union Vector {
     reserved: usize,
 }
 
-/// A line nothing should raise: runs the default handler (a panic).
+/// A line nothing should raise: a vector of 0, whose use faults (the
+/// hard fault handler reports it and stops QEMU).
 const UNUSED: Vector = Vector { reserved: 0 };
 
 /// The interrupt vectors, IRQ 0 first.
