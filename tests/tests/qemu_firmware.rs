@@ -337,3 +337,79 @@ fn the_worst_case_with_input_shaping_and_pressure_advance_keeps_up() {
     println!("{case} with input shaping and pressure advance: {busy:.2} % busy");
     assert!(busy <= BUSY_GOAL, "{busy:.2} % busy");
 }
+
+/// Step rates tried by [`the_step_rate_limit_is_found`], steps/s of one
+/// stepper, in the order tried.
+const RATES: [f64; 8] = [
+    50_000.0, 100_000.0, 150_000.0, 200_000.0, 250_000.0, 300_000.0, 350_000.0, 400_000.0,
+];
+
+#[test]
+#[ignore = "needs qemu-system-arm and gcc (CI: .ci/run)"]
+fn the_step_rate_limit_is_found() {
+    // The golden cartesian machine with 256 microsteps on X (1280 steps
+    // per mm) and limits high enough for every rate tried.
+    let steps_per_mm = 1280.0;
+    let config = format!(
+        "{}\n[printer]\nmax_velocity: 400\nmax_accel: 20000\n[stepper_x]\nmicrosteps: 256\n",
+        onechip_golden::config("cartesian.cfg")
+    );
+    let elf = qemu::build_firmware("step_rate", &config);
+    let mut machine = Qemu::start(&elf, "step_rate");
+    machine.send("M110 N0");
+    machine.send("SET_KINEMATIC_POSITION X=0 Y=100 Z=10");
+    let mut sent = Vec::new();
+    for (k, rate) in RATES.iter().enumerate() {
+        let speed = rate / steps_per_mm;
+        let x = if k % 2 == 0 { 190 } else { 10 };
+        let replies = machine.send(&format!("G1 X{x} F{:.0}", speed * 60.0));
+        let done = machine.send("M400");
+        let shutdown = replies.iter().chain(&done).any(|r| r.starts_with("!!"));
+        println!("{rate} steps/s: {replies:?} {done:?}");
+        sent.push(*rate);
+        if shutdown {
+            break;
+        }
+    }
+    let run = machine.finish();
+    let pins = qemu::stepper_pins(&config);
+    let x = pins
+        .iter()
+        .find(|p| p.name == "stepper_x")
+        .expect("stepper_x");
+    let steps = run.steps(x.step, x.dir, x.dir_inverted);
+    // One move per rate, each in one direction (the first from X0, 190
+    // mm; then 180 mm): the runs of equal direction are the moves. A move
+    // kept up if it made all its steps and, over its middle half (at
+    // cruise), its steps came at the planned rate.
+    let mut best = 0.0;
+    for (k, (rate, chunk)) in sent
+        .iter()
+        .zip(steps.chunk_by(|a, b| a.1 == b.1))
+        .enumerate()
+    {
+        let planned = if k == 0 { 190.0 } else { 180.0 } * steps_per_mm;
+        let n = chunk.len();
+        let cruise = seconds(chunk[3 * n / 4].0 - chunk[n / 4].0) / (3 * n / 4 - n / 4) as f64;
+        let kept_up = n as f64 == planned && cruise <= 1.01 / rate;
+        println!(
+            "{rate} steps/s: {n} steps (planned {planned}), mean interval at cruise {:.3} us \
+             (planned {:.3} us): {}",
+            cruise * 1e6,
+            1e6 / rate,
+            if kept_up { "kept up" } else { "fell behind" }
+        );
+        if !kept_up {
+            break;
+        }
+        best = *rate;
+    }
+    println!(
+        "step rate limit: {best} steps/s on one stepper (2 us pulses); over the run: stepper \
+         interrupt {:.1} %, thread code {:.1} %, idle {:.1} %",
+        share(&run, "stepper"),
+        share(&run, "thread"),
+        share(&run, "idle")
+    );
+    assert!(best >= RATES[0], "not even {} steps/s", RATES[0]);
+}
