@@ -4,8 +4,14 @@
 //! emulated UART with the console protocol (line numbers, checksums, an
 //! `ok` awaited per line), and the step edges the TCG plugin logged from
 //! the pins are compared with klippy's: the same steps, in the same
-//! directions, ending at the same position, for every stepper; and their
-//! times, up to where the streamed print re-timed a move.
+//! directions, ending at the same position, for every stepper, none
+//! faster than klippy's peak rate; and their intervals.
+//!
+//! Two more runs: the worst golden case (the delta) with input shaping
+//! and pressure advance added must keep up (every line acknowledged, no
+//! shutdown, klippy's final positions, at most 25 % of the CPU busy); and
+//! single-axis moves at rising step rates find the highest rate the
+//! firmware sustains.
 //!
 //! Timing: klippy's batch run and a streamed print start at different
 //! times and can take different lookahead decisions (see
@@ -103,7 +109,12 @@ fn stream(name: &str, case: &'static str, config: String) -> Streamed {
     let elf = qemu::build_firmware(name, &config);
     let mut machine = Qemu::start(&elf, name);
     let transcript = machine.stream(&onechip_golden::gcode(case));
-    // Asked after the print's M400: a shutdown is reported on the line.
+    // As klippy at the end of its input: a 0.5 s dwell. M400 waits for
+    // the planned moves' end; shaped and pressure-advanced steps come up
+    // to the smoothing windows later.
+    machine.send("G4 P500");
+    machine.send("M400");
+    // A shutdown is reported on the next line.
     let last = machine.send("M114");
     let run = machine.finish();
     assert!(
