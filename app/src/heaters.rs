@@ -304,7 +304,7 @@ struct HeaterState {
     smooth: f64,
     /// smooth_time, s.
     smooth_time: f64,
-    thermistor: onechip_planner::thermal::Thermistor,
+    sensor: onechip_planner::temperature_sensor::TemperatureSensor,
     cycle_ticks: u32,
     control: ControlState,
     target: f64,
@@ -424,12 +424,12 @@ fn adc_full(adc_max: u16) -> f64 {
     f64::from(SAMPLE_COUNT) * f64::from(adc_max)
 }
 
-/// A heater's thermistor query: 8 readings 1 ms apart every 0.3 s, the
-/// sum within the readings of max_temp and min_temp.
+/// A heater's sensor query: 8 readings 1 ms apart every 0.3 s, the sum
+/// within the readings of min_temp and max_temp (lowest first, whichever
+/// way the sensor runs).
 fn adc_query(heater: &Heater<'_>, freq: f64, adc_max: u16, start: u32) -> AdcQuery {
     let full = adc_full(adc_max);
-    let low = heater.thermistor.adc(heater.max_temp);
-    let high = heater.thermistor.adc(heater.min_temp);
+    let (low, high) = heater.sensor.adc_range(heater.min_temp, heater.max_temp);
     let counts = |v: f64| v.clamp(0.0, f64::from(u16::MAX)) as u16;
     AdcQuery {
         clock: start,
@@ -526,7 +526,7 @@ impl Heaters {
                 max_power: h.max_power,
                 smooth: 1.0 + h.smooth_time / dt,
                 smooth_time: h.smooth_time,
-                thermistor: h.thermistor,
+                sensor: h.sensor,
                 cycle_ticks: full_scale(output.kind),
                 control: ControlState::new(h.control),
                 target: 0.0,
@@ -598,7 +598,7 @@ impl Heaters {
             return Ok(());
         };
         let temp = h
-            .thermistor
+            .sensor
             .temperature(f64::from(report.value) / self.adc_full);
         let dt = PWM_DELAY;
         let mut power = h.control.update(temp, h.target, h.max_power, dt, h.smooth);
@@ -978,7 +978,7 @@ mod tests {
         let machine = Machine::from_config(&config).expect("machine");
         // Both thermistors read a constant 60 °C or so: the heaters do
         // nothing.
-        let reading = (machine.heaters[0].thermistor.adc(60.0) * 4095.0) as u16;
+        let reading = (machine.heaters[0].sensor.adc(60.0) * 4095.0) as u16;
         let mut hw = Reads([reading, 2048]);
         let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut hw);
         let target = ThermalCommand::Target {
@@ -1024,8 +1024,8 @@ mod tests {
     fn the_extruder_may_extrude_once_its_smoothed_temperature_reaches_min_extrude_temp() {
         let config = Config::parse("printer.cfg", SHIPPED).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let thermistor = machine.heaters[0].thermistor;
-        let counts = |celsius: f64| (thermistor.adc(celsius) * 4095.0).round() as u16;
+        let sensor = machine.heaters[0].sensor;
+        let counts = |celsius: f64| (sensor.adc(celsius) * 4095.0).round() as u16;
         let mut hw = Reads([counts(25.0), 2048]);
         let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut hw);
         // Before any reading: min_extrude_temp (170 °C) is above 0.

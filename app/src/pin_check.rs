@@ -90,6 +90,17 @@ pub enum PinConflict<'a> {
     },
 }
 
+impl<'a> PinConflict<'a> {
+    /// The option at fault: the one naming the pin again, or the one
+    /// naming the board's pin.
+    pub fn at(&self) -> PinUse<'a> {
+        match *self {
+            Self::Duplicate { second, .. } | Self::Modifiers { second, .. } => second,
+            Self::Reserved { used, .. } => used,
+        }
+    }
+}
+
 impl fmt::Display for PinConflict<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

@@ -37,8 +37,9 @@ pub mod profile {
     pub const LOOKAHEAD: usize = 384;
     /// Motion queue (trapq) length, in segments.
     pub const MOTION_QUEUE: usize = 128;
-    /// Steps each stepper's compressor holds.
-    pub const COMPRESS_QUEUE: usize = 256;
+    /// Step buffer of each stepper's compressor: it holds half as many
+    /// steps, 6 bytes each (3 KiB); longer commands grow past it.
+    pub const COMPRESS_QUEUE: usize = 512;
     /// The step timer's clock (TIM5 on the STM32H723: APB1 timers at
     /// twice the 130 MHz bus clock), Hz.
     pub const STEP_CLOCK_HZ: f64 = 260_000_000.0;

@@ -55,7 +55,13 @@ impl<'a> PrinterSetup<'a> {
     ) -> Result<Self, SetupError> {
         let config = Config::parse_files_in(scratch, files).map_err(|e| cut_text(&e))?;
         let machine = Machine::from_config(config).map_err(|e| cut_text(&e))?;
-        pin_check::check(&machine, reserved).map_err(|e| cut_text(&e))?;
+        pin_check::check(&machine, reserved).map_err(|e| {
+            // Where the option at fault is, as every config error says.
+            let (file, line) = config
+                .section(e.at().section)
+                .map_or((config.file(), 0), |s| s.locate(e.at().option));
+            cut_text(&format_args!("{file}:{line}: {e}"))
+        })?;
         let mut step_pulse = [0.0; MAX_STEPPERS];
         for (pulse, stepper) in step_pulse.iter_mut().zip(&machine.steppers) {
             let tmc = has_tmc_driver(config.section_names(), stepper.name);

@@ -158,6 +158,16 @@ impl fmt::Display for ConfigError<'_> {
     }
 }
 
+/// A section header: the section's name and where it is.
+#[derive(Debug, Clone, Copy)]
+struct Header<'a> {
+    name: &'a str,
+    /// Index of its file in `Config::files`.
+    file: usize,
+    /// 1-based line number.
+    line: usize,
+}
+
 /// One option line: where it is and its text.
 #[derive(Debug, Clone, Copy)]
 struct OptionLine<'a> {
@@ -175,8 +185,8 @@ struct OptionLine<'a> {
 pub struct Config<'a> {
     /// File names, the main file first, in the order they were read.
     files: heapless::Vec<&'a str, MAX_FILES>,
-    /// Section names with the index of the file that opened them.
-    sections: heapless::Vec<(&'a str, usize), MAX_SECTIONS>,
+    /// Section headers, in file order (repeats included).
+    sections: heapless::Vec<Header<'a>, MAX_SECTIONS>,
     options: heapless::Vec<OptionLine<'a>, MAX_OPTIONS>,
     used: [Cell<u32>; MAX_OPTIONS / 32],
 }
@@ -271,7 +281,11 @@ impl<'a> Config<'a> {
                     continue;
                 }
                 self.sections
-                    .push((section, file_index))
+                    .push(Header {
+                        name: section,
+                        file: file_index,
+                        line,
+                    })
                     .map_err(|_| err(line, ConfigErrorKind::TooLarge))?;
                 continue;
             }
@@ -285,7 +299,7 @@ impl<'a> Config<'a> {
             let section = self
                 .sections
                 .iter()
-                .rposition(|(_, f)| *f == file_index)
+                .rposition(|h| h.file == file_index)
                 .ok_or(err(line, ConfigErrorKind::OptionOutsideSection))?;
             let value = trimmed[split + 1..].trim();
             self.options
@@ -351,12 +365,12 @@ impl<'a> Config<'a> {
 
     /// Names of all sections, in file order (repeats included).
     pub fn section_names(&self) -> impl Iterator<Item = &'a str> + '_ {
-        self.sections.iter().map(|(name, _)| *name)
+        self.sections.iter().map(|h| h.name)
     }
 
     /// True if a section of this name exists.
     pub fn has_section(&self, name: &str) -> bool {
-        self.sections.iter().any(|(n, _)| *n == name)
+        self.sections.iter().any(|h| h.name == name)
     }
 
     /// Access to the section `name` (all its repeats, later lines winning).
@@ -378,7 +392,7 @@ impl<'a> Config<'a> {
     /// belong to features handled elsewhere).
     pub fn accept_section(&self, name: &str) {
         for (i, option) in self.options.iter().enumerate() {
-            if self.sections[option.section].0 == name {
+            if self.sections[option.section].name == name {
                 self.mark_used(i);
             }
         }
@@ -406,7 +420,7 @@ impl<'a> Config<'a> {
                 file: self.file_of(option),
                 line: option.line,
                 kind: ConfigErrorKind::UnknownOption {
-                    section: self.sections[option.section].0,
+                    section: self.sections[option.section].name,
                     option: option.name,
                 },
             }),
@@ -477,11 +491,30 @@ impl<'c, 'a> Section<'c, 'a> {
 
     /// The section's name as written in the file.
     pub fn name_in_file(&self) -> &'a str {
-        self.config
-            .sections
-            .iter()
-            .find(|(n, _)| *n == self.name)
-            .map_or("", |(n, _)| *n)
+        self.header().map_or("", |h| h.name)
+    }
+
+    /// The section's first header.
+    fn header(&self) -> Option<&Header<'a>> {
+        self.config.sections.iter().find(|h| h.name == self.name)
+    }
+
+    /// Where `option` is defined (its last definition), or else where the
+    /// section starts: file name and 1-based line.
+    pub fn locate(&self, option: &str) -> (&'a str, usize) {
+        match self.find(option) {
+            Some((_, o)) => (self.config.file_of(o), o.line),
+            None => self.start(),
+        }
+    }
+
+    /// Where the section starts: its first header's file and line.
+    #[inline(never)]
+    fn start(&self) -> (&'a str, usize) {
+        self.header().map_or((self.config.file(), 0), |h| {
+            let file = self.config.files.get(h.file).copied();
+            (file.unwrap_or(self.config.file()), h.line)
+        })
     }
 
     /// An error about `option` (at its line, if present).
@@ -501,7 +534,8 @@ impl<'c, 'a> Section<'c, 'a> {
     /// definitions override earlier ones, which are not errors).
     fn mark_read(&self, option: &str, last: usize) {
         for (i, o) in self.config.options.iter().enumerate().take(last + 1) {
-            if self.config.sections[o.section].0 == self.name && o.name.eq_ignore_ascii_case(option)
+            if self.config.sections[o.section].name == self.name
+                && o.name.eq_ignore_ascii_case(option)
             {
                 self.config.mark_used(i);
             }
@@ -510,25 +544,19 @@ impl<'c, 'a> Section<'c, 'a> {
 
     fn find(&self, option: &str) -> Option<(usize, &'c OptionLine<'a>)> {
         self.config.options.iter().enumerate().rev().find(|(_, o)| {
-            self.config.sections[o.section].0 == self.name && o.name.eq_ignore_ascii_case(option)
+            self.config.sections[o.section].name == self.name && o.name.eq_ignore_ascii_case(option)
         })
     }
 
-    /// An error at option line `at` (in its file), or about the section as
-    /// a whole (in printer.cfg) when there is no such line.
+    /// An error at option line `at` (in its file), or at the section's
+    /// header when there is no such line (an option that must be added).
+    #[inline(never)]
     fn error(&self, at: Option<&OptionLine<'a>>, kind: ConfigErrorKind<'c>) -> ConfigError<'c> {
-        match at {
-            Some(o) => ConfigError {
-                file: self.config.file_of(o),
-                line: o.line,
-                kind,
-            },
-            None => ConfigError {
-                file: self.config.file(),
-                line: 0,
-                kind,
-            },
-        }
+        let (file, line) = match at {
+            Some(o) => (self.config.file_of(o), o.line),
+            None => self.start(),
+        };
+        ConfigError { file, line, kind }
     }
 
     /// The definition of `option` (marked read); else `default`; else an
@@ -880,8 +908,26 @@ mod tests {
             p.get_float("max_velocity", None, Bounds::POSITIVE)
                 .expect_err("missing")
                 .to_string(),
-            "p.cfg: option 'max_velocity' in section 'printer' must be specified"
+            "p.cfg:1: option 'max_velocity' in section 'printer' must be specified"
         );
+        // A missing option is reported at the section's header, in the
+        // file that opened the section.
+        let files = [
+            ConfigFile {
+                name: "printer.cfg",
+                text: "[include x.cfg]
+",
+            },
+            ConfigFile {
+                name: "x.cfg",
+                text: "\n[stepper_z]\nstep_pin: PA0\n",
+            },
+        ];
+        let c = Config::parse_files(&files).expect("valid");
+        let z = c.require("stepper_z").expect("present");
+        let e = z.get("dir_pin").expect_err("missing");
+        assert_eq!((e.file, e.line), ("x.cfg", 2));
+        assert_eq!(z.locate("step_pin"), ("x.cfg", 3));
         assert!(c.require("stepper_x").is_err());
     }
 }

@@ -40,7 +40,7 @@ impl ConsolePrinter {
     pub fn new(sd: &Path, options: &Options) -> Result<Self, SimError> {
         let buf = Box::leak(vec![0u8; crate::files::CONFIG_BUFFER].into_boxed_slice());
         let scratch = Box::leak(Box::new(std::mem::MaybeUninit::uninit()));
-        let setup = load_setup(sd, buf, scratch)?;
+        let setup = load_setup(sd, options, buf, scratch)?;
         let machine: &'static Machine<'static> = Box::leak(Box::new(setup)).machine();
         let freq = options.mcu_freq;
         let session = Box::new(HostSession::new(

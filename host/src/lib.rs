@@ -79,6 +79,11 @@ pub struct Options {
     /// The G-code arrives on the console, in USB packets as the board's
     /// console reads them, instead of from the SD card.
     pub console: bool,
+    /// printer.cfg's pins are checked against those the board uses itself
+    /// (USB, SD card, crystal, SWD), as on the board; off for a config
+    /// written for another board (Klipper's stock `generic-*` configs),
+    /// whose other options are still all checked.
+    pub board_pins: bool,
 }
 
 /// Where the toolhead really is at power-on.
@@ -105,6 +110,7 @@ impl Default for Options {
             open_sensor: None,
             weak_heater: None,
             console: false,
+            board_pins: true,
         }
     }
 }
@@ -510,16 +516,21 @@ impl fmt::Write for NoOutput {
 }
 
 /// Reads printer.cfg (and its includes) from the SD folder `sd` into
-/// `buf` and the machine from it (`scratch` indexes the config meanwhile).
+/// `buf` and the machine from it (`scratch` indexes the config meanwhile),
+/// its pins checked as `options` say.
 fn load_setup<'b>(
     sd: &Path,
+    options: &Options,
     buf: &'b mut [u8],
     scratch: &mut std::mem::MaybeUninit<onechip_app::setup::Config<'b>>,
 ) -> Result<PrinterSetup<'b>, SimError> {
     let texts = onechip_app::config_files::load(&mut files::Folder::new(sd), buf)
         .map_err(|e| SimError::Config(e.to_string()))?;
-    PrinterSetup::load(&texts, onechip_app::pin_check::BOARD_RESERVED, scratch)
-        .map_err(|e| SimError::Config(e.to_string()))
+    let reserved = match options.board_pins {
+        true => onechip_app::pin_check::BOARD_RESERVED,
+        false => &[],
+    };
+    PrinterSetup::load(&texts, reserved, scratch).map_err(|e| SimError::Config(e.to_string()))
 }
 
 /// The virtual MCU for `machine` as `options` say: heaters, physics (where
@@ -603,7 +614,7 @@ pub(crate) fn with_session<const L: usize>(
     let config_path = sd.join(onechip_app::config_files::PRINTER_CFG);
     let mut buf = vec![0u8; files::CONFIG_BUFFER];
     let mut scratch = Box::new(std::mem::MaybeUninit::uninit());
-    let setup = load_setup(sd, &mut buf, &mut scratch)?;
+    let setup = load_setup(sd, options, &mut buf, &mut scratch)?;
     let machine = setup.machine();
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;

@@ -1,11 +1,12 @@
 //! The heaters and fan as physics, for the MCU role's io in virtual time:
 //! each heater is a lump that the heater output warms and the room cools
-//! (first order, exact between pin changes), read through its thermistor
-//! and a 12-bit ADC; every output's changes are tallied.
+//! (first order, exact between pin changes), read through its temperature
+//! sensor (the conversion the firmware's heater control uses, run
+//! backwards) and a 12-bit ADC; every output's changes are tallied.
 
 use onechip_app::heaters::PWM_MAX;
 use onechip_planner::machine::Machine;
-use onechip_planner::thermal::Thermistor;
+use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 
@@ -57,7 +58,7 @@ pub struct OutputLog {
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Lump {
     model: HeaterModel,
-    thermistor: Thermistor,
+    sensor: TemperatureSensor,
     /// Temperature, °C, at clock `at`.
     temp: f64,
     at: u64,
@@ -110,7 +111,7 @@ impl Plant {
                 } else {
                     HeaterModel::HOTEND
                 },
-                thermistor: h.thermistor,
+                sensor: h.sensor,
                 temp: AMBIENT,
                 at: 0,
                 power: 0.0,
@@ -195,7 +196,7 @@ impl Peripherals for Plant {
             return 0;
         };
         lump.advance(now, freq);
-        let reading = lump.thermistor.adc(lump.temp) * f64::from(ADC_MAX);
+        let reading = lump.sensor.adc(lump.temp) * f64::from(ADC_MAX);
         reading.round().clamp(0.0, f64::from(ADC_MAX)) as u16
     }
 }

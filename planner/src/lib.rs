@@ -10,6 +10,7 @@
 //! without allocation.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod adc_temperature;
 pub mod gcode;
 pub mod gcode_move;
 pub mod homing;
@@ -21,5 +22,7 @@ pub mod mcu_section;
 pub mod move_sink;
 pub mod planned_move;
 pub mod shaper_config;
+pub mod temperature_sensor;
 pub mod thermal;
+pub mod thermistor;
 pub mod toolhead;

@@ -6,6 +6,7 @@ use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
+use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
@@ -223,7 +224,7 @@ impl<'a> Machine<'a> {
                 },
             )?;
             if section.get_opt("heater_pin").is_some() {
-                let _ = heaters.push(thermal::read_heater(&section)?);
+                let _ = heaters.push(thermal::read_heater(config, &section)?);
             }
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
@@ -232,7 +233,7 @@ impl<'a> Machine<'a> {
             None => InputShaperConfig::default(),
         };
         if let Some(section) = config.section("heater_bed") {
-            let _ = heaters.push(thermal::read_heater(&section)?);
+            let _ = heaters.push(thermal::read_heater(config, &section)?);
         }
         let fan = config
             .section("fan")
@@ -263,11 +264,14 @@ impl<'a> Machine<'a> {
             section.get_bool("enable_force_move", false)?;
         }
         let secondaries = mcu_section::read_all(config)?;
+        // Sensor types: Klipper reads every definition, used or not.
+        temperature_sensor::read_definitions(config)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
+                && !temperature_sensor::is_definition_section(name)
                 && !unsupported.contains(&name)
             {
                 let _ = unsupported.push(name);

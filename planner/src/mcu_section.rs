@@ -27,6 +27,8 @@ pub struct SecondaryMcu<'a> {
     pub name: &'a str,
     /// Its serial device (`/dev/serial/by-id/…`, or a USART of the board).
     pub serial: &'a str,
+    /// Where `serial` is set: file name and 1-based line, for messages.
+    pub serial_at: (&'a str, usize),
     /// Serial speed, baud (Klipper's default 250000).
     pub baud: u32,
     /// How it is reset.
@@ -77,6 +79,7 @@ fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<SecondaryMcu<'a>, ConfigErr
     Ok(SecondaryMcu {
         name: name.strip_prefix("mcu ").unwrap_or(name).trim(),
         serial,
+        serial_at: section.locate("serial"),
         baud: u32::try_from(baud).unwrap_or(u32::MAX),
         restart_method,
     })

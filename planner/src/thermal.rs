@@ -1,19 +1,12 @@
-//! Heaters, their thermistors and the part-cooling fan as printer.cfg
-//! describes them: the heater options of `[extruder]`, `[heater_bed]` and
-//! `[fan]`, each heater's `[verify_heater NAME]` checks and the
-//! `[idle_timeout]` that turns the heaters off, with Klipper's option
-//! names, defaults and limits.
-//!
-//! A thermistor is read through a voltage divider (a pullup resistor to
-//! the ADC reference); its resistance follows the Steinhart-Hart equation
-//! `1/T = c1 + c2 ln R + c3 (ln R)^3` (T in kelvin), whose coefficients
-//! come from three (temperature, resistance) points of its data sheet, or
-//! from a beta value (`c3 = 0`).
+//! Heaters and the part-cooling fan as printer.cfg describes them: the
+//! heater options of `[extruder]`, `[heater_bed]` and `[fan]`, each
+//! heater's `[verify_heater NAME]` checks and the `[idle_timeout]` that
+//! turns the heaters off, with Klipper's option names, defaults and
+//! limits. A heater's sensor is [`crate::temperature_sensor`]'s.
 
-use onechip_config::{Bounds, ConfigError, Section};
-
-/// 0 °C in kelvin.
-const ZERO_CELSIUS: f64 = 273.15;
+use crate::temperature_sensor::{self, TemperatureSensor};
+use crate::thermistor::ZERO_CELSIUS;
+use onechip_config::{Bounds, Config, ConfigError, Section};
 
 /// The heater control (`control:`), with its options.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -36,139 +29,6 @@ pub enum Control {
     },
 }
 
-/// A thermistor behind a pullup resistor.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Thermistor {
-    c1: f64,
-    c2: f64,
-    c3: f64,
-    /// pullup_resistor, ohm.
-    pullup: f64,
-    /// inline_resistor, ohm.
-    inline: f64,
-}
-
-/// How a built-in sensor type is defined: three (°C, ohm) points, or one
-/// point and a beta.
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Definition {
-    Points([(f64, f64); 3]),
-    Beta((f64, f64), f64),
-}
-
-/// The thermistors Klipper knows by `sensor_type` name, with their data
-/// sheet points.
-const SENSORS: [(&str, Definition); 9] = [
-    (
-        "EPCOS 100K B57560G104F",
-        Definition::Points([(25.0, 100_000.0), (150.0, 1641.9), (250.0, 226.15)]),
-    ),
-    (
-        "ATC Semitec 104GT-2",
-        Definition::Points([(20.0, 126_800.0), (150.0, 1360.0), (300.0, 80.65)]),
-    ),
-    (
-        "ATC Semitec 104NT-4-R025H42G",
-        Definition::Points([(25.0, 100_000.0), (160.0, 1074.0), (300.0, 82.78)]),
-    ),
-    (
-        "Generic 3950",
-        Definition::Points([(25.0, 100_000.0), (150.0, 1770.0), (250.0, 230.0)]),
-    ),
-    (
-        "SliceEngineering 450",
-        Definition::Points([(25.0, 500_000.0), (200.0, 3734.0), (400.0, 240.0)]),
-    ),
-    (
-        "TDK NTCG104LH104JT1",
-        Definition::Points([(25.0, 100_000.0), (50.0, 31_230.0), (125.0, 2066.0)]),
-    ),
-    (
-        "Honeywell 100K 135-104LAG-J01",
-        Definition::Beta((25.0, 100_000.0), 3974.0),
-    ),
-    (
-        "NTC 100K beta 3950",
-        Definition::Beta((25.0, 100_000.0), 3950.0),
-    ),
-    (
-        "NTC 100K MGB18-104F39050L32",
-        Definition::Beta((25.0, 100_000.0), 4100.0),
-    ),
-];
-
-impl Thermistor {
-    /// The built-in sensor type `name` behind `pullup` and `inline` ohm.
-    pub fn named(name: &str, pullup: f64, inline: f64) -> Option<Self> {
-        let (_, definition) = SENSORS.iter().find(|(n, _)| *n == name)?;
-        Some(match *definition {
-            Definition::Points(points) => Self::from_points(points, pullup, inline),
-            Definition::Beta(point, beta) => Self::from_beta(point, beta, pullup, inline),
-        })
-    }
-
-    /// Steinhart-Hart through three (°C, ohm) points; if they need a
-    /// negative cubic term, the beta of the outer two instead.
-    fn from_points(points: [(f64, f64); 3], pullup: f64, inline: f64) -> Self {
-        let [(t1, r1), (t2, r2), (t3, r3)] = points;
-        let inv = |t: f64| 1.0 / (t + ZERO_CELSIUS);
-        let (l1, l2, l3) = (libm::log(r1), libm::log(r2), libm::log(r3));
-        let (i12, i13) = (inv(t1) - inv(t2), inv(t1) - inv(t3));
-        let (l12, l13) = (l1 - l2, l1 - l3);
-        let (c12, c13) = (l1 * l1 * l1 - l2 * l2 * l2, l1 * l1 * l1 - l3 * l3 * l3);
-        let c3 = (i12 - i13 * l12 / l13) / (c12 - c13 * l12 / l13);
-        if c3 <= 0.0 {
-            return Self::from_beta((t1, r1), l13 / i13, pullup, inline);
-        }
-        let c2 = (i12 - c3 * c12) / l12;
-        Self {
-            c1: inv(t1) - c2 * l1 - c3 * l1 * l1 * l1,
-            c2,
-            c3,
-            pullup,
-            inline,
-        }
-    }
-
-    /// Beta equation through one (°C, ohm) point.
-    fn from_beta((t1, r1): (f64, f64), beta: f64, pullup: f64, inline: f64) -> Self {
-        let c2 = 1.0 / beta;
-        Self {
-            c1: 1.0 / (t1 + ZERO_CELSIUS) - c2 * libm::log(r1),
-            c2,
-            c3: 0.0,
-            pullup,
-            inline,
-        }
-    }
-
-    /// Temperature at ADC reading `adc` (fraction of full scale), °C.
-    pub fn temperature(&self, adc: f64) -> f64 {
-        let adc = adc.clamp(0.00001, 0.99999);
-        let r = self.pullup * adc / (1.0 - adc);
-        let ln_r = libm::log(r - self.inline);
-        1.0 / (self.c1 + self.c2 * ln_r + self.c3 * ln_r * ln_r * ln_r) - ZERO_CELSIUS
-    }
-
-    /// ADC reading (fraction of full scale) at temperature `t`, °C.
-    pub fn adc(&self, t: f64) -> f64 {
-        if t <= -ZERO_CELSIUS {
-            return 1.0;
-        }
-        let inv_t = 1.0 / (t + ZERO_CELSIUS);
-        let ln_r = if self.c3 != 0.0 {
-            // The cubic c3 x^3 + c2 x + (c1 - 1/T) = 0, by Cardano.
-            let y = (self.c1 - inv_t) / (2.0 * self.c3);
-            let x = libm::sqrt(libm::pow(self.c2 / (3.0 * self.c3), 3.0) + y * y);
-            libm::cbrt(x - y) - libm::cbrt(x + y)
-        } else {
-            (inv_t - self.c1) / self.c2
-        };
-        let r = libm::exp(ln_r) + self.inline;
-        r / (self.pullup + r)
-    }
-}
-
 /// A heater and its sensor.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Heater<'a> {
@@ -178,8 +38,8 @@ pub struct Heater<'a> {
     pub heater_pin: &'a str,
     /// sensor_pin (an ADC pin).
     pub sensor_pin: &'a str,
-    /// The sensor.
-    pub thermistor: Thermistor,
+    /// The temperature sensor.
+    pub sensor: TemperatureSensor,
     /// The control.
     pub control: Control,
     /// Lowest temperature the sensor may read, °C (below: shutdown).
@@ -334,13 +194,13 @@ pub struct Fan<'a> {
 /// REPORT_TIME + SAMPLE_TIME × SAMPLE_COUNT).
 pub const PWM_DELAY: f64 = 0.300 + 0.001 * 8.0;
 
-/// Reads a heater from `section` (`[extruder]` or `[heater_bed]`).
-pub fn read_heater<'c, 'a>(section: &Section<'c, 'a>) -> Result<Heater<'a>, ConfigError<'c>> {
-    let pullup = section.get_float("pullup_resistor", Some(4700.0), Bounds::POSITIVE)?;
-    let inline = section.get_float("inline_resistor", Some(0.0), Bounds::NON_NEGATIVE)?;
-    let sensor_type = section.get("sensor_type")?;
-    let thermistor = Thermistor::named(sensor_type, pullup, inline)
-        .ok_or(section.error_for("sensor_type", "is not a thermistor onechip knows"))?;
+/// Reads a heater from `section` (`[extruder]` or `[heater_bed]`) of
+/// `config` (which holds the sensor types it may name).
+pub fn read_heater<'c, 'a>(
+    config: &'c Config<'a>,
+    section: &Section<'c, 'a>,
+) -> Result<Heater<'a>, ConfigError<'c>> {
+    let sensor = temperature_sensor::read(config, section)?;
     let min_temp = section.get_float(
         "min_temp",
         None,
@@ -381,7 +241,7 @@ pub fn read_heater<'c, 'a>(section: &Section<'c, 'a>) -> Result<Heater<'a>, Conf
         name,
         heater_pin: section.get("heater_pin")?,
         sensor_pin: section.get("sensor_pin")?,
-        thermistor,
+        sensor,
         control,
         min_temp,
         max_temp,
@@ -428,27 +288,4 @@ pub fn read_fan<'c, 'a>(section: &Section<'c, 'a>) -> Result<Fan<'a>, ConfigErro
         kick_start_time: section.get_float("kick_start_time", Some(0.1), Bounds::NON_NEGATIVE)?,
         off_below: section.get_float("off_below", Some(0.0), UNIT)?,
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_thermistor_passes_through_its_data_sheet_points() {
-        let t = Thermistor::named("EPCOS 100K B57560G104F", 4700.0, 0.0).expect("known");
-        for (celsius, ohm) in [(25.0, 100_000.0), (150.0, 1641.9), (250.0, 226.15)] {
-            let adc = ohm / (ohm + 4700.0);
-            assert!((t.temperature(adc) - celsius).abs() < 1e-9);
-            assert!((t.adc(celsius) - adc).abs() < 1e-12);
-        }
-        // Beta thermistors too, and the two conversions invert each other.
-        let b = Thermistor::named("Generic 3950", 4700.0, 0.0).expect("known");
-        let n = Thermistor::named("NTC 100K beta 3950", 4700.0, 0.0).expect("known");
-        for celsius in [0.0, 20.0, 60.0, 110.0, 200.0, 280.0] {
-            assert!((b.temperature(b.adc(celsius)) - celsius).abs() < 1e-6);
-            assert!((n.temperature(n.adc(celsius)) - celsius).abs() < 1e-6);
-        }
-        assert_eq!(Thermistor::named("PT1000", 4700.0, 0.0), None);
-    }
 }

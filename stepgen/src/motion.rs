@@ -12,7 +12,7 @@ use crate::compress::{Compressor, StepCommand};
 use crate::extruder::{self, PressureAdvance};
 use crate::segment::Segment;
 use crate::shaper::StepperShaper;
-use crate::solver::{AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
+use crate::solver::{AlongDeltaSegment, AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
 use crate::trapq::Trapq;
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::kinematics::calc_position;
@@ -20,9 +20,14 @@ use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::move_sink::{HomingEnd, HomingMove};
 use onechip_planner::move_sink::{MoveSink, TrapqMove};
 
-/// Steps compressed behind generation so that a command can cover the
-/// steps that follow it, s (Klipper's STEPCOMPRESS_FLUSH_TIME).
-const COMPRESS_LAG: f64 = 0.050;
+/// How far behind generation steps are sent, s: a command may cover up to
+/// this much of the steps generated after the time it is sent for, as
+/// Klipper's commands cover what its batch flushes generated beyond their
+/// flush time (about 0.25 s). A constant-rate stretch then takes one
+/// command per this much time or more, not one per generation slice. Every
+/// step is sent at least this long after it is generated
+/// ([`Motion::sent_until`]).
+const COMPRESS_LAG: f64 = 0.250;
 
 /// Print time all steppers are generated through before any goes further,
 /// s.
@@ -105,8 +110,8 @@ struct Channel<const Q: usize> {
 }
 
 impl<const Q: usize> Channel<Q> {
-    /// Generates up to `until` (s) from `segs` and compresses what lies
-    /// [`COMPRESS_LAG`] behind.
+    /// Generates up to `until` (s) from `segs` and sends the steps that lie
+    /// [`COMPRESS_LAG`] behind what is generated.
     fn generate(&mut self, index: usize, segs: &[Segment], until: f64, sink: &mut impl StepSink) {
         let Self {
             solver,
@@ -137,6 +142,22 @@ impl<const Q: usize> Channel<Q> {
                     };
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }
+                None if !shaper.is_active()
+                    && let StepperKinematics::DeltaTower { arm2, tower } = *kin =>
+                {
+                    let position = |i: usize| {
+                        let seg: &Segment = &segs[i];
+                        let [x, y, z] = seg.start_pos;
+                        AlongDeltaSegment {
+                            arm2,
+                            start: [x - tower[0], y - tower[1], z],
+                            axes_r: seg.axes_r,
+                            start_v: seg.start_v,
+                            half_accel: seg.half_accel,
+                        }
+                    };
+                    solver.generate_until(segs, *margins, until, position, &mut emit);
+                }
                 _ => {
                     let (kin, shaper) = (*kin, *shaper);
                     let position = |i: usize| shaper.on_segment(segs, i, kin);
@@ -151,7 +172,7 @@ impl<const Q: usize> Channel<Q> {
         }
         let done = solver.generated_until();
         if done.is_finite() {
-            compressor.flush_until(done - COMPRESS_LAG - offset, &mut out);
+            compressor.flush_until(done - COMPRESS_LAG - offset, done - offset, &mut out);
         }
     }
 
@@ -385,8 +406,10 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         }
     }
 
-    /// Print time before which every step is due has gone to the sink, s
-    /// (compression may put a step up to `max_error` before its time).
+    /// Print time before which every step is due has gone to the sink, s:
+    /// each stepper has sent every step [`COMPRESS_LAG`] or more behind its
+    /// generation; the steps its compressor still holds (queued, or in its
+    /// open command) may be scheduled up to `max_error` before their time.
     pub fn sent_until(&self) -> f64 {
         self.channels
             .iter()

@@ -97,7 +97,15 @@ impl Secondaries {
                 lines
             };
             let path = Path::new(secondary.serial);
-            let mcu = Secondary::connect(name, path, &lines, now, CONNECT_TIMEOUT)?;
+            let mcu =
+                Secondary::connect(name, path, &lines, now, CONNECT_TIMEOUT).map_err(|e| {
+                    let (file, line) = secondary.serial_at;
+                    ConnectError::Mcu {
+                        mcu: name.to_string(),
+                        at: (file.to_string(), line),
+                        error: Box::new(e),
+                    }
+                })?;
             let dict = mcu.dictionary();
             let oids = oids.get();
             for (i, oid) in oids.steppers.iter().enumerate() {

@@ -33,6 +33,15 @@ pub enum ConnectError {
     Dictionary(String),
     /// The config phase failed (Klipper's message).
     Failed(String),
+    /// A secondary could not be brought up.
+    Mcu {
+        /// Its name (`[mcu NAME]`).
+        mcu: String,
+        /// Where its `serial` option is: file name, 1-based line.
+        at: (String, usize),
+        /// Why.
+        error: Box<ConnectError>,
+    },
 }
 
 impl fmt::Display for ConnectError {
@@ -42,6 +51,11 @@ impl fmt::Display for ConnectError {
             Self::Timeout(phase) => write!(f, "Timeout during {phase}"),
             Self::Dictionary(e) => write!(f, "invalid data dictionary: {e}"),
             Self::Failed(m) => f.write_str(m),
+            Self::Mcu { mcu, at, error } => write!(
+                f,
+                "{}:{}: option 'serial' in section 'mcu {mcu}': {error}",
+                at.0, at.1
+            ),
         }
     }
 }

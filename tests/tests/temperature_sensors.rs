@@ -1,0 +1,99 @@
+//! Every kind of temperature sensor end to end through the host build: the
+//! simulated heater is read through the sensor's conversion run backwards
+//! (°C to ADC reading), the firmware's heater control through it forwards,
+//! so a heater reaches and holds its target only if both agree, and the
+//! MCU's range check (from min_temp and max_temp) must hold whichever way
+//! the sensor's reading runs with temperature.
+
+use std::path::PathBuf;
+
+fn shipped_default() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
+}
+
+/// The shipped printer.cfg with the hot end's sensor lines replaced by
+/// `sensor` and `extra` sections appended, heating the hot end to 200 °C
+/// and waiting for it.
+fn heat_with(name: &str, sensor: &str, extra: &str) -> onechip_host::Summary {
+    let dir = std::env::temp_dir().join(format!("onechip-sensor-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
+    let text = text.replace("sensor_type: EPCOS 100K B57560G104F", sensor) + "\n" + extra;
+    std::fs::write(dir.join("printer.cfg"), text).expect("write cfg");
+    std::fs::write(dir.join("job.gcode"), "M109 S200\nM105\n").expect("write gcode");
+    let s = onechip_host::run(&dir, None).expect("runs");
+    std::fs::remove_dir_all(&dir).ok();
+    s
+}
+
+#[test]
+fn the_hot_end_reaches_its_target_through_every_kind_of_sensor() {
+    let cases = [
+        ("epcos", "sensor_type: EPCOS 100K B57560G104F", ""),
+        ("ad595", "sensor_type: AD595\nadc_voltage: 3.3", ""),
+        ("ad8495", "sensor_type: AD8495\nadc_voltage: 5", ""),
+        ("pt100", "sensor_type: PT100 INA826\nadc_voltage: 5", ""),
+        ("pt1000", "sensor_type: PT1000\npullup_resistor: 4700", ""),
+        (
+            "custom-thermistor",
+            "sensor_type: G2",
+            "[thermistor G2]\ntemperature1: 20\nresistance1: 140000\ntemperature2: 195\n\
+             resistance2: 593\ntemperature3: 255\nresistance3: 189\n",
+        ),
+        (
+            "custom-table",
+            "sensor_type: amp\nadc_voltage: 3.3",
+            "[adc_temperature amp]\ntemperature1: 0\nvoltage1: 0.3\ntemperature2: 150\n\
+             voltage2: 1.2\ntemperature3: 300\nvoltage3: 2.4\n",
+        ),
+    ];
+    for (name, sensor, extra) in cases {
+        let s = heat_with(name, sensor, extra);
+        assert_eq!(
+            (s.errors.len(), s.shutdown.as_ref()),
+            (0, None),
+            "{name}: {s}"
+        );
+        let hot_end = &s.heaters[0];
+        // M109 waited until the firmware measured 200 °C; the simulated
+        // hot end really is there (within a 12-bit reading or so).
+        assert!(s.heat_wait > 10.0, "{name}: {}", s.heat_wait);
+        assert!(
+            (hot_end.temperature - 200.0).abs() < 3.0,
+            "{name}: measured {hot_end:?}"
+        );
+        assert!(
+            (195.0..210.0).contains(&hot_end.peak),
+            "{name}: really reached {hot_end:?}"
+        );
+        let (_, report) = s.temperatures.last().expect("M105");
+        assert!(
+            report.starts_with("T:19") || report.starts_with("T:20"),
+            "{name}: {report}"
+        );
+    }
+}
+
+#[test]
+fn a_rising_sensor_read_past_max_temp_shuts_everything_down() {
+    // An AD595 on a 3.3 V ADC: a reading stuck at full scale (3.3 V, some
+    // 327 °C) is past max_temp (250 °C), so the MCU's range check, whose
+    // limits run the other way than a thermistor's, must trip.
+    let dir = std::env::temp_dir().join(format!("onechip-sensor-open-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
+    let text = text.replace(
+        "sensor_type: EPCOS 100K B57560G104F",
+        "sensor_type: AD595\nadc_voltage: 3.3",
+    );
+    std::fs::write(dir.join("printer.cfg"), text).expect("write cfg");
+    std::fs::write(dir.join("job.gcode"), "M104 S200\nG4 P60000\n").expect("write gcode");
+    let options = onechip_host::Options {
+        open_sensor: Some((30.0, 0)),
+        ..onechip_host::Options::default()
+    };
+    let s = onechip_host::run_with(&dir, &options).expect("runs");
+    std::fs::remove_dir_all(&dir).ok();
+    assert_eq!(s.shutdown.as_deref(), Some("ADC out of range"), "{s}");
+    assert!(s.heaters.iter().all(|h| !h.on_at_end), "{:?}", s.heaters);
+}
