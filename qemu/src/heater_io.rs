@@ -2,7 +2,7 @@
 //! interrupt, below the stepper engine's, on the step clock, as TIM2's
 //! interrupt runs them on the board.
 //!
-//! This machine has no thermistors: each heater's ADC input reads what
+//! This machine has no temperature sensors: each heater's ADC input reads what
 //! its sensor would read at [`ROOM`] °C, so the heaters' control, reports
 //! and safety checks run (and cost what they cost) but nothing heats.
 //! Outputs are pins ([`OutPin`]) the plugin logs like the steppers'.

@@ -152,7 +152,7 @@ fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
             .push(pins::OutPin::new(pin).map_err(|e| error_text(&e))?);
     }
     for heater in &machine.heaters {
-        let fraction = heater.thermistor.adc(heater_io::ROOM);
+        let fraction = heater.sensor.adc(heater_io::ROOM);
         let _ = hw
             .readings
             .push((fraction * f64::from(heater_io::ADC_MAX)) as u16);
