@@ -3,6 +3,7 @@
 
 pub mod noisy_link;
 pub mod peers;
+pub mod qemu;
 
 pub use onechip_golden::{golden_dir, summary_value};
 

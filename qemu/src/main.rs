@@ -1,0 +1,198 @@
+//! onechip firmware for QEMU's emulated Cortex-M7 (`mps2-an500`): the
+//! same printer session as the Octopus Pro firmware (board/), on this
+//! machine's hardware. Only the HAL layer differs:
+//!
+//! | | board (STM32H723) | here (mps2-an500) |
+//! |---|---|---|
+//! | console | USB CDC on an interrupt executor | CMSDK UART 0, its RX interrupt ([`uart_console`]) |
+//! | stepper engine | TIM5 compare, top priority | CMSDK timer 0, top priority, on timer 1's clock ([`step_timer`]) |
+//! | heaters | TIM2 compare, next priority, ADC3 | dual timer, next priority, thermistors at 25 °C ([`heater_io`]) |
+//! | pins | GPIO BSRR stores | address-coded stores the TCG plugin logs ([`pins`]) |
+//! | printer.cfg | SD card | built into the image ([`card`]) |
+//!
+//! Thread code runs the session on the console's lines and waits with
+//! `wfe` (see [`machine`] for time: `-icount shift=1`, 500 M instructions
+//! per virtual second, about a 520 MHz H723).
+#![no_std]
+#![no_main]
+
+mod card;
+mod handler_cell;
+mod heater_io;
+mod machine;
+mod mcu;
+mod pins;
+mod probe;
+mod stats;
+mod step_timer;
+mod uart_console;
+mod vectors;
+
+use cortex_m_rt::{ExceptionFrame, entry, exception};
+use cortex_m_semihosting::debug;
+use onechip_app::config_files;
+use onechip_app::console::Console;
+use onechip_app::heaters::{FIRST_REPORT, Heaters, McuSetup};
+use onechip_app::pin_check;
+use onechip_app::session::{BoardSession, profile};
+use onechip_app::setup::{Config, PrinterSetup};
+use onechip_app::text::{ErrorText, error_text};
+use static_cell::{ConstStaticCell, StaticCell};
+
+/// Bytes of config text (printer.cfg with its name), as the board.
+const CONFIG_BUFFER: usize = 32 * 1024;
+
+#[entry]
+fn main() -> ! {
+    stats::paint_stack();
+    step_timer::start();
+    uart_console::start();
+    let session = load_printer();
+    serve(session)
+}
+
+/// Thread code: answers console lines through the session forever,
+/// waiting for an interrupt whenever there is nothing to do (as the
+/// board's `serve`, with its figures reported once a second).
+fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
+    let mut reporter = stats::Reporter::new();
+    let (mut session, no_printer) = match session {
+        Ok(session) => (Some(session), ErrorText::new()),
+        Err(e) => {
+            reporter.print(format_args!("onechip-qemu: no printer: {}", e.as_str()));
+            (None, e)
+        }
+    };
+    let mut card = Some(card::BuiltIn);
+    let mut mcu = mcu::QemuMcu;
+    let mut out = uart_console::ConsoleOut;
+    let mut console = Console::new(step_timer::CLOCK_HZ);
+    loop {
+        reporter.poll(step_timer::now64());
+        if let Some(incoming) = uart_console::try_line() {
+            let event = incoming.event();
+            let _ = console.line(
+                session.as_deref_mut(),
+                &no_printer,
+                &event,
+                &mut card,
+                &mut mcu,
+                &mut out,
+            );
+            if console.take_restart() {
+                cortex_m::peripheral::SCB::sys_reset();
+            }
+            continue;
+        }
+        let _ = console.poll(session.as_deref_mut(), &mut card, &mut mcu, &mut out);
+        if !console.is_printing() {
+            onechip_app::session::Mcu::wait(&mut mcu, u64::MAX);
+        }
+    }
+}
+
+/// Reads the built-in printer.cfg, configures the pins it names and
+/// builds the session (in place, in a static).
+fn load_printer() -> Result<&'static mut BoardSession<'static>, ErrorText> {
+    static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
+    static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
+    static SCRATCH: StaticCell<Config<'static>> = StaticCell::new();
+    let texts = config_files::load(&mut card::BuiltIn, TEXT.take()).map_err(|e| error_text(&e))?;
+    let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
+        .map_err(|e| error_text(&e))?;
+    install_engine(&setup)?;
+    install_heaters(&mut setup)?;
+    Ok(BoardSession::init_in(
+        SESSION.uninit(),
+        setup.machine(),
+        step_timer::CLOCK_HZ,
+        profile::MAX_STEP_ERROR,
+        step_timer::now64(),
+    ))
+}
+
+/// Every stepper's step, direction and enable pins (drivers enabled) and
+/// endstop, handed to the stepper engine.
+fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
+    let mut slots = [pins::StepperPins::default(); step_timer::STEPPERS];
+    for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
+        let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
+        *slot = pins::StepperPins::new(stepper.step_pin, stepper.dir_pin, stepper.step_pulse)
+            .map_err(|e| fail(&e))?;
+        if let Some(pin) = stepper.enable_pin {
+            pins::OutPin::new(pin).map_err(|e| fail(&e))?.set(true);
+        }
+        if let Some(pin) = stepper.endstop_pin {
+            *slot = slot.with_endstop(pins::InPin::new(pin).map_err(|e| fail(&e))?);
+        }
+    }
+    step_timer::install(step_timer::QemuEngine::new(slots));
+    Ok(())
+}
+
+/// The heaters' and fan's outputs and thermistor readings, handed with
+/// the heater control to the dual timer's interrupt.
+fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
+    if !setup.has_thermal() {
+        return Ok(());
+    }
+    // Software PWM for a hard_pwm fan, as the board.
+    let _ = setup.without_hard_pwm();
+    let machine = setup.machine();
+    let freq = step_timer::CLOCK_HZ;
+    let start = step_timer::now().wrapping_add((FIRST_REPORT * freq) as u32);
+    let mcu_setup = McuSetup::new(machine, freq, heater_io::ADC_MAX, start);
+    let mut hw = heater_io::QemuPeripherals {
+        outputs: heapless::Vec::new(),
+        readings: heapless::Vec::new(),
+    };
+    for (pin, _) in &mcu_setup.outputs {
+        let _ = hw
+            .outputs
+            .push(pins::OutPin::new(pin).map_err(|e| error_text(&e))?);
+    }
+    for heater in &machine.heaters {
+        let fraction = heater.sensor.adc(heater_io::ROOM);
+        let _ = hw
+            .readings
+            .push((fraction * f64::from(heater_io::ADC_MAX)) as u16);
+    }
+    let heaters = Heaters::new(machine, freq, heater_io::ADC_MAX, start, &mut hw);
+    heater_io::install(heaters, hw);
+    Ok(())
+}
+
+/// Steppers and heaters off, the reason on QEMU's standard output, and
+/// QEMU told to exit with a failure.
+fn fail(args: core::fmt::Arguments<'_>) -> ! {
+    mcu::emergency_stop();
+    if let Ok(mut out) = cortex_m_semihosting::hio::hstdout() {
+        let _ = core::fmt::Write::write_fmt(&mut HostWriter(&mut out), args);
+    }
+    debug::exit(debug::EXIT_FAILURE);
+    loop {
+        cortex_m::asm::wfe();
+    }
+}
+
+/// `core::fmt::Write` on a semihosting stream.
+struct HostWriter<'a>(&'a mut cortex_m_semihosting::hio::HostStream);
+
+impl core::fmt::Write for HostWriter<'_> {
+    fn write_str(&mut self, s: &str) -> core::fmt::Result {
+        self.0.write_all(s.as_bytes()).map_err(|_| core::fmt::Error)
+    }
+}
+
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
+    fail(format_args!("onechip-qemu: panic: {info}\n"))
+}
+
+#[exception]
+unsafe fn HardFault(frame: &ExceptionFrame) -> ! {
+    fail(format_args!(
+        "onechip-qemu: hard fault at pc {:#010x}\n",
+        frame.pc()
+    ))
+}

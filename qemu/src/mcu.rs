@@ -1,0 +1,76 @@
+//! The MCU role as the session sees it on this machine: the stepper
+//! engine in timer 0's interrupt, the heaters in the dual timer's. The
+//! same delegation as the board's `BoardMcu`; thread code waits until an
+//! interrupt has run ([`crate::machine::sleep`]).
+
+use crate::{heater_io, step_timer};
+use onechip_app::heaters::ThermalCommand;
+use onechip_app::session::Mcu;
+use onechip_sched::endstop::Endstop;
+use onechip_sched::engine::Full;
+use onechip_sched::shutdown::Shutdown;
+use onechip_sched::step_command::StepCommand;
+
+/// This machine's MCU role.
+pub struct QemuMcu;
+
+/// M112: every stepper stops and every heater and fan output goes off.
+pub fn emergency_stop() {
+    step_timer::stop(Shutdown::EmergencyStop);
+    heater_io::shutdown(Shutdown::EmergencyStop);
+}
+
+impl Mcu for QemuMcu {
+    fn now(&mut self) -> u64 {
+        step_timer::now64()
+    }
+
+    fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
+        step_timer::push(stepper, cmd, clock)
+    }
+
+    fn wait(&mut self, _until: u64) {
+        crate::machine::sleep();
+    }
+
+    fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
+        step_timer::watch_endstop(stepper, endstop, stops);
+    }
+
+    fn stop_watching(&mut self) {
+        step_timer::stop_watching();
+    }
+
+    fn take_trigger(&mut self) -> Option<u32> {
+        step_timer::take_trigger()
+    }
+
+    fn thermal(&mut self, command: ThermalCommand) {
+        heater_io::command(command);
+    }
+
+    fn heater_busy(&mut self, heater: usize) -> bool {
+        heater_io::busy(heater)
+    }
+
+    fn report_temperatures(&mut self, out: &mut impl core::fmt::Write) -> core::fmt::Result {
+        heater_io::report(out);
+        Ok(())
+    }
+
+    fn shutdown_reason(&mut self) -> Option<Shutdown> {
+        step_timer::shutdown_reason()
+    }
+
+    fn endstop_triggered(&mut self, stepper: usize) -> bool {
+        step_timer::endstop_triggered(stepper)
+    }
+
+    fn emergency_stop(&mut self) {
+        emergency_stop();
+    }
+
+    fn can_extrude(&mut self) -> bool {
+        heater_io::can_extrude()
+    }
+}
