@@ -73,4 +73,9 @@ impl Mcu for QemuMcu {
     fn can_extrude(&mut self) -> bool {
         heater_io::can_extrude()
     }
+
+    /// No filament switch is modelled: filament is always present.
+    fn filament_present(&mut self, _sensor: usize) -> bool {
+        true
+    }
 }
