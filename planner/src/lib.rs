@@ -25,4 +25,5 @@ pub mod shaper_config;
 pub mod temperature_sensor;
 pub mod thermal;
 pub mod thermistor;
+pub mod tmc;
 pub mod toolhead;

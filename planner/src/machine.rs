@@ -8,6 +8,7 @@ use crate::planned_move::Limits;
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
+use crate::tmc::{self, config::TmcDriver};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -90,6 +91,8 @@ pub struct Machine<'a> {
     /// The secondary MCUs (`[mcu NAME]`), whose pins are written
     /// `NAME:PIN`.
     pub secondaries: heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>,
+    /// The TMC drivers configured over UART or SPI (`[tmc2209 stepper_x]`).
+    pub tmc: heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -266,12 +269,14 @@ impl<'a> Machine<'a> {
         let secondaries = mcu_section::read_all(config)?;
         // Sensor types: Klipper reads every definition, used or not.
         temperature_sensor::read_definitions(config)?;
+        let tmc = tmc::config::read_all(config)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
                 && !temperature_sensor::is_definition_section(name)
+                && tmc::DriverKind::of_section(name).is_none()
                 && !unsupported.contains(&name)
             {
                 let _ = unsupported.push(name);
@@ -293,6 +298,7 @@ impl<'a> Machine<'a> {
             fan,
             idle_timeout,
             secondaries,
+            tmc,
             unsupported,
         })
     }
@@ -355,17 +361,10 @@ enum StepperKind {
     Extruder,
 }
 
-fn read_stepper<'c, 'a>(
-    section: &Section<'c, 'a>,
-    kind: StepperKind,
-) -> Result<Stepper<'a>, ConfigError<'c>> {
-    let step_pin = section.get("step_pin")?;
-    let dir_pin = section.get("dir_pin")?;
-    let enable_pin = section.get_opt("enable_pin");
-    let endstop_pin = match kind {
-        StepperKind::Extruder => None,
-        _ => section.get_opt("endstop_pin"),
-    };
+/// A stepper section's distance per step, mm (Klipper's
+/// `parse_step_distance`: rotation_distance over full_steps_per_rotation
+/// times microsteps times gear_ratio).
+pub fn step_distance<'c>(section: &Section<'c, '_>) -> Result<f64, ConfigError<'c>> {
     let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
@@ -384,7 +383,21 @@ fn read_stepper<'c, 'a>(
         ))?,
         None => 1.0,
     };
-    let step_dist = rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio);
+    Ok(rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio))
+}
+
+fn read_stepper<'c, 'a>(
+    section: &Section<'c, 'a>,
+    kind: StepperKind,
+) -> Result<Stepper<'a>, ConfigError<'c>> {
+    let step_pin = section.get("step_pin")?;
+    let dir_pin = section.get("dir_pin")?;
+    let enable_pin = section.get_opt("enable_pin");
+    let endstop_pin = match kind {
+        StepperKind::Extruder => None,
+        _ => section.get_opt("endstop_pin"),
+    };
+    let step_dist = step_distance(section)?;
     let step_pulse_duration = section.get_float_opt(
         "step_pulse_duration",
         Bounds {
