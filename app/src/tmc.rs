@@ -207,7 +207,13 @@ impl<'a> Tmc<'a> {
     /// Writes `value` to register `addr` of driver `i`, checked as Klipper
     /// checks it (UART: the interface counter moved by one; SPI: the
     /// driver echoes the data), up to [`TRIES`] times.
-    fn write(&mut self, link: &mut dyn TmcLink, i: usize, addr: u8, value: u32) -> Result<(), ErrorText> {
+    fn write(
+        &mut self,
+        link: &mut dyn TmcLink,
+        i: usize,
+        addr: u8,
+        value: u32,
+    ) -> Result<(), ErrorText> {
         let d = &self.drivers[i];
         let (port, kind) = (d.port, d.config.kind);
         let reg_name = kind.register_at(addr).map_or("?", |r| r.name);
@@ -243,7 +249,13 @@ impl<'a> Tmc<'a> {
                     if spi(link, port, datagram, chain_position, chain_length).is_err() {
                         continue;
                     }
-                    let echo = spi(link, port, wire::spi_datagram(0, None), chain_position, chain_length);
+                    let echo = spi(
+                        link,
+                        port,
+                        wire::spi_datagram(0, None),
+                        chain_position,
+                        chain_length,
+                    );
                     if echo == Ok(value) {
                         return Ok(());
                     }
@@ -271,11 +283,7 @@ impl<'a> Tmc<'a> {
                 let rdsel = i64::from(reg.addr.saturating_sub(TMC2660_READRSP));
                 let changed = self.drivers[i].config.regs.get("rdsel") != rdsel;
                 let regs = &mut self.drivers[i].config.regs;
-                let (drvconf, value) = regs
-                    .set("rdsel", rdsel)
-                    .ok()
-                    .flatten()
-                    .unwrap_or((0xe, 0));
+                let (drvconf, value) = regs.set("rdsel", rdsel).ok().flatten().unwrap_or((0xe, 0));
                 let datagram = wire::spi_2660(drvconf, value);
                 if changed {
                     let _ = link.spi(port, &mut datagram.clone());
@@ -389,7 +397,12 @@ impl<'a> Tmc<'a> {
     }
 
     /// SET_TMC_FIELD FIELD= VALUE=|VELOCITY=.
-    fn set_field(&mut self, e: &Extended<'_>, i: usize, link: &mut dyn TmcLink) -> Result<(), ErrorText> {
+    fn set_field(
+        &mut self,
+        e: &Extended<'_>,
+        i: usize,
+        link: &mut dyn TmcLink,
+    ) -> Result<(), ErrorText> {
         let get = |key| e.get(key).map_err(|err| cut_text(&err));
         let field = get("FIELD")?
             .ok_or_else(|| cut_text(&format_args!("Error on '{}': missing FIELD", e.name)))?;
@@ -403,12 +416,14 @@ impl<'a> Tmc<'a> {
         let value = get("VALUE")?;
         let velocity = number(e, "VELOCITY", Some(0.0), None, f64::INFINITY)?;
         let value = match (value, velocity) {
-            (Some(v), None) => v
-                .parse::<i64>()
-                .map_err(|_| cut_text(&format_args!("Error on '{}': unable to parse {v}", e.name)))?,
-            (None, Some(v)) => i64::from(d.config.tstep(v).ok_or_else(|| {
-                cut_text(&"VELOCITY parameter not supported by this driver")
-            })?),
+            (Some(v), None) => v.parse::<i64>().map_err(|_| {
+                cut_text(&format_args!("Error on '{}': unable to parse {v}", e.name))
+            })?,
+            (None, Some(v)) => i64::from(
+                d.config
+                    .tstep(v)
+                    .ok_or_else(|| cut_text(&"VELOCITY parameter not supported by this driver"))?,
+            ),
             _ => return Err(cut_text(&"Specify either VALUE or VELOCITY")),
         };
         let written = self.drivers[i].config.regs.set(field, value);
@@ -433,7 +448,8 @@ impl<'a> Tmc<'a> {
         let requested = e.get("REGISTER").map_err(|err| cut_text(&err))?;
         if let Some(name) = requested {
             let reg = kind.register(name);
-            let written = reg.filter(|r| self.drivers[i].config.regs.iter().any(|(a, _)| a == r.addr));
+            let written =
+                reg.filter(|r| self.drivers[i].config.regs.iter().any(|(a, _)| a == r.addr));
             return match reg {
                 Some(r) if kind.is_read(r.name) => {
                     let value = self.read(link, i, r.name)?;
@@ -553,7 +569,10 @@ fn spi(
 ) -> Result<u32, NoAnswer> {
     let mut buf = [0u8; wire::SPI_DATAGRAM * MAX_CHAIN];
     let len = wire::spi_chain(datagram, position, length, &mut buf);
-    let data = buf.get_mut(..len).filter(|d| !d.is_empty()).ok_or(NoAnswer)?;
+    let data = buf
+        .get_mut(..len)
+        .filter(|d| !d.is_empty())
+        .ok_or(NoAnswer)?;
     link.spi(port, data)?;
     wire::spi_chain_answer(data, position, length).ok_or(NoAnswer)
 }
@@ -562,7 +581,9 @@ fn spi(
 struct Lower<'t>(&'t str);
 impl fmt::Display for Lower<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        self.0.chars().try_for_each(|c| f.write_char(c.to_ascii_lowercase()))
+        self.0
+            .chars()
+            .try_for_each(|c| f.write_char(c.to_ascii_lowercase()))
     }
 }
 
@@ -570,7 +591,9 @@ impl fmt::Display for Lower<'_> {
 struct Upper<'t>(&'t str);
 impl fmt::Display for Upper<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        self.0.chars().try_for_each(|c| f.write_char(c.to_ascii_uppercase()))
+        self.0
+            .chars()
+            .try_for_each(|c| f.write_char(c.to_ascii_uppercase()))
     }
 }
 
@@ -629,9 +652,11 @@ fn format_field(out: &mut impl Write, kind: DriverKind, name: &str, v: i64) -> f
         "mres" => write!(out, "{v}({}usteps)", 0x100i64 >> v.clamp(0, 8)),
         "cs_actual" | "se" if v == 0 => out.write_str("0(Reset?)"),
         "sel_a" => write!(out, "{v}({})", if v != 0 { "TMC220x" } else { "TMC222x" }),
-        "chm" if kind == DriverKind::Tmc2660 => {
-            out.write_str(if v != 0 { "1(constant toff)" } else { "0(spreadCycle)" })
-        }
+        "chm" if kind == DriverKind::Tmc2660 => out.write_str(if v != 0 {
+            "1(constant toff)"
+        } else {
+            "0(spreadCycle)"
+        }),
         "vsense" if kind == DriverKind::Tmc2660 => {
             out.write_str(if v != 0 { "1(165mV)" } else { "0(305mV)" })
         }
