@@ -193,7 +193,7 @@ impl<'a> Tmc<'a> {
     /// Clears driver `i`'s GSTAT flags (written back as ones), as Klipper's
     /// start-up check does.
     fn clear_reset(&mut self, link: &mut dyn TmcLink, i: usize) -> Result<(), ErrorText> {
-        let Some(gstat) = self.drivers[i].config.regs.kind().register("GSTAT") else {
+        let Some(gstat) = self.drivers[i].config.regs.kind().register_any("GSTAT") else {
             return Ok(());
         };
         let flags = self.read(link, i, "GSTAT")?;
@@ -216,11 +216,11 @@ impl<'a> Tmc<'a> {
     ) -> Result<(), ErrorText> {
         let d = &self.drivers[i];
         let (port, kind) = (d.port, d.config.kind);
-        let reg_name = kind.register_at(addr).map_or("?", |r| r.name);
+        let reg_name = kind.register_at_any(addr).map_or("?", |r| r.name);
         let failed = Failure::Write(d.config.stepper, reg_name, kind.is_uart());
         match d.config.bus {
             Bus::Uart { address, .. } => {
-                let ifcnt_addr = kind.register("IFCNT").map_or(0x02, |r| r.addr);
+                let ifcnt_addr = kind.register_any("IFCNT").map_or(0x02, |r| r.addr);
                 for _ in 0..TRIES {
                     let before = match self.drivers[i].ifcnt {
                         Some(n) => n,
@@ -269,7 +269,7 @@ impl<'a> Tmc<'a> {
     fn read(&mut self, link: &mut dyn TmcLink, i: usize, name: &str) -> Result<u32, ErrorText> {
         let d = &self.drivers[i];
         let (port, kind) = (d.port, d.config.kind);
-        let Some(reg) = kind.register(name) else {
+        let Some(reg) = kind.register_any(name) else {
             return Err(cut_text(&format_args!("Unknown register name '{name}'")));
         };
         let failed = Failure::Read(d.config.stepper, reg.name, kind.is_uart());
@@ -407,7 +407,7 @@ impl<'a> Tmc<'a> {
         let field = get("FIELD")?
             .ok_or_else(|| cut_text(&format_args!("Error on '{}': missing FIELD", e.name)))?;
         let d = &self.drivers[i];
-        let Some((reg, _)) = d.config.kind.field(field) else {
+        let Some((reg, field)) = d.config.kind.field_any(field) else {
             return Err(cut_text(&format_args!(
                 "Unknown field name '{}'",
                 Lower(field)
@@ -426,12 +426,11 @@ impl<'a> Tmc<'a> {
             ),
             _ => return Err(cut_text(&"Specify either VALUE or VELOCITY")),
         };
-        let written = self.drivers[i].config.regs.set(field, value);
-        let (addr, new) = written
-            .ok()
-            .flatten()
-            .ok_or_else(|| cut_text(&"too many registers set"))?;
-        debug_assert_eq!(addr, reg.addr);
+        let (addr, new) = self.drivers[i]
+            .config
+            .regs
+            .set_in(reg, field, value)
+            .map_err(|_| cut_text(&"too many registers set"))?;
         self.write(link, i, addr, new)
     }
 
@@ -447,7 +446,7 @@ impl<'a> Tmc<'a> {
         let kind = self.drivers[i].config.kind;
         let requested = e.get("REGISTER").map_err(|err| cut_text(&err))?;
         if let Some(name) = requested {
-            let reg = kind.register(name);
+            let reg = kind.register_any(name);
             let written =
                 reg.filter(|r| self.drivers[i].config.regs.iter().any(|(a, _)| a == r.addr));
             return match reg {
@@ -469,14 +468,14 @@ impl<'a> Tmc<'a> {
         }
         let _ = writeln!(out, "// ========== Write-only registers ==========");
         for (addr, value) in self.drivers[i].config.regs.iter() {
-            if let Some(r) = kind.register_at(addr).filter(|r| !kind.is_read(r.name)) {
+            if let Some(r) = kind.register_at_any(addr).filter(|r| !kind.is_read(r.name)) {
                 let _ = writeln!(out, "// {}", Pretty(kind, r, value));
             }
         }
         let _ = writeln!(out, "// ========== Queried registers ==========");
         for name in kind.read_registers() {
             let value = self.read(link, i, name)?;
-            if let Some(r) = kind.register(name) {
+            if let Some(r) = kind.register_any(name) {
                 let _ = writeln!(out, "// {}", Pretty(kind, r, value));
             }
         }
@@ -608,7 +607,7 @@ impl fmt::Display for Pretty<'_> {
         let _ = write!(label, "{}:", reg.name);
         write!(f, "{label:<11} {value:08x}")?;
         let mut fields: heapless::Vec<_, 32> = reg.fields.iter().collect();
-        fields.sort_unstable_by_key(|fd| fd.mask);
+        fields.sort_unstable_by_key(|fd| fd.mask());
         for field in fields {
             let mut text = heapless::String::<32>::new();
             let _ = format_field(&mut text, kind, field.name, field.get(value));
@@ -672,14 +671,14 @@ mod tests {
     #[test]
     fn registers_print_as_klipper_prints_them() {
         let kind = DriverKind::Tmc2209;
-        let chopconf = kind.register("CHOPCONF").expect("CHOPCONF");
+        let chopconf = kind.register_any("CHOPCONF").expect("CHOPCONF");
         // toff 3, hstrt 5, tbl 2, mres 4 (16 microsteps), intpol.
         let value = 3 | 5 << 4 | 2 << 15 | 4 << 24 | 1 << 28;
         let mut s = heapless::String::<128>::new();
         let _ = write!(s, "{}", Pretty(kind, chopconf, value));
         assert_eq!(
             s.as_str(),
-            "CHOPCONF:  14010053 toff=3 hstrt=5 tbl=2 mres=4(16usteps) intpol=1"
+            "CHOPCONF:   14010053 toff=3 hstrt=5 tbl=2 mres=4(16usteps) intpol=1"
         );
     }
 }

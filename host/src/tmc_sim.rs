@@ -49,7 +49,7 @@ impl SimDriver {
 
     /// Field `name` of the register holding it.
     pub fn field(&self, name: &str) -> Option<i64> {
-        let (reg, field) = self.kind.field(name)?;
+        let (reg, field) = self.kind.field_any(name)?;
         Some(field.get(self.register(reg.addr)))
     }
 

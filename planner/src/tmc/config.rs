@@ -231,16 +231,9 @@ pub fn read<'c, 'a>(
         }
         DriverKind::Tmc2208 | DriverKind::Tmc2660 => None,
     };
-    match kind {
-        DriverKind::Tmc2208 => r.set("pdn_disable", 1)?,
-        DriverKind::Tmc2209 => {
-            r.set("pdn_disable", 1)?;
-            // A delay before answering, for UARTs shared by drivers.
-            r.set("senddelay", 2)?;
-        }
-        // DRVCTRL in step/dir mode.
-        DriverKind::Tmc2660 => r.set("sdoff", 0)?,
-        _ => {}
+    let defaults = Defaults::of(kind);
+    for &(field, value) in defaults.fixed {
+        r.set(field, i64::from(value))?;
     }
     let current = read_current(&mut r, kind)?;
     // Microsteps come from the stepper's section.
@@ -273,153 +266,45 @@ pub fn read<'c, 'a>(
         step_dist,
         regs: RegisterFile::new(kind),
     };
-    match kind {
-        DriverKind::Tmc2130 => {
-            r.wave_table()?;
-            r.thresholds(step_dist, true, true)?;
-            r.fields(&[
-                ("toff", 4),
-                ("hstrt", 0),
-                ("hend", 7),
-                ("tbl", 1),
-                ("vhighfs", 0),
-                ("vhighchm", 0),
-            ])?;
-            r.fields(&COOLCONF_DEFAULTS)?;
-            r.fields(&[
-                ("iholddelay", 8),
-                ("pwm_ampl", 128),
-                ("pwm_grad", 4),
-                ("pwm_freq", 1),
-                ("pwm_autoscale", 1),
-                ("tpowerdown", 0),
-            ])?;
-        }
-        DriverKind::Tmc2208 | DriverKind::Tmc2209 => {
-            r.set("mstep_reg_select", 1)?;
-            r.thresholds(step_dist, kind == DriverKind::Tmc2209, false)?;
-            r.fields(&[
-                ("multistep_filt", 1),
-                ("toff", 3),
-                ("hstrt", 5),
-                ("hend", 0),
-                ("tbl", 2),
-            ])?;
-            if kind == DriverKind::Tmc2209 {
-                r.fields(&COOLCONF_DEFAULTS[..5])?;
-            }
-            r.fields(&[
-                ("iholddelay", 8),
-                ("pwm_ofs", 36),
-                ("pwm_grad", 14),
-                ("pwm_freq", 1),
-                ("pwm_autoscale", 1),
-                ("pwm_autograd", 1),
-                ("freewheel", 0),
-                ("pwm_reg", 8),
-                ("pwm_lim", 12),
-                ("tpowerdown", 20),
-            ])?;
-            if kind == DriverKind::Tmc2209 {
-                r.fields(&[("sgthrs", 0)])?;
-            }
-        }
-        DriverKind::Tmc5160 | DriverKind::Tmc2240 => {
-            let is_2240 = kind == DriverKind::Tmc2240;
-            r.wave_table()?;
-            if is_2240 {
-                r.fields(&[("offset_sin90", 0)])?;
-            }
-            r.thresholds(step_dist, true, true)?;
-            r.fields(&[
-                ("multistep_filt", 1),
-                ("toff", 3),
-                ("hstrt", 5),
-                ("hend", 2),
-                ("fd3", 0),
-                ("disfdcc", 0),
-                ("chm", 0),
-                ("tbl", 2),
-                ("vhighfs", 0),
-                ("vhighchm", 0),
-                ("tpfd", 4),
-                ("diss2g", 0),
-                ("diss2vs", 0),
-            ])?;
-            r.fields(&COOLCONF_DEFAULTS)?;
-            if is_2240 {
-                r.fields(&[("iholddelay", 6), ("irundelay", 4), ("pwm_ofs", 29)])?;
-            } else {
-                r.fields(&[
-                    ("drvstrength", 0),
-                    ("bbmclks", 4),
-                    ("bbmtime", 0),
-                    ("filt_isense", 0),
-                    ("iholddelay", 6),
-                    ("pwm_ofs", 30),
-                ])?;
-            }
-            r.fields(&[
-                ("pwm_grad", 0),
-                ("pwm_freq", 0),
-                ("pwm_autoscale", 1),
-                ("pwm_autograd", 1),
-                ("freewheel", 0),
-                ("pwm_reg", 4),
-                ("pwm_lim", 12),
-                ("tpowerdown", 10),
-            ])?;
-            if is_2240 {
-                r.fields(&[("sg4_angle_offset", 1)])?;
-            }
-        }
-        DriverKind::Tmc2660 => {
-            r.fields(&[
-                ("tbl", 2),
-                ("rndtf", 0),
-                ("hdec", 0),
-                ("chm", 0),
-                ("hend", 3),
-                ("hstrt", 3),
-                ("toff", 4),
-            ])?;
-            if r.regs.get("chm") == 0 && r.regs.get("hstrt") + r.regs.get("hend") > 15 {
-                let option = section.option_name("driver_hend").unwrap_or("driver_HEND");
-                return Err(section.error_for(option, "plus driver_HSTRT must be at most 15"));
-            }
-            r.fields(&[
-                ("seimin", 0),
-                ("sedn", 0),
-                ("semax", 0),
-                ("seup", 0),
-                ("semin", 0),
-                ("sfilt", 0),
-                ("sgt", 0),
-                ("slph", 0),
-                ("slpl", 0),
-                ("diss2g", 0),
-                ("ts2g", 3),
-            ])?;
-        }
+    for &(field, value) in defaults.fixed_late {
+        r.set(field, i64::from(value))?;
+    }
+    r.fields(defaults.pre)?;
+    if let Some((coolstep, high)) = defaults.thresholds {
+        r.thresholds(step_dist, coolstep, high)?;
+    }
+    r.fields(defaults.post)?;
+    if kind == DriverKind::Tmc2660
+        && r.regs.get("chm") == 0
+        && r.regs.get("hstrt") + r.regs.get("hend") > 15
+    {
+        let option = section.option_name("driver_hend").unwrap_or("driver_HEND");
+        return Err(section.error_for(option, "plus driver_HSTRT must be at most 15"));
     }
     driver.regs = r.regs;
     Ok(driver)
 }
 
-/// COOLCONF's fields and Klipper's defaults (the TMC2209 has the first
-/// five).
-const COOLCONF_DEFAULTS: [(&str, i64); 7] = [
-    ("semin", 0),
-    ("seup", 0),
-    ("semax", 0),
-    ("sedn", 0),
-    ("seimin", 0),
-    ("sgt", 0),
-    ("sfilt", 0),
-];
+/// A field and its default (or fixed value).
+type FieldValue = (&'static str, u32);
+
+/// What Klipper sets for one driver type, in its order.
+struct Defaults {
+    /// Fields set (not from the config) before the currents.
+    fixed: &'static [FieldValue],
+    /// Fields set (not from the config) after the microsteps.
+    fixed_late: &'static [FieldValue],
+    /// `driver_XXX` fields before the velocity thresholds.
+    pre: &'static [FieldValue],
+    /// Which thresholds it has: (coolstep, high velocity); `None`: none
+    /// at all (no stealthchop_threshold either).
+    thresholds: Option<(bool, bool)>,
+    /// `driver_XXX` fields after them.
+    post: &'static [FieldValue],
+}
 
 /// Klipper's default microstep wave table (the drivers' reset values).
-const WAVE_TABLE: [(&str, i64); 17] = [
+const WAVE_TABLE: [FieldValue; 17] = [
     ("mslut0", 0xAAAA_B554),
     ("mslut1", 0x4A95_54AA),
     ("mslut2", 0x2449_2929),
@@ -438,6 +323,231 @@ const WAVE_TABLE: [(&str, i64); 17] = [
     ("start_sin", 0),
     ("start_sin90", 247),
 ];
+
+/// The wave table, then the TMC2240's offset_sin90.
+const WAVE_TABLE_2240: [FieldValue; 18] = {
+    let mut t = [("offset_sin90", 0); 18];
+    let mut i = 0;
+    while i < 17 {
+        t[i] = WAVE_TABLE[i];
+        i += 1;
+    }
+    t
+};
+
+const TMC2130_POST: &[FieldValue] = &[
+    ("toff", 4),
+    ("hstrt", 0),
+    ("hend", 7),
+    ("tbl", 1),
+    ("vhighfs", 0),
+    ("vhighchm", 0),
+    ("semin", 0),
+    ("seup", 0),
+    ("semax", 0),
+    ("sedn", 0),
+    ("seimin", 0),
+    ("sgt", 0),
+    ("sfilt", 0),
+    ("iholddelay", 8),
+    ("pwm_ampl", 128),
+    ("pwm_grad", 4),
+    ("pwm_freq", 1),
+    ("pwm_autoscale", 1),
+    ("tpowerdown", 0),
+];
+
+/// The TMC2208's fields after the thresholds: CHOPCONF, IHOLD_IRUN,
+/// PWMCONF, TPOWERDOWN.
+const TMC2208_POST: &[FieldValue] = &[
+    ("multistep_filt", 1),
+    ("toff", 3),
+    ("hstrt", 5),
+    ("hend", 0),
+    ("tbl", 2),
+    ("iholddelay", 8),
+    ("pwm_ofs", 36),
+    ("pwm_grad", 14),
+    ("pwm_freq", 1),
+    ("pwm_autoscale", 1),
+    ("pwm_autograd", 1),
+    ("freewheel", 0),
+    ("pwm_reg", 8),
+    ("pwm_lim", 12),
+    ("tpowerdown", 20),
+];
+
+/// The TMC2209's: the TMC2208's with COOLCONF before IHOLD_IRUN and
+/// SGTHRS last.
+const TMC2209_POST: &[FieldValue] = &[
+    ("multistep_filt", 1),
+    ("toff", 3),
+    ("hstrt", 5),
+    ("hend", 0),
+    ("tbl", 2),
+    ("semin", 0),
+    ("seup", 0),
+    ("semax", 0),
+    ("sedn", 0),
+    ("seimin", 0),
+    ("iholddelay", 8),
+    ("pwm_ofs", 36),
+    ("pwm_grad", 14),
+    ("pwm_freq", 1),
+    ("pwm_autoscale", 1),
+    ("pwm_autograd", 1),
+    ("freewheel", 0),
+    ("pwm_reg", 8),
+    ("pwm_lim", 12),
+    ("tpowerdown", 20),
+    ("sgthrs", 0),
+];
+
+const TMC5160_POST: &[FieldValue] = &[
+    ("multistep_filt", 1),
+    ("toff", 3),
+    ("hstrt", 5),
+    ("hend", 2),
+    ("fd3", 0),
+    ("disfdcc", 0),
+    ("chm", 0),
+    ("tbl", 2),
+    ("vhighfs", 0),
+    ("vhighchm", 0),
+    ("tpfd", 4),
+    ("diss2g", 0),
+    ("diss2vs", 0),
+    ("semin", 0),
+    ("seup", 0),
+    ("semax", 0),
+    ("sedn", 0),
+    ("seimin", 0),
+    ("sgt", 0),
+    ("sfilt", 0),
+    ("drvstrength", 0),
+    ("bbmclks", 4),
+    ("bbmtime", 0),
+    ("filt_isense", 0),
+    ("iholddelay", 6),
+    ("pwm_ofs", 30),
+    ("pwm_grad", 0),
+    ("pwm_freq", 0),
+    ("pwm_autoscale", 1),
+    ("pwm_autograd", 1),
+    ("freewheel", 0),
+    ("pwm_reg", 4),
+    ("pwm_lim", 12),
+    ("tpowerdown", 10),
+];
+
+const TMC2240_POST: &[FieldValue] = &[
+    ("multistep_filt", 1),
+    ("toff", 3),
+    ("hstrt", 5),
+    ("hend", 2),
+    ("fd3", 0),
+    ("disfdcc", 0),
+    ("chm", 0),
+    ("tbl", 2),
+    ("vhighfs", 0),
+    ("vhighchm", 0),
+    ("tpfd", 4),
+    ("diss2g", 0),
+    ("diss2vs", 0),
+    ("semin", 0),
+    ("seup", 0),
+    ("semax", 0),
+    ("sedn", 0),
+    ("seimin", 0),
+    ("sgt", 0),
+    ("sfilt", 0),
+    ("iholddelay", 6),
+    ("irundelay", 4),
+    ("pwm_ofs", 29),
+    ("pwm_grad", 0),
+    ("pwm_freq", 0),
+    ("pwm_autoscale", 1),
+    ("pwm_autograd", 1),
+    ("freewheel", 0),
+    ("pwm_reg", 4),
+    ("pwm_lim", 12),
+    ("tpowerdown", 10),
+    ("sg4_angle_offset", 1),
+];
+
+/// CHOPCONF, SMARTEN, SGCSCONF and DRVCONF in Klipper's order.
+const TMC2660_POST: &[FieldValue] = &[
+    ("tbl", 2),
+    ("rndtf", 0),
+    ("hdec", 0),
+    ("chm", 0),
+    ("hend", 3),
+    ("hstrt", 3),
+    ("toff", 4),
+    ("seimin", 0),
+    ("sedn", 0),
+    ("semax", 0),
+    ("seup", 0),
+    ("semin", 0),
+    ("sfilt", 0),
+    ("sgt", 0),
+    ("slph", 0),
+    ("slpl", 0),
+    ("diss2g", 0),
+    ("ts2g", 3),
+];
+
+impl Defaults {
+    fn of(kind: DriverKind) -> Self {
+        let none: &[FieldValue] = &[];
+        match kind {
+            DriverKind::Tmc2130 => Self {
+                fixed: none,
+                fixed_late: none,
+                pre: &WAVE_TABLE,
+                thresholds: Some((true, true)),
+                post: TMC2130_POST,
+            },
+            DriverKind::Tmc2208 | DriverKind::Tmc2209 => {
+                let is_2209 = kind == DriverKind::Tmc2209;
+                Self {
+                    // The TMC2209 answers shared UARTs after a delay.
+                    fixed: if is_2209 {
+                        &[("pdn_disable", 1), ("senddelay", 2)]
+                    } else {
+                        &[("pdn_disable", 1)]
+                    },
+                    fixed_late: &[("mstep_reg_select", 1)],
+                    pre: none,
+                    thresholds: Some((is_2209, false)),
+                    post: if is_2209 { TMC2209_POST } else { TMC2208_POST },
+                }
+            }
+            DriverKind::Tmc5160 | DriverKind::Tmc2240 => {
+                let is_2240 = kind == DriverKind::Tmc2240;
+                Self {
+                    fixed: none,
+                    fixed_late: none,
+                    pre: if is_2240 {
+                        &WAVE_TABLE_2240
+                    } else {
+                        &WAVE_TABLE
+                    },
+                    thresholds: Some((true, true)),
+                    post: if is_2240 { TMC2240_POST } else { TMC5160_POST },
+                }
+            }
+            // DRVCTRL in step/dir mode.
+            DriverKind::Tmc2660 => Self {
+                fixed: &[("sdoff", 0)],
+                fixed_late: none,
+                pre: none,
+                thresholds: None,
+                post: TMC2660_POST,
+            },
+        }
+    }
+}
 
 /// Currents as a section sets them.
 struct Currents {
@@ -618,9 +728,9 @@ impl<'c> Reader<'_, 'c, '_> {
     /// Each field from its `driver_XXX` option, else its default
     /// (Klipper's `set_config_field`): a 1-bit field is a boolean, a signed
     /// one an integer in its two's complement range, others 0..=max.
-    fn fields(&mut self, fields: &[(&str, i64)]) -> Result<(), ConfigError<'c>> {
+    fn fields(&mut self, fields: &[FieldValue]) -> Result<(), ConfigError<'c>> {
         for &(name, default) in fields {
-            let value = self.config_value(name, default)?;
+            let value = self.config_value(name, i64::from(default))?;
             self.set(name, value)?;
         }
         Ok(())
@@ -649,11 +759,6 @@ impl<'c> Reader<'_, 'c, '_> {
             return Err(self.section.error_for(option, "is above its maximum"));
         }
         Ok(value)
-    }
-
-    /// Klipper's default wave table, each entry overridable.
-    fn wave_table(&mut self) -> Result<(), ConfigError<'c>> {
-        self.fields(&WAVE_TABLE)
     }
 
     /// stealthchop_threshold (TPWMTHRS and the stealthChop switch),

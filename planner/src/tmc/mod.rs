@@ -20,7 +20,7 @@ pub mod wire;
 use registers::{FieldDef, RegDef};
 
 /// Most registers one driver's [`RegisterFile`] holds.
-pub const MAX_REGISTERS: usize = 32;
+pub const MAX_REGISTERS: usize = 28;
 
 /// A driver type.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -69,7 +69,7 @@ impl DriverKind {
             .map_or("tmc", |(p, _)| p)
     }
 
-    /// Its registers.
+    /// Its registers that the config sets.
     pub fn registers(self) -> &'static [RegDef] {
         match self {
             Self::Tmc2130 => registers::TMC2130,
@@ -79,6 +79,24 @@ impl DriverKind {
             Self::Tmc2660 => registers::TMC2660,
             Self::Tmc5160 => registers::TMC5160,
         }
+    }
+
+    /// Its other registers (status, counters; kept apart so that a build
+    /// that never talks to drivers does not carry their tables).
+    pub fn status_registers(self) -> &'static [RegDef] {
+        match self {
+            Self::Tmc2130 => registers::TMC2130_STATUS,
+            Self::Tmc2208 => registers::TMC2208_STATUS,
+            Self::Tmc2209 => registers::TMC2209_STATUS,
+            Self::Tmc2240 => registers::TMC2240_STATUS,
+            Self::Tmc2660 => registers::TMC2660_STATUS,
+            Self::Tmc5160 => registers::TMC5160_STATUS,
+        }
+    }
+
+    /// Every register: those the config sets, then the others.
+    pub fn all_registers(self) -> impl Iterator<Item = &'static RegDef> {
+        self.registers().iter().chain(self.status_registers())
     }
 
     /// The registers Klipper reads back (DUMP_TMC's "queried registers").
@@ -109,32 +127,60 @@ impl DriverKind {
         matches!(self, Self::Tmc2208 | Self::Tmc2209)
     }
 
-    /// The register named `name` (any case).
+    /// The register the config sets named `name` (any case).
     pub fn register(self, name: &str) -> Option<&'static RegDef> {
-        self.registers()
-            .iter()
-            .find(|r| r.name.eq_ignore_ascii_case(name))
+        find_register(self.registers().iter(), name)
     }
 
-    /// The register at `addr`.
+    /// The register the config sets at `addr`.
     pub fn register_at(self, addr: u8) -> Option<&'static RegDef> {
         self.registers().iter().find(|r| r.addr == addr)
     }
 
-    /// The field named `name` (any case) and its register.
+    /// The field named `name` (any case) of a register the config sets,
+    /// and its register.
     pub fn field(self, name: &str) -> Option<(&'static RegDef, &'static FieldDef)> {
-        self.registers().iter().find_map(|r| {
-            r.fields
-                .iter()
-                .find(|f| f.name.eq_ignore_ascii_case(name))
-                .map(|f| (r, f))
-        })
+        find_field(self.registers().iter(), name)
+    }
+
+    /// Any register named `name` (any case).
+    pub fn register_any(self, name: &str) -> Option<&'static RegDef> {
+        find_register(self.all_registers(), name)
+    }
+
+    /// Any register at `addr`.
+    pub fn register_at_any(self, addr: u8) -> Option<&'static RegDef> {
+        self.all_registers().find(|r| r.addr == addr)
+    }
+
+    /// Any field named `name` (any case), and its register.
+    pub fn field_any(self, name: &str) -> Option<(&'static RegDef, &'static FieldDef)> {
+        find_field(self.all_registers(), name)
     }
 
     /// True if Klipper reads register `name` back.
     pub fn is_read(self, name: &str) -> bool {
         self.read_registers().contains(&name)
     }
+}
+
+fn find_register(
+    mut regs: impl Iterator<Item = &'static RegDef>,
+    name: &str,
+) -> Option<&'static RegDef> {
+    regs.find(|r| r.name.eq_ignore_ascii_case(name))
+}
+
+fn find_field(
+    mut regs: impl Iterator<Item = &'static RegDef>,
+    name: &str,
+) -> Option<(&'static RegDef, &'static FieldDef)> {
+    regs.find_map(|r| {
+        r.fields
+            .iter()
+            .find(|f| f.name.eq_ignore_ascii_case(name))
+            .map(|f| (r, f))
+    })
 }
 
 /// The table of a driver's register values was full.
@@ -146,7 +192,12 @@ pub struct RegistersFull;
 #[derive(Debug, Clone, PartialEq)]
 pub struct RegisterFile {
     kind: DriverKind,
-    values: heapless::Vec<(u8, u32), MAX_REGISTERS>,
+    /// Registers set so far.
+    len: u8,
+    /// Their addresses, in the order first set.
+    addrs: [u8; MAX_REGISTERS],
+    /// Their values.
+    values: [u32; MAX_REGISTERS],
 }
 
 impl RegisterFile {
@@ -154,7 +205,9 @@ impl RegisterFile {
     pub fn new(kind: DriverKind) -> Self {
         Self {
             kind,
-            values: heapless::Vec::new(),
+            len: 0,
+            addrs: [0; MAX_REGISTERS],
+            values: [0; MAX_REGISTERS],
         }
     }
 
@@ -163,12 +216,15 @@ impl RegisterFile {
         self.kind
     }
 
+    fn slot(&self, addr: u8) -> Option<usize> {
+        self.addrs[..usize::from(self.len)]
+            .iter()
+            .position(|&a| a == addr)
+    }
+
     /// Register `addr`'s value (0 if never set).
     pub fn value(&self, addr: u8) -> u32 {
-        self.values
-            .iter()
-            .find(|(a, _)| *a == addr)
-            .map_or(0, |&(_, v)| v)
+        self.slot(addr).map_or(0, |i| self.values[i])
     }
 
     /// Register `name`'s value (0 if never set or unknown).
@@ -179,7 +235,11 @@ impl RegisterFile {
     /// The registers set, in the order they were first set: (address,
     /// value).
     pub fn iter(&self) -> impl Iterator<Item = (u8, u32)> + '_ {
-        self.values.iter().copied()
+        let n = usize::from(self.len);
+        self.addrs[..n]
+            .iter()
+            .copied()
+            .zip(self.values[..n].iter().copied())
     }
 
     /// Field `name`'s value (0 for an unknown field).
@@ -191,23 +251,39 @@ impl RegisterFile {
 
     /// Sets register `addr` to `value` (appended if new).
     pub fn set_register(&mut self, addr: u8, value: u32) -> Result<(), RegistersFull> {
-        if let Some(slot) = self.values.iter_mut().find(|(a, _)| *a == addr) {
-            slot.1 = value;
-            Ok(())
-        } else {
-            self.values.push((addr, value)).map_err(|_| RegistersFull)
+        let i = match self.slot(addr) {
+            Some(i) => i,
+            None if usize::from(self.len) < MAX_REGISTERS => {
+                self.len += 1;
+                usize::from(self.len - 1)
+            }
+            None => return Err(RegistersFull),
+        };
+        self.addrs[i] = addr;
+        self.values[i] = value;
+        Ok(())
+    }
+
+    /// Sets field `name` (of a register the config sets) to `value`;
+    /// returns its register's address and new value. An unknown field
+    /// name is a bug of the caller's table: `None`, nothing changed.
+    pub fn set(&mut self, name: &str, value: i64) -> Result<Option<(u8, u32)>, RegistersFull> {
+        match self.kind.field(name) {
+            Some((reg, field)) => self.set_in(reg, field, value).map(Some),
+            None => Ok(None),
         }
     }
 
-    /// Sets field `name` to `value`; returns its register's address and
-    /// new value. An unknown field name is a bug of the caller's table:
-    /// `None`, nothing changed.
-    pub fn set(&mut self, name: &str, value: i64) -> Result<Option<(u8, u32)>, RegistersFull> {
-        let Some((reg, field)) = self.kind.field(name) else {
-            return Ok(None);
-        };
+    /// Sets `field` of `reg` to `value`; returns the register's address
+    /// and new value.
+    pub fn set_in(
+        &mut self,
+        reg: &RegDef,
+        field: &FieldDef,
+        value: i64,
+    ) -> Result<(u8, u32), RegistersFull> {
         let new = field.set(self.value(reg.addr), value);
         self.set_register(reg.addr, new)?;
-        Ok(Some((reg.addr, new)))
+        Ok((reg.addr, new))
     }
 }

@@ -11,8 +11,10 @@
 pub struct FieldDef {
     /// Its name, lower case (`irun`, `mres`).
     pub name: &'static str,
-    /// The bits it occupies.
-    pub mask: u32,
+    /// Its lowest bit.
+    shift: u8,
+    /// Its width, bits.
+    width: u8,
     /// Two's complement value (`sgt`, `cur_a`).
     pub signed: bool,
 }
@@ -29,19 +31,21 @@ pub struct RegDef {
     pub fields: &'static [FieldDef],
 }
 
+/// An unsigned field occupying the (contiguous) bits of `mask`.
 const fn u(name: &'static str, mask: u32) -> FieldDef {
     FieldDef {
         name,
-        mask,
+        shift: mask.trailing_zeros() as u8,
+        width: mask.count_ones() as u8,
         signed: false,
     }
 }
 
+/// A signed field occupying the bits of `mask`.
 const fn s(name: &'static str, mask: u32) -> FieldDef {
     FieldDef {
-        name,
-        mask,
         signed: true,
+        ..u(name, mask)
     }
 }
 
@@ -52,18 +56,23 @@ const fn r(name: &'static str, addr: u8, fields: &'static [FieldDef]) -> RegDef 
 impl FieldDef {
     /// The lowest bit of the field.
     pub const fn shift(&self) -> u32 {
-        self.mask.trailing_zeros()
+        self.shift as u32
     }
 
     /// The largest value the field holds (unsigned).
     pub const fn max(&self) -> u32 {
-        self.mask >> self.shift()
+        (((1u64 << self.width) - 1) & 0xffff_ffff) as u32
+    }
+
+    /// The bits the field occupies.
+    pub const fn mask(&self) -> u32 {
+        self.max() << self.shift
     }
 
     /// The field's value in register value `reg` (sign-extended if signed).
     pub fn get(&self, reg: u32) -> i64 {
-        let raw = (reg & self.mask) >> self.shift();
-        let width = 32 - self.max().leading_zeros();
+        let raw = (reg & self.mask()) >> self.shift();
+        let width = u32::from(self.width);
         if self.signed && width > 0 && raw >> (width - 1) & 1 != 0 {
             i64::from(raw) - (1i64 << width)
         } else {
@@ -75,7 +84,7 @@ impl FieldDef {
     /// dropped, as Klipper's `set_field` drops them).
     pub fn set(&self, reg: u32, value: i64) -> u32 {
         let bits = ((value as u64) << self.shift()) as u32;
-        (reg & !self.mask) | (bits & self.mask)
+        (reg & !self.mask()) | (bits & self.mask())
     }
 }
 
@@ -243,27 +252,11 @@ const DRV_STATUS_2130: RegDef = r(
 /// The TMC2130's registers.
 pub const TMC2130: &[RegDef] = &[
     GCONF_2130,
-    GSTAT,
-    r(
-        "IOIN",
-        0x04,
-        &[
-            u("step", 1),
-            u("dir", 1 << 1),
-            u("dcen_cfg4", 1 << 2),
-            u("dcin_cfg5", 1 << 3),
-            u("drv_enn_cfg6", 1 << 4),
-            u("dco", 1 << 5),
-            u("version", 0xff << 24),
-        ],
-    ),
     IHOLD_IRUN,
     TPOWERDOWN,
-    TSTEP,
     TPWMTHRS,
     TCOOLTHRS,
     THIGH,
-    r("XDIRECT", 0x2d, &[]),
     MSLUT[0],
     MSLUT[1],
     MSLUT[2],
@@ -274,8 +267,6 @@ pub const TMC2130: &[RegDef] = &[
     MSLUT[7],
     MSLUTSEL,
     MSLUTSTART,
-    MSCNT,
-    MSCURACT,
     r(
         "CHOPCONF",
         0x6c,
@@ -299,7 +290,6 @@ pub const TMC2130: &[RegDef] = &[
         ],
     ),
     COOLCONF,
-    DRV_STATUS_2130,
     r(
         "PWMCONF",
         0x70,
@@ -312,6 +302,29 @@ pub const TMC2130: &[RegDef] = &[
             u("freewheel", 0x03 << 20),
         ],
     ),
+];
+/// Its registers that only the run-time checks and DUMP_TMC read (or
+/// SET_TMC_FIELD sets).
+pub const TMC2130_STATUS: &[RegDef] = &[
+    GSTAT,
+    r(
+        "IOIN",
+        0x04,
+        &[
+            u("step", 1),
+            u("dir", 1 << 1),
+            u("dcen_cfg4", 1 << 2),
+            u("dcin_cfg5", 1 << 3),
+            u("drv_enn_cfg6", 1 << 4),
+            u("dco", 1 << 5),
+            u("version", 0xff << 24),
+        ],
+    ),
+    TSTEP,
+    r("XDIRECT", 0x2d, &[]),
+    MSCNT,
+    MSCURACT,
+    DRV_STATUS_2130,
     r("PWM_SCALE", 0x71, &[u("pwm_scale", 0xff)]),
     LOST_STEPS,
 ];
@@ -422,9 +435,18 @@ const DRV_STATUS_2208: RegDef = r(
 /// The TMC2208's registers (IOIN as the TMC220x lays it out, SEL_A = 1).
 pub const TMC2208: &[RegDef] = &[
     GCONF_2208,
+    SLAVECONF_2208,
+    IHOLD_IRUN,
+    TPOWERDOWN,
+    TPWMTHRS,
+    CHOPCONF_2208,
+    PWMCONF_AUTO,
+];
+/// Its registers that only the run-time checks and DUMP_TMC read (or
+/// SET_TMC_FIELD sets).
+pub const TMC2208_STATUS: &[RegDef] = &[
     GSTAT,
     IFCNT,
-    SLAVECONF_2208,
     OTP_PROG,
     OTP_READ_2208,
     r(
@@ -443,16 +465,11 @@ pub const TMC2208: &[RegDef] = &[
         ],
     ),
     FACTORY_CONF_2208,
-    IHOLD_IRUN,
-    TPOWERDOWN,
     TSTEP,
-    TPWMTHRS,
     VACTUAL_2208,
     MSCNT,
     MSCURACT,
-    CHOPCONF_2208,
     DRV_STATUS_2208,
-    PWMCONF_AUTO,
     PWM_SCALE_AUTO,
     PWM_AUTO,
 ];
@@ -476,9 +493,31 @@ pub const TMC2208_READ: &[&str] = &[
 /// The TMC2209's registers.
 pub const TMC2209: &[RegDef] = &[
     GCONF_2208,
+    SLAVECONF_2208,
+    IHOLD_IRUN,
+    TPOWERDOWN,
+    TPWMTHRS,
+    TCOOLTHRS,
+    r("SGTHRS", 0x40, &[u("sgthrs", 0xff)]),
+    r(
+        "COOLCONF",
+        0x42,
+        &[
+            u("semin", 0x0f),
+            u("seup", 0x03 << 5),
+            u("semax", 0x0f << 8),
+            u("sedn", 0x03 << 13),
+            u("seimin", 1 << 15),
+        ],
+    ),
+    CHOPCONF_2208,
+    PWMCONF_AUTO,
+];
+/// Its registers that only the run-time checks and DUMP_TMC read (or
+/// SET_TMC_FIELD sets).
+pub const TMC2209_STATUS: &[RegDef] = &[
     GSTAT,
     IFCNT,
-    SLAVECONF_2208,
     OTP_PROG,
     OTP_READ_2208,
     r(
@@ -497,30 +536,12 @@ pub const TMC2209: &[RegDef] = &[
         ],
     ),
     FACTORY_CONF_2208,
-    IHOLD_IRUN,
-    TPOWERDOWN,
     TSTEP,
-    TPWMTHRS,
-    TCOOLTHRS,
     VACTUAL_2208,
-    r("SGTHRS", 0x40, &[u("sgthrs", 0xff)]),
     r("SG_RESULT", 0x41, &[u("sg_result", 0x3ff)]),
-    r(
-        "COOLCONF",
-        0x42,
-        &[
-            u("semin", 0x0f),
-            u("seup", 0x03 << 5),
-            u("semax", 0x0f << 8),
-            u("sedn", 0x03 << 13),
-            u("seimin", 1 << 15),
-        ],
-    ),
     MSCNT,
     MSCURACT,
-    CHOPCONF_2208,
     DRV_STATUS_2208,
-    PWMCONF_AUTO,
     PWM_SCALE_AUTO,
     PWM_AUTO,
 ];
@@ -570,6 +591,40 @@ pub const TMC5160: &[RegDef] = &[
             u("test_mode", 1 << 17),
         ],
     ),
+    r(
+        "DRV_CONF",
+        0x0a,
+        &[
+            u("bbmtime", 0x1f),
+            u("bbmclks", 0x0f << 8),
+            u("otselect", 0x03 << 16),
+            u("drvstrength", 0x03 << 18),
+            u("filt_isense", 0x03 << 20),
+        ],
+    ),
+    GLOBALSCALER,
+    IHOLD_IRUN,
+    TPOWERDOWN,
+    TPWMTHRS,
+    TCOOLTHRS,
+    THIGH,
+    MSLUT[0],
+    MSLUT[1],
+    MSLUT[2],
+    MSLUT[3],
+    MSLUT[4],
+    MSLUT[5],
+    MSLUT[6],
+    MSLUT[7],
+    MSLUTSEL,
+    MSLUTSTART,
+    CHOPCONF_5160,
+    COOLCONF,
+    PWMCONF_AUTO,
+];
+/// Its registers that only the run-time checks and DUMP_TMC read (or
+/// SET_TMC_FIELD sets).
+pub const TMC5160_STATUS: &[RegDef] = &[
     GSTAT,
     r(
         "IOIN",
@@ -597,38 +652,9 @@ pub const TMC5160: &[RegDef] = &[
         ],
     ),
     r("FACTORY_CONF", 0x08, &[u("factory_conf", 0x1f)]),
-    r(
-        "DRV_CONF",
-        0x0a,
-        &[
-            u("bbmtime", 0x1f),
-            u("bbmclks", 0x0f << 8),
-            u("otselect", 0x03 << 16),
-            u("drvstrength", 0x03 << 18),
-            u("filt_isense", 0x03 << 20),
-        ],
-    ),
-    GLOBALSCALER,
-    IHOLD_IRUN,
-    TPOWERDOWN,
     TSTEP,
-    TPWMTHRS,
-    TCOOLTHRS,
-    THIGH,
-    MSLUT[0],
-    MSLUT[1],
-    MSLUT[2],
-    MSLUT[3],
-    MSLUT[4],
-    MSLUT[5],
-    MSLUT[6],
-    MSLUT[7],
-    MSLUTSEL,
-    MSLUTSTART,
     MSCNT,
     MSCURACT,
-    CHOPCONF_5160,
-    COOLCONF,
     r(
         "DRV_STATUS",
         0x6f,
@@ -649,7 +675,6 @@ pub const TMC5160: &[RegDef] = &[
             u("stst", 1 << 31),
         ],
     ),
-    PWMCONF_AUTO,
     PWM_SCALE_AUTO,
     PWM_AUTO,
     LOST_STEPS,
@@ -696,6 +721,75 @@ pub const TMC2240: &[RegDef] = &[
         ],
     ),
     r(
+        "DRV_CONF",
+        0x0a,
+        &[u("current_range", 0x03), u("slope_control", 0x03 << 4)],
+    ),
+    GLOBALSCALER,
+    r(
+        "IHOLD_IRUN",
+        0x10,
+        &[
+            u("ihold", 0x1f),
+            u("irun", 0x1f << 8),
+            u("iholddelay", 0x0f << 16),
+            u("irundelay", 0x0f << 24),
+        ],
+    ),
+    TPOWERDOWN,
+    TPWMTHRS,
+    TCOOLTHRS,
+    THIGH,
+    MSLUT[0],
+    MSLUT[1],
+    MSLUT[2],
+    MSLUT[3],
+    MSLUT[4],
+    MSLUT[5],
+    MSLUT[6],
+    MSLUT[7],
+    MSLUTSEL,
+    r(
+        "MSLUTSTART",
+        0x69,
+        &[
+            u("start_sin", 0xff),
+            u("start_sin90", 0xff << 16),
+            s("offset_sin90", 0xff << 24),
+        ],
+    ),
+    CHOPCONF_5160,
+    COOLCONF,
+    r(
+        "PWMCONF",
+        0x70,
+        &[
+            u("pwm_ofs", 0xff),
+            u("pwm_grad", 0xff << 8),
+            u("pwm_freq", 0x03 << 16),
+            u("pwm_autoscale", 1 << 18),
+            u("pwm_autograd", 1 << 19),
+            u("freewheel", 0x03 << 20),
+            u("pwm_meas_sd_enable", 1 << 22),
+            u("pwm_dis_reg_stst", 1 << 23),
+            u("pwm_reg", 0x0f << 24),
+            u("pwm_lim", 0x0f << 28),
+        ],
+    ),
+    r(
+        "SG4_THRS",
+        0x74,
+        &[
+            u("sg4_thrs", 0xff),
+            u("sg4_filt_en", 1 << 8),
+            u("sg4_angle_offset", 1 << 9),
+        ],
+    ),
+];
+/// Its registers that only the run-time checks and DUMP_TMC read (or
+/// SET_TMC_FIELD sets).
+pub const TMC2240_STATUS: &[RegDef] = &[
+    r(
         "GSTAT",
         0x01,
         &[
@@ -729,27 +823,7 @@ pub const TMC2240: &[RegDef] = &[
             u("version", 0xff << 24),
         ],
     ),
-    r(
-        "DRV_CONF",
-        0x0a,
-        &[u("current_range", 0x03), u("slope_control", 0x03 << 4)],
-    ),
-    GLOBALSCALER,
-    r(
-        "IHOLD_IRUN",
-        0x10,
-        &[
-            u("ihold", 0x1f),
-            u("irun", 0x1f << 8),
-            u("iholddelay", 0x0f << 16),
-            u("irundelay", 0x0f << 24),
-        ],
-    ),
-    TPOWERDOWN,
     TSTEP,
-    TPWMTHRS,
-    TCOOLTHRS,
-    THIGH,
     r(
         "ADC_VSUPPLY_AIN",
         0x50,
@@ -764,28 +838,8 @@ pub const TMC2240: &[RegDef] = &[
             u("overtempprewarning_vth", 0x1fff << 16),
         ],
     ),
-    MSLUT[0],
-    MSLUT[1],
-    MSLUT[2],
-    MSLUT[3],
-    MSLUT[4],
-    MSLUT[5],
-    MSLUT[6],
-    MSLUT[7],
-    MSLUTSEL,
-    r(
-        "MSLUTSTART",
-        0x69,
-        &[
-            u("start_sin", 0xff),
-            u("start_sin90", 0xff << 16),
-            s("offset_sin90", 0xff << 24),
-        ],
-    ),
     MSCNT,
     MSCURACT,
-    CHOPCONF_5160,
-    COOLCONF,
     r(
         "DRV_STATUS",
         0x6f,
@@ -807,36 +861,11 @@ pub const TMC2240: &[RegDef] = &[
         ],
     ),
     r(
-        "PWMCONF",
-        0x70,
-        &[
-            u("pwm_ofs", 0xff),
-            u("pwm_grad", 0xff << 8),
-            u("pwm_freq", 0x03 << 16),
-            u("pwm_autoscale", 1 << 18),
-            u("pwm_autograd", 1 << 19),
-            u("freewheel", 0x03 << 20),
-            u("pwm_meas_sd_enable", 1 << 22),
-            u("pwm_dis_reg_stst", 1 << 23),
-            u("pwm_reg", 0x0f << 24),
-            u("pwm_lim", 0x0f << 28),
-        ],
-    ),
-    r(
         "PWM_SCALE",
         0x71,
         &[u("pwm_scale_sum", 0x3ff), s("pwm_scale_auto", 0x1ff << 16)],
     ),
     PWM_AUTO,
-    r(
-        "SG4_THRS",
-        0x74,
-        &[
-            u("sg4_thrs", 0xff),
-            u("sg4_filt_en", 1 << 8),
-            u("sg4_angle_offset", 1 << 9),
-        ],
-    ),
     r("SG4_RESULT", 0x75, &[u("sg4_result", 0x3ff)]),
     r(
         "SG4_IND",
@@ -891,7 +920,7 @@ const READRSP_FLAGS: [FieldDef; 8] = [
 ];
 /// The flags, then `extra` (`M` = 8 + its length).
 const fn readrsp<const M: usize>(extra: &[FieldDef]) -> [FieldDef; M] {
-    let mut out = [u("", 0); M];
+    let mut out = [u("", 1); M];
     let mut i = 0;
     while i < M {
         out[i] = if i < 8 {
@@ -959,6 +988,10 @@ pub const TMC2660: &[RegDef] = &[
             u("tst", 1 << 16),
         ],
     ),
+];
+/// Its registers that only the run-time checks and DUMP_TMC read (or
+/// SET_TMC_FIELD sets).
+pub const TMC2660_STATUS: &[RegDef] = &[
     r("READRSP@RDSEL0", TMC2660_READRSP, &RDSEL0),
     r("READRSP@RDSEL1", TMC2660_READRSP + 1, &RDSEL1),
     r("READRSP@RDSEL2", TMC2660_READRSP + 2, &RDSEL2),
@@ -986,15 +1019,22 @@ mod tests {
 
     #[test]
     fn field_names_are_unique_per_driver() {
-        for regs in [TMC2130, TMC2208, TMC2209, TMC5160, TMC2240, TMC2660] {
-            let names = regs.iter().flat_map(|r| r.fields.iter().map(|f| f.name));
+        for (config, status) in [
+            (TMC2130, TMC2130_STATUS),
+            (TMC2208, TMC2208_STATUS),
+            (TMC2209, TMC2209_STATUS),
+            (TMC5160, TMC5160_STATUS),
+            (TMC2240, TMC2240_STATUS),
+            (TMC2660, TMC2660_STATUS),
+        ] {
+            let regs = || config.iter().chain(status);
+            let names = regs().flat_map(|r| r.fields.iter().map(|f| f.name));
             for (i, a) in names.clone().enumerate() {
                 let repeats = names.clone().skip(i + 1).filter(|b| *b == a).count();
                 // The TMC2660's three read responses share their flags.
-                assert!(repeats == 0 || regs == TMC2660, "{a}");
+                assert!(repeats == 0 || config == TMC2660, "{a}");
             }
-            let mut addrs = regs.iter().map(|r| r.addr);
-            assert!(addrs.all(|a| regs.iter().filter(|r| r.addr == a).count() == 1));
+            assert!(regs().all(|a| regs().filter(|r| r.addr == a.addr).count() == 1));
         }
     }
 }
