@@ -217,12 +217,13 @@ pub fn read<'c, 'a>(
     let mut r = Reader {
         section,
         regs: RegisterFile::new(kind),
+        error: None,
     };
     let bus = read_bus(section, kind)?;
     let diag = match kind {
-        DriverKind::Tmc2209 => section.get_opt("diag_pin").map(|p| (p, None)),
+        DriverKind::Tmc2209 => opt(section, "diag_pin").map(|p| (p, None)),
         DriverKind::Tmc2130 | DriverKind::Tmc2240 | DriverKind::Tmc5160 => {
-            match section.get_opt("diag0_pin") {
+            match opt(section, "diag0_pin") {
                 Some(pin) => Some((pin, Some("diag0_stall"))),
                 None => section
                     .get_opt("diag1_pin")
@@ -233,7 +234,7 @@ pub fn read<'c, 'a>(
     };
     let defaults = Defaults::of(kind);
     for &(field, value) in defaults.fixed {
-        r.set(field, i64::from(value))?;
+        r.set(field, i64::from(value));
     }
     let current = read_current(&mut r, kind)?;
     // Microsteps come from the stepper's section.
@@ -249,9 +250,9 @@ pub fn read<'c, 'a>(
             ));
         }
     };
-    r.set("mres", mres)?;
+    r.set("mres", mres);
     let interpolate = section.get_bool("interpolate", true)?;
-    r.set("intpol", i64::from(interpolate))?;
+    r.set("intpol", i64::from(interpolate));
     let step_dist = step_distance(&stepper)?;
     let mut driver = TmcDriver {
         kind,
@@ -267,19 +268,22 @@ pub fn read<'c, 'a>(
         regs: RegisterFile::new(kind),
     };
     for &(field, value) in defaults.fixed_late {
-        r.set(field, i64::from(value))?;
+        r.set(field, i64::from(value));
     }
-    r.fields(defaults.pre)?;
+    r.fields(defaults.pre);
     if let Some((coolstep, high)) = defaults.thresholds {
-        r.thresholds(step_dist, coolstep, high)?;
+        r.thresholds(step_dist, coolstep, high);
     }
-    r.fields(defaults.post)?;
+    r.fields(defaults.post);
     if kind == DriverKind::Tmc2660
         && r.regs.get("chm") == 0
         && r.regs.get("hstrt") + r.regs.get("hend") > 15
     {
         let option = section.option_name("driver_hend").unwrap_or("driver_HEND");
         return Err(section.error_for(option, "plus driver_HSTRT must be at most 15"));
+    }
+    if let Some(e) = r.error {
+        return Err(e);
     }
     driver.regs = r.regs;
     Ok(driver)
@@ -584,8 +588,8 @@ fn read_current<'c>(
             vref_low: 0.165,
         };
         let bits = scale.bits(run, run);
-        r.set("cs", i64::from(bits.irun))?;
-        r.set("vsense", i64::from(bits.vsense))?;
+        r.set("cs", i64::from(bits.irun));
+        r.set("vsense", i64::from(bits.vsense));
         let percent = s.get_int("idle_current_percent", Some(100), Some(0))?;
         if percent > 100 {
             let option = s.option_name("idle_current_percent").unwrap_or("");
@@ -621,7 +625,7 @@ fn read_current<'c>(
     let scale = match (kind, rref) {
         (_, Some(rref)) => {
             let range = CurrentScale::range_for(rref, run);
-            r.set("current_range", i64::from(range))?;
+            r.set("current_range", i64::from(range));
             CurrentScale::Rref { rref, range }
         }
         (DriverKind::Tmc5160, _) => CurrentScale::GlobalScaler {
@@ -635,11 +639,11 @@ fn read_current<'c>(
     };
     let bits = scale.bits(run, hold);
     match scale {
-        CurrentScale::Vsense { .. } => r.set("vsense", i64::from(bits.vsense))?,
-        _ => r.set("globalscaler", i64::from(bits.globalscaler))?,
+        CurrentScale::Vsense { .. } => r.set("vsense", i64::from(bits.vsense)),
+        _ => r.set("globalscaler", i64::from(bits.globalscaler)),
     }
-    r.set("ihold", i64::from(bits.ihold))?;
-    r.set("irun", i64::from(bits.irun))?;
+    r.set("ihold", i64::from(bits.ihold));
+    r.set("irun", i64::from(bits.irun));
     Ok(Currents {
         scale,
         max,
@@ -649,6 +653,12 @@ fn read_current<'c>(
     })
 }
 
+/// `option`'s text if set (one call site for the many optional options).
+#[inline(never)]
+fn opt<'a>(section: &Section<'_, 'a>, option: &str) -> Option<&'a str> {
+    section.get_opt(option)
+}
+
 /// Reads the wiring options.
 fn read_bus<'c, 'a>(
     section: &Section<'c, 'a>,
@@ -656,8 +666,8 @@ fn read_bus<'c, 'a>(
 ) -> Result<Bus<'a>, ConfigError<'c>> {
     if kind.is_uart() {
         let uart_pin = section.get("uart_pin")?;
-        let tx_pin = section.get_opt("tx_pin");
-        let select_pins = section.get_opt("select_pins");
+        let tx_pin = opt(section, "tx_pin");
+        let select_pins = opt(section, "select_pins");
         let max = if kind == DriverKind::Tmc2209 { 3 } else { 0 };
         let address = section.get_int("uart_address", Some(0), Some(0))?;
         if address > max {
@@ -674,17 +684,17 @@ fn read_bus<'c, 'a>(
     let cs_pin = section.get("cs_pin")?;
     let speed = section.get_int("spi_speed", Some(4_000_000), Some(100_000))?;
     let (mut spi_bus, mut software) = (None, None);
-    if section.get_opt("spi_software_sclk_pin").is_some() {
+    if opt(section, "spi_software_sclk_pin").is_some() {
         software = Some([
             section.get("spi_software_miso_pin")?,
             section.get("spi_software_mosi_pin")?,
             section.get("spi_software_sclk_pin")?,
         ]);
     } else {
-        spi_bus = section.get_opt("spi_bus");
+        spi_bus = opt(section, "spi_bus");
     }
     let (mut chain_position, mut chain_length) = (1, 1);
-    if kind != DriverKind::Tmc2660 && section.get_opt("chain_length").is_some() {
+    if kind != DriverKind::Tmc2660 && opt(section, "chain_length").is_some() {
         let length = section.get_int("chain_length", None, Some(2))?;
         let position = section.get_int("chain_position", None, Some(1))?;
         if length > 255 {
@@ -707,33 +717,42 @@ fn read_bus<'c, 'a>(
     })
 }
 
-/// Sets fields while reading a section.
+/// Sets fields while reading a section; the first error is kept (and
+/// reported once the section is read), later fields keep their defaults.
 struct Reader<'s, 'c, 'a> {
     section: &'s Section<'c, 'a>,
     regs: RegisterFile,
+    error: Option<ConfigError<'c>>,
 }
 
 impl<'c> Reader<'_, 'c, '_> {
     /// Sets `field` to `value` (not from the config).
-    fn set(&mut self, field: &str, value: i64) -> Result<(), ConfigError<'c>> {
-        self.regs
-            .set(field, value)
-            .map(|_| ())
-            .map_err(|RegistersFull| {
-                self.section
-                    .error_for("run_current", "needs more registers than onechip holds")
-            })
+    fn set(&mut self, field: &str, value: i64) {
+        if self.regs.set(field, value) == Err(RegistersFull) {
+            let e = self
+                .section
+                .error_for("run_current", "needs more registers than onechip holds");
+            self.fail(e);
+        }
+    }
+
+    /// Keeps `e` if it is the first error.
+    fn fail(&mut self, e: ConfigError<'c>) {
+        if self.error.is_none() {
+            self.error = Some(e);
+        }
     }
 
     /// Each field from its `driver_XXX` option, else its default
     /// (Klipper's `set_config_field`): a 1-bit field is a boolean, a signed
     /// one an integer in its two's complement range, others 0..=max.
-    fn fields(&mut self, fields: &[FieldValue]) -> Result<(), ConfigError<'c>> {
+    fn fields(&mut self, fields: &[FieldValue]) {
         for &(name, default) in fields {
-            let value = self.config_value(name, i64::from(default))?;
-            self.set(name, value)?;
+            match self.config_value(name, i64::from(default)) {
+                Ok(value) => self.set(name, value),
+                Err(e) => self.fail(e),
+            }
         }
-        Ok(())
     }
 
     fn config_value(&self, name: &str, default: i64) -> Result<i64, ConfigError<'c>> {
@@ -764,32 +783,38 @@ impl<'c> Reader<'_, 'c, '_> {
     /// stealthchop_threshold (TPWMTHRS and the stealthChop switch),
     /// coolstep_threshold (TCOOLTHRS) and high_velocity_threshold (THIGH),
     /// mm/s, as TSTEP values at the stepper's step distance.
-    fn thresholds(
-        &mut self,
-        step_dist: f64,
-        coolstep: bool,
-        high: bool,
-    ) -> Result<(), ConfigError<'c>> {
+    fn thresholds(&mut self, step_dist: f64, coolstep: bool, high: bool) {
         let kind = self.regs.kind();
         let mres = self.regs.get("mres");
-        let velocity =
-            |s: &Section<'c, '_>, option: &'c str| s.get_float_opt(option, Bounds::NON_NEGATIVE);
-        let ticks = |v: f64| i64::from(tstep(kind, mres, step_dist, v).unwrap_or(TSTEP_MAX));
-        let stealth = velocity(self.section, "stealthchop_threshold")?;
-        self.set("tpwmthrs", stealth.map_or(i64::from(TSTEP_MAX), ticks))?;
-        if kind.field("en_pwm_mode").is_some() {
-            self.set("en_pwm_mode", i64::from(stealth.is_some()))?;
-        } else {
-            self.set("en_spreadcycle", i64::from(stealth.is_none()))?;
+        // (option, field, value without the option); stealthChop first.
+        let thresholds = [
+            ("stealthchop_threshold", "tpwmthrs", TSTEP_MAX, true),
+            ("coolstep_threshold", "tcoolthrs", 0, coolstep),
+            ("high_velocity_threshold", "thigh", 0, high),
+        ];
+        for (i, (option, field, absent, present)) in thresholds.into_iter().enumerate() {
+            if !present {
+                continue;
+            }
+            let velocity = match self.section.get_float_opt(option, Bounds::NON_NEGATIVE) {
+                Ok(v) => v,
+                Err(e) => {
+                    self.fail(e);
+                    None
+                }
+            };
+            let ticks = velocity.map_or(absent, |v| {
+                tstep(kind, mres, step_dist, v).unwrap_or(TSTEP_MAX)
+            });
+            self.set(field, i64::from(ticks));
+            if i == 0 {
+                let stealth = i64::from(velocity.is_some());
+                if kind.field("en_pwm_mode").is_some() {
+                    self.set("en_pwm_mode", stealth);
+                } else {
+                    self.set("en_spreadcycle", 1 - stealth);
+                }
+            }
         }
-        if coolstep {
-            let v = velocity(self.section, "coolstep_threshold")?;
-            self.set("tcoolthrs", v.map_or(0, ticks))?;
-        }
-        if high {
-            let v = velocity(self.section, "high_velocity_threshold")?;
-            self.set("thigh", v.map_or(0, ticks))?;
-        }
-        Ok(())
     }
 }
