@@ -113,8 +113,8 @@ impl<'a> Tmc<'a> {
         self.drivers.is_empty()
     }
 
-    /// The port number and driver index of each driver, by stepper name;
-    /// for simulators that wire up drivers.
+    /// The port number of stepper `stepper`'s driver (drivers sharing a
+    /// wire share it); for simulators that wire up drivers.
     pub fn port_of(&self, stepper: &str) -> Option<u8> {
         self.drivers
             .iter()
