@@ -253,6 +253,61 @@ fn tmc2660_registers_equal_klippers() {
 }
 
 #[test]
+fn tmc2240_registers_equal_klippers() {
+    // No stock config has a TMC2240: the Einsy's X driver swapped for one
+    // (rref 12 kΩ by default), run_current 1.0, stealthchop_threshold 50;
+    // [stepper_x]: microsteps 16, rotation 40.
+    let text = std::fs::read_to_string(corpus().join("generic-einsy-rambo.cfg")).expect("cfg");
+    let text = text.replace(
+        "[tmc2130 stepper_x]\ncs_pin: PG0\nrun_current: .5\nsense_resistor: 0.220\ndiag1_pin: !PK2\n",
+        "[tmc2240 stepper_x]\ncs_pin: PG0\nrun_current: 1.0\nstealthchop_threshold: 50\ndiag0_pin: !PK2\n",
+    );
+    let config = Config::parse("printer.cfg", &text).expect("parses");
+    let machine = Machine::from_config(&config).expect("loads");
+    let d = machine
+        .tmc
+        .iter()
+        .find(|d| d.stepper == "stepper_x")
+        .expect("x");
+    assert_eq!(d.diag, Some(("!PK2", Some("diag0_stall"))));
+    let sqrt2 = 2f64.sqrt();
+    // Full scale per current_range: KIFS / rref / √2 = 11750, 24000, 36000
+    // (A·Ω) / 12000 / √2 = 0.692, 1.414, 2.121 A: 1.0 A needs range 1.
+    let ifs = 24000.0 / 12000.0 / sqrt2;
+    assert_eq!(reg(d, "DRV_CONF"), 1);
+    // GLOBALSCALER: int(1.0 * 256 / 1.414 + .5) = int(181.52) = 181.
+    let gs = (256.0 / ifs + 0.5) as u32;
+    assert_eq!(gs, 181);
+    assert_eq!(reg(d, "GLOBALSCALER"), gs);
+    // IRUN: int(1.0 * 256 * 32 / (181 * 1.414) - 1 + .5) = int(31.50) = 31;
+    // hold (default: the range-3 full scale, capped at run) the same;
+    // iholddelay 6, irundelay 4.
+    let cs = (256.0 * 32.0 / (f64::from(gs) * ifs) - 1.0 + 0.5) as u32;
+    assert_eq!(cs, 31);
+    assert_eq!(reg(d, "IHOLD_IRUN"), cs | cs << 8 | 6 << 16 | 4 << 24);
+    // CHOPCONF: toff 3, hstrt 5 << 4, hend 2 << 7, tbl 2 << 15, tpfd
+    // 4 << 20, mres 4 << 24, intpol 1 << 28.
+    assert_eq!(
+        reg(d, "CHOPCONF"),
+        3 | 5 << 4 | 2 << 7 | 2 << 15 | 4 << 20 | 4 << 24 | 1 << 28
+    );
+    // en_pwm_mode and multistep_filt; TPWMTHRS at the 12.5 MHz clock:
+    // int(12.5e6 * (40 / 3200 / 16) / 50 + .5) = int(195.81) = 195.
+    assert_eq!(reg(d, "GCONF"), 1 << 2 | 1 << 3);
+    let tpwmthrs = (12.5e6 * (40.0 / (200.0 * 16.0) / 16.0) / 50.0 + 0.5) as u32;
+    assert_eq!(tpwmthrs, 195);
+    assert_eq!(reg(d, "TPWMTHRS"), tpwmthrs);
+    // PWMCONF: pwm_ofs 29, autoscale, autograd, pwm_reg 4, pwm_lim 12;
+    // SG4_THRS: sg4_angle_offset; TPOWERDOWN 10.
+    assert_eq!(
+        reg(d, "PWMCONF"),
+        29 | 1 << 18 | 1 << 19 | 4 << 24 | 12 << 28
+    );
+    assert_eq!(reg(d, "SG4_THRS"), 1 << 9);
+    assert_eq!(reg(d, "TPOWERDOWN"), 10);
+}
+
+#[test]
 fn invalid_driver_fields_name_file_line_and_option() {
     let base = std::fs::read_to_string(corpus().join("generic-einsy-rambo.cfg")).expect("cfg");
     for (option, value) in [
