@@ -25,5 +25,6 @@ pub mod shaper_config;
 pub mod temperature_sensor;
 pub mod thermal;
 pub mod thermistor;
-pub mod tmc;
+/// TMC drivers (the `onechip-tmc` crate).
+pub use onechip_tmc as tmc;
 pub mod toolhead;

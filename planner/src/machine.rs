@@ -269,7 +269,7 @@ impl<'a> Machine<'a> {
         let secondaries = mcu_section::read_all(config)?;
         // Sensor types: Klipper reads every definition, used or not.
         temperature_sensor::read_definitions(config)?;
-        let tmc = tmc::config::read_all(config)?;
+        let tmc = tmc::config::read_all(config, step_distance)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)

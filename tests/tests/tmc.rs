@@ -507,7 +507,10 @@ fn stock_tmc_sections_load_or_say_why() {
             continue;
         }
         sections += count;
-        match onechip_planner::tmc::config::read_all(&config) {
+        match onechip_planner::tmc::config::read_all(
+            &config,
+            onechip_planner::machine::step_distance,
+        ) {
             Ok(drivers) => loaded += drivers.len(),
             Err(e) => refused.push(format!("{name}: {e}")),
         }

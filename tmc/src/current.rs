@@ -12,7 +12,8 @@
 //! - TMC2240: the full scale is set by the reference resistor (`rref`) and
 //!   `current_range`; then GLOBALSCALER and IRUN/IHOLD.
 
-use crate::math::sqrt;
+/// Correctly rounded (libm's), so the bits equal Python's `math.sqrt`.
+use libm::sqrt;
 
 /// How a driver turns current into bits.
 #[derive(Debug, Clone, Copy, PartialEq)]

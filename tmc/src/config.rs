@@ -3,7 +3,6 @@
 
 use super::current::CurrentScale;
 use super::{DriverKind, RegisterFile, RegistersFull};
-use crate::machine::step_distance;
 use core::fmt::Write;
 use onechip_config::{Bounds, Config, ConfigError, Section};
 
@@ -108,10 +107,15 @@ fn tstep(kind: DriverKind, mres: i64, step_dist: f64, velocity: f64) -> Option<u
     Some(ticks.clamp(0, i64::from(TSTEP_MAX)) as u32)
 }
 
+/// A stepper section's distance per microstep, mm (the planner's
+/// `machine::step_distance`, Klipper's `parse_step_distance`).
+pub type StepDistance = for<'c, 'a> fn(&Section<'c, 'a>) -> Result<f64, ConfigError<'c>>;
+
 /// Reads every TMC driver section of `config`, in file order, and checks
 /// drivers that share a wire (UART addresses, SPI chain positions).
 pub fn read_all<'c, 'a>(
     config: &'c Config<'a>,
+    step_distance: StepDistance,
 ) -> Result<heapless::Vec<TmcDriver<'a>, MAX_DRIVERS>, ConfigError<'c>> {
     let mut drivers: heapless::Vec<TmcDriver<'a>, MAX_DRIVERS> = heapless::Vec::new();
     for name in config.section_names() {
@@ -125,7 +129,7 @@ pub fn read_all<'c, 'a>(
         let Some(section) = config.section(name) else {
             continue;
         };
-        let driver = read(config, &section)?;
+        let driver = read(config, &section, step_distance)?;
         check_shared(&section, &driver, &drivers)?;
         drivers
             .push(driver)
@@ -201,6 +205,7 @@ fn check_shared<'c>(
 pub fn read<'c, 'a>(
     config: &'c Config<'a>,
     section: &Section<'c, 'a>,
+    step_distance: StepDistance,
 ) -> Result<TmcDriver<'a>, ConfigError<'c>> {
     let (kind, stepper_name) = DriverKind::of_section(section.name_in_file())
         .ok_or(section.error_for("run_current", "is in a section that is not a TMC driver"))?;

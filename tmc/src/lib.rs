@@ -11,6 +11,11 @@
 //!   value computed as Klipper computes it;
 //! - [`wire`]: the UART and SPI datagrams, shared by the firmware and the
 //!   simulated drivers.
+//!
+//! Config reading, off every real-time path, is built for size (its own
+//! crate, so its release opt-level can be `s`); the planner re-exports it
+//! as `onechip_planner::tmc` and its machine holds the drivers.
+#![cfg_attr(not(test), no_std)]
 
 pub mod config;
 pub mod current;
