@@ -161,6 +161,7 @@ impl<'a> Tmc<'a> {
                         self.init(link, i)?;
                         self.clear_reset(link, i)?;
                     }
+                    self.check_errors(link, i)?;
                 }
                 self.next_check = Some(now + CHECK_PERIOD);
             }
@@ -188,6 +189,34 @@ impl<'a> Tmc<'a> {
             return Ok(se == 0 && self.drivers[i].config.regs.get("cs") > 0);
         }
         Ok(self.read(link, i, "GSTAT")? & 1 != 0)
+    }
+
+    /// Driver `i`'s error flags, as Klipper's periodic check reads them:
+    /// overtemperature and shorts in DRV_STATUS (the TMC2660's read
+    /// response), driver error and undervoltage in GSTAT. An error is
+    /// Klipper's "TMC '…' reports error: REGISTER: value fields".
+    fn check_errors(&mut self, link: &mut dyn TmcLink, i: usize) -> Result<(), ErrorText> {
+        const ERRORS: [&str; 7] = ["ot", "s2ga", "s2gb", "s2vsa", "s2vsb", "drv_err", "uv_cp"];
+        let kind = self.drivers[i].config.kind;
+        let status = match kind {
+            DriverKind::Tmc2660 => ["READRSP@RDSEL2", ""],
+            _ => ["DRV_STATUS", "GSTAT"],
+        };
+        for reg in status.iter().filter_map(|name| kind.register_any(name)) {
+            let value = self.read(link, i, reg.name)?;
+            let failed = reg
+                .fields
+                .iter()
+                .any(|f| ERRORS.contains(&f.name) && f.get(value) != 0);
+            if failed {
+                let name = self.drivers[i].config.stepper;
+                return Err(cut_text(&format_args!(
+                    "TMC '{name}' reports error: {}",
+                    Pretty(kind, reg, value)
+                )));
+            }
+        }
+        Ok(())
     }
 
     /// Clears driver `i`'s GSTAT flags (written back as ones), as Klipper's

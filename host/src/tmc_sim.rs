@@ -53,6 +53,12 @@ impl SimDriver {
         Some(field.get(self.register(reg.addr)))
     }
 
+    /// Sets register `addr` as the chip would (a status flag raised, for
+    /// tests).
+    pub fn inject(&mut self, addr: u8, value: u32) {
+        self.regs[usize::from(addr & 0x7f)] = value;
+    }
+
     /// Power lost and back: every register 0, GSTAT's reset flag set, the
     /// interface counter back to 0.
     pub fn power_cycle(&mut self) {

@@ -408,6 +408,24 @@ fn registers_are_written_at_start_and_again_after_a_driver_reset() {
 }
 
 #[test]
+fn a_driver_error_is_reported_as_klipper_words_it() {
+    let dir = sd_with_drivers();
+    let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
+    p.send("G28");
+    let out = p.run_for(1.5);
+    assert!(!out.contains("reports error"), "{out}");
+    // The Z driver overheats: DRV_STATUS' ot flag (TMC2209: bit 1).
+    let z = p.tmc_drivers().driver("stepper_z").expect("z");
+    let drv_status = z.kind.register_any("DRV_STATUS").expect("DRV_STATUS").addr;
+    z.inject(drv_status, 1 << 1);
+    let out = p.run_for(1.5);
+    assert!(
+        out.contains("!! TMC 'stepper_z' reports error: DRV_STATUS: 00000002 ot=1(OvertempError!)"),
+        "{out}"
+    );
+}
+
+#[test]
 fn tmc_gcode_commands_answer_as_klipper() {
     let dir = sd_with_drivers();
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
