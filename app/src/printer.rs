@@ -115,6 +115,12 @@ impl<'a, const N: usize> Printer<'a, N> {
         self.toolhead.set_time_origin(origin);
     }
 
+    /// Steps have been generated up to print time `t` s (see
+    /// [`Toolhead::note_steps_generated`]).
+    pub fn note_steps_generated(&mut self, t: f64) {
+        self.toolhead.note_steps_generated(t);
+    }
+
     /// Whether moves with E motion may run: the extruder's heater is at
     /// or above min_extrude_temp ([`crate::heaters::Heaters::can_extrude`]).
     /// While false, such moves are refused with Klipper's "Extrude below

@@ -13,18 +13,23 @@
 //!   SysTick stopped and its and PendSV's pending bits cleared, system
 //!   handler priorities reset; then interrupts back on (nothing can fire:
 //!   every source is disabled).
-//! - [`take_control`] (first thing in `main`): caches to a known state
-//!   (the D-cache cleaned, invalidated and off, since SDMMC1's DMA is not
-//!   cache-coherent; the I-cache invalidated and on), the bus masters the
-//!   bootloader may have left running (DMA1/2, MDMA, BDMA, SDMMC1/2's
-//!   IDMA, USB, Ethernet, DMA2D) reset, the peripheral clocks Klipper
-//!   turns off turned off, and the clock tree back to its reset state (HSI,
-//!   every PLL off, kernel clock muxes at reset), because PLL registers are
-//!   write-protected while the PLL runs and embassy-stm32 0.6's `rcc::init`
-//!   switches the core to HSI but reprograms PLL1 without stopping it.
+//! - [`take_control`] (first thing in `main`): both caches off (the
+//!   D-cache cleaned first: cortex-m-rt initialised RAM through it if the
+//!   bootloader left it on), the bus masters the bootloader may have left
+//!   running (DMA1/2, MDMA, BDMA, SDMMC1/2's IDMA, USB, Ethernet, DMA2D)
+//!   reset, the peripheral clocks Klipper turns off turned off, the
+//!   stepper interrupt's code and data loaded into the TCMs
+//!   ([`crate::tcm`]), the clock tree back to its reset state (HSI, every
+//!   PLL off, kernel clock muxes at reset), because PLL registers are
+//!   write-protected while the PLL runs and embassy-stm32 0.6's
+//!   `rcc::init` switches the core to HSI but reprograms PLL1 without
+//!   stopping it; then the MPU's regions (the DMA buffers non-cacheable,
+//!   the loaded ITCM read-only) and both caches on ([`crate::cache`]),
+//!   with no DMA running.
 //!
 //! `cargo xtask image` checks that the reset handler calls this
-//! `__pre_init` and that it begins with `cpsid i` and writes SP and VTOR.
+//! `__pre_init` and that it begins with `cpsid i` and writes SP and VTOR,
+//! and that `Reset` reaches the TCM load and the cache set-up.
 
 use core::arch::global_asm;
 use embassy_stm32::pac;
@@ -91,31 +96,28 @@ global_asm!(
     ".size __pre_init, . - __pre_init",
 );
 
-/// Brings caches, bus masters and the clock tree to a known state before
-/// `embassy_stm32::init` configures them. Call first thing in `main`.
-pub fn take_control() {
-    caches();
+/// Brings caches, bus masters, the TCMs and the clock tree to a known
+/// state before `embassy_stm32::init` configures them, and turns the
+/// caches on. Call first thing in `main`; the proof that the TCMs are
+/// loaded starts the stepper interrupt.
+pub fn take_control() -> crate::tcm::Loaded {
+    caches_off();
     stop_bus_masters();
+    let loaded = crate::tcm::load();
     reset_clock_tree();
+    crate::cache::enable(&loaded);
+    loaded
 }
 
-/// The D-cache cleaned, invalidated and off; the I-cache invalidated and
-/// on.
-fn caches() {
+/// Both caches off and invalidated, the D-cache cleaned first (RAM
+/// initialisation may have gone through it), so that the MPU can be set
+/// up before they go on again.
+fn caches_off() {
     // SAFETY: only this start-up code uses the core peripherals here, before
     // anything else runs.
     let mut core = unsafe { cortex_m::Peripherals::steal() };
-    if cortex_m::peripheral::SCB::dcache_enabled() {
-        // RAM initialisation went through the cache: write it back before
-        // turning the cache off.
-        core.SCB.disable_dcache(&mut core.CPUID);
-    }
-    // Code in flash never changes while this image runs, so the I-cache is
-    // coherent; it is stale only if the bootloader left it on.
-    if cortex_m::peripheral::SCB::icache_enabled() {
-        core.SCB.invalidate_icache();
-    }
-    core.SCB.enable_icache();
+    core.SCB.disable_dcache(&mut core.CPUID);
+    core.SCB.disable_icache();
 }
 
 /// Resets every peripheral that can write memory on its own (a stream the

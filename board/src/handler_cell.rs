@@ -11,6 +11,7 @@
 //! r1p1 or later, so BASEPRI needs no erratum 837070 workaround.
 
 use core::cell::UnsafeCell;
+use core::mem::MaybeUninit;
 use core::sync::atomic::{Ordering, compiler_fence};
 use cortex_m::peripheral::{NVIC, SCB};
 use embassy_stm32::interrupt::Priority;
@@ -23,10 +24,43 @@ use embassy_stm32::interrupt::Priority;
 /// only from thread mode or a handler that the owner cannot preempt
 /// (priority at or below the owner's; checked); the handler does not
 /// preempt itself.
+///
+/// All-zero bytes are an empty cell that masks every interrupt, the same
+/// as [`Self::new`] ([`Self::ZEROED_IS_NEW`], checked at compile time
+/// where a cell is placed in memory zeroed at boot), so a cell may live in
+/// a section that start-up code zeroes (the stepper engine's, in DTCM).
 pub struct HandlerCell<T> {
-    value: UnsafeCell<Option<T>>,
+    slot: UnsafeCell<Slot<T>>,
     /// The owner's priority as BASEPRI writes it; 0: mask every interrupt.
     mask: u8,
+}
+
+/// The value, once installed.
+struct Slot<T> {
+    /// True once `value` holds a value.
+    installed: bool,
+    value: MaybeUninit<T>,
+}
+
+impl<T> Slot<T> {
+    /// The value, if installed.
+    #[inline(always)]
+    fn get_mut(&mut self) -> Option<&mut T> {
+        // SAFETY: `installed` says `value` is initialised.
+        self.installed
+            .then(|| unsafe { self.value.assume_init_mut() })
+    }
+
+    /// Installs `value`, dropping any earlier one.
+    fn put(&mut self, value: T) {
+        if self.installed {
+            // SAFETY: `installed` says `value` is initialised; it is
+            // overwritten next.
+            unsafe { self.value.assume_init_drop() };
+        }
+        self.value.write(value);
+        self.installed = true;
+    }
 }
 
 // SAFETY: by the invariant above, no two accesses ever overlap.
@@ -36,31 +70,46 @@ impl<T> HandlerCell<T> {
     /// Empty until [`Self::install`]; for a handler at the top priority,
     /// so the lock masks every interrupt.
     pub const fn new() -> Self {
-        Self {
-            value: UnsafeCell::new(None),
-            mask: 0,
-        }
+        Self::masking_raw(0)
     }
 
     /// Empty until [`Self::install`]; for a handler at `owner` priority,
     /// so the lock masks that priority and below only.
     pub const fn masking(owner: Priority) -> Self {
+        Self::masking_raw(owner as u8)
+    }
+
+    const fn masking_raw(mask: u8) -> Self {
         Self {
-            value: UnsafeCell::new(None),
-            mask: owner as u8,
+            slot: UnsafeCell::new(Slot {
+                installed: false,
+                value: MaybeUninit::uninit(),
+            }),
+            mask,
         }
     }
 
+    /// True: a cell of all-zero bytes is empty and masks every interrupt,
+    /// as [`Self::new`] makes it. Evaluated at compile time (an invalid
+    /// all-zero value would fail the build).
+    pub const ZEROED_IS_NEW: bool = {
+        // SAFETY: every field takes zero bytes: `MaybeUninit` any bytes,
+        // `bool` false, `u8` 0.
+        let zeroed: Self = unsafe { core::mem::zeroed() };
+        let mask = zeroed.mask;
+        !zeroed.slot.into_inner().installed && mask == 0
+    };
+
     /// Puts `value` in the cell (replacing any earlier one).
     pub fn install(&self, value: T) {
-        self.lock(|slot| *slot = Some(value));
+        self.lock(|slot| slot.put(value));
     }
 
     /// Runs `f` on the value with the owner masked; None before it is
     /// installed. Keep `f` short: it delays the owner and everything
     /// below it.
     pub fn with<R>(&self, f: impl FnOnce(&mut T) -> R) -> Option<R> {
-        self.lock(|slot| slot.as_mut().map(f))
+        self.lock(|slot| slot.get_mut().map(f))
     }
 
     /// The handler's own access, without a lock.
@@ -73,11 +122,11 @@ impl<T> HandlerCell<T> {
     pub unsafe fn in_handler(&self) -> Option<&mut T> {
         // SAFETY: the caller is the owning handler, which nothing else
         // runs during (invariant above).
-        unsafe { &mut *self.value.get() }.as_mut()
+        unsafe { &mut *self.slot.get() }.get_mut()
     }
 
     /// Runs `f` on the slot with the owner held off.
-    fn lock<R>(&self, f: impl FnOnce(&mut Option<T>) -> R) -> R {
+    fn lock<R>(&self, f: impl FnOnce(&mut Slot<T>) -> R) -> R {
         assert!(
             caller_below(self.mask),
             "HandlerCell locked from above its owner's priority"
@@ -87,7 +136,7 @@ impl<T> HandlerCell<T> {
                 // SAFETY: interrupts are masked, so the owner is not
                 // running and cannot start; this is the only reference
                 // (invariant above).
-                f(unsafe { &mut *self.value.get() })
+                f(unsafe { &mut *self.slot.get() })
             })
         } else {
             let before = cortex_m::register::basepri::read();
@@ -98,7 +147,7 @@ impl<T> HandlerCell<T> {
             // at or below it (checked above), so the owner is not running
             // and cannot start; this is the only reference (invariant
             // above).
-            let result = f(unsafe { &mut *self.value.get() });
+            let result = f(unsafe { &mut *self.slot.get() });
             compiler_fence(Ordering::SeqCst);
             // SAFETY: restores the mask this function found.
             unsafe { cortex_m::register::basepri::write(before) };

@@ -1,6 +1,7 @@
 //! onechip firmware for the BTT Octopus Pro v1.1 (STM32H723ZG at 520 MHz).
 //!
-//! Boot: take control from the bootloader, start the watchdog, clocks,
+//! Boot: take control from the bootloader (caches on, the stepper
+//! interrupt's code and data in the TCMs), start the watchdog, clocks,
 //! interrupt priorities, the stepper timer and the I/O executor (USB); then
 //! read `printer.cfg` and its includes from the SD card, configure the pins
 //! it names for the stepper engine (TIM5's interrupt) and the heaters
@@ -12,6 +13,7 @@
 
 mod board_mcu;
 mod boot;
+mod cache;
 mod clocks;
 mod gpio;
 mod handler_cell;
@@ -22,10 +24,11 @@ mod safety;
 mod sd_card;
 mod step_pins;
 mod step_timer;
+mod tcm;
 mod usb_console;
 
 use defmt_rtt as _;
-use embassy_executor::{InterruptExecutor, SendSpawner, Spawner};
+use embassy_executor::{Executor, InterruptExecutor, SendSpawner, Spawner};
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
 use embassy_time::{Duration, Ticker};
@@ -57,13 +60,26 @@ unsafe fn SPI6() {
     unsafe { IO.on_interrupt() }
 }
 
-#[embassy_executor::main]
-async fn main(_spawner: Spawner) -> ! {
-    boot::take_control();
+/// Reset's `main`: takes control from the bootloader (caches, TCMs, bus
+/// masters, clocks; directly called, so the image check sees it on the
+/// boot path), then runs [`run`] on the thread-mode executor.
+#[cortex_m_rt::entry]
+fn main() -> ! {
+    let tcm = boot::take_control();
+    static EXECUTOR: StaticCell<Executor> = StaticCell::new();
+    EXECUTOR
+        .init(Executor::new())
+        .run(|spawner| spawner.spawn(run(tcm).expect("spawned once")))
+}
+
+/// The firmware after take-over: watchdog, clocks, interrupts, USB, the
+/// card and the printer, then thread code's console loop.
+#[embassy_executor::task]
+async fn run(tcm: tcm::Loaded) -> ! {
     safety::start_watchdog();
     let p = embassy_stm32::init(clocks::config());
     priority::apply();
-    step_timer::start();
+    step_timer::start(tcm);
     defmt::info!("onechip: core at {} Hz", clocks::SYSCLK_HZ);
     let board = Board::take(p);
     interrupt::SPI6.set_priority(priority::IO_EXECUTOR);

@@ -56,8 +56,15 @@ impl StepTimer for Tim5 {
     }
 }
 
-/// The engine, once installed; it belongs to TIM5's handler.
+/// The engine, once installed; it belongs to TIM5's handler. In DTCM
+/// (zero wait states, never cached: [`crate::tcm`]), in the section
+/// start-up zeroes, which leaves it empty as `new` makes it.
+#[unsafe(link_section = ".dtcm_bss.engine")]
 static ENGINE: HandlerCell<BoardEngine> = HandlerCell::new();
+const _: () = assert!(
+    HandlerCell::<BoardEngine>::ZEROED_IS_NEW,
+    "ENGINE lives in memory zeroed at boot"
+);
 
 /// Runs `f` on the engine with interrupts masked; None before it is
 /// installed.
@@ -65,8 +72,9 @@ fn with_engine<R>(f: impl FnOnce(&mut BoardEngine) -> R) -> Option<R> {
     ENGINE.with(f)
 }
 
-/// Starts TIM5 counting from 0 and arms its first compare interrupt.
-pub fn start() {
+/// Starts TIM5 counting from 0 and arms its first compare interrupt;
+/// its handler runs from ITCM, hence the proof that the TCMs are loaded.
+pub fn start(_tcm: crate::tcm::Loaded) {
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM5>();
     let tim = pac::TIM5;
     tim.psc().write_value(0);
@@ -150,7 +158,10 @@ pub fn shutdown_reason() -> Option<onechip_sched::shutdown::Shutdown> {
     with_engine(|e| e.shutdown_reason()).flatten()
 }
 
+/// The stepper interrupt, run from ITCM with the engine's functions it
+/// calls (`cargo xtask image` checks both).
 #[interrupt]
+#[unsafe(link_section = ".itcm_text.TIM5")]
 fn TIM5() {
     // Only the compare-1 interrupt is enabled: clear every flag.
     pac::TIM5.sr().write_value(Default::default());

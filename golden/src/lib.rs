@@ -6,6 +6,7 @@
 //! (and line): a test or bench that reads golden data cannot do anything
 //! useful without it, and must not pass by finding nothing.
 
+use onechip_planner::move_sink::TrapqMove;
 use std::fmt::Display;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -181,6 +182,21 @@ impl TrapqAppend {
     /// Whether the move ends at rest (end velocity within 1e-9 mm/s of 0).
     pub fn ends_at_rest(&self) -> bool {
         self.end_v().abs() < 1e-9
+    }
+
+    /// The move as the planner hands it to step generation.
+    pub fn trapq_move(&self) -> TrapqMove {
+        TrapqMove {
+            print_time: self.print_time,
+            accel_t: self.accel_t,
+            cruise_t: self.cruise_t,
+            decel_t: self.decel_t,
+            start_pos: self.start_pos(),
+            axes_r: self.axes_r(),
+            start_v: self.start_v,
+            cruise_v: self.cruise_v,
+            accel: self.accel,
+        }
     }
 }
 

@@ -211,6 +211,10 @@ pub struct Summary {
     /// Each stepper on a secondary MCU: its name and every step's clock
     /// on that MCU, as sent (ticks).
     pub secondary_steps: Vec<(String, Vec<u64>)>,
+    /// Each secondary MCU's name and link counters at the end.
+    pub secondary_links: Vec<(String, onechip_protocol::transport::LinkStats)>,
+    /// When (wall clock) a secondary's shutdown or silence was noticed.
+    pub secondary_fault_at: Option<std::time::Instant>,
 }
 
 impl fmt::Display for Summary {
@@ -411,8 +415,12 @@ pub fn run_replaying<const L: usize>(
                 ran = true;
             }
             if ran {
-                // The MCU runs the steps as far as they have all been sent.
-                run.mcu.run_until(clock_at(run.session.sent_until(), freq));
+                if run.mcu.is_paced() {
+                    keep_ahead(run, freq);
+                } else {
+                    // The MCU runs the steps as far as they have all been sent.
+                    run.mcu.run_until(clock_at(run.session.sent_until(), freq));
+                }
                 if stopped(run.session, run.mcu, run.summary) {
                     break;
                 }
@@ -420,6 +428,28 @@ pub fn run_replaying<const L: usize>(
         }
         Ok(())
     })
+}
+
+/// Longest sleep between two runs of the session's timers while a paced
+/// run reads ahead, s.
+const READ_AHEAD_POLL: f64 = 0.1;
+
+/// In real time (secondary MCUs run in it): the next line is read once
+/// less than klippy's `BUFFER_TIME_HIGH` of steps is sent ahead of the
+/// clock, and the session's timers (lookahead flush, priming) run
+/// meanwhile, so steps reach every MCU well before they are due.
+fn keep_ahead<const L: usize>(run: &mut Run<'_, '_, L>, freq: f64) {
+    loop {
+        run.poll(&mut NoOutput);
+        let now = run.mcu.now();
+        let ahead = run.session.sent_until() - onechip_planner::toolhead::BUFFER_TIME_HIGH;
+        let until = clock_at(ahead, freq);
+        if now >= until || run.mcu.shutdown().is_some() {
+            return;
+        }
+        run.mcu
+            .run_until(until.min(now + (READ_AHEAD_POLL * freq) as u64));
+    }
 }
 
 /// A printer set up for a run, as its input drives it: the machine, the
@@ -659,6 +689,8 @@ pub(crate) fn with_session<const L: usize>(
         fan_speed: None,
         heat_wait: 0.0,
         secondary_steps: Vec::new(),
+        secondary_links: Vec::new(),
+        secondary_fault_at: None,
     };
     input(&mut Run {
         machine,
@@ -710,6 +742,13 @@ pub(crate) fn with_session<const L: usize>(
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
     mcu.flush_steps().map_err(write_error)?;
+    if let Some(secondaries) = mcu.secondaries() {
+        summary.secondary_fault_at = secondaries.failed_at();
+        let links = secondaries
+            .links()
+            .map(|(name, stats)| (name.to_string(), stats));
+        summary.secondary_links = links.collect();
+    }
     for (i, (stepper, log)) in machine.steppers.iter().zip(mcu.logs()).enumerate() {
         let sent = mcu
             .secondaries()

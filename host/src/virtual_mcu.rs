@@ -301,6 +301,11 @@ impl VirtualMcu {
         self.pace = Some(pace);
     }
 
+    /// True if virtual time follows the wall clock.
+    pub fn is_paced(&self) -> bool {
+        self.pace.is_some()
+    }
+
     /// Drives the steppers on secondary MCUs through `secondaries` from
     /// now on (virtual time must be paced: they run in real time).
     pub fn attach(&mut self, secondaries: Secondaries) {

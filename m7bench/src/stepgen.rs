@@ -1,7 +1,7 @@
-//! The step-generation benchmark shared by the `stepgen_*` programs: a
-//! golden case's G-code planned outside the measurement, then its moves
-//! streamed through the whole pipeline ([`Motion`]: queues, itersolve,
-//! input shaping / pressure advance, compression) as measured region 1.
+//! The step-generation benchmark of `stepgen_cases`: each golden case's
+//! G-code planned outside the measurement, then its moves streamed
+//! through the whole pipeline ([`Motion`]: queues, itersolve, input
+//! shaping / pressure advance, compression) as one measured region.
 
 use crate::{exit, measure, report};
 use core::fmt;
@@ -48,10 +48,11 @@ impl fmt::Write for Quiet {
     }
 }
 
-/// Counts steps and commands.
+/// Counts steps and commands (and the planner events they came from).
 struct Count {
     steps: u32,
     commands: u32,
+    events: usize,
 }
 
 impl StepSink for Count {
@@ -63,49 +64,69 @@ impl StepSink for Count {
     }
 }
 
-/// Plans `gcode` on the machine of `config` (named `config_name`), then
-/// measures its step generation and reports steps and commands as `label`.
-pub fn run(label: &str, config_name: &str, config: &str, gcode: &str) -> ! {
-    let Ok(config) = Config::parse(config_name, config) else {
-        panic!("config")
-    };
-    let Ok(machine) = Machine::from_config(&config) else {
-        panic!("machine")
-    };
-    let mut toolhead = machine.toolhead::<2048>();
-    let mut gcode_move = GcodeMove::default();
-    let mut planned = Planned(heapless::Vec::new());
-    for line in gcode.lines() {
-        if let Ok(l) = parse(line) {
-            let _ = gcode_move.execute(&l, &mut toolhead, &mut planned, &mut Quiet);
-        }
-    }
-    gcode_move.finish(&mut toolhead, &mut planned);
-    let events = &planned.0;
+/// One golden case: its config (named `config_name`) and G-code.
+pub struct Case {
+    /// Name in the report (the golden case's).
+    pub label: &'static str,
+    /// The config's file name (for messages).
+    pub config_name: &'static str,
+    /// The config's text.
+    pub config: &'static str,
+    /// The G-code printed.
+    pub gcode: &'static str,
+}
 
+/// Measures the step generation of each case in turn as region 1, 2, …
+/// (its G-code planned before the region), reports each region's steps
+/// and commands, and exits.
+pub fn run(cases: &[Case]) -> ! {
     measure(0, || 0u32);
-    let count = measure(1, || {
-        let mut motion = Motion::<256, 512>::new(&machine, FREQ, MAX_ERROR, [0.0; 3]);
-        let mut count = Count {
-            steps: 0,
-            commands: 0,
+    for (region, case) in (1..).zip(cases) {
+        let count = case.measure(region);
+        report(format_args!(
+            "{}: region {region} generates {} steps in {} commands from {} planner events",
+            case.label, count.steps, count.commands, count.events
+        ));
+    }
+    exit()
+}
+
+impl Case {
+    /// Plans the case, then measures its step generation as `region`.
+    fn measure(&self, region: u32) -> Count {
+        let Ok(config) = Config::parse(self.config_name, self.config) else {
+            panic!("config {}", self.config_name)
         };
-        let mut sink = motion.sink(&mut count);
-        for event in events {
-            match event {
-                Event::Toolhead(m) => sink.toolhead(m),
-                Event::Extruder(m) => sink.extruder(m),
-                Event::SetPosition(pos) => sink.set_position(*pos),
+        let Ok(machine) = Machine::from_config(&config) else {
+            panic!("machine {}", self.config_name)
+        };
+        let mut toolhead = machine.toolhead::<2048>();
+        let mut gcode_move = GcodeMove::default();
+        let mut planned = Planned(heapless::Vec::new());
+        for line in self.gcode.lines() {
+            if let Ok(l) = parse(line) {
+                let _ = gcode_move.execute(&l, &mut toolhead, &mut planned, &mut Quiet);
             }
         }
-        motion.finish(&mut count);
-        count
-    });
-    report(format_args!(
-        "{label}: region 1 generates {} steps in {} commands from {} planner events",
-        count.steps,
-        count.commands,
-        events.len()
-    ));
-    exit()
+        gcode_move.finish(&mut toolhead, &mut planned);
+        let events = &planned.0;
+        measure(region, || {
+            let mut motion = Motion::<256, 512>::new(&machine, FREQ, MAX_ERROR, [0.0; 3]);
+            let mut count = Count {
+                steps: 0,
+                commands: 0,
+                events: events.len(),
+            };
+            let mut sink = motion.sink(&mut count);
+            for event in events {
+                match event {
+                    Event::Toolhead(m) => sink.toolhead(m),
+                    Event::Extruder(m) => sink.extruder(m),
+                    Event::SetPosition(pos) => sink.set_position(*pos),
+                }
+            }
+            motion.finish(&mut count);
+            count
+        })
+    }
 }

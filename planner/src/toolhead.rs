@@ -730,6 +730,17 @@ impl<const N: usize> Toolhead<N> {
         self.last_step_gen_time = t;
     }
 
+    /// Steps have been generated up to print time `t` s (klippy's
+    /// `min_restart_time`): the first move after an idle queue starts no
+    /// earlier than `t` plus the step generator's scan delay, so that it
+    /// changes no step already generated (an input shaper's or pressure
+    /// advance's look-back would otherwise see it start in the past).
+    pub fn note_steps_generated(&mut self, t: f64) {
+        if t.is_finite() {
+            self.last_step_gen_time = self.last_step_gen_time.max(t);
+        }
+    }
+
     pub(crate) fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {
         self.flush_lookahead(sink);
         self.last_step_gen_time = self.last_step_gen_time.max(self.need_step_gen_time);

@@ -46,8 +46,6 @@ pub struct Deframer {
     buf: [u8; MAX_LEN],
     len: usize,
     need_sync: bool,
-    /// Bytes to drop before the buffer is used again (after a valid block).
-    consumed: usize,
 }
 
 impl Default for Deframer {
@@ -63,7 +61,6 @@ impl Deframer {
             buf: [0; MAX_LEN],
             len: 0,
             need_sync: false,
-            consumed: 0,
         }
     }
 
@@ -75,11 +72,6 @@ impl Deframer {
     }
 
     fn push_byte(&mut self, byte: u8, on_frame: &mut impl FnMut(Frame<'_>)) {
-        if self.consumed > 0 {
-            self.buf.copy_within(self.consumed..self.len, 0);
-            self.len -= self.consumed;
-            self.consumed = 0;
-        }
         if self.need_sync {
             if byte == SYNC {
                 self.need_sync = false;
@@ -92,7 +84,10 @@ impl Deframer {
         self.check(on_frame);
     }
 
-    /// Examines the buffered bytes after each arrival.
+    /// Examines the buffered bytes after each arrival: every complete
+    /// block among them goes out at once (after a resynchronisation the
+    /// buffer may hold several, and the last of them must not wait for
+    /// the next byte from the peer, which may never come).
     fn check(&mut self, on_frame: &mut impl FnMut(Frame<'_>)) {
         loop {
             match block::parse(&self.buf[..self.len]) {
@@ -102,8 +97,12 @@ impl Deframer {
                         seq: found.seq,
                         payload: found.payload,
                     });
-                    self.consumed = n;
-                    return;
+                    self.buf.copy_within(n..self.len, 0);
+                    self.len -= n;
+                    if self.len == 0 {
+                        return;
+                    }
+                    continue;
                 }
                 Err(BlockError::Incomplete) => {
                     // The sequence byte is checked as soon as it arrives.
@@ -163,6 +162,11 @@ pub struct HostLink {
     srtt_us: u32,
     rttvar_us: u32,
     rto_us: u32,
+    /// The timeout the round-trip estimate gives, before any backoff, µs.
+    base_rto_us: u32,
+    /// A nak behind a retransmission may still cut the timeout short
+    /// (once per acknowledgement that makes progress).
+    early_retry: bool,
     /// Unacknowledged blocks, oldest first, with their send times.
     sent: heapless::Deque<(heapless::Vec<u8, MAX_LEN>, u64), MAX_PENDING_BLOCKS>,
     sent_bytes: usize,
@@ -209,6 +213,8 @@ impl HostLink {
             srtt_us: 0,
             rttvar_us: 0,
             rto_us: MIN_RTO_US,
+            base_rto_us: MIN_RTO_US,
+            early_retry: true,
             sent: heapless::Deque::new(),
             sent_bytes: 0,
             last_ack_bytes: 0,
@@ -301,9 +307,28 @@ impl HostLink {
             } else if rseq > self.ignore_nak_seq && !self.sent.is_empty() {
                 // A repeated ack is a nak: retransmit now.
                 self.retransmit_at = Some(0);
+            } else if !self.sent.is_empty() && self.early_retry {
+                // A nak behind a retransmission: the peer may be answering
+                // blocks it had already (its acks will follow within a
+                // round trip), or a retransmitted block was lost again.
+                // klippy waits out its whole timeout; here the timeout is
+                // cut to a round trip, which the acks of the first case
+                // put off again; once until the peer takes a block (the
+                // retransmission itself may take longer than a round trip
+                // on the wire, and its naks must not retrigger it).
+                self.early_retry = false;
+                let soon = now_us.saturating_add(u64::from(self.nak_hold_off_us()));
+                self.retransmit_at = self.retransmit_at.map(|at| at.min(soon));
             }
         }
         true
+    }
+
+    /// How long a nak that may come from a retransmission's duplicates
+    /// waits for acks before it counts, µs: the smoothed round trip (it
+    /// includes the blocks' time on the wire), at least a millisecond.
+    fn nak_hold_off_us(&self) -> u32 {
+        (self.srtt_us / 8 * 8).clamp(1_000, self.rto_us)
     }
 
     /// True until the MCU has acknowledged anything: its sequence number
@@ -331,6 +356,15 @@ impl HostLink {
             acked_sent_at = Some(sent_at);
         }
         self.receive_seq = rseq;
+        if acked_sent_at.is_some() {
+            // The peer takes blocks again: a timeout's backoff ends. (klippy
+            // keeps it until a round trip can be timed, which under steady
+            // damage never comes: blocks sent after a retransmission that
+            // lost one are answered by naks it ignores, so each timeout
+            // doubles the last, to seconds, and steps arrive too late.)
+            self.rto_us = self.base_rto_us;
+            self.early_retry = true;
+        }
         if self.rtt_sample_seq != 0 && rseq > self.rtt_sample_seq {
             if let Some(sent_at) = acked_sent_at {
                 self.sample_rtt(now_us.saturating_sub(sent_at));
@@ -353,10 +387,11 @@ impl HostLink {
             self.srtt_us = ((7 * u64::from(self.srtt_us) + u64::from(d)) / 8) as u32;
         }
         let rttvar4 = self.rttvar_us.saturating_mul(4).max(1_000);
-        self.rto_us = self
+        self.base_rto_us = self
             .srtt_us
             .saturating_add(rttvar4)
             .clamp(MIN_RTO_US, MAX_RTO_US);
+        self.rto_us = self.base_rto_us;
     }
 
     /// If a retransmission is due, writes a sync byte and every
@@ -519,6 +554,22 @@ mod tests {
     }
 
     #[test]
+    fn blocks_found_behind_a_damaged_length_go_out_without_waiting() {
+        // A damaged length byte makes the deframer wait for a long block;
+        // the acks behind it are complete once those bytes are in, and
+        // all of them must go out then, not one per later byte.
+        let mut stream = block_bytes(1, b"");
+        stream[0] = MAX_LEN as u8;
+        let acks: Vec<u8> = (2..14).flat_map(|seq| block_bytes(seq, b"")).collect();
+        stream.extend(&acks);
+        let blocks: Vec<u8> = frames(&stream)
+            .iter()
+            .filter_map(|f| f.as_ref().ok().map(|(seq, _)| *seq))
+            .collect();
+        assert_eq!(blocks, (2..14).collect::<Vec<u8>>());
+    }
+
+    #[test]
     fn deframer_recovers_from_a_corrupted_block() {
         let mut bad = block_bytes(1, b"hello");
         bad[3] ^= 0x40;
@@ -569,6 +620,41 @@ mod tests {
         assert_eq!(&out[..n], &expected[..]);
         assert_eq!(host.rto_us(), 2 * MIN_RTO_US);
         assert_eq!(host.stats.timeouts, 1);
+    }
+
+    #[test]
+    fn a_timeouts_backoff_ends_when_the_peer_takes_blocks_again() {
+        let mut host = HostLink::default();
+        host.send(b"one", 0).expect("room");
+        host.send(b"two", 0).expect("room");
+        let mut out = [0u8; 1 + MAX_PENDING_BLOCKS * MAX_LEN];
+        let mut now = 0;
+        for _ in 0..3 {
+            now += u64::from(host.rto_us());
+            host.poll(now, &mut out).expect("due");
+        }
+        assert_eq!(host.rto_us(), 8 * MIN_RTO_US);
+        // The first block is acknowledged (the second was lost again).
+        host.receive(&block_bytes(2, b""), now + 1, |_| {});
+        assert_eq!(host.unacknowledged(), 1);
+        assert_eq!(host.rto_us(), MIN_RTO_US);
+    }
+
+    #[test]
+    fn a_nak_behind_a_timeout_retransmits_after_a_round_trip_not_a_timeout() {
+        let mut host = HostLink::default();
+        for p in [b"a", b"b", b"c"] {
+            host.send(p, 0).expect("room");
+        }
+        let mut out = [0u8; 1 + MAX_PENDING_BLOCKS * MAX_LEN];
+        let now = u64::from(MIN_RTO_US);
+        host.poll(now, &mut out).expect("timeout");
+        // The first block gets through, the second is lost again: an ack,
+        // then the peer's nak for the third.
+        host.receive(&block_bytes(2, b""), now + 100, |_| {});
+        host.receive(&block_bytes(2, b""), now + 200, |_| {});
+        assert_eq!(host.poll(now + 200 + 999, &mut out), None);
+        assert!(host.poll(now + 200 + 1_000, &mut out).is_some());
     }
 
     #[test]

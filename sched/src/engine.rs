@@ -12,6 +12,11 @@
 //! releases commands and keeps the 64-bit clock. A step costs the pulse,
 //! the next interval and one comparison to keep the list in order;
 //! everything else happens once per move or in housekeeping.
+//!
+//! With the `itcm` feature, the functions the interrupt calls out of line
+//! are linked into the `.itcm_text` section (the firmware runs them from
+//! the Cortex-M7's zero-wait-state instruction TCM; `cargo xtask image`
+//! checks that every function the interrupt reaches is there).
 
 use crate::clock::{Extender, is_before};
 use crate::endstop::{Check, Endstop};
@@ -235,6 +240,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// [`Self::on_timer`] when a wake was close or the engine idle.
     #[cold]
     #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     fn on_timer_rest<T: StepTimer>(&mut self, timer: &mut T) {
         loop {
             let now = timer.count();
@@ -267,6 +273,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// first in line, its place in the list.
     #[cold]
     #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     fn run_on(&mut self, now: u32, mut timer: usize, mut clock: u32) -> Option<u32> {
         loop {
             match self.slots.get(timer) {
@@ -316,6 +323,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// clock `at`: it goes on with its next move or leaves the list, and
     /// as its queue now has room, housekeeping may release more.
     #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     fn move_ended(&mut self, index: usize, at: u32) {
         let slot = &mut self.slots[index];
         match slot.stepper.load(&mut slot.pins, at) {
@@ -329,6 +337,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
 
     /// Puts timer `timer` in the list at wake `at`, in order.
     #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     fn schedule(&mut self, timer: usize, at: u32) {
         self.unqueue(timer);
         let at_k = self.order[..self.queued]
@@ -358,6 +367,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// itself for the next release or the clock's next reading. Returns
     /// true when nothing is queued or held.
     #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     fn housekeeping(&mut self, now: u32) -> bool {
         let now64 = self.clock.extend(now);
         self.housekept = now;
@@ -449,6 +459,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     }
 
     /// Stops every stepper and drops every command; the first reason stays.
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     pub fn stop(&mut self, reason: Shutdown) {
         self.shutdown.get_or_insert(reason);
         self.stop_watching();

@@ -154,6 +154,7 @@ impl<const M: usize> Stepper<M> {
     /// move the active one, sets the direction pin if it changes, and
     /// returns the move's first step clock (None: idle).
     #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     pub fn load(&mut self, pins: &mut impl StepPins, last: u32) -> Option<u32> {
         self.last = last;
         let m = self.queue.pop_front()?;

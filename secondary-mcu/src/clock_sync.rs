@@ -145,6 +145,13 @@ impl ClockSync {
         (c0 + (time - t0) * freq).max(0.0) as u64
     }
 
+    /// The host time (s) at which the MCU's clock is estimated to read
+    /// `clock` (ticks, 64-bit).
+    pub fn time_at(&self, clock: u64) -> f64 {
+        let (t0, c0, freq) = self.estimate;
+        t0 + (clock as f64 - c0) / freq
+    }
+
     /// The estimated clock frequency, Hz.
     pub fn estimated_freq(&self) -> f64 {
         self.estimate.2

@@ -17,12 +17,30 @@ use core::fmt;
 use onechip_protocol::block::{MAX_PAYLOAD, MIN_LEN};
 use onechip_protocol::codec::Decoded;
 use onechip_protocol::dictionary::Dictionary;
-use onechip_protocol::transport::HostLink;
+use onechip_protocol::transport::{HostLink, LinkStats};
 
 /// Longest message queued, bytes (a `queue_step` is at most 17).
 pub const MAX_MESSAGE: usize = 32;
 /// Messages the outbox holds before [`Full`].
 pub const OUTBOX: usize = 128;
+/// Sync bytes written ahead of a retransmission: one block's worth, so
+/// that an MCU waiting for the rest of a block whose length byte was
+/// damaged gets its bytes, finds the CRC wrong and resynchronises before
+/// the retransmitted blocks come (an MCU ignores leading sync bytes).
+pub const RETRANSMIT_PADDING: usize = onechip_protocol::block::MAX_LEN;
+/// Bytes [`Connection::poll`] may write: padding, a sync byte and every
+/// unacknowledged block.
+pub const POLL_OUT: usize = RETRANSMIT_PADDING
+    + 1
+    + onechip_protocol::transport::MAX_PENDING_BLOCKS * onechip_protocol::block::MAX_LEN;
+/// Longest block payload while the link is noisy, bytes: a block of
+/// this size still gets through a link that damages one byte in a hundred
+/// four times in five, where a full block (64 bytes) gets through half
+/// the time, and every loss costs a retransmission of all blocks behind
+/// it.
+const NOISY_PAYLOAD: usize = 16;
+/// How long the link counts as noisy after a retransmission, s.
+const NOISY_HOLD: f64 = 2.0;
 /// `get_clock`s before the config phase, as klippy's connect.
 const START_SAMPLES: u8 = 8;
 /// Time between the start samples, s.
@@ -137,6 +155,9 @@ pub struct Connection<'d> {
     clock_query_sent: Option<f64>,
     next_clock_query: f64,
     outbox: heapless::Deque<Queued, OUTBOX>,
+    /// Until this host time (s) blocks are kept small: the link had to
+    /// retransmit.
+    noisy_until: f64,
 }
 
 impl<'d> Connection<'d> {
@@ -151,6 +172,7 @@ impl<'d> Connection<'d> {
             clock_query_sent: None,
             next_clock_query: f64::INFINITY,
             outbox: heapless::Deque::new(),
+            noisy_until: f64::NEG_INFINITY,
         }
     }
 
@@ -167,6 +189,12 @@ impl<'d> Connection<'d> {
     /// The same, to re-fit its print time line.
     pub fn clock_mut(&mut self) -> Option<&mut ClockSync> {
         self.sync.as_mut()
+    }
+
+    /// The link's counters: bytes written and retransmitted, timeouts
+    /// and naks.
+    pub fn link_stats(&self) -> LinkStats {
+        self.link.stats
     }
 
     /// Messages queued and not yet sent.
@@ -228,17 +256,20 @@ impl<'d> Connection<'d> {
 
     /// Writes into `out` what must go to the MCU now: retransmissions,
     /// questions of the start-up, clock queries and queued messages;
-    /// returns the length. `out` needs `1 + MAX_PENDING_BLOCKS × MAX_LEN`
-    /// bytes. Reports a lost link through `on_event`.
+    /// returns the length. `out` needs [`POLL_OUT`] bytes. Reports a lost
+    /// link through `on_event`.
     pub fn poll(
         &mut self,
         now: f64,
         out: &mut [u8],
         mut on_event: impl FnMut(Event<'_, 'd>),
     ) -> usize {
-        if let Some(n) = self.link.poll(micros(now), out) {
+        let pad = RETRANSMIT_PADDING.min(out.len());
+        if let Some(n) = self.link.poll(micros(now), &mut out[pad..]) {
             self.clock_query_sent = None;
-            return n;
+            self.noisy_until = now + NOISY_HOLD;
+            out[..pad].fill(onechip_protocol::block::SYNC);
+            return pad + n;
         }
         let question = match self.phase {
             Phase::Uptime => Some("get_uptime"),
@@ -302,13 +333,18 @@ impl<'d> Connection<'d> {
     /// window allows.
     fn write_queued(&mut self, now: f64, out: &mut [u8]) -> usize {
         let clock = self.sync.as_ref().map_or(0, |s| s.clock_at(now));
+        let limit = if now < self.noisy_until {
+            NOISY_PAYLOAD
+        } else {
+            MAX_PAYLOAD
+        };
         let mut written = 0;
         loop {
             // The messages due at the front that fill one block.
             let (mut count, mut len) = (0, 0);
             for q in self.outbox.iter() {
                 let n = usize::from(q.len);
-                if q.min_clock > clock || len + n > MAX_PAYLOAD {
+                if q.min_clock > clock || len + n > limit {
                     break;
                 }
                 (count, len) = (count + 1, len + n);

@@ -15,6 +15,10 @@ const IDENTIFY_RESPONSE_ID: i64 = 0;
 /// first one is lost whenever the MCU's block sequence is not the one a
 /// new link starts with (klippy retries its commands the same way).
 pub const RETRY_TIME: f64 = 0.25;
+/// Seconds after a question's acknowledgement without its answer (lost
+/// on the way) before it is asked again; doubled at each miss up to
+/// [`RETRY_TIME`], as klippy's retried commands wait.
+const LOST_ANSWER_RETRY: f64 = 0.010;
 
 /// Host seconds as the link's microseconds.
 pub(crate) fn micros(now: f64) -> u64 {
@@ -29,6 +33,11 @@ pub struct Identify<'b> {
     ask_at: f64,
     /// Offsets asked so far (for diagnostics).
     pub questions: u32,
+    /// A question is out and its answer not in.
+    waiting: bool,
+    /// Wait before asking again once a question is acknowledged without
+    /// its answer, s.
+    lost_retry: f64,
 }
 
 impl<'b> Identify<'b> {
@@ -40,6 +49,8 @@ impl<'b> Identify<'b> {
             fetcher: Fetcher::new(out),
             ask_at: 0.0,
             questions: 0,
+            waiting: false,
+            lost_retry: LOST_ANSWER_RETRY,
         }
     }
 
@@ -67,6 +78,7 @@ impl<'b> Identify<'b> {
         }
         self.ask_at = now + RETRY_TIME;
         self.questions += 1;
+        self.waiting = true;
         match self.link.send(&payload[..len], micros(now)) {
             Ok(block) => {
                 let n = block.len().min(out.len());
@@ -99,6 +111,16 @@ impl<'b> Identify<'b> {
                 Err(e) => Err(e),
             };
         });
+        if *ask_at == now {
+            // Answered: the next question goes at once.
+            self.waiting = false;
+            self.lost_retry = LOST_ANSWER_RETRY;
+        } else if self.waiting && self.link.unacknowledged() == 0 {
+            // The MCU took the question, and its answer was lost.
+            self.waiting = false;
+            self.ask_at = self.ask_at.min(now + self.lost_retry);
+            self.lost_retry = (2.0 * self.lost_retry).min(RETRY_TIME);
+        }
         result
     }
 

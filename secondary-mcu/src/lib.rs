@@ -6,6 +6,8 @@
 //! - [`connection`]: clock sync start-up, config phase, queued commands;
 //! - [`clock_sync`]: the MCU's clock against host (print) time;
 //! - [`crc32`]: the checksum of the config commands;
+//! - [`trsync`]: homing across MCUs (klippy's trsync and trigger
+//!   dispatch);
 //! - [`step_commands`]: step generation's commands as `queue_step` /
 //!   `set_next_step_dir` messages of a given MCU's dictionary, and back.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -15,3 +17,4 @@ pub mod connection;
 pub mod crc32;
 pub mod identify;
 pub mod step_commands;
+pub mod trsync;

@@ -11,14 +11,11 @@ use onechip_planner::move_sink::{MoveSink, TrapqMove};
 use onechip_stepgen::compress::StepCommand;
 use onechip_stepgen::motion::{Motion, StepSink};
 
-#[path = "../tests/common/mod.rs"]
-mod common;
-
 /// A case's trapq appends in time order: (is_extruder, move).
 fn moves(case: &str) -> Vec<(bool, TrapqMove)> {
     let mut out: Vec<(bool, TrapqMove)> = onechip_golden::moves(case)
         .iter()
-        .map(|m| (m.trapq == Trapq::Extruder, common::trapq_move(m)))
+        .map(|m| (m.trapq == Trapq::Extruder, m.trapq_move()))
         .collect();
     out.sort_by(|a, b| a.1.print_time.total_cmp(&b.1.print_time));
     out

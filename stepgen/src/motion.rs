@@ -12,7 +12,7 @@ use crate::compress::{Compressor, StepCommand};
 use crate::extruder::{self, PressureAdvance};
 use crate::segment::Segment;
 use crate::shaper::StepperShaper;
-use crate::solver::{AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
+use crate::solver::{AlongDeltaSegment, AlongSegment, GENERATION_WINDOW, Margins, StepSolver};
 use crate::trapq::Trapq;
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::kinematics::calc_position;
@@ -136,6 +136,22 @@ impl<const Q: usize> Channel<Q> {
                         AlongSegment {
                             base: dot(seg.start_pos),
                             ratio: dot(seg.axes_r),
+                            start_v: seg.start_v,
+                            half_accel: seg.half_accel,
+                        }
+                    };
+                    solver.generate_until(segs, *margins, until, position, &mut emit);
+                }
+                None if !shaper.is_active()
+                    && let StepperKinematics::DeltaTower { arm2, tower } = *kin =>
+                {
+                    let position = |i: usize| {
+                        let seg: &Segment = &segs[i];
+                        let [x, y, z] = seg.start_pos;
+                        AlongDeltaSegment {
+                            arm2,
+                            start: [x - tower[0], y - tower[1], z],
+                            axes_r: seg.axes_r,
                             start_v: seg.start_v,
                             half_accel: seg.half_accel,
                         }
@@ -388,6 +404,17 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             ch.compressor
                 .flush(&mut |cmd, clock| sink.command(i, cmd, clock));
         }
+    }
+
+    /// Print time up to which some stepper's steps are generated, s
+    /// (negative infinity before any): a move starting before this less the
+    /// look-back would change steps already generated.
+    pub fn generated_until(&self) -> f64 {
+        self.channels
+            .iter()
+            .map(|ch| ch.solver.generated_until())
+            .filter(|t| t.is_finite())
+            .fold(f64::NEG_INFINITY, f64::max)
     }
 
     /// Print time before which every step is due has gone to the sink, s:

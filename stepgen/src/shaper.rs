@@ -62,10 +62,19 @@ impl StepperShaper {
         i: usize,
         kin: StepperKinematics,
     ) -> ShapedSegment<'s> {
-        let mut taps = [[Tap::default(); MAX_PULSES]; 2];
+        // Built in place: the segment is large (its taps and pieces).
+        let mut shaped = ShapedSegment {
+            segs,
+            i,
+            kin,
+            taps: [[Tap::default(); MAX_PULSES]; 2],
+            lens: [0, 1].map(|a| self.axes[a].map_or(0, |p| p.len)),
+            pieces: [Piece::default(); MAX_PIECES],
+            pieces_len: 0,
+        };
         for (axis, pulses) in self.axes.iter().enumerate() {
             if let Some(p) = pulses {
-                for (k, tap) in taps[axis].iter_mut().enumerate().take(p.len) {
+                for (k, tap) in shaped.taps[axis].iter_mut().enumerate().take(p.len) {
                     // Walk to the segment holding the impulse at t = 0.
                     let (mut j, mut offset) = (i, p.t[k]);
                     while offset < 0.0 && j > 0 {
@@ -84,15 +93,6 @@ impl StepperShaper {
                 }
             }
         }
-        let mut shaped = ShapedSegment {
-            segs,
-            i,
-            kin,
-            taps,
-            lens: [0, 1].map(|a| self.axes[a].map_or(0, |p| p.len)),
-            pieces: [Piece::default(); MAX_PIECES],
-            pieces_len: 0,
-        };
         if let Some(w) = kin.linear_weights() {
             shaped.pieces_len = shaped.build_pieces(w).unwrap_or(0);
         }

@@ -21,13 +21,11 @@ use onechip_stepgen::segment::{Segment, fill_gaps, segments};
 use onechip_stepgen::shaper::StepperShaper;
 use onechip_stepgen::solver::{Margins, PositionFn, StepSolver};
 
-mod common;
-
 /// The golden trapq entries of `trapq`.
 fn moves(case: &str, trapq: Trapq) -> Vec<TrapqMove> {
     trapq_moves(case, trapq)
         .iter()
-        .map(common::trapq_move)
+        .map(onechip_golden::TrapqAppend::trapq_move)
         .collect()
 }
 

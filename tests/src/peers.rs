@@ -40,6 +40,18 @@ impl Peer {
     ///
     /// If the peer cannot be started: the test cannot run.
     pub fn start(firmware: Firmware, test: &str) -> Self {
+        Self::start_with_inputs(firmware, test, 0)
+    }
+
+    /// [`Self::start`] with every input pin reading `level` (the Linux
+    /// MCU's fake GPIO; the AVR's inputs always read 0): an endstop that
+    /// triggers at that level is pressed from the start, so it triggers
+    /// as soon as its `endstop_home` starts sampling.
+    ///
+    /// # Panics
+    ///
+    /// As [`Self::start`].
+    pub fn start_with_inputs(firmware: Firmware, test: &str, level: u8) -> Self {
         let dir = std::env::temp_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("peer folder");
@@ -48,7 +60,9 @@ impl Peer {
         let mut cmd = match firmware {
             Firmware::Linux => {
                 let mut c = Command::new(peers_dir().join("start-linux-mcu"));
-                c.arg(&path).env("FAKEGPIO_LOG", &pin_log);
+                c.arg(&path)
+                    .env("FAKEGPIO_LOG", &pin_log)
+                    .env("FAKEGPIO_IN", level.to_string());
                 // Real-time priority keeps its steps punctual; it needs root.
                 // SAFETY: geteuid has no preconditions.
                 if unsafe { libc::geteuid() } == 0 {
@@ -65,6 +79,17 @@ impl Peer {
         let child = cmd
             .spawn()
             .unwrap_or_else(|e| panic!("{}: {e} (set ONECHIP_PEERS)", peers_dir().display()));
+        if firmware == Firmware::Avr {
+            // The simulator keeps the AVR's time only while it gets the
+            // CPU: at real-time priority when allowed, as the Linux peer
+            // runs with `-r` (else a loaded machine makes its clock lag
+            // and its trsync reports come late).
+            let param = libc::sched_param { sched_priority: 1 };
+            if let Ok(pid) = i32::try_from(child.id()) {
+                // SAFETY: a valid sched_param, for a process we started.
+                unsafe { libc::sched_setscheduler(pid, libc::SCHED_FIFO, &param) };
+            }
+        }
         let start = Instant::now();
         while !path.exists() {
             assert!(
@@ -81,9 +106,59 @@ impl Peer {
         }
     }
 
+    /// The firmware's own process (the Linux MCU, or the simulator): the
+    /// launcher's child if it has one, else the launcher itself (the AVR
+    /// launcher `exec`s the simulator).
+    pub fn mcu_pid(&self) -> i32 {
+        let launcher = i32::try_from(self.child.id()).unwrap_or(0);
+        let children = format!("/proc/{launcher}/task/{launcher}/children");
+        std::fs::read_to_string(children)
+            .ok()
+            .and_then(|c| c.split_whitespace().next()?.parse().ok())
+            .unwrap_or(launcher)
+    }
+
+    /// Sends `signal` to the firmware's process (SIGKILL: it dies as a
+    /// board pulled off its cable; SIGSTOP/SIGCONT: it freezes and goes
+    /// on, as a board whose clock stopped).
+    pub fn signal_mcu(&self, signal: i32) {
+        // SAFETY: signalling a process this peer started.
+        unsafe { libc::kill(self.mcu_pid(), signal) };
+    }
+
+    /// Where the stepper on pins `step`/`dir` went, by the pin log: +1 for
+    /// each rising step edge while `dir` is high, −1 while low.
+    pub fn position(&self, step: &str, dir: &str) -> i64 {
+        let mut forward = false;
+        let mut position = 0;
+        for (name, high, rising) in pin_changes(&self.pin_log) {
+            if name == dir {
+                forward = high;
+            } else if name == step && rising {
+                position += if forward { 1 } else { -1 };
+            }
+        }
+        position
+    }
+
+    /// Waits until `pin` has made `count` rising edges, up to `timeout`;
+    /// false if it did not.
+    pub fn wait_for_edges(&self, pin: &str, count: usize, timeout: Duration) -> bool {
+        let start = Instant::now();
+        while start.elapsed() < timeout {
+            if self.rising_edges(pin).len() >= count {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        false
+    }
+
     /// Stops the peer at once (SIGKILL to the launcher's MCU process is
     /// not used: SIGTERM stops it and removes the device).
     pub fn stop(&mut self) {
+        // A frozen MCU would hold the signal until it runs again.
+        self.signal_mcu(libc::SIGCONT);
         if let Ok(pid) = i32::try_from(self.child.id()) {
             // SAFETY: signalling our own child.
             unsafe { libc::kill(pid, libc::SIGTERM) };
@@ -107,27 +182,94 @@ impl Drop for Peer {
     }
 }
 
+/// The calling thread at real-time priority (`SCHED_FIFO`, one level
+/// above the AVR simulator's) while this lives, if the process may (root): a host serving
+/// real-time peers under deadlines (trsync's 25 ms) on a loaded machine,
+/// as the Linux peer runs with `-r`.
+pub struct RealtimeGuard {
+    raised: bool,
+}
+
+impl RealtimeGuard {
+    /// Raises the calling thread's priority (nothing if not allowed).
+    pub fn new() -> Self {
+        let param = libc::sched_param { sched_priority: 2 };
+        // SAFETY: a valid sched_param for the calling thread (pid 0).
+        let raised = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } == 0;
+        Self { raised }
+    }
+
+    /// True if the thread runs at real-time priority.
+    pub fn is_raised(&self) -> bool {
+        self.raised
+    }
+}
+
+impl Default for RealtimeGuard {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Drop for RealtimeGuard {
+    fn drop(&mut self) {
+        if self.raised {
+            let param = libc::sched_param { sched_priority: 0 };
+            // SAFETY: as in `new`.
+            unsafe { libc::sched_setscheduler(0, libc::SCHED_OTHER, &param) };
+        }
+    }
+}
+
 /// Rising edges of `pin` in a pin log, s.
 fn edges(log: &Path, pin: &str) -> Vec<f64> {
     let text = std::fs::read_to_string(log).unwrap_or_default();
-    let mut last = None;
-    let mut times = Vec::new();
-    for line in text.lines().filter(|l| !l.starts_with('#')) {
-        let words: Vec<&str> = line.split_whitespace().collect();
-        // Linux: "<ns> gpiochipN/gpioM <v>"; AVR: "<cycle> <clock> P<x><n> <v>".
-        let (time, name, value) = match words[..] {
-            [ns, name, v] => (ns.parse::<f64>().unwrap_or(0.0) * 1e-9, name, v),
-            [_, clock, name, v] => (clock.parse::<f64>().unwrap_or(0.0) / 16e6, name, v),
-            _ => continue,
-        };
-        if name != pin {
-            continue;
-        }
-        let high = value == "1";
-        if high && last != Some(true) {
-            times.push(time);
-        }
-        last = Some(high);
-    }
-    times
+    changes(&text)
+        .filter(|c| c.name == pin && c.rising)
+        .map(|c| c.time)
+        .collect()
+}
+
+/// Every change of every pin in a pin log: name, level, rising edge.
+fn pin_changes(log: &Path) -> Vec<(String, bool, bool)> {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    changes(&text)
+        .map(|c| (c.name.to_string(), c.high, c.rising))
+        .collect()
+}
+
+/// One line of a pin log.
+struct Change<'t> {
+    /// When, s (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16
+    /// MHz).
+    time: f64,
+    name: &'t str,
+    high: bool,
+    /// Low (or unknown) before, high now.
+    rising: bool,
+}
+
+/// The pin log's lines as changes (a write of the level a pin already
+/// has is no edge).
+fn changes(text: &str) -> impl Iterator<Item = Change<'_>> {
+    let mut levels: std::collections::HashMap<&str, bool> = std::collections::HashMap::new();
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(move |line| {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            // Linux: "<ns> gpiochipN/gpioM <v>"; AVR: "<cycle> <clock> P<x><n> <v>".
+            let (time, name, value) = match words[..] {
+                [ns, name, v] => (ns.parse::<f64>().ok()? * 1e-9, name, v),
+                [_, clock, name, v] => (clock.parse::<f64>().ok()? / 16e6, name, v),
+                _ => return None,
+            };
+            let high = value == "1";
+            let was = levels.insert(name, high);
+            Some(Change {
+                time,
+                name,
+                high,
+                rising: high && was != Some(true),
+            })
+        })
 }

@@ -18,6 +18,7 @@ use onechip_planner::gcode::parse;
 use onechip_planner::gcode_move::GcodeMove;
 use onechip_planner::machine::Machine;
 use onechip_planner::move_sink::{HomingEnd, HomingMove, MoveSink, TrapqMove};
+use onechip_secondary_mcu::step_commands::StepCommandEncoder;
 use onechip_stepgen::compress::{StepCommand, expand};
 use onechip_stepgen::motion::{Motion, StepSink};
 
@@ -63,12 +64,13 @@ impl MoveSink for Planned {
     }
 }
 
-/// Each stepper's commands.
-struct Commands(Vec<Vec<StepCommand>>);
+/// Each stepper's commands, with the 64-bit clock of each one's first
+/// step (a direction change: of the step before it).
+struct Commands(Vec<Vec<(StepCommand, u64)>>);
 
 impl StepSink for Commands {
-    fn command(&mut self, index: usize, cmd: StepCommand, _clock: u64) {
-        self.0[index].push(cmd);
+    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
+        self.0[index].push((cmd, clock));
     }
 }
 
@@ -80,28 +82,17 @@ fn machine(case: &str) -> Machine<'static> {
     Machine::from_config(&config).unwrap_or_else(|e| panic!("{case}: {e}"))
 }
 
-/// A golden move (a `moves.tsv` line).
-fn trapq_move(m: &TrapqAppend) -> TrapqMove {
-    TrapqMove {
-        print_time: m.print_time,
-        accel_t: m.accel_t,
-        cruise_t: m.cruise_t,
-        decel_t: m.decel_t,
-        start_pos: m.start_pos(),
-        axes_r: m.axes_r(),
-        start_v: m.start_v,
-        cruise_v: m.cruise_v,
-        accel: m.accel,
-    }
-}
-
 /// The case's planned moves in the order klippy appended them. moves.tsv
 /// has no set_position nor homing: a case that homes is planned again here
 /// (the planner matches klippy's moves), with klippy's start times (a
 /// homing move's times moved as its segments' are).
 fn events(case: &str) -> Vec<Event> {
-    let golden =
-        |trapq| -> Vec<TrapqMove> { trapq_moves(case, trapq).iter().map(trapq_move).collect() };
+    let golden = |trapq| -> Vec<TrapqMove> {
+        trapq_moves(case, trapq)
+            .iter()
+            .map(TrapqAppend::trapq_move)
+            .collect()
+    };
     let (toolhead, extruder) = (golden(Trapq::Toolhead), golden(Trapq::Extruder));
     let program = onechip_golden::gcode(case);
     if !program.lines().any(|l| l.trim_start().starts_with("G28")) {
@@ -148,10 +139,10 @@ fn events(case: &str) -> Vec<Event> {
     planned.0
 }
 
-/// Each stepper's commands for `case`, its moves streamed through step
-/// generation with the board's queue sizes, steps generated after every
-/// move.
-fn commands(case: &str) -> Vec<Vec<StepCommand>> {
+/// Each stepper's commands for `case` (with their first step's clock), its
+/// moves streamed through step generation with the board's queue sizes,
+/// steps generated after every move.
+fn commands(case: &str) -> Vec<Vec<(StepCommand, u64)>> {
     let machine = machine(case);
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u32;
@@ -187,10 +178,11 @@ fn commands(case: &str) -> Vec<Vec<StepCommand>> {
 
 /// The commands run as the MCU runs them give klippy's steps, each within
 /// max_error (as the MCU's 32-bit clock sees it).
-fn check_steps(case: &str, stepper: &str, cmds: &[StepCommand]) {
+fn check_steps(case: &str, stepper: &str, cmds: &[(StepCommand, u64)]) {
     let max_error = summary_value(case, "max_error_ticks") as u32;
+    let cmds: Vec<StepCommand> = cmds.iter().map(|c| c.0).collect();
     let mut ours = Vec::new();
-    expand(cmds, |clock, dir| ours.push((clock, dir)));
+    expand(&cmds, |clock, dir| ours.push((clock, dir)));
     let golden = onechip_golden::steps(case, stepper);
     assert_eq!(ours.len(), golden.len(), "{case} {stepper}: step count");
     for (i, (o, g)) in ours.iter().zip(&golden).enumerate() {
@@ -244,4 +236,108 @@ fn no_more_step_commands_than_klipper_with_the_board_queues() {
         ours_total as f64 / klippy_total as f64
     );
     assert!(worse.is_empty(), "more commands than klippy: {worse:#?}");
+}
+
+/// Klipper's commands for `stepper` of `case` (`queue-<stepper>.txt`),
+/// with the clock of each one's first step (a direction change: of the
+/// step before it).
+fn klippy_commands(case: &str, stepper: &str) -> Vec<(StepCommand, u64)> {
+    let text = onechip_golden::read_string(format!("{case}/queue-{stepper}.txt"));
+    let mut clock = 0u64;
+    let mut out = Vec::new();
+    for line in text.lines().filter(|l| !l.starts_with('#')) {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let number = |i: usize| -> i64 {
+            let word = words
+                .get(i)
+                .unwrap_or_else(|| panic!("{case} {stepper}: {line}"));
+            word.parse()
+                .unwrap_or_else(|e| panic!("{case} {stepper}: {line}: {e}"))
+        };
+        let cmd = match words.first().copied() {
+            Some("set_next_step_dir") => StepCommand::Dir(number(2) != 0),
+            Some("queue_step") => StepCommand::Steps {
+                interval: number(2) as u32,
+                count: number(3) as u16,
+                add: number(4) as i16,
+            },
+            _ => panic!("{case} {stepper}: unexpected {line}"),
+        };
+        out.push((cmd, clock));
+        if let StepCommand::Steps {
+            interval,
+            count,
+            add,
+        } = cmd
+        {
+            // Its first step comes an interval after the last one, its
+            // last one `count` intervals after, each `add` longer.
+            out.last_mut().expect("pushed").1 += u64::from(interval);
+            let (n, add) = (i64::from(count), i64::from(add));
+            clock = (clock as i64 + i64::from(interval) * n + add * n * (n - 1) / 2) as u64;
+        }
+    }
+    out
+}
+
+/// The most message bytes the commands (clock, bytes) need in any second
+/// of MCU clock (`freq` Hz), by their first step's clock, in windows 0.1 s
+/// apart: bytes per second.
+fn peak_rate(mut sent: Vec<(u64, usize)>, freq: f64) -> usize {
+    sent.sort_unstable();
+    let second = freq as u64;
+    let step = second / 10;
+    let end = sent.last().map_or(0, |s| s.0);
+    (0..=end / step)
+        .map(|k| {
+            let from = k * step;
+            sent.iter()
+                .filter(|(c, _)| (from..from + second).contains(c))
+                .map(|(_, b)| b)
+                .sum()
+        })
+        .max()
+        .unwrap_or(0)
+}
+
+/// The AVR is driven over a 250000-baud link (25,000 bytes/s): the step
+/// commands of the golden atmega2560 case, encoded with its dictionary as
+/// our host role sends them, take no more bytes than Klipper's, in all and
+/// in their busiest second (by the clock of each command's first step),
+/// which needs less than half the link.
+#[test]
+fn the_avr_link_carries_no_more_step_bytes_than_klippys() {
+    let case = "avr_cart_extrude";
+    let freq = summary_value(case, "clock_freq");
+    let text = onechip_golden::dict(onechip_golden::dict_for(case));
+    let dict = onechip_protocol::dictionary::Dictionary::parse(&text).expect("dictionary");
+    let ours = commands(case);
+    let (mut ours_sent, mut klippy_sent) = (Vec::new(), Vec::new());
+    for (stepper, cmds) in summary_steppers(case).iter().zip(&ours) {
+        let oid = u8::try_from(stepper.oid).expect("oid");
+        let encoder = StepCommandEncoder::new(&dict, oid, false).expect("step commands");
+        let mut buf = [0u8; 32];
+        let mut bytes = |cmd: &StepCommand| encoder.encode(cmd, &mut buf).expect("encodes");
+        ours_sent.extend(cmds.iter().map(|(cmd, clock)| (*clock, bytes(cmd))));
+        let klippy = klippy_commands(case, &stepper.name);
+        assert_eq!(klippy.len() as u64, stepper.queue_cmds, "{}", stepper.name);
+        klippy_sent.extend(klippy.iter().map(|(cmd, clock)| (*clock, bytes(cmd))));
+    }
+    let total = |sent: &[(u64, usize)]| sent.iter().map(|s| s.1).sum::<usize>();
+    let (ours_total, klippy_total) = (total(&ours_sent), total(&klippy_sent));
+    let (ours_peak, klippy_peak) = (peak_rate(ours_sent, freq), peak_rate(klippy_sent, freq));
+    println!(
+        "{case}: step command bytes {ours_total} (klippy {klippy_total}); peak {ours_peak} B/s \
+         (klippy {klippy_peak} B/s) of the link's 25000 B/s, before framing (5 bytes a block \
+         of up to 64)"
+    );
+    assert!(
+        ours_total <= klippy_total,
+        "{ours_total} > {klippy_total} bytes"
+    );
+    assert!(
+        ours_peak <= klippy_peak,
+        "peak {ours_peak} > {klippy_peak} B/s"
+    );
+    assert!(ours_peak * 64 / 59 < 12_500, "peak {ours_peak} B/s");
 }

@@ -35,6 +35,25 @@ pub struct Budget {
     pub required_code: Vec<String>,
     /// Rust paths (`a::b`) no linked symbol may lie under.
     pub forbidden_code: Vec<String>,
+    /// Base address of the instruction TCM.
+    pub itcm_base: u64,
+    /// Size of the instruction TCM, KiB.
+    pub itcm_kib: u64,
+    /// Base address of the data TCM.
+    pub dtcm_base: u64,
+    /// Size of the data TCM, KiB.
+    pub dtcm_kib: u64,
+    /// Substrings of (mangled) names of functions the stepper interrupt
+    /// may reach outside ITCM (and that the walk does not go on from).
+    pub itcm_exempt: Vec<String>,
+    /// Rust paths of statics that must lie in DTCM.
+    pub dtcm_data: Vec<String>,
+    /// Rust paths of statics a DMA reaches, which must lie in the MPU's
+    /// non-cacheable region (`__dma_region_start..__dma_region_end`).
+    pub dma_data: Vec<String>,
+    /// Functions (symbol names) the reset handler must reach over direct
+    /// calls.
+    pub boot_calls: Vec<String>,
 }
 
 #[derive(Debug)]
@@ -77,6 +96,8 @@ impl Budget {
         );
         let (ram_base, stack_kib) = (int("ram_base")?, int("stack_kib")?);
         let stack_margin_kib = int("stack_margin_kib")?;
+        let (itcm_base, itcm_kib) = (int("itcm_base")?, int("itcm_kib")?);
+        let (dtcm_base, dtcm_kib) = (int("dtcm_base")?, int("dtcm_kib")?);
         let mut string = |key: &str| match values.remove(key) {
             Some(Value::Str(s)) => Ok(s),
             Some(Value::Int(_)) => Err(format!("`{key}` must be a string")),
@@ -88,6 +109,10 @@ impl Budget {
         };
         let required_code = list(string("required_code")?);
         let forbidden_code = list(string("forbidden_code")?);
+        let itcm_exempt = list(string("itcm_exempt")?);
+        let dtcm_data = list(string("dtcm_data")?);
+        let dma_data = list(string("dma_data")?);
+        let boot_calls = list(string("boot_calls")?);
         let irq_priorities = list(string("irq_priorities")?)
             .into_iter()
             .map(|pair: String| {
@@ -114,6 +139,14 @@ impl Budget {
             stepper_irq_number,
             required_code,
             forbidden_code,
+            itcm_base,
+            itcm_kib,
+            dtcm_base,
+            dtcm_kib,
+            itcm_exempt,
+            dtcm_data,
+            dma_data,
+            boot_calls,
         })
     }
 }
@@ -140,7 +173,10 @@ mod tests {
                         ram_base = 0x2400_0000\nstack_kib = 64\nstack_margin_kib = 8\n\
                         irq_priorities = \"TIM5:0, SPI6:4\"\n\
                         stepper_irq = \"TIM5\"\nstepper_irq_number = 50\n\
-                        required_code = \"a..b, c\"\nforbidden_code = \"x::y\"\n";
+                        required_code = \"a..b, c\"\nforbidden_code = \"x::y\"\n\
+                        itcm_base = 0\nitcm_kib = 64\ndtcm_base = 0x2000_0000\ndtcm_kib = 128\n\
+                        itcm_exempt = \"panicking\"\ndtcm_data = \"a::ENGINE\"\n\
+                        dma_data = \"a::DMA\"\nboot_calls = \"init\"\n";
 
     #[test]
     fn parses_the_shipped_layout() {
@@ -155,6 +191,16 @@ mod tests {
         assert_eq!(b.required_code, ["a..b", "c"]);
         assert_eq!(b.forbidden_code, ["x::y"]);
         assert_eq!(b.stack_margin_kib, 8);
+        assert_eq!(
+            (b.itcm_base, b.itcm_kib, b.dtcm_base, b.dtcm_kib),
+            (0, 64, 0x2000_0000, 128)
+        );
+        assert_eq!(b.itcm_exempt, ["panicking"]);
+        assert_eq!(
+            (b.dtcm_data, b.dma_data),
+            (vec!["a::ENGINE".to_string()], vec!["a::DMA".to_string()])
+        );
+        assert_eq!(b.boot_calls, ["init"]);
         assert_eq!(
             b.irq_priorities,
             [("TIM5".to_string(), 0), ("SPI6".to_string(), 4)]

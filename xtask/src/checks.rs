@@ -30,8 +30,9 @@ pub type Check = fn(&Image<'_>, &Budget) -> Result<String, String>;
 const CALL_DEPTH: usize = 4;
 
 /// `stack`: the stack lies between `ram_base` (nothing mapped below) and
-/// the statics, so an overflow faults instead of overwriting them, and is
-/// at least `stack_kib`.
+/// the statics of its RAM bank, so an overflow faults instead of
+/// overwriting them, and is at least `stack_kib`. (Statics in memories
+/// below `ram_base`, the DTCM, are out of the overflow's way.)
 pub fn stack(image: &Image<'_>, budget: &Budget) -> Result<String, String> {
     let top = image.vector(0)?;
     let base = budget.ram_base;
@@ -40,7 +41,11 @@ pub fn stack(image: &Image<'_>, budget: &Budget) -> Result<String, String> {
             "the initial stack pointer {top:#010x} lies below the RAM base {base:#010x}"
         ));
     }
-    let sections = image.ram_sections();
+    let sections: Vec<_> = image
+        .ram_sections()
+        .iter()
+        .filter(|s| s.addr >= base)
+        .collect();
     if let Some(s) = sections.iter().find(|s| s.addr < top) {
         return Err(format!(
             "{} at {:#010x} lies below the initial stack pointer {top:#010x}: a stack \

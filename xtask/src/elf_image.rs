@@ -26,7 +26,7 @@ pub struct Function {
     pub size: u64,
 }
 
-/// A section in RAM: name, address, size.
+/// An allocated section (in RAM, or in the TCMs): name, address, size.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RamSection {
     /// Section name.
@@ -50,6 +50,8 @@ pub struct Segment {
 pub struct Image<'a> {
     elf: ElfFile32<'a, Endianness>,
     segments: Vec<Segment>,
+    /// Every allocated section that takes space, by address.
+    sections: Vec<RamSection>,
     ram_sections: Vec<RamSection>,
     functions: Vec<Function>,
     /// ARM mapping symbols (`$t`: code follows, `$d`: data follows), by
@@ -80,15 +82,20 @@ impl<'a> Image<'a> {
                 bytes: bytes.to_vec(),
             });
         }
-        let ram_sections = elf
+        let mut sections: Vec<RamSection> = elf
             .sections()
-            .filter(|s| matches!(s.flags(), SectionFlags::Elf { sh_flags } if sh_flags & u64::from(SHF_ALLOC) != 0))
-            .filter(|s| RAM_REGION.contains(&s.address()) && s.size() > 0)
+            .filter(|s| is_allocated(s) && s.size() > 0)
             .map(|s| RamSection {
                 name: s.name().unwrap_or("?").to_string(),
                 addr: s.address(),
                 size: s.size(),
             })
+            .collect();
+        sections.sort_by_key(|s| s.addr);
+        let ram_sections = sections
+            .iter()
+            .filter(|s| RAM_REGION.contains(&s.addr))
+            .cloned()
             .collect();
         let mut functions: Vec<Function> = elf
             .symbols()
@@ -115,6 +122,7 @@ impl<'a> Image<'a> {
         Ok(Self {
             elf,
             segments,
+            sections,
             ram_sections,
             functions,
             data_marks,
@@ -139,6 +147,14 @@ impl<'a> Image<'a> {
     /// The sections in RAM that take space (`.data`, `.bss`, `.uninit`).
     pub fn ram_sections(&self) -> &[RamSection] {
         &self.ram_sections
+    }
+
+    /// The allocated sections that lie in `range` (a TCM), by address.
+    pub fn sections_in(&self, range: &std::ops::Range<u64>) -> Vec<&RamSection> {
+        self.sections
+            .iter()
+            .filter(|s| range.contains(&s.addr))
+            .collect()
     }
 
     /// Word `index` of the vector table (0: initial stack pointer, 1:
@@ -179,6 +195,7 @@ impl<'a> Image<'a> {
         let section = self
             .elf
             .sections()
+            .filter(is_allocated)
             .find(|s| (s.address()..s.address() + s.size()).contains(&function.addr))
             .ok_or_else(|| format!("`{}` lies in no section", function.name))?;
         let data = section.data().map_err(|e| e.to_string())?;
@@ -257,6 +274,15 @@ impl<'a> Image<'a> {
             .ok_or_else(|| format!("symbol `{name}` not found in the ELF"))
     }
 
+    /// Address and size of the symbol named exactly `name`.
+    pub fn symbol_extent(&self, name: &str) -> Result<(u64, u64), String> {
+        self.elf
+            .symbols()
+            .find(|s| s.name() == Ok(name))
+            .map(|s| (s.address() & !1, s.size()))
+            .ok_or_else(|| format!("symbol `{name}` not found in the ELF"))
+    }
+
     /// True if some symbol's (mangled) name contains `fragment`.
     pub fn has_symbol_containing(&self, fragment: &str) -> bool {
         self.elf
@@ -297,6 +323,12 @@ impl<'a> Image<'a> {
     pub fn flat_binary(&self, base: u64) -> Result<Vec<u8>, String> {
         flatten(&self.segments, base)
     }
+}
+
+/// True for a section the image occupies memory with (not debug info,
+/// which the ELF places at address 0).
+fn is_allocated(section: &object::read::elf::ElfSection32<'_, '_, Endianness>) -> bool {
+    matches!(section.flags(), SectionFlags::Elf { sh_flags } if sh_flags & u64::from(SHF_ALLOC) != 0)
 }
 
 /// The parts of `start..end` that are code, by the mapping symbols `marks`

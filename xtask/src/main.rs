@@ -5,8 +5,10 @@
 //! `board/budget.toml` (flash and static RAM budgets, application base
 //! address, stepper interrupt vector, linked and forbidden code) and the
 //! rules of [`checks`] (stack below the statics, start-up taking control,
-//! safe panic and fault paths) and [`stack_use`] (a static worst-case
-//! stack estimate), and writes `firmware.bin` next to it, ready
+//! safe panic and fault paths), [`stack_use`] (a static worst-case
+//! stack estimate) and [`tcm`] (the stepper interrupt in ITCM/DTCM, DMA
+//! buffers non-cacheable, caches on the boot path), and writes
+//! `firmware.bin` next to it, ready
 //! for the board's SD-card bootloader. Exits non-zero on any violation,
 //! with the reason.
 //!
@@ -20,11 +22,13 @@
 
 mod bench_print;
 mod budget;
+mod call_graph;
 mod checks;
 mod elf_image;
 #[cfg(target_os = "linux")]
 mod sim_memory;
 mod stack_use;
+mod tcm;
 mod thumb;
 
 use std::path::{Path, PathBuf};
@@ -98,7 +102,7 @@ fn image(elf_path: &Path) -> Result<(), String> {
         budget.flash_kib
     );
     println!(
-        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: .data+.bss+.uninit)",
+        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: every RAM and DTCM section)",
         ram,
         kib(ram),
         budget.ram_kib
@@ -141,9 +145,10 @@ fn image(elf_path: &Path) -> Result<(), String> {
             problems.push(format!("no code matching `{fragment}` is linked in"));
         }
     }
-    let rules: [(&str, checks::Check); 5] = [
+    let rules: [(&str, checks::Check); 6] = [
         ("stack", checks::stack),
         ("stack use", stack_use::check),
+        ("tcm", tcm::check),
         ("reset", checks::reset),
         ("forbidden", checks::forbidden),
         ("safety", |image, _| checks::safety(image)),

@@ -2,9 +2,10 @@
 //! the ELF.
 //!
 //! Each function's frame is what its code pushes and subtracts from SP
-//! ([`thumb::frame`]); its depth is its frame plus the deepest of the
-//! functions it calls or jumps to directly (`bl`, `b.w`, `b`: a tail call
-//! counts as a call, keeping the caller's frame). Thread mode's figure is
+//! ([`crate::thumb::frame`]); its depth is its frame plus the deepest of
+//! the functions it calls or jumps to directly (`bl`, `b.w`, `b`: a tail
+//! call counts as a call, keeping the caller's frame; the [`Graph`]
+//! follows linker thunks between flash and ITCM). Thread mode's figure is
 //! the deepest function of the image that is not an exception handler:
 //! embassy polls task futures through function pointers, so every
 //! function counts as a root rather than only `Reset`'s tree. Interrupts
@@ -16,8 +17,8 @@
 use std::collections::{BTreeMap, HashMap};
 
 use crate::budget::Budget;
+use crate::call_graph::{Graph, demangle};
 use crate::elf_image::Image;
-use crate::thumb;
 
 /// An exception frame with the FPU's state (26 words: the firmware is
 /// hard-float, so any interrupted code may have live FP registers), plus
@@ -30,54 +31,6 @@ const FAULTS: std::ops::RangeInclusive<u64> = 2..=6;
 /// handler (11: SVCall; 12 and 13 are reserved, 14: PendSV, 15: SysTick,
 /// then the device interrupts).
 const FIRST_CONFIGURABLE: u64 = 11;
-
-/// The call graph of the image with each function's frame.
-struct Graph {
-    names: Vec<String>,
-    frames: Vec<u64>,
-    callees: Vec<Vec<usize>>,
-    /// `blx rN` in the image: calls this estimate does not follow.
-    indirect_calls: usize,
-    /// `sub sp, rN` of unknown amount (dynamic allocations).
-    dynamic_frames: usize,
-}
-
-impl Graph {
-    fn build(image: &Image<'_>) -> Result<Self, String> {
-        let functions = image.functions();
-        let index: HashMap<u64, usize> = functions
-            .iter()
-            .enumerate()
-            .map(|(i, f)| (f.addr, i))
-            .collect();
-        let mut graph = Self {
-            names: functions.iter().map(|f| f.name.clone()).collect(),
-            frames: Vec::with_capacity(functions.len()),
-            callees: Vec::with_capacity(functions.len()),
-            indirect_calls: 0,
-            dynamic_frames: 0,
-        };
-        for (i, function) in functions.iter().enumerate() {
-            let insns = image.instructions(function)?;
-            let frame = thumb::frame(&insns);
-            graph.frames.push(frame.bytes);
-            graph.dynamic_frames += frame.dynamic;
-            graph.indirect_calls += insns.iter().filter(|i| thumb::is_indirect_call(i)).count();
-            let mut callees: Vec<usize> = insns
-                .iter()
-                .filter_map(|insn| {
-                    let callee = *index.get(&insn.branch?)?;
-                    // A jump back to the function's own start is a loop.
-                    (callee != i || thumb::is_call(insn)).then_some(callee)
-                })
-                .collect();
-            callees.sort_unstable();
-            callees.dedup();
-            graph.callees.push(callees);
-        }
-        Ok(graph)
-    }
-}
 
 /// Each function's deepest direct-call path, found depth-first.
 struct Depths<'g> {
@@ -260,72 +213,5 @@ pub fn check(image: &Image<'_>, budget: &Budget) -> Result<String, String> {
         Err(format!("{found}: {over}"))
     } else {
         Ok(found)
-    }
-}
-
-/// A readable form of a legacy-mangled Rust name (`_ZN4core3fmt5write17h…E`
-/// to `core::fmt::write`); other names are returned as they are.
-fn demangle(name: &str) -> String {
-    let Some(mut rest) = name.strip_prefix("_ZN") else {
-        return name.to_string();
-    };
-    let mut segments = Vec::new();
-    while let Some(len_end) = rest.find(|c: char| !c.is_ascii_digit()) {
-        let Ok(len) = rest[..len_end].parse::<usize>() else {
-            break;
-        };
-        let Some(segment) = rest.get(len_end..len_end + len) else {
-            break;
-        };
-        // A leading `$` is escaped as `_$`.
-        segments.push(if segment.starts_with("_$") {
-            &segment[1..]
-        } else {
-            segment
-        });
-        rest = &rest[len_end + len..];
-    }
-    if segments
-        .last()
-        .is_some_and(|s| s.len() == 17 && s.starts_with('h'))
-    {
-        segments.pop();
-    }
-    let mut text = segments.join("::");
-    for (from, to) in [
-        ("$LT$", "<"),
-        ("$GT$", ">"),
-        ("$RF$", "&"),
-        ("$BP$", "*"),
-        ("$C$", ","),
-        ("$u20$", " "),
-        ("$u7b$", "{"),
-        ("$u7d$", "}"),
-        ("$u5b$", "["),
-        ("$u5d$", "]"),
-        ("..", "::"),
-    ] {
-        text = text.replace(from, to);
-    }
-    text
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn demangles_legacy_rust_names() {
-        assert_eq!(
-            demangle("_ZN4core3fmt5write17h0123456789abcdefE"),
-            "core::fmt::write"
-        );
-        assert_eq!(
-            demangle(
-                "_ZN55_$LT$onechip_board..Foo$u20$as$u20$core..fmt..Debug$GT$3fmt17h0123456789abcdefE"
-            ),
-            "<onechip_board::Foo as core::fmt::Debug>::fmt"
-        );
-        assert_eq!(demangle("TIM5"), "TIM5");
     }
 }

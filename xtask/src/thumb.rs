@@ -109,6 +109,32 @@ pub fn is_indirect_call(insn: &Insn) -> bool {
     insn.hw2.is_none() && insn.hw1 & 0xff87 == 0x4780
 }
 
+/// `bx ip`, and the first halfwords of `movw` and `movt` (less their
+/// immediate and register bits).
+const BX_IP: u16 = 0x4760;
+const MOVW: u16 = 0xf240;
+const MOVT: u16 = 0xf2c0;
+
+/// The target of a linker's long-branch thunk (lld's
+/// `__Thumbv7ABSLongThunk_*`, which a `bl` too far for its range goes
+/// through, as between flash and ITCM): `insns` are exactly `movw ip, #lo;
+/// movt ip, #hi; bx ip`. The Thumb bit is cleared.
+pub fn thunk_target(insns: &[Insn]) -> Option<u64> {
+    const IP: usize = 12;
+    let [movw, movt, bx] = insns else {
+        return None;
+    };
+    let is_op = |insn: &Insn, op: u16| insn.hw1 & 0xfbf0 == op;
+    if !is_op(movw, MOVW) || !is_op(movt, MOVT) || bx.hw1 != BX_IP || bx.hw2.is_some() {
+        return None;
+    }
+    let mut consts = [None; 16];
+    let (_, low) = mov_constant(movw, &consts).filter(|&(r, _)| r == IP)?;
+    consts[IP] = Some(low);
+    let (_, target) = mov_constant(movt, &consts).filter(|&(r, _)| r == IP)?;
+    Some(u64::from(target & !1))
+}
+
 /// The stack a function's code claims: the sum of every `push`, `vpush`,
 /// `str rN, [sp, #-n]!` and `sub sp` in it (a bound on its frame, as
 /// LLVM writes one prologue and releases it on every exit).
@@ -193,7 +219,7 @@ fn stack_claim(insn: &Insn) -> Option<Claim> {
 fn mov_constant(insn: &Insn, consts: &[Option<u32>; 16]) -> Option<(usize, u32)> {
     let hw2 = insn.hw2?;
     let top = insn.hw1 & 0xfbf0;
-    if (top != 0xf240 && top != 0xf2c0) || hw2 & 0x8000 != 0 {
+    if (top != MOVW && top != MOVT) || hw2 & 0x8000 != 0 {
         return None;
     }
     let imm16 = u32::from(insn.hw1 & 0xf) << 12
@@ -201,7 +227,7 @@ fn mov_constant(insn: &Insn, consts: &[Option<u32>; 16]) -> Option<(usize, u32)>
         | u32::from(hw2 >> 4 & 0x700)
         | u32::from(hw2 & 0xff);
     let rd = usize::from(hw2 >> 8 & 0xf);
-    if top == 0xf240 {
+    if top == MOVW {
         Some((rd, imm16))
     } else {
         Some((rd, imm16 << 16 | consts[rd].unwrap_or(0) & 0xffff))
@@ -312,6 +338,19 @@ mod tests {
         );
         assert!(is_call(&insns[0]) && !is_call(&insns[1]));
         assert!(is_indirect_call(&insns[2]) && !is_indirect_call(&insns[3]));
+    }
+
+    #[test]
+    fn long_branch_thunks_lead_to_their_target() {
+        // From the firmware: __Thumbv7ABSLongThunk___aeabi_memmove at
+        // 0x115c (ITCM): movw ip, #0x23c9; movt ip, #0x806; bx ip.
+        let thunk = decode(&bytes(&[0xf242, 0x3cc9, 0xf6c0, 0x0c06, 0x4760]), 0x115c);
+        assert_eq!(thunk_target(&thunk), Some(0x0806_23c8));
+        // Another register, or a return instead of the jump: no thunk.
+        let r0 = decode(&bytes(&[0xf242, 0x30c9, 0xf6c0, 0x0006, 0x4700]), 0x115c);
+        assert_eq!(thunk_target(&r0), None);
+        let ret = decode(&bytes(&[0xf242, 0x3cc9, 0xf6c0, 0x0c06, 0x4770]), 0x115c);
+        assert_eq!(thunk_target(&ret), None);
     }
 
     #[test]

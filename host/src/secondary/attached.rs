@@ -7,6 +7,7 @@ use onechip_app::heaters::McuSetup;
 use onechip_app::mcu_config::{Oids, pin_ref, write_config};
 use onechip_app::step_pulse::pulse_ticks;
 use onechip_planner::machine::Machine;
+use onechip_protocol::transport::LinkStats;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
@@ -16,7 +17,7 @@ use std::cell::Cell;
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::path::Path;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// Seconds between two re-fits of the steppers' clock lines (klippy
 /// re-fits from its once-a-second stats).
@@ -59,6 +60,8 @@ pub struct Secondaries {
     freq: f64,
     next_calibrate: f64,
     failure: Option<Shutdown>,
+    /// When (wall clock) the failure was noticed.
+    failed_at: Option<Instant>,
     /// `emergency_stop` went to every secondary.
     stopped: bool,
 }
@@ -80,6 +83,7 @@ impl Secondaries {
             freq,
             next_calibrate: 0.0,
             failure: None,
+            failed_at: None,
             stopped: false,
         };
         for secondary in &machine.secondaries {
@@ -193,23 +197,24 @@ impl Secondaries {
             if self.failure.is_some() {
                 continue;
             }
-            if io.is_err() {
-                self.failure = Some(Shutdown::LostCommunication { mcu: a.name });
-            }
+            let lost = Shutdown::LostCommunication { mcu: a.name };
+            let mut failure = io.is_err().then_some(lost);
             for h in heard {
                 match h {
                     Heard::Shutdown(reason) => {
                         let reason: &'static str = Box::leak(reason.into_boxed_str());
-                        self.failure = Some(Shutdown::Secondary {
+                        failure = Some(Shutdown::Secondary {
                             mcu: a.name,
                             reason,
                         });
                     }
-                    Heard::Failed(_) => {
-                        self.failure = Some(Shutdown::LostCommunication { mcu: a.name });
-                    }
+                    Heard::Failed(_) => failure = Some(lost),
                     Heard::Response(_) => {}
                 }
+            }
+            if failure.is_some() {
+                self.failure = failure;
+                self.failed_at = Some(Instant::now());
             }
         }
     }
@@ -217,6 +222,16 @@ impl Secondaries {
     /// A secondary's fault, if one stopped the printer.
     pub fn failure(&self) -> Option<Shutdown> {
         self.failure
+    }
+
+    /// When (wall clock) the secondary's fault was noticed, if one was.
+    pub fn failed_at(&self) -> Option<Instant> {
+        self.failed_at
+    }
+
+    /// Each secondary's name and link counters (retransmissions, bytes).
+    pub fn links(&self) -> impl Iterator<Item = (&'static str, LinkStats)> + '_ {
+        self.attached.iter().map(|a| (a.name, a.mcu.link_stats()))
     }
 
     /// Every secondary stops at once (`emergency_stop`), as klippy does

@@ -3,11 +3,14 @@
 //! time is given by the caller in seconds (the main MCU's clock).
 
 pub mod attached;
+pub mod homing;
 pub mod port;
 
 use onechip_protocol::dictionary::Dictionary;
-use onechip_protocol::transport::{DEFAULT_RECEIVE_WINDOW, HostLink, MAX_PENDING_BLOCKS};
-use onechip_secondary_mcu::connection::{Connection, Event, Failure};
+use onechip_protocol::transport::{
+    DEFAULT_RECEIVE_WINDOW, HostLink, LinkStats, MAX_PENDING_BLOCKS,
+};
+use onechip_secondary_mcu::connection::{Connection, Event, Failure, POLL_OUT};
 use onechip_secondary_mcu::identify::Identify;
 use port::Port;
 use std::fmt::{self, Write as _};
@@ -126,6 +129,12 @@ impl Secondary {
         &mut self.conn
     }
 
+    /// The link's counters (bytes written and retransmitted, timeouts,
+    /// naks).
+    pub fn link_stats(&self) -> LinkStats {
+        self.conn.link_stats()
+    }
+
     /// Runs the config phase to its end.
     fn configure(
         &mut self,
@@ -202,7 +211,7 @@ impl Secondary {
         wait: Duration,
         on_event: &mut dyn FnMut(Event<'_, 'static>),
     ) -> io::Result<()> {
-        let mut out = [0u8; OUT_MAX];
+        let mut out = [0u8; POLL_OUT];
         let n = self.conn.poll(now, &mut out, &mut *on_event);
         let mut buf = [0u8; 4096];
         let got = self.port.round_trip(&out[..n], wait, &mut buf)?;

@@ -1,0 +1,197 @@
+//! Homing across secondary MCUs with trsync, as klippy drives it: each
+//! MCU's trsync started and its steppers tied to it, the endstop armed on
+//! its own MCU, and every `trsync_state` report relayed to the others
+//! ([`onechip_secondary_mcu::trsync::Dispatch`]) while their links are
+//! served.
+
+use super::{Heard, Secondary};
+use onechip_secondary_mcu::connection::SendTextError;
+use onechip_secondary_mcu::trsync::{Dispatch, MAX_MCUS, Member, Relay};
+use std::time::Duration;
+
+/// A homing in progress over some secondaries (`mcus[i]` with trsync
+/// `trsyncs[i]`).
+pub struct Homing {
+    dispatch: Dispatch,
+    /// Why each MCU's trsync stopped its steppers, once it reported it.
+    stopped: Vec<Option<u8>>,
+    /// Host time (s) the first trigger was heard and relayed.
+    relayed_at: Option<f64>,
+}
+
+/// Why a homing command could not be queued.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HomingError(pub String);
+
+impl std::fmt::Display for HomingError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+fn send(mcu: &mut Secondary, line: &str) -> Result<(), HomingError> {
+    mcu.connection().send_text(line, 0).map_err(|e| {
+        let why = match e {
+            SendTextError::Encode => "not in its dictionary",
+            SendTextError::Full => "its outbox is full",
+        };
+        HomingError(format!("MCU '{}': {line}: {why}", mcu.name))
+    })
+}
+
+impl Homing {
+    /// Starts every MCU's trsync (`trsyncs[i]` on `mcus[i]`) at host time
+    /// `start` (s) and ties their steppers to it (`steppers[i]`: the
+    /// stepper oids on `mcus[i]`).
+    pub fn start(
+        mcus: &mut [&mut Secondary],
+        trsyncs: &[u8],
+        steppers: &[&[u8]],
+        start: f64,
+    ) -> Result<Self, HomingError> {
+        if trsyncs.len() != mcus.len() || mcus.len() > MAX_MCUS {
+            return Err(HomingError(format!(
+                "{} MCUs with {} trsyncs (one each, at most {MAX_MCUS})",
+                mcus.len(),
+                trsyncs.len()
+            )));
+        }
+        let mut members = Vec::new();
+        for (mcu, &trsync) in mcus.iter_mut().zip(trsyncs) {
+            let sync =
+                mcu.connection().clock().copied().ok_or_else(|| {
+                    HomingError(format!("MCU '{}' has no clock sync yet", mcu.name))
+                })?;
+            members.push(Member::new(trsync, sync));
+        }
+        let dispatch = Dispatch::new(&members, start);
+        for (i, (mcu, &trsync)) in mcus.iter_mut().zip(trsyncs).enumerate() {
+            for line in dispatch.start_lines(i, start) {
+                send(mcu, &line)?;
+            }
+            for oid in steppers.get(i).copied().unwrap_or_default() {
+                send(
+                    mcu,
+                    &format!("stepper_stop_on_trigger oid={oid} trsync_oid={trsync}"),
+                )?;
+            }
+        }
+        Ok(Self {
+            dispatch,
+            stopped: vec![None; mcus.len()],
+            relayed_at: None,
+        })
+    }
+
+    /// Why each MCU's trsync stopped its steppers (`trsync::reason`), as
+    /// it reported: the endstop's MCU `ENDSTOP_HIT`, the others
+    /// `HOST_REQUEST` if the relay came in time (`COMMS_TIMEOUT` if not).
+    pub fn stop_reasons(&self) -> &[Option<u8>] {
+        &self.stopped
+    }
+
+    /// Host time (s) the first trigger was heard and relayed to the other
+    /// MCUs.
+    pub fn relayed_at(&self) -> Option<f64> {
+        self.relayed_at
+    }
+
+    /// The first trigger: host time (s) and reason.
+    pub fn triggered(&self) -> Option<(f64, u8)> {
+        self.dispatch.triggered()
+    }
+
+    /// Serves every link once at host time `now` (s), waiting up to
+    /// `wait` on each, and relays the trsync reports; other responses go
+    /// to `heard` as `(mcu, what)`.
+    pub fn service(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        now: f64,
+        wait: Duration,
+        heard: &mut Vec<(usize, Heard)>,
+    ) -> Result<(), HomingError> {
+        for i in 0..mcus.len() {
+            let mut got = Vec::new();
+            mcus[i]
+                .service(now, wait, &mut got)
+                .map_err(|e| HomingError(format!("MCU '{}': {e}", mcus[i].name)))?;
+            for h in got {
+                let Heard::Response(text) = &h else {
+                    heard.push((i, h));
+                    continue;
+                };
+                let Some(state) = TrsyncState::parse(text) else {
+                    heard.push((i, h));
+                    continue;
+                };
+                if let Some(stopped @ None) = self.stopped.get_mut(i)
+                    && !state.can_trigger
+                {
+                    *stopped = Some(state.reason);
+                }
+                let relay = self
+                    .dispatch
+                    .on_state(i, state.can_trigger, state.reason, state.clock);
+                let lines = match relay {
+                    Relay::None => continue,
+                    Relay::Extend(lines) => lines,
+                    Relay::Triggered(_, _, lines) => {
+                        self.relayed_at = Some(now);
+                        lines
+                    }
+                };
+                for (j, line) in lines {
+                    if let Some(mcu) = mcus.get_mut(j) {
+                        send(mcu, &line)?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A `trsync_state oid=… can_trigger=… trigger_reason=… clock=…` report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct TrsyncState {
+    can_trigger: bool,
+    reason: u8,
+    clock: u32,
+}
+
+impl TrsyncState {
+    /// The report in a response's text, if it is one.
+    fn parse(text: &str) -> Option<Self> {
+        let rest = text.strip_prefix("trsync_state ")?;
+        let field = |name: &str| -> Option<u64> {
+            rest.split_whitespace()
+                .find_map(|w| w.strip_prefix(name)?.strip_prefix('='))?
+                .parse()
+                .ok()
+        };
+        Some(Self {
+            can_trigger: field("can_trigger")? != 0,
+            reason: u8::try_from(field("trigger_reason")?).ok()?,
+            clock: u32::try_from(field("clock")?).ok()?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_trsync_report_is_read_from_its_text() {
+        assert_eq!(
+            TrsyncState::parse("trsync_state oid=2 can_trigger=0 trigger_reason=1 clock=4000"),
+            Some(TrsyncState {
+                can_trigger: false,
+                reason: 1,
+                clock: 4000
+            })
+        );
+        assert_eq!(TrsyncState::parse("stepper_position oid=0 pos=3"), None);
+    }
+}
