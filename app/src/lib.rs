@@ -12,6 +12,8 @@
 //! - [`printer`]: G-code lines through the planner to planned moves;
 //! - [`heaters`]: heaters and fan, with verify_heater and min_extrude_temp;
 //! - [`idle_timeout`]: Klipper's idle timeout (heaters off when idle);
+//! - [`tmc`]: TMC stepper drivers over UART/SPI (registers, checks,
+//!   SET_TMC_CURRENT, SET_TMC_FIELD, DUMP_TMC, INIT_TMC);
 //! - [`pins`]: MCU pin names as printer.cfg writes them;
 //! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -37,6 +39,7 @@ pub mod session;
 pub mod setup;
 pub mod step_pulse;
 pub mod text;
+pub mod tmc;
 
 /// Firmware name reported to hosts (M115).
 pub const FIRMWARE_NAME: &str = "onechip";

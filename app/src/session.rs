@@ -14,6 +14,7 @@ use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
 use crate::line::command_word;
 use crate::printer::{LineError, Printer};
 use crate::text::{ErrorText, error_text};
+use crate::tmc::{Tmc, TmcLink};
 use core::cell::RefCell;
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
@@ -119,6 +120,11 @@ pub trait Mcu {
     /// simulators that report the plan.
     fn planned(&mut self, m: &TrapqMove, extruder: bool) {
         let _ = (m, extruder);
+    }
+    /// The wires to the TMC drivers, if this MCU drives them (none by
+    /// default: the drivers keep their power-on settings).
+    fn tmc_link(&mut self) -> Option<&mut dyn TmcLink> {
+        None
     }
 }
 
@@ -287,6 +293,8 @@ pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
     priming_since: Option<u64>,
     /// The filament switch sensors.
     filament: FilamentSensors<'a>,
+    /// The TMC drivers.
+    tmc: Tmc<'a>,
 }
 
 /// The session with the board's queue sizes.
@@ -335,6 +343,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             addr_of_mut!((*p).priming_since).write(None);
             let sensors = &machine.accessories.filament_sensors;
             addr_of_mut!((*p).filament).write(FilamentSensors::new(sensors, start as f64 / freq));
+            addr_of_mut!((*p).tmc).write(Tmc::new(&machine.tmc));
             slot.assume_init_mut()
         }
     }
@@ -402,6 +411,12 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             Ok(true) => return Ok(()),
             Ok(false) => {}
             Err(e) => return Err(error_text(&e)),
+        }
+        self.tmc_poll(mcu, out);
+        if let Some(link) = mcu.tmc_link()
+            && let Some(result) = self.tmc.command(&line, link, out)
+        {
+            return result;
         }
         self.engine.line_starts(mcu.now());
         let was_idle = self.printer.is_idle();
@@ -559,6 +574,25 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 .settle(&mut self.engine.steps(mcu, &mut Discard));
         }
         self.idle_timeout(mcu, out);
+        self.tmc_poll(mcu, out);
+    }
+
+    /// The TMC drivers' start-up writes and periodic check.
+    fn tmc_poll(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+        if self.tmc.is_empty() {
+            return;
+        }
+        let now = mcu.now() as f64 / self.engine.freq;
+        if let Some(link) = mcu.tmc_link()
+            && let Err(e) = self.tmc.poll(link, now, out)
+        {
+            let _ = writeln!(out, "!! {e}");
+        }
+    }
+
+    /// The TMC drivers (their registers as last written).
+    pub fn tmc(&self) -> &Tmc<'a> {
+        &self.tmc
     }
 
     /// Reads the filament switch sensors (between lines, as

@@ -62,9 +62,30 @@ impl<'a> PrinterSetup<'a> {
         reserved: &[(&str, &str)],
         scratch: &mut MaybeUninit<Config<'a>>,
     ) -> Result<Self, SetupError> {
+        let mut slot = MaybeUninit::uninit();
+        Self::load_in(&mut slot, files, reserved, scratch)?;
+        // SAFETY: load_in wrote every field on success.
+        Ok(unsafe { slot.assume_init() })
+    }
+
+    /// [`Self::load`] written into `slot`: the setup is several KB, which
+    /// on a microcontroller go where they stay (a static), not through
+    /// the stack.
+    #[allow(clippy::result_large_err)]
+    pub fn load_in<'s>(
+        slot: &'s mut MaybeUninit<Self>,
+        files: &ConfigFiles<'a>,
+        reserved: &[(&str, &str)],
+        scratch: &mut MaybeUninit<Config<'a>>,
+    ) -> Result<&'s mut Self, SetupError> {
         let config = Config::parse_files_in(scratch, files).map_err(|e| cut_text(&e))?;
-        let machine = Machine::from_config(config).map_err(|e| cut_text(&e))?;
-        pin_check::check(&machine, reserved).map_err(|e| {
+        let p = slot.as_mut_ptr();
+        // SAFETY: a field of the slot, written before it is read.
+        let machine_slot = unsafe {
+            &mut *core::ptr::addr_of_mut!((*p).machine).cast::<MaybeUninit<Machine<'a>>>()
+        };
+        let machine = Machine::from_config_in(machine_slot, config).map_err(|e| cut_text(&e))?;
+        pin_check::check(machine, reserved).map_err(|e| {
             // Where the option at fault is, as every config error says.
             let (file, line) = config
                 .section(e.at().section)
@@ -76,10 +97,12 @@ impl<'a> PrinterSetup<'a> {
             let tmc = has_tmc_driver(config.section_names(), stepper.name);
             *pulse = step_pulse_duration(stepper.step_pulse_duration, tmc);
         }
-        Ok(Self {
-            machine,
-            step_pulse,
-        })
+        // SAFETY: the other field; with the machine written above, the
+        // whole setup is initialised.
+        unsafe {
+            core::ptr::addr_of_mut!((*p).step_pulse).write(step_pulse);
+            Ok(slot.assume_init_mut())
+        }
     }
 
     /// The machine, for the session and the heaters.

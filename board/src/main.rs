@@ -189,15 +189,22 @@ fn load_printer(
     static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
     // Where printer.cfg is indexed while the machine is read from it.
     static SCRATCH: StaticCell<Config<'static>> = StaticCell::new();
+    // The printer read from it (several KB: kept out of the stack).
+    static SETUP: StaticCell<PrinterSetup<'static>> = StaticCell::new();
     let files = card.as_mut().map_err(|e| e.clone())?;
     let texts = config_files::load(files, TEXT.take()).map_err(|e| error_text(&e))?;
-    let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
-        .map_err(|e| error_text(&e))?;
+    let setup = PrinterSetup::load_in(
+        SETUP.uninit(),
+        &texts,
+        pin_check::BOARD_RESERVED,
+        SCRATCH.uninit(),
+    )
+    .map_err(|e| error_text(&e))?;
     for section in setup.unsupported() {
         defmt::info!("[{}] is not supported yet, ignored", section);
     }
-    install_engine(&setup)?;
-    install_heaters(&mut setup, thermistors)?;
+    install_engine(setup)?;
+    install_heaters(setup, thermistors)?;
     if let Some(pin) = setup
         .machine()
         .probe

@@ -598,6 +598,13 @@ impl<'c, 'a> Section<'c, 'a> {
         )
     }
 
+    /// `option`'s name as the file writes it (its last definition), if
+    /// present; for errors about options whose names are built at run
+    /// time (`driver_SGTHRS`).
+    pub fn option_name(&self, option: &str) -> Option<&'a str> {
+        self.find(option).map(|(_, line)| line.name)
+    }
+
     /// The text of `option`, if present (marks it used).
     pub fn get_opt(&self, option: &str) -> Option<&'a str> {
         let (index, line) = self.find(option)?;

@@ -208,6 +208,16 @@ impl ConsolePrinter {
         self.mcu.set_filament(sensor, present);
     }
 
+    /// The simulated TMC drivers.
+    pub fn tmc_drivers(&mut self) -> &mut crate::tmc_sim::TmcSim {
+        self.mcu.tmc_sim()
+    }
+
+    /// The TMC drivers as the session last wrote them.
+    pub fn tmc(&self) -> &onechip_app::tmc::Tmc<'static> {
+        self.session.tmc()
+    }
+
     /// The G-code position (X, Y, Z, E), mm.
     pub fn position(&mut self) -> [f64; 4] {
         self.session.printer().position()

@@ -19,6 +19,7 @@ pub mod serial;
 pub mod step_log;
 pub mod summary_json;
 pub mod thermal_plant;
+pub mod tmc_sim;
 pub mod virtual_mcu;
 
 use onechip_app::console::Console;
@@ -574,8 +575,9 @@ fn load_setup<'b>(
 fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, SimError> {
     let freq = options.mcu_freq;
     let origin = options.clock_origin as f64 / freq;
-    let mut mcu =
-        VirtualMcu::new(machine.steppers.len(), options.clock_origin).with_heaters(machine, freq);
+    let mut mcu = VirtualMcu::new(machine.steppers.len(), options.clock_origin)
+        .with_heaters(machine, freq)
+        .with_tmc(machine);
     if let Some(physics) = physics(machine, options) {
         mcu = mcu.with_physics(physics);
     }

@@ -15,6 +15,7 @@ use crate::plot::Window;
 use crate::secondary::attached::Secondaries;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant};
+use crate::tmc_sim::TmcSim;
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
 use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
@@ -169,6 +170,8 @@ pub struct VirtualMcu {
     no_filament: Vec<usize>,
     /// The secondary MCUs and the steppers on them.
     secondaries: Option<Secondaries>,
+    /// The simulated TMC drivers.
+    tmc: TmcSim,
 }
 
 impl VirtualMcu {
@@ -191,9 +194,21 @@ impl VirtualMcu {
             secondaries: None,
             emergency: None,
             no_filament: Vec::new(),
+            tmc: TmcSim::default(),
         };
         mcu.advance_clock(start);
         mcu
+    }
+
+    /// The same MCU with `machine`'s TMC drivers, simulated.
+    pub fn with_tmc(mut self, machine: &Machine<'_>) -> Self {
+        self.tmc = TmcSim::new(machine);
+        self
+    }
+
+    /// The simulated TMC drivers.
+    pub fn tmc_sim(&mut self) -> &mut TmcSim {
+        &mut self.tmc
     }
 
     /// The same MCU with `machine`'s heaters and fan, simulated, on a
@@ -549,6 +564,9 @@ impl VirtualMcu {
 }
 
 impl Mcu for VirtualMcu {
+    fn tmc_link(&mut self) -> Option<&mut dyn onechip_app::tmc::TmcLink> {
+        Some(&mut self.tmc)
+    }
     fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
         if let Some(secondaries) = &mut self.secondaries
             && secondaries.routes(stepper)

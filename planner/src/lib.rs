@@ -33,4 +33,6 @@ pub mod shaper_config;
 pub mod temperature_sensor;
 pub mod thermal;
 pub mod thermistor;
+/// TMC drivers (the `onechip-tmc` crate).
+pub use onechip_tmc as tmc;
 pub mod toolhead;

@@ -11,6 +11,7 @@ use crate::safe_home::{self, G28};
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
+use crate::tmc::{self, config::TmcDriver};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -99,6 +100,8 @@ pub struct Machine<'a> {
     pub g28: G28<'a>,
     /// Named fans, output pins, board pin aliases, filament sensors.
     pub accessories: Accessories<'a>,
+    /// The TMC drivers configured over UART or SPI (`[tmc2209 stepper_x]`).
+    pub tmc: heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>,
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -147,6 +150,19 @@ impl<'a> Machine<'a> {
     /// Reads the machine from `config`; every option of the sections it
     /// handles must be valid and known.
     pub fn from_config<'c>(config: &'c Config<'a>) -> Result<Self, ConfigError<'c>> {
+        let mut slot = core::mem::MaybeUninit::uninit();
+        Self::from_config_in(&mut slot, config)?;
+        // SAFETY: from_config_in wrote the machine on success.
+        Ok(unsafe { slot.assume_init() })
+    }
+
+    /// [`Self::from_config`] written into `slot` (a machine is several KB:
+    /// on a microcontroller it goes where it stays, not through the
+    /// stack).
+    pub fn from_config_in<'c, 's>(
+        slot: &'s mut core::mem::MaybeUninit<Self>,
+        config: &'c Config<'a>,
+    ) -> Result<&'s mut Self, ConfigError<'c>> {
         let printer = config.require("printer")?;
         let kinematics = match printer.get_choice(
             "kinematics",
@@ -289,6 +305,7 @@ impl<'a> Machine<'a> {
         let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
             steppers.iter().map(|s| s.name).collect();
         let accessories = Accessories::read(config, &heater_names, &stepper_names)?;
+        let tmc = tmc::config::read_all(config, step_distance)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -296,6 +313,7 @@ impl<'a> Machine<'a> {
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
                 && !temperature_sensor::is_definition_section(name)
+                && tmc::DriverKind::of_section(name).is_none()
                 && !unsupported.contains(&name)
             {
                 let _ = unsupported.push(name);
@@ -303,7 +321,7 @@ impl<'a> Machine<'a> {
             }
         }
         config.check_unused()?;
-        Ok(Self {
+        Ok(slot.write(Self {
             kinematics,
             limits,
             travel,
@@ -320,8 +338,9 @@ impl<'a> Machine<'a> {
             probe,
             g28,
             accessories,
+            tmc,
             unsupported,
-        })
+        }))
     }
 
     /// True if the extruder may extrude before any temperature is known:
@@ -382,17 +401,10 @@ enum StepperKind {
     Extruder,
 }
 
-fn read_stepper<'c, 'a>(
-    section: &Section<'c, 'a>,
-    kind: StepperKind,
-) -> Result<Stepper<'a>, ConfigError<'c>> {
-    let step_pin = section.get("step_pin")?;
-    let dir_pin = section.get("dir_pin")?;
-    let enable_pin = section.get_opt("enable_pin");
-    let endstop_pin = match kind {
-        StepperKind::Extruder => None,
-        _ => section.get_opt("endstop_pin"),
-    };
+/// A stepper section's distance per step, mm (Klipper's
+/// `parse_step_distance`: rotation_distance over full_steps_per_rotation
+/// times microsteps times gear_ratio).
+pub fn step_distance<'c>(section: &Section<'c, '_>) -> Result<f64, ConfigError<'c>> {
     let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
@@ -411,7 +423,21 @@ fn read_stepper<'c, 'a>(
         ))?,
         None => 1.0,
     };
-    let step_dist = rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio);
+    Ok(rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio))
+}
+
+fn read_stepper<'c, 'a>(
+    section: &Section<'c, 'a>,
+    kind: StepperKind,
+) -> Result<Stepper<'a>, ConfigError<'c>> {
+    let step_pin = section.get("step_pin")?;
+    let dir_pin = section.get("dir_pin")?;
+    let enable_pin = section.get_opt("enable_pin");
+    let endstop_pin = match kind {
+        StepperKind::Extruder => None,
+        _ => section.get_opt("endstop_pin"),
+    };
+    let step_dist = step_distance(section)?;
     let step_pulse_duration = section.get_float_opt(
         "step_pulse_duration",
         Bounds {

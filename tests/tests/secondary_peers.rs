@@ -197,7 +197,16 @@ fn extruder_steps_as_planned(summary: &onechip_host::Summary, peer: &Peer) -> (f
     let mut sorted = offsets.clone();
     sorted.sort_by(f64::total_cmp);
     let median = sorted[sorted.len() / 2];
-    let late: Vec<f64> = offsets.iter().map(|o| o - median).collect();
+    // The peer's 32-bit clock wraps every 2^32 / 50 MHz = 85.9 s, its
+    // CLOCK_MONOTONIC does not: an edge after a wrap is a period off.
+    let wrap = 2f64.powi(32) / 50e6;
+    let late: Vec<f64> = offsets
+        .iter()
+        .map(|o| {
+            let d = o - median;
+            d - (d / wrap).round() * wrap
+        })
+        .collect();
     percentiles(&late)
 }
 

@@ -1,0 +1,251 @@
+//! Simulated TMC drivers: they decode the datagrams the firmware sends
+//! (`onechip_planner::tmc::wire`), hold their registers for tests to read,
+//! answer reads as the chips do, and can lose power (registers back to
+//! zero, GSTAT's `reset` flag set, the UART interface counter at 0).
+
+use onechip_app::tmc::{NoAnswer, Tmc, TmcLink};
+use onechip_planner::machine::Machine;
+use onechip_planner::tmc::config::Bus;
+use onechip_planner::tmc::{DriverKind, wire};
+
+/// One simulated driver.
+#[derive(Debug, Clone)]
+pub struct SimDriver {
+    /// Its type.
+    pub kind: DriverKind,
+    /// The stepper it drives.
+    pub stepper: String,
+    /// Its port (as the firmware numbers them).
+    pub port: u8,
+    /// UART address, or SPI chain position.
+    pub slot: u8,
+    /// SPI chain length (1 without a chain; UART: 1).
+    pub chain_length: u8,
+    /// Register values by address.
+    regs: [u32; 128],
+    /// UART interface counter (writes received).
+    ifcnt: u8,
+    /// SPI: what the next datagram's answer carries.
+    pending: u32,
+    /// Datagrams received (all kinds), for tests.
+    pub datagrams: usize,
+}
+
+const GSTAT: usize = 0x01;
+const IFCNT: u8 = 0x02;
+
+impl SimDriver {
+    /// Register `addr`'s value as the driver holds it.
+    pub fn register(&self, addr: u8) -> u32 {
+        self.regs[usize::from(addr & 0x7f)]
+    }
+
+    /// Register `name`'s value as the driver holds it (0 if unknown).
+    pub fn register_named(&self, name: &str) -> u32 {
+        self.kind
+            .register(name)
+            .map_or(0, |r| self.register(r.addr))
+    }
+
+    /// Field `name` of the register holding it.
+    pub fn field(&self, name: &str) -> Option<i64> {
+        let (reg, field) = self.kind.field_any(name)?;
+        Some(field.get(self.register(reg.addr)))
+    }
+
+    /// Sets register `addr` as the chip would (a status flag raised, for
+    /// tests).
+    pub fn inject(&mut self, addr: u8, value: u32) {
+        self.regs[usize::from(addr & 0x7f)] = value;
+    }
+
+    /// Power lost and back: every register 0, GSTAT's reset flag set, the
+    /// interface counter back to 0.
+    pub fn power_cycle(&mut self) {
+        self.regs = [0; 128];
+        self.regs[GSTAT] = 1;
+        self.ifcnt = 0;
+        self.pending = 0;
+    }
+
+    /// A write to `addr`: GSTAT flags are cleared by writing ones.
+    fn write(&mut self, addr: u8, value: u32) {
+        let a = usize::from(addr & 0x7f);
+        if a == GSTAT && self.kind != DriverKind::Tmc2660 {
+            self.regs[a] &= !value;
+        } else {
+            self.regs[a] = value;
+        }
+    }
+
+    /// A read of `addr`, as the chip answers it.
+    fn read(&mut self, addr: u8) -> u32 {
+        match addr {
+            IFCNT if self.kind.is_uart() => u32::from(self.ifcnt),
+            _ => {
+                let value = self.register(addr);
+                // The TMC2130 clears GSTAT when it is read.
+                if self.kind == DriverKind::Tmc2130 && usize::from(addr) == GSTAT {
+                    self.regs[GSTAT] = 0;
+                }
+                value
+            }
+        }
+    }
+
+    /// A TMC2660 datagram: the answer (20 bits in the top of 24) comes
+    /// from the read selection before the datagram.
+    fn datagram_2660(&mut self, d: [u8; wire::SPI_2660]) -> u32 {
+        let drvconf = self.register(0xe);
+        let flags = 1 << 7; // standstill
+        let answer = match (drvconf >> 4) & 3 {
+            2 => (self.register(0xc) & 0x1f) << 10 | flags,
+            _ => flags,
+        };
+        let (reg, value) = wire::spi_2660_decode(d);
+        self.write(reg, value);
+        answer << 4
+    }
+}
+
+/// Every simulated driver, by port.
+#[derive(Debug, Clone, Default)]
+pub struct TmcSim {
+    /// The drivers.
+    pub drivers: Vec<SimDriver>,
+}
+
+impl TmcSim {
+    /// The drivers of `machine`'s TMC sections, on the ports the firmware
+    /// numbers, all at power-on (registers 0, GSTAT reset).
+    pub fn new(machine: &Machine<'_>) -> Self {
+        let ports = Tmc::new(&machine.tmc);
+        let drivers = machine
+            .tmc
+            .iter()
+            .map(|d| {
+                let (slot, chain_length) = match d.bus {
+                    Bus::Uart { address, .. } => (address, 1),
+                    Bus::Spi {
+                        chain_position,
+                        chain_length,
+                        ..
+                    } => (chain_position, chain_length),
+                };
+                let mut sim = SimDriver {
+                    kind: d.kind,
+                    stepper: d.stepper.to_string(),
+                    port: ports.port_of(d.stepper).unwrap_or(0),
+                    slot,
+                    chain_length,
+                    regs: [0; 128],
+                    ifcnt: 0,
+                    pending: 0,
+                    datagrams: 0,
+                };
+                sim.power_cycle();
+                sim
+            })
+            .collect();
+        Self { drivers }
+    }
+
+    /// The driver of `stepper`.
+    pub fn driver(&mut self, stepper: &str) -> Option<&mut SimDriver> {
+        self.drivers.iter_mut().find(|d| d.stepper == stepper)
+    }
+}
+
+impl TmcLink for TmcSim {
+    fn uart(&mut self, port: u8, tx: &[u8], rx: &mut [u8]) -> Result<(), NoAnswer> {
+        let request = wire::uart_decode_request(tx).ok_or(NoAnswer)?;
+        let driver = self
+            .drivers
+            .iter_mut()
+            .find(|d| d.port == port && d.kind.is_uart() && d.slot == request.address)
+            .ok_or(NoAnswer)?;
+        driver.datagrams += 1;
+        match request.write {
+            Some(value) => {
+                driver.write(request.reg, value);
+                driver.ifcnt = driver.ifcnt.wrapping_add(1);
+                Ok(())
+            }
+            None => {
+                let reply = wire::uart_reply(request.reg, driver.read(request.reg));
+                let out = rx.get_mut(..reply.len()).ok_or(NoAnswer)?;
+                out.copy_from_slice(&reply);
+                Ok(())
+            }
+        }
+    }
+
+    fn spi(&mut self, port: u8, data: &mut [u8]) -> Result<(), NoAnswer> {
+        let mut answered = false;
+        for d in self
+            .drivers
+            .iter_mut()
+            .filter(|d| d.port == port && !d.kind.is_uart())
+        {
+            d.datagrams += 1;
+            answered = true;
+            if d.kind == DriverKind::Tmc2660 {
+                let bytes: [u8; wire::SPI_2660] = data.try_into().map_err(|_| NoAnswer)?;
+                let answer = d.datagram_2660(bytes).to_be_bytes();
+                data.copy_from_slice(&answer[1..]);
+                continue;
+            }
+            let at = wire::chain_offset(d.slot, d.chain_length);
+            let Some(slot) = data.get_mut(at..at + wire::SPI_DATAGRAM) else {
+                return Err(NoAnswer);
+            };
+            let addr = slot[0];
+            let value = u32::from_be_bytes([slot[1], slot[2], slot[3], slot[4]]);
+            // Status byte: GSTAT's reset and drv_err flags.
+            let status = (d.register(GSTAT as u8) & 3) as u8;
+            let answer = d.pending.to_be_bytes();
+            slot.copy_from_slice(&[status, answer[0], answer[1], answer[2], answer[3]]);
+            d.pending = if addr & 0x80 != 0 {
+                d.write(addr, value);
+                value
+            } else {
+                d.read(addr)
+            };
+        }
+        if answered { Ok(()) } else { Err(NoAnswer) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_uart_driver_counts_writes_and_answers_reads() {
+        let mut sim = TmcSim {
+            drivers: vec![SimDriver {
+                kind: DriverKind::Tmc2209,
+                stepper: "stepper_x".into(),
+                port: 0,
+                slot: 2,
+                chain_length: 1,
+                regs: [0; 128],
+                ifcnt: 0,
+                pending: 0,
+                datagrams: 0,
+            }],
+        };
+        sim.uart(0, &wire::uart_write(2, 0x10, 0x0008_1010), &mut [])
+            .expect("write");
+        let mut reply = [0u8; 8];
+        sim.uart(0, &wire::uart_read(2, 0x02), &mut reply)
+            .expect("read");
+        assert_eq!(wire::uart_decode_reply(0x02, &reply), Some(1));
+        assert_eq!(sim.drivers[0].register(0x10), 0x0008_1010);
+        // Another address on the same wire: nobody answers.
+        assert_eq!(
+            sim.uart(0, &wire::uart_read(1, 0x02), &mut reply),
+            Err(NoAnswer)
+        );
+    }
+}
