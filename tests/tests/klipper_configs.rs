@@ -39,8 +39,8 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// (generic-cramps, generic-replicape, kit-voron2-250mm) now connect to
 /// it, as Klipper does, and are refused naming its `serial` option: no
 /// such device exists here. 137 since `[probe]`/`[bltouch]` and
-/// `probe:z_virtual_endstop` load.
-const MIN_LOADED: usize = 137;
+/// `probe:z_virtual_endstop` load, 139 with the TMC drivers too.
+const MIN_LOADED: usize = 139;
 /// Section kinds supported now, which no file may list as unsupported.
 const NOW_SUPPORTED: [&str; 7] = [
     "heater_fan",
@@ -53,8 +53,8 @@ const NOW_SUPPORTED: [&str; 7] = [
 ];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with
-/// `[safe_z_home]` and `[homing_override]`).
-const MIN_HOMED_AND_MOVED: usize = 129;
+/// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers).
+const MIN_HOMED_AND_MOVED: usize = 131;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;
