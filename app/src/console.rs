@@ -19,6 +19,7 @@ use crate::sd_print::{SdError, SdPrint};
 use crate::session::{Mcu, Session, profile::MAX_LINE};
 use crate::text::ErrorText;
 use core::fmt::{self, Write};
+use onechip_config::decimal;
 
 /// What the firmware can do, as M115's `Cap:` lines tell hosts.
 const CAPABILITIES: &[(&str, bool)] = &[
@@ -455,7 +456,7 @@ fn arg(rest: &str, letter: u8) -> Option<f64> {
             .as_bytes()
             .first()
             .is_some_and(|b| b.eq_ignore_ascii_case(&letter))
-            .then(|| value.parse().ok())
+            .then(|| decimal::parse(value))
             .flatten()
     })
 }

@@ -19,6 +19,7 @@
 
 use core::fmt::Write;
 use onechip_planner::machine::Machine;
+use onechip_planner::math::clamp;
 use onechip_planner::thermal::{Control, Heater, PWM_DELAY, VerifyHeater};
 use onechip_sched::adc::{AdcQuery, AdcReport};
 use onechip_sched::clock::is_before;
@@ -27,6 +28,7 @@ use onechip_sched::outputs::{OutputConfig, OutputKind, QueueError};
 use onechip_sched::shutdown::{self, Shutdown};
 
 use crate::outputs::{AccessoryCommand, AccessoryOutputs, FanControl, fan_config};
+use onechip_config::decimal::Fixed;
 
 /// Time between a thermistor's readings, s.
 pub const SAMPLE_TIME: f64 = 0.001;
@@ -67,12 +69,21 @@ impl core::fmt::Display for Temperatures {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         for (i, (label, temperature, target, _)) in self.0.iter().enumerate() {
             let sep = if i == 0 { "" } else { " " };
-            write!(f, "{sep}{label}:{temperature:.1} /{target:.1}")?;
+            write!(
+                f,
+                "{sep}{label}:{} /{}",
+                Fixed(*temperature, 1),
+                Fixed(*target, 1)
+            )?;
         }
         for (label, _, _, power) in &self.0 {
             // The hot end's power is `@:`, the others' `B@:`.
             let label = if *label == "T" { "" } else { label };
-            write!(f, " {label}@:{:.0}", (power * 127.0).clamp(0.0, 127.0))?;
+            write!(
+                f,
+                " {label}@:{}",
+                Fixed(clamp(power * 127.0, 0.0, 127.0), 0)
+            )?;
         }
         Ok(())
     }
@@ -175,7 +186,7 @@ impl ControlState {
                 let candidate = *integral + step;
                 let der = ((smooth - 1.0) * *prev_der - (temp - *prev_temp) / dt) / smooth;
                 let out = *kp * err + *ki * candidate + *kd * der;
-                let power = out.clamp(0.0, max_power);
+                let power = clamp(out, 0.0, max_power);
                 *prev_temp = temp;
                 *prev_der = der;
                 if target > 0.0 {
@@ -420,7 +431,7 @@ fn queue_on(
 fn adc_query(heater: &Heater<'_>, freq: f64, adc_max: u16, start: u32) -> AdcQuery {
     let full = adc_full(adc_max);
     let (low, high) = heater.sensor.adc_range(heater.min_temp, heater.max_temp);
-    let counts = |v: f64| v.clamp(0.0, f64::from(u16::MAX)) as u16;
+    let counts = |v: f64| clamp(v, 0.0, f64::from(u16::MAX)) as u16;
     AdcQuery {
         clock: start,
         sample_ticks: ticks(SAMPLE_TIME, freq),
@@ -454,7 +465,10 @@ impl core::fmt::Display for ThermalError {
             Self::NoHeater => f.write_str("No such heater configured"),
             Self::OutOfRange { celsius, min, max } => write!(
                 f,
-                "Requested temperature ({celsius:.1}) out of range ({min:.1}:{max:.1})"
+                "Requested temperature ({}) out of range ({}:{})",
+                Fixed(*celsius, 1),
+                Fixed(*min, 1),
+                Fixed(*max, 1)
             ),
         }
     }

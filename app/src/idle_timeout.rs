@@ -19,6 +19,7 @@
 //! the G-code it returns like console lines.
 
 use core::fmt::Write;
+use onechip_config::decimal::Fixed;
 use onechip_planner::gcode::{Command, Line};
 use onechip_planner::gcode_move::CommandError;
 use onechip_planner::thermal::IdleTimeoutConfig;
@@ -228,7 +229,11 @@ impl<'a> IdleTimeout<'a> {
             });
         }
         self.set_timeout(now, timeout);
-        let _ = writeln!(out, "// idle_timeout: Timeout set to {timeout:.2} s");
+        let _ = writeln!(
+            out,
+            "// idle_timeout: Timeout set to {} s",
+            Fixed(timeout, 2)
+        );
         Ok(true)
     }
 }

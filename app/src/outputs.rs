@@ -12,6 +12,7 @@
 //! into [`AccessoryCommand`]s that travel as the heaters' commands do.
 
 use crate::heaters::{full_scale, scaled, ticks};
+use onechip_config::decimal::Fixed;
 use onechip_planner::accessories::{Accessories, MAX_OUTPUTS};
 use onechip_planner::fan_sections::{FanRole, MAX_FANS};
 use onechip_planner::gcode::{Command, Extended, GcodeError, Line};
@@ -258,7 +259,7 @@ impl core::fmt::Display for AccessoryError<'_> {
             Self::NotValid { key, value } => {
                 write!(f, "The value '{value}' is not valid for {key}")
             }
-            Self::OutOfRange { max } => write!(f, "VALUE must have maximum of {max:.6}"),
+            Self::OutOfRange { max } => write!(f, "VALUE must have maximum of {}", Fixed(*max, 6)),
             Self::InvalidPinValue => f.write_str("Invalid pin value"),
             Self::CycleTime => {
                 f.write_str("CYCLE_TIME other than the pin's cycle_time is not supported yet")

@@ -16,6 +16,7 @@ use core::ptr::addr_of_mut;
 use onechip_planner::gcode::{self, Command, Line};
 use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
+use onechip_planner::math::clamp;
 use onechip_planner::move_sink::MoveSink;
 use onechip_planner::toolhead::Toolhead;
 
@@ -246,7 +247,7 @@ impl<'a, const N: usize> Printer<'a, N> {
                         speed: if t.number == 107 {
                             0.0
                         } else {
-                            (s.unwrap_or(255.0) / 255.0).clamp(0.0, 1.0)
+                            clamp(s.unwrap_or(255.0) / 255.0, 0.0, 1.0)
                         },
                         print_time: self.toolhead.print_time(),
                     },

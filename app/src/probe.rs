@@ -6,6 +6,7 @@
 
 use crate::printer::{LineError, Printer};
 use core::fmt::Write;
+use onechip_config::decimal::Fixed;
 use onechip_planner::bltouch::Command as BltCommand;
 use onechip_planner::gcode::{self, Command, Extended, Line};
 use onechip_planner::gcode_move::CommandError;
@@ -310,7 +311,7 @@ impl<'a, const N: usize> Printer<'a, N> {
             let pos = (self.toolhead)
                 .run_probe(&probe, &mut self.probing.state, &s, now, sink, out)
                 .map_err(CommandError::Move)?;
-            let _ = writeln!(out, "// Result is z={:.6}", pos[2]);
+            let _ = writeln!(out, "// Result is z={}", Fixed(pos[2], 6));
         } else if is("PROBE_ACCURACY") {
             self.probe_accuracy(e, &probe, sink, out)?;
         } else if is("PROBE_CALIBRATE") {
@@ -340,7 +341,7 @@ impl<'a, const N: usize> Printer<'a, N> {
             (self.toolhead)
                 .move_to(at, probe.speed, sink)
                 .map_err(CommandError::Move)?;
-            let _ = writeln!(out, "// Z position: {:.3}", at[2]);
+            let _ = writeln!(out, "// Z position: {}", Fixed(at[2], 3));
         } else if is("ACCEPT")
             && let Some(probed) = self.probing.calibrating.take()
         {
@@ -350,10 +351,11 @@ impl<'a, const N: usize> Printer<'a, N> {
             }
             let _ = writeln!(
                 out,
-                "// {}: z_offset: {z_offset:.3}\n\
+                "// {}: z_offset: {}\n\
                  // The SAVE_CONFIG command will update the printer config file\n\
                  // with the above and restart the printer.",
-                probe.section
+                probe.section,
+                Fixed(z_offset, 3)
             );
         } else if is("ABORT") && self.probing.calibrating.take().is_some() {
             let _ = writeln!(out, "// Manual probe aborted");
@@ -397,9 +399,14 @@ impl<'a, const N: usize> Printer<'a, N> {
         let at = th.position();
         let _ = writeln!(
             out,
-            "// PROBE_ACCURACY at X:{:.3} Y:{:.3} Z:{:.3} (samples={samples} \
-             retract={retract:.3} speed={speed:.1} lift_speed={lift_speed:.1})",
-            at[0], at[1], at[2]
+            "// PROBE_ACCURACY at X:{} Y:{} Z:{} (samples={samples} \
+             retract={} speed={} lift_speed={})",
+            Fixed(at[0], 3),
+            Fixed(at[1], 3),
+            Fixed(at[2], 3),
+            Fixed(retract, 3),
+            Fixed(speed, 1),
+            Fixed(lift_speed, 1)
         );
         let state = &mut self.probing.state;
         let now = self.probing.now;
@@ -426,9 +433,14 @@ impl<'a, const N: usize> Printer<'a, N> {
         let sigma = sqrt(zs.iter().map(|p| (p[2] - avg) * (p[2] - avg)).sum::<f64>() / n);
         let _ = writeln!(
             out,
-            "// probe accuracy results: maximum {max:.6}, minimum {min:.6}, range {:.6}, \
-             average {avg:.6}, median {median:.6}, standard deviation {sigma:.6}",
-            max - min
+            "// probe accuracy results: maximum {}, minimum {}, range {}, \
+             average {}, median {}, standard deviation {}",
+            Fixed(max, 6),
+            Fixed(min, 6),
+            Fixed(max - min, 6),
+            Fixed(avg, 6),
+            Fixed(median, 6),
+            Fixed(sigma, 6)
         );
         Ok(())
     }

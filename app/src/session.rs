@@ -19,6 +19,7 @@ use core::cell::RefCell;
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
+use onechip_config::decimal::Fixed;
 use onechip_planner::gcode;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::move_sink::{HomingEnd, HomingMove};
@@ -265,7 +266,8 @@ impl fmt::Display for SessionError<'_> {
             ),
             Self::HeatTimeout => write!(
                 f,
-                "heater did not reach its target within {MAX_HEAT_WAIT:.0} s"
+                "heater did not reach its target within {} s",
+                Fixed(MAX_HEAT_WAIT, 0)
             ),
             Self::Shutdown(reason) => write!(f, "MCU shutdown: {reason}"),
             Self::Command(e) => e.fmt(f),

@@ -15,6 +15,7 @@
 
 use crate::text::{ErrorText, cut_text};
 use core::fmt::{self, Write};
+use onechip_config::decimal::{self, Fixed};
 use onechip_planner::gcode::{Command, Extended, Line};
 use onechip_planner::tmc::config::{Bus, MAX_DRIVERS, TmcDriver};
 use onechip_planner::tmc::registers::{RegDef, TMC2660_READRSP};
@@ -397,8 +398,13 @@ impl<'a> Tmc<'a> {
         }
         let (run, hold) = self.currents(i);
         let _ = match hold {
-            Some(hold) => writeln!(out, "// Run Current: {run:.2}A Hold Current: {hold:.2}A"),
-            None => writeln!(out, "// Run Current: {run:.2}A"),
+            Some(hold) => writeln!(
+                out,
+                "// Run Current: {}A Hold Current: {}A",
+                Fixed(run, 2),
+                Fixed(hold, 2)
+            ),
+            None => writeln!(out, "// Run Current: {}A", Fixed(run, 2)),
         };
         Ok(())
     }
@@ -556,9 +562,7 @@ fn number(
         return Ok(None);
     };
     let name = e.name;
-    let v: f64 = text
-        .parse()
-        .ok()
+    let v: f64 = decimal::parse(text)
         .filter(|v: &f64| v.is_finite())
         .ok_or_else(|| cut_text(&format_args!("Error on '{name}': unable to parse {text}")))?;
     if let Some(m) = min.filter(|&m| v < m) {
@@ -688,7 +692,7 @@ fn format_field(out: &mut impl Write, kind: DriverKind, name: &str, v: i64) -> f
         "vsense" if kind == DriverKind::Tmc2660 => {
             out.write_str(if v != 0 { "1(165mV)" } else { "0(305mV)" })
         }
-        "adc_temp" => write!(out, "0x{v:04x}({:.1}C)", (v as f64 - 2038.0) / 7.7),
+        "adc_temp" => write!(out, "0x{v:04x}({}C)", Fixed((v as f64 - 2038.0) / 7.7, 1)),
         _ => write!(out, "{v}"),
     }
 }

@@ -16,6 +16,8 @@
 //! nothing here knows about motion.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod decimal;
+
 use core::cell::Cell;
 use core::fmt;
 
@@ -630,10 +632,7 @@ impl<'c, 'a> Section<'c, 'a> {
             Err(default) => return Ok(default),
         };
         let bad = |reason| self.bad_value(line, option, reason);
-        let value: f64 = line
-            .value
-            .parse()
-            .ok()
+        let value: f64 = decimal::parse(line.value)
             .filter(|v: &f64| v.is_finite())
             .ok_or(bad("is not a number"))?;
         if bounds.minval.is_some_and(|m| value < m) {

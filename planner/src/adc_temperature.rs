@@ -290,7 +290,7 @@ impl LinearSensor {
         match self.input {
             Input::Voltage { .. } => self.interpolate(adc),
             Input::Resistance { pullup } => {
-                let adc = adc.clamp(0.00001, 0.99999);
+                let adc = crate::math::clamp(adc, 0.00001, 0.99999);
                 self.interpolate(pullup * adc / (1.0 - adc))
             }
         }

@@ -13,6 +13,7 @@
 //!   optionally quoted (`MSG="two words"`).
 
 use core::fmt;
+use onechip_config::decimal;
 
 /// Why a line could not be parsed, or a parameter not read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -145,48 +146,9 @@ pub struct Param<'a> {
 
 /// Reads a value as a finite number.
 fn number<'a>(key: &'a str, value: &'a str) -> Result<f64, GcodeError<'a>> {
-    fast_decimal(value)
-        .or_else(|| value.parse::<f64>().ok())
+    decimal::parse(value)
         .filter(|v| v.is_finite())
         .ok_or(GcodeError::BadNumber { key, value })
-}
-
-/// Exact conversion of a plain decimal (`-12.345`, at most 15 significant
-/// digits and 22 decimals): the integer mantissa and the power of ten are
-/// both exact in f64, so one correctly rounded division gives the same
-/// result as a full decimal parser (Clinger's fast path). None otherwise.
-fn fast_decimal(text: &str) -> Option<f64> {
-    const POW10: [f64; 23] = [
-        1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
-        1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
-    ];
-    let (negative, digits) = match text.as_bytes() {
-        [b'-', rest @ ..] => (true, rest),
-        [b'+', rest @ ..] => (false, rest),
-        rest => (false, rest),
-    };
-    let (mut mantissa, mut significant, mut decimals, mut seen_point, mut any) =
-        (0u64, 0u32, 0usize, false, false);
-    for &b in digits {
-        match b {
-            b'0'..=b'9' => {
-                any = true;
-                if mantissa != 0 || b != b'0' {
-                    significant += 1;
-                }
-                mantissa = mantissa * 10 + u64::from(b - b'0');
-                decimals += usize::from(seen_point);
-            }
-            b'.' if !seen_point => seen_point = true,
-            _ => return None,
-        }
-        if significant > 15 {
-            return None;
-        }
-    }
-    let scale = *POW10.get(decimals)?;
-    let value = (any && mantissa < 1 << 53).then(|| mantissa as f64 / scale)?;
-    Some(if negative { -value } else { value })
 }
 
 impl<'a> Traditional<'a> {
@@ -512,35 +474,15 @@ mod tests {
     }
 
     #[test]
-    fn decimals_convert_exactly_like_a_full_parser() {
-        for text in [
-            "0",
-            "-0.5",
-            "120.000",
-            "97.5",
-            "0.0125",
-            "-1.234567890123",
-            "299.75",
-            "+3",
-            "1.",
-            ".5",
-            "007",
-        ] {
-            let expected: f64 = text.parse().expect("valid");
-            assert_eq!(
-                fast_decimal(text).map(f64::to_bits),
-                Some(expected.to_bits()),
-                "{text}"
-            );
-        }
-        // Outside the fast path the full parser takes over.
-        assert_eq!(fast_decimal("1.2345678901234567"), None);
-        assert_eq!(fast_decimal("1e5"), None);
-        assert_eq!(fast_decimal("-"), None);
+    fn numbers_read_as_klipper_reads_them() {
+        assert_eq!(number("X", "-0.5"), Ok(-0.5));
         assert_eq!(
             number("X", "1.2345678901234567"),
             Ok(1.234_567_890_123_456_7)
         );
+        assert_eq!(number("E", "1e-3"), Ok(0.001));
+        assert!(number("X", "inf").is_err());
+        assert!(number("X", "1..2").is_err());
         let g = trad("G1 X1 Y2 Z3 X4");
         assert_eq!(g.floats(["X", "y", "E"]), Ok([Some(4.0), Some(2.0), None]));
     }

@@ -12,6 +12,7 @@ use crate::move_sink::MoveSink;
 use crate::planned_move::E;
 use crate::toolhead::{MoveError, Toolhead};
 use core::fmt::{self, Write};
+use onechip_config::decimal::Fixed;
 
 /// Why a command failed (the printer replies `!! <error>` and goes on).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -206,8 +207,11 @@ impl GcodeMove {
                 let p = self.gcode_position();
                 let _ = writeln!(
                     out,
-                    "X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}",
-                    p[0], p[1], p[2], p[3]
+                    "X:{} Y:{} Z:{} E:{}",
+                    Fixed(p[0], 3),
+                    Fixed(p[1], 3),
+                    Fixed(p[2], 3),
+                    Fixed(p[3], 3)
                 );
                 Ok(())
             }
@@ -405,11 +409,11 @@ impl GcodeMove {
         if velocity.is_none() && accel.is_none() && scv.is_none() && mcr.is_none() {
             let _ = writeln!(
                 out,
-                "// max_velocity: {:.6}\n// max_accel: {:.6}\n// minimum_cruise_ratio: {:.6}\n// square_corner_velocity: {:.6}",
-                limits.max_velocity,
-                limits.max_accel,
-                limits.min_cruise_ratio,
-                limits.square_corner_velocity
+                "// max_velocity: {}\n// max_accel: {}\n// minimum_cruise_ratio: {}\n// square_corner_velocity: {}",
+                Fixed(limits.max_velocity, 6),
+                Fixed(limits.max_accel, 6),
+                Fixed(limits.min_cruise_ratio, 6),
+                Fixed(limits.square_corner_velocity, 6)
             );
         }
         Ok(())

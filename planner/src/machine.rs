@@ -14,7 +14,7 @@ use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
 use crate::tmc::{self, config::TmcDriver};
 use crate::toolhead::HomingInfo;
 use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
 
 /// Most steppers a machine may have.
 pub const MAX_STEPPERS: usize = 8;
@@ -684,7 +684,7 @@ fn bad<'c>(section: &Section<'c, '_>, option: &'c str, reason: &'static str) -> 
 fn parse_gear_ratio(text: &str) -> Option<f64> {
     text.split(',').try_fold(1.0, |ratio, pair| {
         let (a, b) = pair.split_once(':')?;
-        let (a, b): (f64, f64) = (a.trim().parse().ok()?, b.trim().parse().ok()?);
+        let (a, b) = (decimal::parse(a.trim())?, decimal::parse(b.trim())?);
         (a > 0.0 && b > 0.0).then_some(ratio * a / b)
     })
 }

@@ -25,6 +25,14 @@ pub fn sqrt(x: f64) -> f64 {
     }
 }
 
+/// `x` limited to `low..=high` (`high` wins if `low > high`; NaN gives
+/// `low`). Unlike `f64::clamp` it never panics, and it does not link the
+/// float formatting that `f64::clamp`'s assertion message needs.
+#[inline]
+pub fn clamp(x: f64, low: f64, high: f64) -> f64 {
+    x.max(low).min(high)
+}
+
 #[cfg(test)]
 mod tests {
     use super::sqrt;

@@ -13,6 +13,7 @@ use crate::bltouch::{self, Bltouch, BltouchConfig};
 use crate::homing::HomingHooks;
 use crate::move_sink::MoveSink;
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
+use onechip_config::decimal::Fixed;
 use onechip_config::{Bounds, Config, ConfigError, Section};
 
 /// The endstop pin a rail names to home on the probe.
@@ -357,7 +358,13 @@ impl<const N: usize> Toolhead<N> {
             return Err(error(NO_TRIGGER, self.position()));
         }
         let p = self.position();
-        let _ = writeln!(out, "// probe at {:.3},{:.3} is z={:.6}", p[0], p[1], p[2]);
+        let _ = writeln!(
+            out,
+            "// probe at {},{} is z={}",
+            Fixed(p[0], 3),
+            Fixed(p[1], 3),
+            Fixed(p[2], 6)
+        );
         Ok([p[0], p[1], p[2]])
     }
 

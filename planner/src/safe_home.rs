@@ -13,7 +13,7 @@
 use crate::homing::HomingHooks;
 use crate::move_sink::MoveSink;
 use crate::toolhead::{Detail, MoveError, Toolhead};
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
 
 /// Klipper's error when Z would home before X and Y.
 pub const HOME_XY_FIRST: &str = "Must home X and Y axes first";
@@ -75,9 +75,9 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<G28<'a>, ConfigError<'c>> 
 
 fn read_safe_z_home<'c>(s: &Section<'c, '_>) -> Result<SafeZHome, ConfigError<'c>> {
     let text = s.get("home_xy_position")?;
-    let mut parts = text.split(',').map(|p| p.trim().parse::<f64>());
+    let mut parts = text.split(',').map(|p| decimal::parse(p.trim()));
     let home_xy = match (parts.next(), parts.next(), parts.next()) {
-        (Some(Ok(x)), Some(Ok(y)), None) if x.is_finite() && y.is_finite() => [x, y],
+        (Some(Some(x)), Some(Some(y)), None) if x.is_finite() && y.is_finite() => [x, y],
         _ => {
             return Err(s.error_for("home_xy_position", "must be two numbers: x, y"));
         }

@@ -329,11 +329,14 @@ impl Fan<'_> {
     pub fn power(&self, speed: f64) -> f64 {
         let speed = if speed < self.off_below { 0.0 } else { speed };
         let power = if speed > 0.0 {
-            ((self.max_power - self.min_power) * speed + self.min_power)
-                .clamp(self.min_power, self.max_power)
+            crate::math::clamp(
+                (self.max_power - self.min_power) * speed + self.min_power,
+                self.min_power,
+                self.max_power,
+            )
         } else {
             speed
         };
-        power.clamp(0.0, 1.0)
+        crate::math::clamp(power, 0.0, 1.0)
     }
 }

@@ -128,7 +128,7 @@ impl Thermistor {
 
     /// Temperature at ADC reading `adc` (fraction of full scale), °C.
     pub fn temperature(&self, adc: f64) -> f64 {
-        let adc = adc.clamp(0.00001, 0.99999);
+        let adc = crate::math::clamp(adc, 0.00001, 0.99999);
         let r = self.pullup * adc / (1.0 - adc);
         let ln_r = libm::log(r - self.inline);
         1.0 / (self.c1 + self.c2 * ln_r + self.c3 * ln_r * ln_r * ln_r) - ZERO_CELSIUS

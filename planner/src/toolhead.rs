@@ -15,6 +15,7 @@ use crate::lookahead::LookAhead;
 use crate::move_sink::{MoveSink, TrapqMove};
 use crate::planned_move::{E, Limits, Move};
 use core::fmt;
+use onechip_config::decimal::Fixed;
 
 /// Time to buffer before the first move, s.
 pub const BUFFER_TIME_START: f64 = 0.250;
@@ -102,12 +103,22 @@ impl fmt::Display for MoveError {
         let e = &self.end;
         match self.detail {
             Detail::Limit { value, limit, unit } => {
-                write!(f, "{} ({value:.3}{unit} vs {limit:.3}{unit})", self.reason)
+                write!(
+                    f,
+                    "{} ({}{unit} vs {}{unit})",
+                    self.reason,
+                    Fixed(value, 3),
+                    Fixed(limit, 3)
+                )
             }
             Detail::Position => write!(
                 f,
-                "{}: {:.3} {:.3} {:.3} [{:.3}]",
-                self.reason, e[0], e[1], e[2], e[3]
+                "{}: {} {} {} [{}]",
+                self.reason,
+                Fixed(e[0], 3),
+                Fixed(e[1], 3),
+                Fixed(e[2], 3),
+                Fixed(e[3], 3)
             ),
             Detail::Nothing => f.write_str(self.reason),
         }
@@ -767,7 +778,7 @@ impl<const N: usize> Toolhead<N> {
     /// Where the last released move was at print time `t` (s), mm.
     pub(crate) fn released_position_at(&self, t: f64) -> Option<[f64; 4]> {
         let (start, m) = self.last_released.as_ref()?;
-        let t = (t - start).clamp(0.0, m.accel_t + m.cruise_t + m.decel_t);
+        let t = crate::math::clamp(t - start, 0.0, m.accel_t + m.cruise_t + m.decel_t);
         let accel_d = (m.start_v + 0.5 * m.accel * m.accel_t) * m.accel_t;
         let dist = if t < m.accel_t {
             (m.start_v + 0.5 * m.accel * t) * t
