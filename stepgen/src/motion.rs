@@ -164,6 +164,20 @@ impl<const Q: usize> Channel<Q> {
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }
             },
+            Follows::Extruder(pa) if pa.half_smooth_time == 0.0 => {
+                // Without pressure advance the filament follows its own
+                // queue's segments (signed velocities, direction +1).
+                let position = |i: usize| {
+                    let seg: &Segment = &segs[i];
+                    AlongSegment {
+                        base: seg.start_pos[0],
+                        ratio: 1.0,
+                        start_v: seg.start_v,
+                        half_accel: seg.half_accel,
+                    }
+                };
+                solver.generate_until(segs, *margins, until, position, &mut emit);
+            }
             Follows::Extruder(pa) => {
                 let pa = *pa;
                 let position = |i: usize| move |t: f64| extruder::position(segs, i, t, &pa);

@@ -235,12 +235,38 @@ impl ShapedSegment<'_> {
 }
 
 impl PositionFn for ShapedSegment<'_> {
+    /// The first crossing in `low..=high`, piece by piece.
     fn crossing(&self, low: f64, high: f64, target: f64) -> Option<f64> {
-        let piece = self.piece(low)?;
-        if high > piece.end {
-            return None;
+        let mut start = 0.0;
+        for piece in &self.pieces[..self.pieces_len] {
+            if start > high {
+                break;
+            }
+            if piece.end > low {
+                let window = (low.max(start), high.min(piece.end));
+                if let Some(t) = piece.position.crossing(window.0, window.1, target) {
+                    return Some(t);
+                }
+            }
+            start = piece.end;
         }
-        piece.position.crossing(low, high, target)
+        None
+    }
+
+    /// Monotonic if every piece's slope keeps one sign at both its ends
+    /// (a quadratic's slope is linear in between).
+    fn monotonic(&self, _move_t: f64) -> Option<bool> {
+        let (mut start, mut rising, mut falling) = (0.0, false, false);
+        for piece in &self.pieces[..self.pieces_len] {
+            let [_, b, a] = piece.position.0;
+            for t in [start, piece.end] {
+                let slope = b + 2.0 * a * t;
+                rising |= slope > 0.0;
+                falling |= slope < 0.0;
+            }
+            start = piece.end;
+        }
+        (rising != falling).then_some(rising)
     }
 
     fn at(&self, t: f64) -> f64 {

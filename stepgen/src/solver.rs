@@ -53,6 +53,14 @@ pub trait PositionFn {
     fn crossing(&self, _low: f64, _high: f64, _target: f64) -> Option<f64> {
         None
     }
+
+    /// Some(true) if the position only ever rises over a segment of
+    /// `move_t` s (Some(false): only falls), with [`Self::crossing`]
+    /// exact: its steps are then solved one after another without a
+    /// search. None if it may turn or stand still.
+    fn monotonic(&self, _move_t: f64) -> Option<bool> {
+        None
+    }
 }
 
 impl<F: Fn(f64) -> f64> PositionFn for F {
@@ -84,6 +92,15 @@ impl PositionFn for AlongSegment {
     fn crossing(&self, low: f64, high: f64, target: f64) -> Option<f64> {
         let r = self.ratio;
         Quadratic([self.base, r * self.start_v, r * self.half_accel]).crossing(low, high, target)
+    }
+
+    /// The velocity `start_v + 2·half_accel·t` keeps its sign over the
+    /// segment when it has the same sign at both ends (trapq segments
+    /// never turn inside: a move only slows to a stop at its end).
+    fn monotonic(&self, move_t: f64) -> Option<bool> {
+        let (v0, v1) = (self.start_v, self.start_v + 2.0 * self.half_accel * move_t);
+        let moving = self.ratio * (v0 + v1);
+        (v0 * v1 >= 0.0 && moving != 0.0).then_some(moving > 0.0)
     }
 }
 
@@ -369,9 +386,65 @@ impl StepSolver {
         position: &impl PositionFn,
         mut emit: impl FnMut(Step),
     ) {
-        let half = self.half_step;
         let start = (start - seg.print_time).max(0.0);
         let end = (end - seg.print_time).min(seg.move_t);
+        let Some(forward) = position.monotonic(seg.move_t) else {
+            self.search(seg, start, end, position, &mut emit, false);
+            return;
+        };
+        let mut from = start;
+        if self.dir != Some(forward) {
+            // The first step, or the first after a reversal, is searched
+            // for with the midpoint rule.
+            match self.search(seg, start, end, position, &mut emit, true) {
+                Some(t) if self.dir == Some(forward) => from = t,
+                Some(t) => {
+                    self.search(seg, t, end, position, &mut emit, false);
+                    return;
+                }
+                None => return,
+            }
+        }
+        // Moving one way only: each next step is where the position
+        // crosses the next half-step boundary (the search would find the
+        // same crossing), until none is left before `end`.
+        let step = if forward {
+            self.half_step
+        } else {
+            -self.half_step
+        };
+        let mut pos = self.commanded_pos;
+        while let Some(t) = position.crossing(from, end, pos + step) {
+            emit(Step {
+                time: seg.print_time + t,
+                dir: forward,
+            });
+            pos = pos + step + step;
+            from = t;
+        }
+        self.commanded_pos = pos;
+        // No crossing is left; should the position at `end` say otherwise
+        // (a root rounded past a piece's or the segment's end), the search
+        // takes the rest.
+        if (position.at(end) - pos).abs() >= self.half_step {
+            self.search(seg, from, end, position, &mut emit, false);
+        }
+    }
+
+    /// Searches for the steps from `position` between `start` and `end`
+    /// (s into `seg`), stopping after the first one if `first_only`; the
+    /// time of the last step found, s into `seg`.
+    fn search(
+        &mut self,
+        seg: &Segment,
+        start: f64,
+        end: f64,
+        position: &impl PositionFn,
+        mut emit: impl FnMut(Step),
+        first_only: bool,
+    ) -> Option<f64> {
+        let half = self.half_step;
+        let mut found = None;
         let mut last = TimePos {
             t: start,
             pos: self.commanded_pos,
@@ -430,6 +503,10 @@ impl StepSolver {
                 t: next.t,
                 pos: target + if forward { half } else { -half },
             };
+            found = Some(next.t);
+            if first_only {
+                break;
+            }
             low = next;
             // A spent window is widened from the new step.
             if last.t >= high.t
@@ -440,6 +517,7 @@ impl StepSolver {
         }
         self.commanded_pos = last.pos;
         self.dir = dir;
+        found
     }
 }
 
