@@ -261,6 +261,7 @@ impl<const Q: usize> Compressor<Q> {
     /// to `out` with the 64-bit clock of their first step (for a direction
     /// change: of the last step before it), which the 32-bit interval of
     /// a far step does not carry.
+    #[inline(never)]
     pub fn append(&mut self, time: f64, dir: bool, out: &mut impl FnMut(StepCommand, u64)) {
         let clock = to_clock(time * self.freq + 0.5);
         if let Some((held_clock, held_dir)) = self.held {
@@ -324,6 +325,7 @@ impl<const Q: usize> Compressor<Q> {
 
     /// Takes a step for good: into the open run if it fits, else queued
     /// (or sent alone if far).
+    #[inline(always)]
     fn commit(&mut self, clock: u64, dir: bool, out: &mut impl FnMut(StepCommand, u64)) {
         if self.dir != Some(dir) {
             self.send_all(out);
