@@ -20,7 +20,13 @@
 use core::fmt::Write;
 use onechip_planner::machine::Machine;
 use onechip_planner::math::clamp;
-use onechip_planner::thermal::{Control, Heater, PWM_DELAY, VerifyHeater};
+use onechip_planner::sensor_section::{Conversion, MAX_SENSORS};
+// The internal sensor's conversion, for the shells that read the chip's
+// calibration.
+pub use onechip_planner::sensor_section::{
+    LinearConversion, MCU_TEMPERATURE_PIN, TYPICAL_STM32H7_CAL,
+};
+use onechip_planner::thermal::{Control, PWM_DELAY, VerifyHeater};
 use onechip_sched::adc::{AdcQuery, AdcReport};
 use onechip_sched::clock::is_before;
 use onechip_sched::io::{Io, Peripherals};
@@ -55,28 +61,43 @@ const PID_SETTLE_SLOPE: f64 = 0.1;
 
 /// Heaters: the extruder's and the bed's.
 pub const MAX_HEATERS: usize = 2;
+/// ADC inputs: the heaters' thermistors, then the
+/// `[temperature_sensor]`s.
+pub const INPUTS: usize = MAX_HEATERS + MAX_SENSORS;
+/// Longest `gcode_id` of a temperature sensor kept for M105.
+const MAX_LABEL: usize = 8;
 /// Outputs: the heaters, the fan, then the named fans and pins
 /// ([`crate::outputs`]).
 pub const OUTPUTS: usize = MAX_HEATERS + 1 + onechip_planner::accessories::MAX_OUTPUTS;
 
 /// Each heater's label (`T`, `B`), smoothed temperature and target (°C)
-/// and power (0..1); displayed as the M105 report, Marlin's
-/// `T:200.0 /200.0 B:60.0 /60.0 @:127 B@:0` (power on Marlin's 0..127).
+/// and power (0..1), then each temperature sensor with a `gcode_id` and
+/// its last temperature; displayed as the M105 report, Marlin's
+/// `T:200.0 /200.0 B:60.0 /60.0 C:35.2 /0.0 @:127 B@:0` (power on
+/// Marlin's 0..127).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Temperatures(heapless::Vec<(&'static str, f64, f64, f64), MAX_HEATERS>);
+pub struct Temperatures {
+    heaters: heapless::Vec<(&'static str, f64, f64, f64), MAX_HEATERS>,
+    sensors: heapless::Vec<(heapless::String<MAX_LABEL>, f64), MAX_SENSORS>,
+}
 
 impl core::fmt::Display for Temperatures {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        for (i, (label, temperature, target, _)) in self.0.iter().enumerate() {
+        let heaters = self
+            .heaters
+            .iter()
+            .map(|(l, t, target, _)| (*l, *t, *target));
+        let sensors = self.sensors.iter().map(|(l, t)| (l.as_str(), *t, 0.0));
+        for (i, (label, temperature, target)) in heaters.chain(sensors).enumerate() {
             let sep = if i == 0 { "" } else { " " };
             write!(
                 f,
                 "{sep}{label}:{} /{}",
-                Fixed(*temperature, 1),
-                Fixed(*target, 1)
+                Fixed(temperature, 1),
+                Fixed(target, 1)
             )?;
         }
-        for (label, _, _, power) in &self.0 {
+        for (label, _, _, power) in &self.heaters {
             // The hot end's power is `@:`, the others' `B@:`.
             let label = if *label == "T" { "" } else { label };
             write!(
@@ -346,8 +367,9 @@ struct HeaterState {
 pub struct McuSetup<'a> {
     /// Each output's pin (as printer.cfg writes it) and configuration.
     pub outputs: heapless::Vec<(&'a str, OutputConfig), OUTPUTS>,
-    /// Each heater's sensor pin and ADC query.
-    pub inputs: heapless::Vec<(&'a str, AdcQuery), MAX_HEATERS>,
+    /// Each heater's sensor pin and ADC query, then each temperature
+    /// sensor's.
+    pub inputs: heapless::Vec<(&'a str, AdcQuery), INPUTS>,
 }
 
 /// A fraction (0..1) of an output's full scale, rounded, as Klipper's
@@ -363,9 +385,16 @@ pub(crate) fn ticks(seconds: f64, freq: f64) -> u32 {
 
 impl<'a> McuSetup<'a> {
     /// The configuration for `machine` on an MCU whose clock runs at
-    /// `freq` Hz and whose ADC reads 0..=`adc_max`; the first readings at
-    /// clock `start`.
-    pub fn new(machine: &Machine<'a>, freq: f64, adc_max: u16, start: u32) -> Self {
+    /// `freq` Hz, whose ADC reads 0..=`adc_max` and whose internal
+    /// temperature sensor the factory calibrated as `mcu_sensor`; the
+    /// first readings at clock `start`.
+    pub fn new(
+        machine: &Machine<'a>,
+        freq: f64,
+        adc_max: u16,
+        mcu_sensor: LinearConversion,
+        start: u32,
+    ) -> Self {
         let mut setup = Self {
             outputs: heapless::Vec::new(),
             inputs: heapless::Vec::new(),
@@ -380,9 +409,17 @@ impl<'a> McuSetup<'a> {
                 max_duration: ticks(MAX_HEAT_TIME, freq),
             };
             let _ = setup.outputs.push((heater.heater_pin, output));
+            let range = heater.sensor.adc_range(heater.min_temp, heater.max_temp);
             let _ = setup
                 .inputs
-                .push((heater.sensor_pin, adc_query(heater, freq, adc_max, start)));
+                .push((heater.sensor_pin, adc_query(range, freq, adc_max, start)));
+        }
+        for sensor in &machine.sensors {
+            let range = sensor
+                .conversion(mcu_sensor)
+                .reading_range(sensor.min_temp, sensor.max_temp);
+            let query = adc_query(range, freq, adc_max, start);
+            let _ = setup.inputs.push((sensor.input.pin(), query));
         }
         if let Some(fan) = &machine.fan {
             let _ = setup.outputs.push((fan.pin, fan_config(fan, freq)));
@@ -412,7 +449,7 @@ fn adc_full(adc_max: u16) -> f64 {
 /// Queues an output update on `io`; a full queue drops it (the next
 /// report or check repeats it), a late one has shut everything down.
 fn queue_on(
-    io: &mut Io<OUTPUTS, MAX_HEATERS>,
+    io: &mut Io<OUTPUTS, INPUTS>,
     index: usize,
     clock: u32,
     value: u32,
@@ -425,12 +462,11 @@ fn queue_on(
     }
 }
 
-/// A heater's sensor query: 8 readings 1 ms apart every 0.3 s, the sum
-/// within the readings of min_temp and max_temp (lowest first, whichever
-/// way the sensor runs).
-fn adc_query(heater: &Heater<'_>, freq: f64, adc_max: u16, start: u32) -> AdcQuery {
+/// A sensor's query: 8 readings 1 ms apart every 0.3 s, the sum within
+/// `(low, high)`, the readings (fractions of full scale) of min_temp and
+/// max_temp, lowest first.
+fn adc_query((low, high): (f64, f64), freq: f64, adc_max: u16, start: u32) -> AdcQuery {
     let full = adc_full(adc_max);
-    let (low, high) = heater.sensor.adc_range(heater.min_temp, heater.max_temp);
     let counts = |v: f64| clamp(v, 0.0, f64::from(u16::MAX)) as u16;
     AdcQuery {
         clock: start,
@@ -474,11 +510,35 @@ impl core::fmt::Display for ThermalError {
     }
 }
 
-/// The heaters, the fan and the MCU role's io that drives them.
+/// A `[temperature_sensor]` at run time.
+#[derive(Debug, Clone)]
+struct SensorState {
+    conversion: Conversion,
+    /// Its M105 label (`gcode_id`), if any.
+    label: Option<heapless::String<MAX_LABEL>>,
+    /// The last reading, and the lowest and highest so far, °C.
+    reading: Option<SensorReading>,
+}
+
+/// A temperature sensor's last reading and its extremes so far, °C
+/// (Klipper's `temperature`, `measured_min_temp`, `measured_max_temp`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SensorReading {
+    /// The last temperature, °C.
+    pub temperature: f64,
+    /// The lowest so far, °C.
+    pub min: f64,
+    /// The highest so far, °C.
+    pub max: f64,
+}
+
+/// The heaters, the fan, the temperature sensors and the MCU role's io
+/// that drives and reads them.
 #[derive(Debug, Clone)]
 pub struct Heaters {
-    io: Io<OUTPUTS, MAX_HEATERS>,
+    io: Io<OUTPUTS, INPUTS>,
     heaters: heapless::Vec<HeaterState, MAX_HEATERS>,
+    sensors: heapless::Vec<SensorState, MAX_SENSORS>,
     fan: Option<FanControl>,
     /// The named fans and pins, io outputs after the fan.
     accessories: AccessoryOutputs,
@@ -493,17 +553,20 @@ pub struct Heaters {
 }
 
 impl Heaters {
-    /// The heaters and fan of `machine` on an MCU at `freq` Hz with ADC
-    /// range 0..=`adc_max`, configured on `hw` with the first readings at
-    /// clock `start`. Outputs: heaters, then the fan; ADC inputs: heaters.
+    /// The heaters, fan and temperature sensors of `machine` on an MCU at
+    /// `freq` Hz with ADC range 0..=`adc_max` and its internal sensor
+    /// calibrated as `mcu_sensor`, configured on `hw` with the first
+    /// readings at clock `start`. Outputs: heaters, then the fan; ADC
+    /// inputs: heaters, then the temperature sensors.
     pub fn new(
         machine: &Machine<'_>,
         freq: f64,
         adc_max: u16,
+        mcu_sensor: LinearConversion,
         start: u32,
         hw: &mut impl Peripherals,
     ) -> Self {
-        let setup = McuSetup::new(machine, freq, adc_max, start);
+        let setup = McuSetup::new(machine, freq, adc_max, mcu_sensor, start);
         let mut io = Io::new();
         for (_, config) in &setup.outputs {
             let _ = io.add_output(*config, hw);
@@ -550,11 +613,23 @@ impl Heaters {
             .fan
             .zip(fan_config)
             .map(|(f, (_, output))| FanControl::new(&f, full_scale(output.kind), freq));
+        let sensors = machine
+            .sensors
+            .iter()
+            .map(|s| SensorState {
+                conversion: s.conversion(mcu_sensor),
+                label: s
+                    .gcode_id
+                    .and_then(|id| heapless::String::try_from(id).ok()),
+                reading: None,
+            })
+            .collect();
         let first = machine.heaters.len() + usize::from(fan.is_some());
         let accessories = AccessoryOutputs::new(&machine.accessories, first, freq, start);
         Self {
             io,
             heaters,
+            sensors,
             fan,
             accessories,
             pwm_delay: ticks(PWM_DELAY, freq),
@@ -589,6 +664,26 @@ impl Heaters {
         for index in 0..self.heaters.len() {
             if let Some(report) = self.io.take_report(index) {
                 self.control(index, report, now, hw)?;
+            }
+        }
+        let first = self.heaters.len();
+        for (i, sensor) in self.sensors.iter_mut().enumerate() {
+            if let Some(report) = self.io.take_report(first + i) {
+                let t = sensor
+                    .conversion
+                    .temperature(f64::from(report.value) / self.adc_full);
+                sensor.reading = Some(match sensor.reading {
+                    Some(r) => SensorReading {
+                        temperature: t,
+                        min: r.min.min(t),
+                        max: r.max.max(t),
+                    },
+                    None => SensorReading {
+                        temperature: t,
+                        min: t,
+                        max: t,
+                    },
+                });
             }
         }
         if self.io.shutdown_reason().is_some() {
@@ -780,16 +875,29 @@ impl Heaters {
         write!(out, "{}", self.temperatures())
     }
 
-    /// Every heater's label, temperature and target: a few bytes to copy
-    /// where the heaters' interrupt is held off, and format after
-    /// ([`Temperatures`]' Display is the M105 report).
+    /// Every heater's label, temperature and target, and every labelled
+    /// sensor's temperature: a few bytes to copy where the heaters'
+    /// interrupt is held off, and format after ([`Temperatures`]' Display
+    /// is the M105 report).
     pub fn temperatures(&self) -> Temperatures {
-        Temperatures(
-            self.heaters
+        Temperatures {
+            heaters: self
+                .heaters
                 .iter()
                 .map(|h| (h.label, h.smoothed, h.target, h.last_power))
                 .collect(),
-        )
+            sensors: self
+                .sensors
+                .iter()
+                .filter_map(|s| Some((s.label.clone()?, s.reading?.temperature)))
+                .collect(),
+        }
+    }
+
+    /// Temperature sensor `index`'s readings (in [`Machine::sensors`]
+    /// order), once it has reported.
+    pub fn sensor(&self, index: usize) -> Option<SensorReading> {
+        self.sensors.get(index)?.reading
     }
 
     /// Why the heaters shut down, if they did.
@@ -804,10 +912,16 @@ impl Heaters {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use onechip_config::Config;
+    use onechip_planner::sensor_section::TYPICAL_STM32H7_CAL;
     use onechip_sched::outputs::Drive;
+
+    /// A typical STM32H7's internal sensor.
+    pub(crate) fn typical_mcu() -> LinearConversion {
+        LinearConversion::stm32h7(TYPICAL_STM32H7_CAL)
+    }
 
     /// MCU clock, Hz: one tick per µs.
     const FREQ: f64 = 1_000_000.0;
@@ -857,7 +971,7 @@ mod tests {
     fn the_fan_kicks_when_it_starts_from_still() {
         let config = Config::parse("printer.cfg", FAN_ONLY).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, typical_mcu(), 0, &mut Hw);
         // 0 -> 0.4: full power for kick_start_time, then 0.4.
         let kicked = fan_values(&mut heaters, 0.4, 1.0, [1_000_000, 1_100_000]);
         assert_eq!(kicked, [Some(10_000), Some(4_000)]);
@@ -883,8 +997,8 @@ mod tests {
     fn outputs_scale_as_the_mcu_setup_configures_them() {
         let config = Config::parse("printer.cfg", SHIPPED).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let setup = McuSetup::new(&machine, FREQ, 4095, 0);
-        let heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let setup = McuSetup::new(&machine, FREQ, 4095, typical_mcu(), 0);
+        let heaters = Heaters::new(&machine, FREQ, 4095, typical_mcu(), 0, &mut Hw);
         let scales = setup.outputs.iter().map(|(_, c)| full_scale(c.kind));
         let used = heaters.heaters.iter().map(|h| h.cycle_ticks);
         let used = used.chain(heaters.fan.map(|f| f.full()));
@@ -1002,7 +1116,7 @@ mod tests {
         // nothing.
         let reading = (machine.heaters[0].sensor.adc(60.0) * 4095.0) as u16;
         let mut hw = Reads([reading, 2048]);
-        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut hw);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, typical_mcu(), 0, &mut hw);
         let target = ThermalCommand::Target {
             heater: 0,
             celsius: 200.0,
@@ -1049,7 +1163,7 @@ mod tests {
         let sensor = machine.heaters[0].sensor;
         let counts = |celsius: f64| (sensor.adc(celsius) * 4095.0).round() as u16;
         let mut hw = Reads([counts(25.0), 2048]);
-        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut hw);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, typical_mcu(), 0, &mut hw);
         // Before any reading: min_extrude_temp (170 °C) is above 0.
         assert!(!heaters.can_extrude());
         let run_to = |heaters: &mut Heaters, hw: &mut Reads, until: u32| {
@@ -1076,7 +1190,7 @@ mod tests {
     fn m105_is_formatted_from_a_copy_of_the_temperatures() {
         let config = Config::parse("printer.cfg", SHIPPED).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, typical_mcu(), 0, &mut Hw);
         let target = |celsius| ThermalCommand::Target {
             heater: 0,
             celsius,
@@ -1097,8 +1211,9 @@ mod tests {
         heaters.report(&mut report).expect("fits");
         assert_eq!(text(&copy), report);
         assert_eq!(report, "T:0.0 /200.0 B:0.0 /0.0 @:0 B@:0");
-        // Two heaters: a few dozen bytes, against the whole heaters (~1 KB).
-        assert!(core::mem::size_of::<Temperatures>() <= 96);
+        // Two heaters and four sensors: a few hundred bytes at most,
+        // against the whole heaters (over 1 KB).
+        assert!(core::mem::size_of::<Temperatures>() <= 200);
         heaters.command(target(0.0), 0, &mut Hw).expect("off");
         assert!(text(&copy).starts_with("T:0.0 /200.0"));
     }

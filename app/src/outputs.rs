@@ -695,6 +695,7 @@ impl AccessoryOutputs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::heaters::tests::typical_mcu;
     use crate::heaters::{Heaters, ThermalCommand};
     use onechip_config::Config;
     use onechip_planner::machine::Machine;
@@ -742,7 +743,7 @@ mod tests {
     fn a_fan_set_long_after_its_last_update_changes_at_once() {
         let config = Config::parse("printer.cfg", CONFIG).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
-        let mut heaters = Heaters::new(&machine, FREQ, 4095, 0, &mut Hw);
+        let mut heaters = Heaters::new(&machine, FREQ, 4095, typical_mcu(), 0, &mut Hw);
         let set = |heaters: &mut Heaters, speed, at: f64| {
             let command = AccessoryCommand::Fan {
                 fan: 0,

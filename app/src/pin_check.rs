@@ -18,6 +18,7 @@
 use core::fmt;
 use onechip_planner::board_pins::{BoardPins, ReservedPin};
 use onechip_planner::machine::Machine;
+use onechip_planner::sensor_section::SensorInput;
 
 /// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
 /// `board/` wires them: USB on OTG_HS's internal full-speed PHY (PA11,
@@ -199,6 +200,14 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
             pin,
         })
     });
+    let sensors = machine.sensors.iter().filter_map(|s| match s.input {
+        SensorInput::Adc { pin, .. } => Some(PinUse {
+            section: s.name,
+            option: "sensor_pin",
+            pin,
+        }),
+        SensorInput::Mcu(_) => None,
+    });
     let fan = machine.fan.iter().map(|f| PinUse {
         section: "fan",
         option: "pin",
@@ -214,6 +223,7 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
         });
     steppers
         .chain(heaters)
+        .chain(sensors)
         .chain(fan)
         .chain(crate::probe::pin_uses(machine))
         .chain(accessories)

@@ -150,6 +150,7 @@ impl<'a> PrinterSetup<'a> {
     /// True if there is a heater, a fan or a pin to run.
     pub fn has_thermal(&self) -> bool {
         !self.machine.heaters.is_empty()
+            || !self.machine.sensors.is_empty()
             || self.machine.fan.is_some()
             || self.machine.accessories.output_count() > 0
     }

@@ -24,7 +24,9 @@ use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
 use embassy_stm32::pac;
 use embassy_stm32::peripherals::ADC3;
-use onechip_app::heaters::{Heaters, MAX_HEATERS, OUTPUTS, ThermalCommand};
+use onechip_app::heaters::{
+    Heaters, INPUTS, LinearConversion, OUTPUTS, TYPICAL_STM32H7_CAL, ThermalCommand,
+};
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 
@@ -37,14 +39,50 @@ const MIN_AHEAD: u32 = 2_600;
 /// the steppers' state at least this often.
 const IDLE_WAKE: u32 = 2_600_000;
 
-/// The outputs and thermistor channels the io drives.
+/// The outputs and ADC inputs the io drives and reads.
 pub struct BoardPeripherals {
     /// Heaters, then the fan, as [`Heaters`] numbers them.
     pub outputs: heapless::Vec<OutPin, OUTPUTS>,
     /// ADC3.
     pub adc: Adc3,
-    /// Each heater's thermistor channel.
-    pub channels: heapless::Vec<AnyAdcChannel<'static, ADC3>, MAX_HEATERS>,
+    /// Each heater's thermistor, then each temperature sensor's input.
+    pub inputs: heapless::Vec<AdcInput, INPUTS>,
+}
+
+/// What one ADC input reads.
+pub enum AdcInput {
+    /// A thermistor input's channel (its pin kept in analog mode).
+    Pin(AnyAdcChannel<'static, ADC3>),
+    /// The internal temperature sensor (ADC3 channel 18, RM0468; Klipper's
+    /// `ADC_TEMPERATURE` on the H7).
+    Temperature,
+}
+
+impl AdcInput {
+    /// Its ADC3 channel.
+    fn channel(&self) -> u8 {
+        match self {
+            Self::Pin(channel) => channel.get_hw_channel(),
+            Self::Temperature => adc3::TEMPERATURE_CHANNEL,
+        }
+    }
+}
+
+/// The internal temperature sensor's factory calibration, read from the
+/// chip (TS_CAL1 at 30 °C and TS_CAL2 at 110 °C, 16-bit readings at 3.3 V,
+/// in system memory at 0x1FF1E820 and 0x1FF1E840: RM0468, "Temperature
+/// sensor"; the addresses Klipper reads on the H7); a typical chip's if
+/// the words are blank or do not rise.
+pub fn mcu_sensor() -> LinearConversion {
+    const TS_CAL1: *const u16 = 0x1FF1_E820 as *const u16;
+    const TS_CAL2: *const u16 = 0x1FF1_E840 as *const u16;
+    // SAFETY: both are half-words of the always-readable system memory.
+    let cal = unsafe { (TS_CAL1.read_volatile(), TS_CAL2.read_volatile()) };
+    if cal.0 == 0 || cal.1 == u16::MAX || cal.1 <= cal.0 {
+        defmt::warn!("no temperature sensor calibration: a typical chip's");
+        return LinearConversion::stm32h7(TYPICAL_STM32H7_CAL);
+    }
+    LinearConversion::stm32h7(cal)
 }
 
 /// ADC3 of the STM32H72x, which is not ADC1/2: a 12-bit ADC laid out like
@@ -94,6 +132,10 @@ mod adc3 {
     pub const CCR_PRESC_SHIFT: u32 = 18;
     /// DR: the 12-bit result, right-aligned (CFGR.RES and ALIGN at reset).
     pub const DR_MASK: u32 = 0xfff;
+    /// Common CCR: the temperature sensor's channel on (VSENSEEN).
+    pub const CCR_VSENSEEN: u32 = 1 << 23;
+    /// The temperature sensor's channel (VSENSE on ADC3_INP18).
+    pub const TEMPERATURE_CHANNEL: u8 = 18;
 }
 
 /// Polls of an ADC3 status bit before giving up (each poll is several
@@ -110,7 +152,9 @@ impl Adc3 {
         use pac::adc::regs::{Cr, Isr, Smpr};
         embassy_stm32::rcc::enable_and_reset::<ADC3>();
         pac::ADC3_COMMON.ccr().modify(|w| {
-            w.0 = (w.0 & !CCR_CLOCK_MASK) | crate::clocks::ADC3_PRESC << CCR_PRESC_SHIFT;
+            w.0 = (w.0 & !CCR_CLOCK_MASK)
+                | crate::clocks::ADC3_PRESC << CCR_PRESC_SHIFT
+                | CCR_VSENSEEN;
         });
         let regs = pac::ADC3;
         let us = crate::clocks::SYSCLK_HZ / 1_000_000;
@@ -176,9 +220,9 @@ impl Peripherals for BoardPeripherals {
     fn read_adc(&mut self, index: usize) -> u16 {
         // No channel, or a failed conversion: reads as an open thermistor,
         // which the range check turns into a shutdown.
-        self.channels
+        self.inputs
             .get(index)
-            .and_then(|channel| self.adc.read(channel.get_hw_channel()))
+            .and_then(|input| self.adc.read(input.channel()))
             .unwrap_or(ADC_MAX)
     }
 }

@@ -284,35 +284,42 @@ fn install_heaters(
     let machine = setup.machine();
     let start = step_timer::now()
         .wrapping_add((onechip_app::heaters::FIRST_REPORT * step_timer::TIMER_HZ) as u32);
+    let mcu_sensor = heater_io::mcu_sensor();
     let mcu_setup = onechip_app::heaters::McuSetup::new(
         machine,
         step_timer::TIMER_HZ,
         heater_io::ADC_MAX,
+        mcu_sensor,
         start,
     );
-    let (mut outputs, mut channels) = (heapless::Vec::new(), heapless::Vec::new());
+    let (mut outputs, mut inputs) = (heapless::Vec::new(), heapless::Vec::new());
     for (pin, _) in &mcu_setup.outputs {
         let pin = setup.resolve_pin(pin).map_err(|e| error_text(&e))?;
         let out = step_pins::OutPin::new(&pin).map_err(|e| error_text(&e))?;
         let _ = outputs.push(out);
     }
     for (pin, _) in &mcu_setup.inputs {
-        let channel = thermistors.channel(pin).ok_or_else(|| {
-            error_text(&format_args!(
-                "sensor_pin {pin} is not a thermistor input of this board (PF3..PF7)"
-            ))
-        })?;
-        let _ = channels.push(channel);
+        let input = if *pin == onechip_app::heaters::MCU_TEMPERATURE_PIN {
+            heater_io::AdcInput::Temperature
+        } else {
+            heater_io::AdcInput::Pin(thermistors.channel(pin).ok_or_else(|| {
+                error_text(&format_args!(
+                    "sensor_pin {pin} is not a thermistor input of this board (PF3..PF7)"
+                ))
+            })?)
+        };
+        let _ = inputs.push(input);
     }
     let mut hw = heater_io::BoardPeripherals {
         outputs,
         adc: heater_io::Adc3::new(thermistors.adc),
-        channels,
+        inputs,
     };
     let heaters = onechip_app::heaters::Heaters::new(
         machine,
         step_timer::TIMER_HZ,
         heater_io::ADC_MAX,
+        mcu_sensor,
         start,
         &mut hw,
     );

@@ -6,7 +6,7 @@
 
 use crate::files::Folder;
 use crate::step_log::StepLog;
-use crate::thermal_plant::ADC_MAX;
+use crate::thermal_plant::{ADC_MAX, mcu_sensor};
 use crate::virtual_mcu::VirtualMcu;
 use crate::{HostSession, Options, SimError, load_setup, restart_if_asked, virtual_mcu};
 use onechip_app::console::Console;
@@ -183,7 +183,7 @@ impl ConsolePrinter {
     /// writes it and its value now, 0..1 of full scale (on/off pins: 0 or
     /// 1).
     pub fn outputs(&mut self) -> Vec<(&'static str, f64)> {
-        let setup = McuSetup::new(self.machine, self.freq, ADC_MAX, 0);
+        let setup = McuSetup::new(self.machine, self.freq, ADC_MAX, mcu_sensor(), 0);
         let Some((heaters, _)) = self.mcu.thermal() else {
             return Vec::new();
         };

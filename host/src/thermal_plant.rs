@@ -6,6 +6,9 @@
 
 use onechip_app::heaters::PWM_MAX;
 use onechip_planner::machine::Machine;
+use onechip_planner::sensor_section::{
+    Conversion, LinearConversion, SensorInput, TYPICAL_STM32H7_CAL,
+};
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
@@ -14,6 +17,14 @@ use onechip_sched::outputs::Drive;
 pub const AMBIENT: f64 = 25.0;
 /// The simulated ADC's full scale (12 bits, as the STM32H7's ADC3).
 pub const ADC_MAX: u16 = 4095;
+/// The simulated MCU's die temperature, °C.
+pub const MCU_TEMPERATURE: f64 = 40.0;
+
+/// The simulated MCU's internal temperature sensor: a typical STM32H7's
+/// factory calibration.
+pub fn mcu_sensor() -> LinearConversion {
+    LinearConversion::stm32h7(TYPICAL_STM32H7_CAL)
+}
 
 /// A heater as physics: power, heat loss and capacity.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -93,6 +104,9 @@ pub struct Plant {
     lumps: Vec<Lump>,
     /// Every output's log: heaters, the fan, then the named fans and pins.
     pub outputs: Vec<OutputLog>,
+    /// Each `[temperature_sensor]`'s conversion and the temperature it
+    /// senses, °C (ADC inputs after the heaters').
+    sensors: Vec<(Conversion, f64)>,
     /// From this clock on, heater `.1`'s thermistor reads as open circuit
     /// (fault injection).
     pub open_sensor: Option<(u64, usize)>,
@@ -120,12 +134,31 @@ impl Plant {
             .collect::<Vec<_>>();
         let outputs =
             lumps.len() + usize::from(machine.fan.is_some()) + machine.accessories.output_count();
+        let sensors = machine
+            .sensors
+            .iter()
+            .map(|s| {
+                let sensed = match s.input {
+                    SensorInput::Mcu(_) => MCU_TEMPERATURE,
+                    SensorInput::Adc { .. } => AMBIENT,
+                };
+                (s.conversion(mcu_sensor()), sensed)
+            })
+            .collect();
         Self {
             now: 0,
             freq,
             lumps,
             outputs: vec![OutputLog::default(); outputs],
+            sensors,
             open_sensor: None,
+        }
+    }
+
+    /// Temperature sensor `index` senses `celsius` from now on.
+    pub fn set_sensed(&mut self, index: usize, celsius: f64) {
+        if let Some(sensor) = self.sensors.get_mut(index) {
+            sensor.1 = celsius;
         }
     }
 
@@ -193,11 +226,18 @@ impl Peripherals for Plant {
         {
             return ADC_MAX;
         }
-        let Some(lump) = self.lumps.get_mut(index) else {
-            return 0;
+        let reading = match self.lumps.get_mut(index) {
+            Some(lump) => {
+                lump.advance(now, freq);
+                lump.sensor.adc(lump.temp)
+            }
+            None => match self.sensors.get(index - self.lumps.len()) {
+                Some((conversion, celsius)) => conversion.reading(*celsius),
+                None => return 0,
+            },
         };
-        lump.advance(now, freq);
-        let reading = lump.sensor.adc(lump.temp) * f64::from(ADC_MAX);
-        reading.round().clamp(0.0, f64::from(ADC_MAX)) as u16
+        (reading * f64::from(ADC_MAX))
+            .round()
+            .clamp(0.0, f64::from(ADC_MAX)) as u16
     }
 }

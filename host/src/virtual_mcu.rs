@@ -14,7 +14,7 @@ use crate::pace::Pace;
 use crate::plot::Window;
 use crate::secondary::attached::Secondaries;
 use crate::step_log::{FileError, StepLog};
-use crate::thermal_plant::{ADC_MAX, Plant};
+use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::TmcSim;
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
 use onechip_app::session::Mcu;
@@ -223,7 +223,14 @@ impl VirtualMcu {
         let mut plant = Plant::new(machine, freq);
         plant.now = self.now;
         let first = self.now + (FIRST_REPORT * freq) as u64;
-        let heaters = Heaters::new(machine, freq, ADC_MAX, first as u32, &mut plant);
+        let heaters = Heaters::new(
+            machine,
+            freq,
+            ADC_MAX,
+            mcu_sensor(),
+            first as u32,
+            &mut plant,
+        );
         self.thermal = Some((heaters, plant));
         self.update_io_wake();
     }

@@ -29,6 +29,7 @@ pub mod output_pin;
 pub mod planned_move;
 pub mod probe;
 pub mod safe_home;
+pub mod sensor_section;
 pub mod shaper_config;
 pub mod temperature_sensor;
 pub mod thermal;

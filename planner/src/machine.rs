@@ -8,6 +8,7 @@ use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
 use crate::probe::{self, ProbeConfig};
 use crate::safe_home::{self, G28};
+use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::shaper_config::{self, InputShaperConfig};
 use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
@@ -88,6 +89,8 @@ pub struct Machine<'a> {
     pub heaters: heapless::Vec<Heater<'a>, 2>,
     /// The part-cooling fan.
     pub fan: Option<Fan<'a>>,
+    /// The `[temperature_sensor NAME]` sections.
+    pub sensors: heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
     /// What to do when the printer has been idle (`[idle_timeout]`, with
     /// Klipper's defaults when absent).
     pub idle_timeout: IdleTimeoutConfig<'a>,
@@ -306,6 +309,7 @@ impl<'a> Machine<'a> {
             steppers.iter().map(|s| s.name).collect();
         let accessories = Accessories::read(config, &heater_names, &stepper_names)?;
         let tmc = tmc::config::read_all(config, step_distance)?;
+        let sensors = sensor_section::read_all(config)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -313,6 +317,7 @@ impl<'a> Machine<'a> {
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
                 && !temperature_sensor::is_definition_section(name)
+                && !sensor_section::is_section(name)
                 && tmc::DriverKind::of_section(name).is_none()
                 && !unsupported.contains(&name)
             {
@@ -339,6 +344,7 @@ impl<'a> Machine<'a> {
             g28,
             accessories,
             tmc,
+            sensors,
             unsupported,
         }))
     }

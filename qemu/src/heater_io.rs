@@ -12,7 +12,7 @@ use crate::machine::{DUALTIMER, Irq, priority, write};
 use crate::pins::OutPin;
 use crate::probe::{self, Context};
 use crate::step_timer;
-use onechip_app::heaters::{Heaters, MAX_HEATERS, OUTPUTS, ThermalCommand};
+use onechip_app::heaters::{Heaters, INPUTS, OUTPUTS, ThermalCommand};
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 use onechip_sched::shutdown::Shutdown;
@@ -45,7 +45,7 @@ pub struct QemuPeripherals {
     /// Heaters, then the fan, as [`Heaters`] numbers them.
     pub outputs: heapless::Vec<OutPin, OUTPUTS>,
     /// What each heater's ADC input reads.
-    pub readings: heapless::Vec<u16, MAX_HEATERS>,
+    pub readings: heapless::Vec<u16, INPUTS>,
 }
 
 impl Peripherals for QemuPeripherals {

@@ -32,7 +32,9 @@ use cortex_m_rt::{ExceptionFrame, entry, exception};
 use cortex_m_semihosting::debug;
 use onechip_app::config_files;
 use onechip_app::console::Console;
-use onechip_app::heaters::{FIRST_REPORT, Heaters, McuSetup};
+use onechip_app::heaters::{
+    FIRST_REPORT, Heaters, LinearConversion, McuSetup, TYPICAL_STM32H7_CAL,
+};
 use onechip_app::pin_check;
 use onechip_app::session::{BoardSession, profile};
 use onechip_app::setup::{Config, PrinterSetup};
@@ -141,7 +143,10 @@ fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
     let machine = setup.machine();
     let freq = step_timer::CLOCK_HZ;
     let start = step_timer::now().wrapping_add((FIRST_REPORT * freq) as u32);
-    let mcu_setup = McuSetup::new(machine, freq, heater_io::ADC_MAX, start);
+    // The machine models no die temperature: a typical chip at room
+    // temperature.
+    let mcu_sensor = LinearConversion::stm32h7(TYPICAL_STM32H7_CAL);
+    let mcu_setup = McuSetup::new(machine, freq, heater_io::ADC_MAX, mcu_sensor, start);
     let mut hw = heater_io::QemuPeripherals {
         outputs: heapless::Vec::new(),
         readings: heapless::Vec::new(),
@@ -151,13 +156,27 @@ fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
             .outputs
             .push(pins::OutPin::new(pin).map_err(|e| error_text(&e))?);
     }
-    for heater in &machine.heaters {
-        let fraction = heater.sensor.adc(heater_io::ROOM);
+    let heaters = machine
+        .heaters
+        .iter()
+        .map(|h| h.sensor.adc(heater_io::ROOM));
+    let sensors = machine.sensors.iter().map(|s| {
+        let conversion = s.conversion(mcu_sensor);
+        conversion.reading(heater_io::ROOM)
+    });
+    for fraction in heaters.chain(sensors) {
         let _ = hw
             .readings
             .push((fraction * f64::from(heater_io::ADC_MAX)) as u16);
     }
-    let heaters = Heaters::new(machine, freq, heater_io::ADC_MAX, start, &mut hw);
+    let heaters = Heaters::new(
+        machine,
+        freq,
+        heater_io::ADC_MAX,
+        mcu_sensor,
+        start,
+        &mut hw,
+    );
     heater_io::install(heaters, hw);
     Ok(())
 }

@@ -50,7 +50,13 @@ fn heater_and_thermistor_configuration_matches_klippy() {
         let machine = Machine::from_config(&config).expect("machine");
         let adc_max = golden_adc_max(case);
         let freq = summary_value(case, "clock_freq");
-        let setup = McuSetup::new(&machine, freq, adc_max, 0);
+        let setup = McuSetup::new(
+            &machine,
+            freq,
+            adc_max,
+            onechip_host::thermal_plant::mcu_sensor(),
+            0,
+        );
         let commands = onechip_golden::read_string(format!("{case}/mcu-commands.txt"));
 
         let (pin, heater) = setup.outputs[0];

@@ -21,7 +21,13 @@ fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
         let machine = Machine::from_config(&config).expect("machine");
         let adc_max = golden_adc_max(case);
         let freq = summary_value(case, "clock_freq");
-        let setup = McuSetup::new(&machine, freq, adc_max, 0);
+        let setup = McuSetup::new(
+            &machine,
+            freq,
+            adc_max,
+            onechip_host::thermal_plant::mcu_sensor(),
+            0,
+        );
         let pulse = |i: usize| {
             let duration =
                 step_pulse::step_pulse_duration(machine.steppers[i].step_pulse_duration, false);

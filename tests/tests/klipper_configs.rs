@@ -39,10 +39,12 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// (generic-cramps, generic-replicape, kit-voron2-250mm) now connect to
 /// it, as Klipper does, and are refused naming its `serial` option: no
 /// such device exists here. 137 since `[probe]`/`[bltouch]` and
-/// `probe:z_virtual_endstop` load, 139 with the TMC drivers too.
-const MIN_LOADED: usize = 139;
+/// `probe:z_virtual_endstop` load, 139 with the TMC drivers too; 138 since
+/// `[temperature_sensor]` is read, as generic-bigtreetech-gtr's has a
+/// MAX31855 (an SPI sensor, refused naming its `sensor_type`).
+const MIN_LOADED: usize = 138;
 /// Section kinds supported now, which no file may list as unsupported.
-const NOW_SUPPORTED: [&str; 7] = [
+const NOW_SUPPORTED: [&str; 8] = [
     "heater_fan",
     "controller_fan",
     "fan_generic",
@@ -50,11 +52,13 @@ const NOW_SUPPORTED: [&str; 7] = [
     "static_digital_output",
     "board_pins",
     "filament_switch_sensor",
+    "temperature_sensor",
 ];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with
-/// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers).
-const MIN_HOMED_AND_MOVED: usize = 131;
+/// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers; 130
+/// since `[temperature_sensor]` is read: see [`MIN_LOADED`]).
+const MIN_HOMED_AND_MOVED: usize = 130;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;

@@ -97,3 +97,64 @@ fn a_rising_sensor_read_past_max_temp_shuts_everything_down() {
     assert_eq!(s.shutdown.as_deref(), Some("ADC out of range"), "{s}");
     assert!(s.heaters.iter().all(|h| !h.on_at_end), "{:?}", s.heaters);
 }
+
+/// The shipped printer.cfg with `extra` appended, running `job`.
+fn run_with_sections(name: &str, extra: &str, job: &str) -> onechip_host::Summary {
+    let dir = std::env::temp_dir().join(format!("onechip-tsensor-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
+    std::fs::write(dir.join("printer.cfg"), text + "\n" + extra).expect("write cfg");
+    std::fs::write(dir.join("job.gcode"), job).expect("write gcode");
+    let s = onechip_host::run(&dir, None).expect("runs");
+    std::fs::remove_dir_all(&dir).ok();
+    s
+}
+
+/// The value after `label:` in an M105 report.
+fn reported(report: &str, label: &str) -> Option<f64> {
+    let at = report.find(&format!(" {label}:"))? + label.len() + 2;
+    report[at..].split_whitespace().next()?.parse().ok()
+}
+
+#[test]
+fn temperature_sensors_are_read_and_those_with_a_gcode_id_reported_by_m105() {
+    // A thermistor on a free thermistor input in a 25 °C room, and the
+    // MCU's own sensor (the simulated die at 40 °C, read through the
+    // chip's factory calibration).
+    let s = run_with_sections(
+        "m105",
+        "[temperature_sensor chamber]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: PF5\n\
+         gcode_id: C\n\
+         [temperature_sensor mcu_temp]\nsensor_type: temperature_mcu\nmin_temp: 0\nmax_temp: 100\n\
+         gcode_id: MCU\n\
+         [temperature_sensor unlabelled]\nsensor_type: temperature_mcu\n",
+        "G4 P2000\nM400\nM105\n",
+    );
+    assert_eq!((s.errors.len(), s.shutdown.as_ref()), (0, None), "{s}");
+    let (_, report) = s.temperatures.last().expect("M105");
+    let chamber = reported(report, "C").unwrap_or_else(|| panic!("C in M105: {report}"));
+    let mcu = reported(report, "MCU").expect("MCU in M105");
+    assert!((chamber - 25.0).abs() < 0.5, "{report}");
+    assert!((mcu - 40.0).abs() < 1.0, "{report}");
+    assert!(
+        report.contains("/0.0 MCU:"),
+        "a sensor's target is 0: {report}"
+    );
+    assert_eq!(
+        report.matches(':').count(),
+        6,
+        "T, B, C, MCU, @, B@: {report}"
+    );
+}
+
+#[test]
+fn a_temperature_sensor_past_its_max_temp_shuts_everything_down() {
+    // The die (40 °C) is past this max_temp: the MCU's range check trips,
+    // as it does for a heater's thermistor.
+    let s = run_with_sections(
+        "range",
+        "[temperature_sensor mcu_temp]\nsensor_type: temperature_mcu\nmax_temp: 35\n",
+        "G4 P3000\nM400\n",
+    );
+    assert_eq!(s.shutdown.as_deref(), Some("ADC out of range"), "{s}");
+}

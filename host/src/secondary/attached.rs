@@ -3,6 +3,7 @@
 //! MCU's clock, within its move queue, and their faults stop the printer.
 
 use super::{ConnectError, Heard, Secondary};
+use crate::thermal_plant::mcu_sensor;
 use onechip_app::heaters::McuSetup;
 use onechip_app::mcu_config::{Oids, pin_ref, write_config};
 use onechip_app::step_pulse::pulse_ticks;
@@ -92,7 +93,7 @@ impl Secondaries {
             // ticks), which identify tells; its object ids are kept.
             let oids = Cell::new(Oids::default());
             let lines = |mcu_freq: f64| {
-                let setup = McuSetup::new(machine, mcu_freq, 0, 0);
+                let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
                 let mut lines = Vec::new();
                 let ticks = |i: usize| pulse_ticks(pulse(i), mcu_freq);
                 oids.set(write_config(machine, &setup, name, &ticks, &mut |l| {
