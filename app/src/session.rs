@@ -148,8 +148,10 @@ pub enum Timing {
 struct EngineLink {
     /// Step clock, Hz.
     freq: f64,
-    /// Axes (0 = X) whose rail has an endstop pin.
+    /// Axes (0 = X) whose rail has an endstop pin (a delta: towers).
     endstops: [bool; 3],
+    /// A delta: the endstops are the towers' (named a, b, c).
+    towers: bool,
     /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
     rails: u32,
     /// The finest of their step distances, mm.
@@ -178,6 +180,7 @@ impl EngineLink {
         let mut link = Self {
             freq,
             endstops: [false; 3],
+            towers: machine.travel.delta_homing().is_some(),
             rails: (1 << rails) - 1,
             finest_step: f64::INFINITY,
             probe_slot: machine.probe_slot(),
@@ -471,7 +474,12 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// (`x:open y:open z:TRIGGERED`).
     fn query_endstops(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
         let mut sep = "";
-        for (axis, name) in ["x", "y", "z"].iter().enumerate() {
+        let names = if self.engine.towers {
+            ["a", "b", "c"]
+        } else {
+            ["x", "y", "z"]
+        };
+        for (axis, name) in names.iter().enumerate() {
             if self.engine.endstops[axis] {
                 let state = if mcu.endstop_triggered(self.engine.endstop_slot(axis, false)) {
                     "TRIGGERED"

@@ -536,7 +536,15 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         };
         let stopped_at = stop.clock as f64 / freq;
         self.restart(stop.clock, sink);
-        // The target, moved by each motion stepper's overshoot.
+        // The target, moved by each motion stepper's overshoot (none:
+        // the target itself, as Klipper takes it).
+        if stop.overshoot.iter().all(|&o| o == 0) {
+            return HomingEnd {
+                position: homing.target,
+                stopped_at: Some(stopped_at),
+                untriggered: stop.untriggered,
+            };
+        }
         let mut kin = [StepperKinematics::Axis(0); 3];
         let mut spos = [0.0; 3];
         for (k, ch) in self.channels.iter().take(3).enumerate() {

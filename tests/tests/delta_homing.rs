@@ -175,13 +175,17 @@ fn check_homed(s: &Summary, dir: &Path, start: [f64; 3], endstops: [f64; 3]) {
 #[test]
 fn towers_home_together_each_stopped_by_its_own_endstop() {
     let endstops = [ENDSTOP; 3];
-    let dir = sd("stock", endstops, "G28\nM114\n");
+    let dir = sd("stock", endstops, "M119\nG28\nM114\nM119\n");
     let start = [40.0, -25.0, 150.0];
     let s = run(&dir, start, None);
     check_homed(&s, &dir, start, endstops);
     // Klipper's home position: every carriage at its endstop, which with
     // equal endstops and arms is straight above the centre.
-    assert_m114(&s.replies[0].1, [0.0, 0.0, ENDSTOP]);
+    assert_m114(&s.replies[1].1, [0.0, 0.0, ENDSTOP]);
+    // M119 names the towers' endstops as Klipper does; after G28 every
+    // carriage rests on its switch.
+    assert_eq!(s.replies[0].1, "a:open b:open c:open");
+    assert_eq!(s.replies[2].1, "a:TRIGGERED b:TRIGGERED c:TRIGGERED");
     let expected = [0.0, 0.0, ENDSTOP];
     for (p, e) in s.final_position.iter().zip(expected) {
         assert!((p - e).abs() < 1e-6, "{:?}", s.final_position);
