@@ -279,3 +279,106 @@ fn without_simulated_endstops_delta_homing_runs_its_moves_whole_as_klippy_batch(
     assert_m114(&s.replies[0].1, [0.0, 0.0, ENDSTOP]);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// What the planner hands out while homing, in order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Planned {
+    SetPosition([f64; 3]),
+    Move { start: [f64; 3], cruise_v: f64 },
+    Homing(onechip_planner::move_sink::HomingMove),
+}
+
+#[derive(Default)]
+struct Recorder(Vec<Planned>);
+
+impl onechip_planner::move_sink::MoveSink for Recorder {
+    fn toolhead(&mut self, m: &onechip_planner::move_sink::TrapqMove) {
+        self.0.push(Planned::Move {
+            start: m.start_pos,
+            cruise_v: m.cruise_v,
+        });
+    }
+    fn extruder(&mut self, _: &onechip_planner::move_sink::TrapqMove) {}
+    fn set_position(&mut self, pos: [f64; 3]) {
+        self.0.push(Planned::SetPosition(pos));
+    }
+    fn homing_move_end(
+        &mut self,
+        homing: &onechip_planner::move_sink::HomingMove,
+    ) -> onechip_planner::move_sink::HomingEnd {
+        self.0.push(Planned::Homing(*homing));
+        onechip_planner::move_sink::HomingEnd {
+            position: homing.target,
+            stopped_at: None,
+            untriggered: None,
+        }
+    }
+}
+
+#[test]
+fn the_planner_homes_a_delta_with_klippers_forcepos_speeds_and_retract() {
+    let text = config([ENDSTOP; 3]) + "[stepper_a]\nhoming_retract_dist: 4\n";
+    // A second header adds the option to stepper_a (sections merge).
+    let config = onechip_config::Config::parse("printer.cfg", &text).expect("parses");
+    let machine = onechip_planner::machine::Machine::from_config(&config).expect("a delta");
+    let mut toolhead = machine.toolhead::<16>();
+    let mut sink = Recorder::default();
+    toolhead.home(&[0], &mut sink).expect("homes");
+    // delta.py: max_xy2 = min(print_radius, min_arm - radius,
+    // ratio_to_xy(4 * SLOW_RATIO))^2, forcepos z = -1.5 sqrt(arm2 - max_xy2).
+    let half_step = STEP / 2.0;
+    let ratio_to_xy = |r: f64| {
+        r * (ARM * ARM / (r * r + 1.0) - half_step * half_step).sqrt() + half_step - RADIUS
+    };
+    let max_xy = RADIUS.min(ARM - RADIUS).min(ratio_to_xy(12.0));
+    let force_z = -1.5 * (ARM * ARM - max_xy * max_xy).sqrt();
+    let positions: Vec<[f64; 3]> = sink
+        .0
+        .iter()
+        .filter_map(|e| match e {
+            Planned::SetPosition(p) => Some(*p),
+            _ => None,
+        })
+        .collect();
+    let near = |a: [f64; 3], b: [f64; 3]| (0..3).all(|k| (a[k] - b[k]).abs() < 1e-9);
+    assert!(near(positions[0], [0.0, 0.0, force_z]), "{positions:?}");
+    let homings: Vec<_> = sink
+        .0
+        .iter()
+        .filter_map(|e| match e {
+            Planned::Homing(h) => Some(*h),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(homings.len(), 2);
+    for (h, speed) in homings.iter().zip([50.0, 25.0]) {
+        // Every tower on its own endstop, up to the home position at
+        // stepper_a's homing_speed, then at half of it.
+        assert!(h.towers && !h.probe);
+        assert!(near(h.target, [0.0, 0.0, ENDSTOP]), "{h:?}");
+        assert_eq!(h.speed, speed);
+    }
+    // Between them: the retract (4 mm down at the homing speed, which
+    // homing_retract_speed defaults to), and the position set 4 mm below
+    // that.
+    let second = sink
+        .0
+        .iter()
+        .position(|e| matches!(e, Planned::Homing(_)))
+        .expect("first homing move");
+    let retract = sink.0[second + 1..]
+        .iter()
+        .find_map(|e| match e {
+            Planned::Move { start, cruise_v } => Some((*start, *cruise_v)),
+            _ => None,
+        })
+        .expect("retract");
+    assert!(near(retract.0, [0.0, 0.0, ENDSTOP]), "{retract:?}");
+    assert!(retract.1 <= 50.0 + 1e-9, "{retract:?}");
+    assert!(
+        positions
+            .iter()
+            .any(|&p| near(p, [0.0, 0.0, ENDSTOP - 8.0])),
+        "{positions:?}"
+    );
+}
