@@ -854,7 +854,7 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             stopped: true,
             untriggered,
         };
-        loop {
+        let shutdown = loop {
             while let Some((slot, trigger)) = self.mcu.take_trigger() {
                 // The 64-bit clock of the trigger, which lies before now.
                 let clock = widen(trigger, self.mcu.now());
@@ -866,18 +866,20 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 }
             }
             let now = self.mcu.now();
-            if now >= until_clock || self.mcu.shutdown_reason().is_some() {
-                break;
+            let shutdown = self.mcu.shutdown_reason().is_some();
+            if now >= until_clock || shutdown {
+                break shutdown;
             }
             link.keepalive(now, self.out);
             self.mcu.wait(until_clock);
-        }
+        };
         let end_clock = (homing.end_time.max(0.0) * link.freq) as u64;
         if until_clock >= end_clock {
             // The whole move ran with an endstop untriggered.
             self.mcu.stop_watching();
             link.watching = None;
-            let untriggered = (link.endstops_modelled && link.pending != 0)
+            // (After a shutdown the shutdown is the error.)
+            let untriggered = (link.endstops_modelled && link.pending != 0 && !shutdown)
                 .then(|| link.pending.trailing_zeros() as usize);
             if link.last_trigger.is_some() {
                 // Some steppers stopped at their trigger: all restart at

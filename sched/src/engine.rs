@@ -442,14 +442,18 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// endstops (none armed: no check).
     #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     fn schedule_endstops(&mut self) {
-        let armed = self
-            .watches
-            .iter()
-            .flatten()
-            .filter(|w| w.trigger.is_none());
-        let next = armed
-            .map(|w| w.endstop.next())
-            .reduce(|a, b| if is_before(b, a) { b } else { a });
+        let mut next: Option<u32> = None;
+        for w in &self.watches {
+            if let Some(Watch {
+                endstop,
+                trigger: None,
+                ..
+            }) = w
+                && next.is_none_or(|n| is_before(endstop.next(), n))
+            {
+                next = Some(endstop.next());
+            }
+        }
         match next {
             Some(at) => self.schedule(S + 1, at),
             None => self.unqueue(S + 1),

@@ -149,3 +149,25 @@ fn an_endstop_that_never_triggers_fails_g28_with_klippers_message() {
     assert_eq!(s.endstops, []);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_shutdown_while_homing_is_the_error_not_a_missing_trigger() {
+    let dir = sd("shutdown", "G28\n");
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            start: Start::At([150.0, 150.0, 100.0]),
+            // The hot end's thermistor opens 0.5 s in, while X homes.
+            open_sensor: Some((0.5, 0)),
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert!(s.shutdown.is_some(), "{:?}", s.errors);
+    assert!(
+        s.errors.iter().all(|e| !e.1.contains("No trigger")),
+        "{:?}",
+        s.errors
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
