@@ -206,8 +206,9 @@ pub struct Summary {
     pub shutdown: Option<String>,
     /// MCU clock frequency, Hz.
     pub mcu_freq: f64,
-    /// Endstop triggers while homing: axis, the toolhead's real position
-    /// when the steppers stopped (mm), print time (s).
+    /// Endstop triggers while homing: axis (a delta: tower), the
+    /// toolhead's real position when the steppers stopped (mm), print
+    /// time (s).
     pub endstops: Vec<(usize, [f64; 3], f64)>,
     /// Where the toolhead really is at the end, mm (when the power-on
     /// position is known, see [`Start`]).
@@ -294,7 +295,12 @@ impl fmt::Display for Summary {
             writeln!(
                 f,
                 "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}",
-                ["x", "y", "z"].get(*axis).unwrap_or(&"?"),
+                match self.kinematics {
+                    Kinematics::Delta => ["a", "b", "c"],
+                    _ => ["x", "y", "z"],
+                }
+                .get(*axis)
+                .unwrap_or(&"?"),
                 real[0],
                 real[1],
                 real[2]
