@@ -75,13 +75,16 @@ pub trait Mcu {
     /// step, an endstop reading, a heater event) or the clock reached
     /// `until`; may return early. Never spins.
     fn wait(&mut self, until: u64);
-    /// Arms the endstop read on stepper `stepper`'s pins; its trigger stops
-    /// the steppers in `stops` (bit `i`: stepper `i`) at once.
+    /// Arms the endstop read on stepper `stepper`'s pins, besides those
+    /// armed already (up to `onechip_sched::engine::WATCHES`); its trigger
+    /// stops the steppers in `stops` (bit `i`: stepper `i`) at once, and
+    /// they drop the steps that come until their step clock is reset.
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32);
-    /// Disarms the endstop.
+    /// Disarms every armed endstop.
     fn stop_watching(&mut self);
-    /// The 32-bit clock of an endstop trigger not yet taken.
-    fn take_trigger(&mut self) -> Option<u32>;
+    /// An endstop trigger not yet taken: the stepper whose pins read that
+    /// endstop (as armed) and the trigger's 32-bit clock.
+    fn take_trigger(&mut self) -> Option<(usize, u32)>;
     /// Carries out a heater or fan command now.
     fn thermal(&mut self, command: ThermalCommand);
     /// True while heater `heater` is still reaching its target.
@@ -146,8 +149,10 @@ pub enum Timing {
 struct EngineLink {
     /// Step clock, Hz.
     freq: f64,
-    /// Axes (0 = X) whose rail has an endstop pin.
+    /// Axes (0 = X) whose rail has an endstop pin (a delta: towers).
     endstops: [bool; 3],
+    /// A delta: the endstops are the towers' (named a, b, c).
+    towers: bool,
     /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
     rails: u32,
     /// The finest of their step distances, mm.
@@ -156,8 +161,16 @@ struct EngineLink {
     probe_slot: Option<usize>,
     /// Z homes on the probe (`probe:z_virtual_endstop`).
     z_on_probe: bool,
-    /// The start clock of the homing move whose endstop is watched.
+    /// The start clock of the homing move whose endstops are watched.
     watching: Option<u64>,
+    /// The watched endstops not yet triggered (bit `i`: engine slot `i`).
+    pending: u32,
+    /// The clock of the homing move's last trigger so far, ticks.
+    last_trigger: Option<u64>,
+    /// The endstop inputs read real switches. False in a simulation
+    /// without them (klippy's batch mode): a homing move that runs to its
+    /// end is then taken as triggered there, not as an error.
+    endstops_modelled: bool,
     /// When the running line next reports that it is busy (clock).
     busy_at: u64,
 }
@@ -168,11 +181,15 @@ impl EngineLink {
         let mut link = Self {
             freq,
             endstops: [false; 3],
+            towers: machine.travel.delta_homing().is_some(),
             rails: (1 << rails) - 1,
             finest_step: f64::INFINITY,
             probe_slot: machine.probe_slot(),
             z_on_probe: machine.homes_on_probe(2),
             watching: None,
+            pending: 0,
+            last_trigger: None,
+            endstops_modelled: true,
             busy_at: u64::MAX,
         };
         for (i, stepper) in machine.steppers.iter().take(rails).enumerate() {
@@ -355,16 +372,27 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         self.timing = timing;
     }
 
+    /// Whether the endstop inputs read real switches (default: true).
+    /// False for a simulation without them, as klippy's batch mode: a
+    /// homing move that runs its whole length is then not the error
+    /// "No trigger on ... after full movement".
+    pub fn set_endstops_modelled(&mut self, modelled: bool) {
+        self.engine.endstops_modelled = modelled;
+    }
+
     /// Starts afresh after a shutdown (FIRMWARE_RESTART, M999), as if just
     /// built for `machine` at clock `start`: nothing planned or queued, at
     /// rest at position 0, everything homed again before use.
     pub fn restart(&mut self, machine: &Machine<'a>, start: u64) {
         let (freq, max_error, timing) = (self.engine.freq, self.max_error, self.timing);
+        let modelled = self.engine.endstops_modelled;
         // SAFETY: a `MaybeUninit<Self>` has the layout of `Self`; the old
         // value is overwritten without being dropped (nothing in it owns
         // a resource), every field is written by `init_in`.
         let slot = unsafe { &mut *(self as *mut Self).cast::<MaybeUninit<Self>>() };
-        Self::init_in(slot, machine, freq, max_error, start).set_timing(timing);
+        let session = Self::init_in(slot, machine, freq, max_error, start);
+        session.set_timing(timing);
+        session.set_endstops_modelled(modelled);
     }
 
     /// Runs one line of G-code (without line number or checksum); replies
@@ -448,7 +476,12 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// (`x:open y:open z:TRIGGERED`).
     fn query_endstops(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
         let mut sep = "";
-        for (axis, name) in ["x", "y", "z"].iter().enumerate() {
+        let names = if self.engine.towers {
+            ["a", "b", "c"]
+        } else {
+            ["x", "y", "z"]
+        };
+        for (axis, name) in names.iter().enumerate() {
             if self.engine.endstops[axis] {
                 let state = if mcu.endstop_triggered(self.engine.endstop_slot(axis, false)) {
                     "TRIGGERED"
@@ -783,9 +816,11 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
         }
     }
 
-    /// Watches the homed axis' endstop from the move's start and waits
-    /// until the steps sent so far have run or the endstop triggered
-    /// (which stopped every motion stepper at once).
+    /// Watches the homed axis' endstop (a delta: each tower's) from the
+    /// move's start and waits until the steps sent so far have run or
+    /// every endstop triggered (an axis' trigger stops every motion
+    /// stepper at once; a tower's stops its own stepper, the others go
+    /// on).
     fn home(
         &mut self,
         homing: &HomingMove,
@@ -800,32 +835,65 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 homing.speed,
                 link.finest_step,
             );
-            let slot = link.endstop_slot(homing.axis, homing.probe);
-            self.mcu.watch_endstop(slot, endstop, link.rails);
+            link.pending = 0;
+            link.last_trigger = None;
+            if homing.towers {
+                for (k, _) in link.endstops.iter().enumerate().filter(|e| *e.1) {
+                    self.mcu.watch_endstop(k, endstop, 1 << k);
+                    link.pending |= 1 << k;
+                }
+            } else {
+                let slot = link.endstop_slot(homing.axis, homing.probe);
+                self.mcu.watch_endstop(slot, endstop, link.rails);
+                link.pending = 1 << slot;
+            }
             link.watching = Some(start_clock);
         }
-        loop {
-            if let Some(trigger) = self.mcu.take_trigger() {
-                link.watching = None;
+        let stop = |clock, untriggered| HomingStop {
+            clock,
+            // Stopped at once: no step past a trigger.
+            overshoot: [0; MAX_STEPPERS],
+            stopped: true,
+            untriggered,
+        };
+        let shutdown = loop {
+            while let Some((slot, trigger)) = self.mcu.take_trigger() {
                 // The 64-bit clock of the trigger, which lies before now.
                 let clock = widen(trigger, self.mcu.now());
-                // Stopped at once: no step past the trigger.
-                return Some(HomingStop {
-                    clock,
-                    overshoot: [0; MAX_STEPPERS],
-                });
+                link.last_trigger = Some(link.last_trigger.map_or(clock, |t| t.max(clock)));
+                link.pending &= !(1u32.checked_shl(slot as u32).unwrap_or(0));
+                if link.pending == 0 {
+                    link.watching = None;
+                    return Some(stop(link.last_trigger.unwrap_or(clock), None));
+                }
             }
             let now = self.mcu.now();
-            if now >= until_clock || self.mcu.shutdown_reason().is_some() {
-                break;
+            let shutdown = self.mcu.shutdown_reason().is_some();
+            if now >= until_clock || shutdown {
+                break shutdown;
             }
             link.keepalive(now, self.out);
             self.mcu.wait(until_clock);
-        }
-        if until_clock >= (homing.end_time.max(0.0) * link.freq) as u64 {
-            // The whole move ran without a trigger.
+        };
+        let end_clock = (homing.end_time.max(0.0) * link.freq) as u64;
+        if until_clock >= end_clock {
+            // The whole move ran with an endstop untriggered.
             self.mcu.stop_watching();
             link.watching = None;
+            // (After a shutdown the shutdown is the error.)
+            let untriggered = (link.endstops_modelled && link.pending != 0 && !shutdown)
+                .then(|| link.pending.trailing_zeros() as usize);
+            if link.last_trigger.is_some() {
+                // Some steppers stopped at their trigger: all restart at
+                // the move's end.
+                return Some(stop(until_clock.max(end_clock), untriggered));
+            }
+            if untriggered.is_some() {
+                return Some(HomingStop {
+                    stopped: false,
+                    ..stop(until_clock, untriggered)
+                });
+            }
         }
         None
     }

@@ -52,7 +52,7 @@ impl Mcu for BoardMcu {
         step_timer::stop_watching();
     }
 
-    fn take_trigger(&mut self) -> Option<u32> {
+    fn take_trigger(&mut self) -> Option<(usize, u32)> {
         step_timer::take_trigger()
     }
 

@@ -120,21 +120,23 @@ pub fn now64() -> u64 {
     with_engine(|e| e.clock(now())).unwrap_or(0)
 }
 
-/// Homing: watches the endstop on stepper `stepper`'s pins, which stops
-/// the steppers in `stops` (bit `i`: stepper `i`) when it triggers.
+/// Homing: watches the endstop on stepper `stepper`'s pins (besides those
+/// already armed), which stops the steppers in `stops` (bit `i`: stepper
+/// `i`) when it triggers.
 pub fn watch_endstop(stepper: usize, endstop: onechip_sched::endstop::Endstop, stops: u32) {
     with_engine(|e| e.watch_endstop(stepper, endstop, stops));
     // The interrupt re-arms its compare for the first reading.
     raise();
 }
 
-/// Stops watching the endstop.
+/// Stops watching the armed endstops.
 pub fn stop_watching() {
     with_engine(|e| e.stop_watching());
 }
 
-/// The 32-bit clock of the endstop trigger since the last call, if any.
-pub fn take_trigger() -> Option<u32> {
+/// An endstop trigger not yet taken, if any: the stepper whose pins read
+/// that endstop and the trigger's 32-bit clock.
+pub fn take_trigger() -> Option<(usize, u32)> {
     with_engine(|e| e.take_trigger()).flatten()
 }
 

@@ -45,13 +45,16 @@ impl ConsolePrinter {
         let setup = load_setup(sd, options, buf, scratch)?;
         let machine: &'static Machine<'static> = Box::leak(Box::new(setup)).machine();
         let freq = options.mcu_freq;
-        let session = Box::new(HostSession::new(
+        let mut session = Box::new(HostSession::new(
             machine,
             freq,
             profile::MAX_STEP_ERROR,
             options.clock_origin,
         ));
         let mcu = virtual_mcu(machine, options)?;
+        // Without simulated switches a homing move runs to its end, as in
+        // klippy's batch mode.
+        session.set_endstops_modelled(mcu.real_position().is_some());
         Ok(Self {
             machine,
             session,

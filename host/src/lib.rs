@@ -78,6 +78,9 @@ pub struct Options {
     /// Fault injection: heater `.0`'s simulated element gives `.1` times
     /// its power (0: it does not heat at all).
     pub weak_heater: Option<(usize, f64)>,
+    /// Fault injection: the endstop of motion stepper `k` (a rail's, or
+    /// a delta's tower's) never reads pressed (a broken switch or wire).
+    pub dead_endstop: Option<usize>,
     /// The G-code arrives on the console, in USB packets as the board's
     /// console reads them, instead of from the SD card.
     pub console: bool,
@@ -115,6 +118,7 @@ impl Default for Options {
             plot: None,
             open_sensor: None,
             weak_heater: None,
+            dead_endstop: None,
             bed: [0.0; 3],
             console: false,
             board_pins: true,
@@ -202,8 +206,9 @@ pub struct Summary {
     pub shutdown: Option<String>,
     /// MCU clock frequency, Hz.
     pub mcu_freq: f64,
-    /// Endstop triggers while homing: axis, the toolhead's real position
-    /// when the steppers stopped (mm), print time (s).
+    /// Endstop triggers while homing: axis (a delta: tower), the
+    /// toolhead's real position when the steppers stopped (mm), print
+    /// time (s).
     pub endstops: Vec<(usize, [f64; 3], f64)>,
     /// Where the toolhead really is at the end, mm (when the power-on
     /// position is known, see [`Start`]).
@@ -290,7 +295,12 @@ impl fmt::Display for Summary {
             writeln!(
                 f,
                 "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}",
-                ["x", "y", "z"].get(*axis).unwrap_or(&"?"),
+                match self.kinematics {
+                    Kinematics::Delta => ["a", "b", "c"],
+                    _ => ["x", "y", "z"],
+                }
+                .get(*axis)
+                .unwrap_or(&"?"),
                 real[0],
                 real[1],
                 real[2]
@@ -663,6 +673,9 @@ pub(crate) fn with_session<const L: usize>(
         options.clock_origin,
     ));
     let mut mcu = virtual_mcu(machine, options)?;
+    // Without simulated switches a homing move runs to its end, as in
+    // klippy's batch mode.
+    session.set_endstops_modelled(mcu.real_position().is_some());
     if !machine.secondaries.is_empty() {
         attach_secondaries(&setup, options, &mut mcu)?;
     }
@@ -861,8 +874,9 @@ impl Progress {
     }
 }
 
-/// Where the motion steppers really are, and their endstops (none for a
-/// delta, which does not home yet, or with [`Start::Ideal`]).
+/// Where the motion steppers really are, and their endstops (a delta's:
+/// each tower's carriage at its endstop where the toolhead is at the home
+/// position); none with [`Start::Ideal`].
 fn physics(machine: &Machine<'_>, options: &Options) -> Option<Physics> {
     let toolhead = match options.start {
         Start::Ideal => return None,
@@ -874,18 +888,23 @@ fn physics(machine: &Machine<'_>, options: &Options) -> Option<Physics> {
                 .map_or(0.0, |s| 0.5 * (s.position_min + s.position_max))
         }),
     };
-    if machine.kinematics == Kinematics::Delta {
-        return None;
-    }
     let kinematics = machine.stepper_kinematics;
+    let delta = machine.travel.delta_homing();
     Some(Physics {
         kinematics,
         step_dist: core::array::from_fn(|k| machine.steppers.get(k).map_or(1.0, |s| s.step_dist)),
         start: core::array::from_fn(|k| kinematics[k].position(toolhead)),
         endstops: core::array::from_fn(|axis| {
+            if options.dead_endstop == Some(axis) {
+                return None;
+            }
             let info = machine.travel.homing_info(axis)?;
             // A rail homing on the probe has no switch of its own.
             (!info.probe).then_some((info.position_endstop, info.positive_dir))
+        }),
+        towers: core::array::from_fn(|k| {
+            let at = delta.map(|d| kinematics[k].position(d.home));
+            at.filter(|_| options.dead_endstop != Some(k))
         }),
         probe: probe_physics::for_machine(machine, options.bed, options.mcu_freq),
     })

@@ -50,6 +50,9 @@ pub struct Physics {
     /// Each rail's endstop: the toolhead coordinate it is pressed at (mm)
     /// and whether it is pressed above (true) or below it.
     pub endstops: [Option<(f64, bool)>; 3],
+    /// A delta's towers' endstops instead: the carriage height (the
+    /// stepper's position, mm) each is pressed at and above.
+    pub towers: [Option<f64>; 3],
     /// The Z probe, if any: its engine slot and where it triggers.
     pub probe: Option<(usize, crate::probe_physics::ProbePhysics)>,
 }
@@ -74,8 +77,14 @@ struct Rails {
 }
 
 impl Rails {
-    /// True while rail `axis`'s endstop is pressed.
+    /// True while rail `axis`'s endstop (a delta: tower `axis`'s) is
+    /// pressed.
     fn pressed(&self, axis: usize) -> bool {
+        if let Some(Some(at)) = self.physics.towers.get(axis).copied() {
+            let p = &self.physics;
+            let carriage = p.start[axis] + self.steps.get()[axis] as f64 * p.step_dist[axis];
+            return carriage >= at;
+        }
         let Some(Some((at, above))) = self.physics.endstops.get(axis).copied() else {
             return false;
         };
@@ -147,10 +156,9 @@ pub struct VirtualMcu {
     /// With physics, homing moves stop at their endstops; without, they run
     /// to their end (klippy's batch mode).
     rails: Option<Rc<Rails>>,
-    /// Where each endstop triggered: axis, toolhead position, clock.
+    /// Where each endstop triggered: axis (a delta: tower), toolhead
+    /// position, clock.
     triggers: Vec<(usize, [f64; 3], u64)>,
-    /// The axis whose endstop is watched.
-    watched: usize,
     /// The probe's control pin: each change's clock and pulse width (s).
     servo: Vec<(u64, f64)>,
     /// Planned moves kept for a plot, and the print-time window they
@@ -185,7 +193,6 @@ impl VirtualMcu {
             pushed: false,
             rails: None,
             triggers: Vec::new(),
-            watched: 0,
             servo: Vec::new(),
             plan: None,
             thermal: None,
@@ -624,17 +631,6 @@ impl Mcu for VirtualMcu {
     }
 
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
-        // The probe's slot stops Z: its triggers are reported as Z's.
-        let probe_slot = self
-            .rails
-            .as_ref()
-            .and_then(|r| r.physics.probe)
-            .map(|p| p.0);
-        self.watched = if probe_slot == Some(stepper) {
-            2
-        } else {
-            stepper
-        };
         self.engine.watch_endstop(stepper, endstop, stops);
         self.pushed = true;
     }
@@ -644,12 +640,23 @@ impl Mcu for VirtualMcu {
         self.pushed = true;
     }
 
-    fn take_trigger(&mut self) -> Option<u32> {
-        let trigger = self.engine.take_trigger()?;
+    fn take_trigger(&mut self) -> Option<(usize, u32)> {
+        let (stepper, trigger) = self.engine.take_trigger()?;
+        // The probe's slot stops Z: its triggers are reported as Z's.
+        let probe_slot = self
+            .rails
+            .as_ref()
+            .and_then(|r| r.physics.probe)
+            .map(|p| p.0);
+        let axis = if probe_slot == Some(stepper) {
+            2
+        } else {
+            stepper
+        };
         let real = self.real_position().unwrap_or_default();
         let clock = onechip_sched::clock::widen(trigger, self.now);
-        self.triggers.push((self.watched, real, clock));
-        Some(trigger)
+        self.triggers.push((axis, real, clock));
+        Some((stepper, trigger))
     }
 
     fn thermal(&mut self, command: ThermalCommand) {

@@ -4,15 +4,19 @@
 //! Per axis: the axis is declared to be far beyond its endstop (1.5 times
 //! the travel), a homing move runs to the endstop at `homing_speed`, the
 //! axis retracts by `homing_retract_dist`, and a second homing move runs at
-//! `second_homing_speed`. Homing moves are "drip" moves: planned alone,
+//! `second_homing_speed`. A delta homes its three towers together: the
+//! toolhead is declared far below its home position (every carriage at
+//! its endstop), each tower's endstop stops that tower alone, and the
+//! homing move ends when all three have triggered; then the same retract
+//! and second homing move, with stepper_a's options. Homing moves are "drip" moves: planned alone,
 //! starting after the endstop start delay and the step generator's scan
 //! window. With real endstops the trigger ends the move early: the sink
 //! reports where and when the steppers stopped
 //! ([`MoveSink::homing_move_end`]), and print time goes on from the stop.
 
-use crate::move_sink::{HomingMove, MoveSink};
+use crate::move_sink::{HomingEnd, HomingMove, MoveSink};
 use crate::planned_move::E;
-use crate::toolhead::{HomingInfo, MoveError, Toolhead};
+use crate::toolhead::{DeltaHoming, HomingInfo, MoveError, Toolhead};
 
 /// Delay between arming endstops and starting a homing move, s.
 pub const HOMING_START_DELAY: f64 = 0.001;
@@ -42,8 +46,30 @@ pub struct NoHooks;
 
 impl<const N: usize> HomingHooks<N> for NoHooks {}
 
+/// Klipper's errors for a homing move that ran its whole length without
+/// its endstop triggering, by the rail's short name: X, Y, Z, then a
+/// delta's towers A, B, C.
+pub const NO_TRIGGER_RAIL: [&str; 6] = [
+    "No trigger on x after full movement",
+    "No trigger on y after full movement",
+    "No trigger on z after full movement",
+    "No trigger on a after full movement",
+    "No trigger on b after full movement",
+    "No trigger on c after full movement",
+];
+
+/// What is homed together: one axis, or a delta's three towers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Rails {
+    /// One axis (0 = X) on its endstop (or the probe).
+    Axis(usize),
+    /// The three towers, each on its own endstop.
+    Towers,
+}
+
 impl<const N: usize> Toolhead<N> {
-    /// Homes each of `axes` (0 = X, 1 = Y, 2 = Z) in turn.
+    /// Homes each of `axes` (0 = X, 1 = Y, 2 = Z) in turn; a delta homes
+    /// its three towers together whichever axes are named, as Klipper.
     pub fn home(&mut self, axes: &[usize], sink: &mut impl MoveSink) -> Result<(), MoveError> {
         self.home_with(axes, sink, &mut NoHooks)
     }
@@ -55,6 +81,9 @@ impl<const N: usize> Toolhead<N> {
         sink: &mut impl MoveSink,
         hooks: &mut impl HomingHooks<N>,
     ) -> Result<(), MoveError> {
+        if let Some(delta) = self.kinematics.delta_homing() {
+            return self.home_delta(&delta, sink);
+        }
         for &axis in axes {
             let Some(info) = self.kinematics.homing_info(axis) else {
                 return Err(MoveError {
@@ -75,6 +104,25 @@ impl<const N: usize> Toolhead<N> {
         Ok(())
     }
 
+    /// Klipper's delta `home`: the toolhead is taken to be far below the
+    /// home position, then the towers home together (every carriage up
+    /// to its own endstop, never the probe) with stepper_a's speeds and
+    /// retract.
+    fn home_delta(
+        &mut self,
+        delta: &DeltaHoming,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
+        let mut force = self.position();
+        force[..3].copy_from_slice(&delta.home);
+        force[2] = delta.force_z;
+        let mut home = self.position();
+        home[..3].copy_from_slice(&delta.home);
+        self.set_position(force, sink);
+        self.kinematics.set_homed();
+        self.home_rails(Rails::Towers, &delta.info, force, home, sink, &mut NoHooks)
+    }
+
     fn home_axis(
         &mut self,
         axis: usize,
@@ -93,7 +141,26 @@ impl<const N: usize> Toolhead<N> {
         home[axis] = hi.position_endstop;
         self.set_position(force, sink);
         self.kinematics.set_axis_homed(axis);
-        self.homing_move(axis, hi, home, hi.speed, sink, hooks)?;
+        self.home_rails(Rails::Axis(axis), hi, force, home, sink, hooks)
+    }
+
+    /// Klipper's `home_rails` once the position is forced to `force`: a
+    /// homing move to `home` at the homing speed, then (with a retract
+    /// distance) a retract along the same line and a second homing move
+    /// at the second homing speed. A homing move whose endstop never
+    /// triggers fails with Klipper's message, and every axis must be
+    /// homed again.
+    fn home_rails(
+        &mut self,
+        rails: Rails,
+        hi: &HomingInfo,
+        force: [f64; 4],
+        home: [f64; 4],
+        sink: &mut impl MoveSink,
+        hooks: &mut impl HomingHooks<N>,
+    ) -> Result<(), MoveError> {
+        let end = self.homing_move(rails, hi, home, hi.speed, sink, hooks)?;
+        self.check_triggered(rails, &end)?;
         if hi.retract_dist > 0.0 {
             let mut axes_d = [0.0; 4];
             for i in 0..3 {
@@ -111,24 +178,46 @@ impl<const N: usize> Toolhead<N> {
             }
             self.move_to(retract, hi.retract_speed, sink)?;
             self.set_position(start, sink);
-            self.homing_move(axis, hi, home, hi.second_speed, sink, hooks)?;
+            let end = self.homing_move(rails, hi, home, hi.second_speed, sink, hooks)?;
+            self.check_triggered(rails, &end)?;
         }
         self.flush_step_generation(sink);
         Ok(())
     }
 
-    /// One homing move of `axis` to `target`, ending where the endstop
-    /// triggers (the sink tells where the steppers stopped); the print
-    /// time of the trigger, if it triggered.
+    /// Fails with Klipper's message if an endstop of the homing move that
+    /// ended as `end` never triggered (as Klipper's G28 then turns the
+    /// motors off, every axis must be homed again).
+    fn check_triggered(&mut self, rails: Rails, end: &HomingEnd) -> Result<(), MoveError> {
+        let Some(endstop) = end.untriggered else {
+            return Ok(());
+        };
+        let rail = match rails {
+            Rails::Axis(axis) => axis,
+            Rails::Towers => 3 + endstop,
+        };
+        self.kinematics.clear_homed();
+        Err(MoveError {
+            reason: NO_TRIGGER_RAIL
+                .get(rail)
+                .copied()
+                .unwrap_or(NO_TRIGGER_RAIL[2]),
+            end: self.position(),
+            detail: crate::toolhead::Detail::Nothing,
+        })
+    }
+
+    /// One homing move of `rails` to `target`, ending where the endstop
+    /// triggers (the sink tells where the steppers stopped, and when).
     pub(crate) fn homing_move(
         &mut self,
-        axis: usize,
+        rails: Rails,
         hi: &HomingInfo,
         target: [f64; 4],
         speed: f64,
         sink: &mut impl MoveSink,
         hooks: &mut impl HomingHooks<N>,
-    ) -> Result<Option<f64>, MoveError> {
+    ) -> Result<HomingEnd, MoveError> {
         if hi.probe {
             hooks.move_begin(self, sink);
         }
@@ -140,6 +229,10 @@ impl<const N: usize> Toolhead<N> {
         self.drip_move(target, speed, sink)?;
         let end_time = self.last_move_time(sink);
         self.flush_step_generation(sink);
+        let (axis, towers) = match rails {
+            Rails::Axis(axis) => (axis, false),
+            Rails::Towers => (2, true),
+        };
         let end = sink.homing_move_end(&HomingMove {
             axis,
             target: [target[0], target[1], target[2]],
@@ -147,6 +240,7 @@ impl<const N: usize> Toolhead<N> {
             positive_dir: hi.positive_dir,
             speed,
             probe: hi.probe,
+            towers,
             start_time,
             end_time,
         });
@@ -159,6 +253,6 @@ impl<const N: usize> Toolhead<N> {
         if hi.probe {
             hooks.move_end(self, sink);
         }
-        Ok(end.stopped_at)
+        Ok(end)
     }
 }

@@ -2,7 +2,7 @@
 //! and the extruder, read and checked the way Klipper reads them.
 
 use crate::accessories::{self, Accessories};
-use crate::kinematics::{StepperKinematics, delta_tower};
+use crate::kinematics::{StepperKinematics, calc_position, delta_tower};
 use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
@@ -14,7 +14,9 @@ use crate::temperature_sensor;
 use crate::thermal::{self, Fan, Heater, IdleTimeoutConfig};
 use crate::tmc::{self, config::TmcDriver};
 use crate::toolhead::HomingInfo;
-use crate::toolhead::{CartesianLimits, DeltaLimits, ExtruderLimits, Toolhead, Travel};
+use crate::toolhead::{
+    CartesianLimits, DeltaHoming, DeltaLimits, ExtruderLimits, Toolhead, Travel,
+};
 use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
 
 /// Most steppers a machine may have.
@@ -519,6 +521,17 @@ fn read_homing<'c>(
         Some(z) => z,
         None => section.get_float("position_endstop", None, Bounds::NONE)?,
     };
+    read_homing_from(section, position_endstop, (min, max), probe_z.is_some())
+}
+
+/// [`read_homing`] with position_endstop known (mm): the speeds, the
+/// retract and the direction, checked against the travel `(min, max)`.
+fn read_homing_from<'c>(
+    section: &Section<'c, '_>,
+    position_endstop: f64,
+    (min, max): (f64, f64),
+    probe: bool,
+) -> Result<HomingInfo, ConfigError<'c>> {
     if position_endstop < min || position_endstop > max {
         return Err(bad(
             section,
@@ -556,7 +569,7 @@ fn read_homing<'c>(
         retract_dist,
         retract_speed,
         range: (min, max),
-        probe: probe_z.is_some(),
+        probe,
     })
 }
 
@@ -584,16 +597,27 @@ fn read_delta<'c, 'a>(
     let (mut max_z, mut limit_z, mut min_arm, mut min_step_dist) =
         (f64::MAX, f64::MAX, f64::MAX, f64::MAX);
     let mut kinematics = [StepperKinematics::Axis(0); 3];
-    for ((tower, default_angle), kin) in towers.iter().zip(DELTA_ANGLES).zip(kinematics.iter_mut())
+    let (mut abs_endstops, mut max_arm2) = ([0.0; 3], 0.0f64);
+    let mut homing_a = None;
+    for (k, ((tower, default_angle), kin)) in towers
+        .iter()
+        .zip(DELTA_ANGLES)
+        .zip(kinematics.iter_mut())
+        .enumerate()
     {
         let arm = tower.get_float("arm_length", Some(arm_a), above_radius)?;
         let endstop = tower.get_float("position_endstop", Some(endstop_a), Bounds::NONE)?;
+        // As Klipper's rails without a travel range: 0 to the endstop.
+        let homing = read_homing_from(tower, endstop, (0.0, endstop), false)?;
+        homing_a.get_or_insert(homing);
         let angle = tower.get_float("angle", Some(default_angle), Bounds::NONE)?;
         *kin = StepperKinematics::DeltaTower {
             arm2: arm * arm,
             tower: delta_tower(angle, radius),
         };
         let abs_endstop = endstop + sqrt(arm * arm - radius * radius);
+        abs_endstops[k] = abs_endstop;
+        max_arm2 = max_arm2.max(arm * arm);
         max_z = max_z.min(endstop);
         limit_z = limit_z.min(abs_endstop - arm);
         min_arm = min_arm.min(arm);
@@ -619,7 +643,7 @@ fn read_delta<'c, 'a>(
     let max_xy = print_radius
         .min(min_arm - radius)
         .min(ratio_to_xy(4.0 * SLOW_RATIO));
-    let travel = Travel::Delta(DeltaLimits::new(
+    let mut travel = DeltaLimits::new(
         max_xy * max_xy,
         slow * slow,
         very_slow * very_slow,
@@ -629,8 +653,13 @@ fn read_delta<'c, 'a>(
         limits.max_velocity,
         limits.max_accel,
         max_z_velocity,
-    ));
-    Ok((travel, kinematics))
+    );
+    travel.homing = homing_a.map(|info| DeltaHoming {
+        info,
+        home: calc_position(&kinematics, abs_endstops),
+        force_z: -1.5 * sqrt(max_arm2 - max_xy * max_xy),
+    });
+    Ok((Travel::Delta(travel), kinematics))
 }
 
 fn read_extruder<'c>(

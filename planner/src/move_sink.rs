@@ -52,6 +52,7 @@ pub trait MoveSink {
         HomingEnd {
             position: homing.target,
             stopped_at: None,
+            untriggered: None,
         }
     }
 }
@@ -72,6 +73,11 @@ pub struct HomingMove {
     /// The endstop is the probe's input (probing, or homing on
     /// `probe:z_virtual_endstop`), not the rail's own.
     pub probe: bool,
+    /// Each of the three motion steppers homes on its own endstop, whose
+    /// trigger stops that stepper alone (a delta's towers, homed
+    /// together); the move ends once all have triggered. False: the
+    /// endstop of `axis` (or the probe) stops every motion stepper.
+    pub towers: bool,
     /// Print time the endstop is armed at (just before the move), s.
     pub start_time: f64,
     /// Print time at the end of the move, s.
@@ -84,7 +90,14 @@ pub struct HomingEnd {
     /// The toolhead position where the steppers stopped, as Klipper
     /// computes it (the target, plus any overshoot past the trigger), mm.
     pub position: [f64; 3],
-    /// Print time the steppers stopped at, s: None if the move ran to its
-    /// end (no endstop triggered, or none is modelled).
+    /// Print time the steppers stopped at (with several endstops: the
+    /// last trigger), s: None if the move ran to its end (no endstop
+    /// triggered, or none is modelled).
     pub stopped_at: Option<f64>,
+    /// An endstop that was watched and never triggered although the whole
+    /// move ran: the motion stepper it stops (for a tower) or the engine
+    /// slot it is read on. None if every endstop triggered, or if no
+    /// endstop is modelled (klippy's batch mode, where the move's end
+    /// counts as the trigger).
+    pub untriggered: Option<usize>,
 }

@@ -11,6 +11,7 @@
 
 use crate::bltouch::{self, Bltouch, BltouchConfig};
 use crate::homing::HomingHooks;
+use crate::homing::Rails;
 use crate::move_sink::MoveSink;
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
 use onechip_config::decimal::Fixed;
@@ -347,7 +348,9 @@ impl<const N: usize> Toolhead<N> {
             probe: true,
         };
         let mut hooks = ProbeHooks { probe, state, now };
-        let trigger = self.homing_move(2, &info, target, speed, sink, &mut hooks)?;
+        let trigger = self
+            .homing_move(Rails::Axis(2), &info, target, speed, sink, &mut hooks)?
+            .stopped_at;
         // Klipper's probe_pos: where the toolhead was at the trigger, not
         // the move's target.
         if let Some(mut at) = trigger.and_then(|t| self.released_position_at(t)) {

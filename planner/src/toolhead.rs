@@ -51,6 +51,23 @@ pub struct HomingInfo {
     pub probe: bool,
 }
 
+/// How a linear delta homes (Klipper's delta `home`): all three towers
+/// at once, each carriage up to its own endstop.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeltaHoming {
+    /// stepper_a's homing options (speeds, retract), which Klipper's
+    /// `home_rails` uses for all three towers.
+    pub info: HomingInfo,
+    /// Where homing ends: the toolhead position with every carriage at
+    /// its endstop (position_endstop + sqrt(arm² - radius²) high), mm.
+    pub home: [f64; 3],
+    /// The Z the toolhead is taken to be at (X and Y those of `home`)
+    /// before the first homing move: -1.5 × sqrt(largest arm² - max
+    /// XY radius²), low enough for a carriage anywhere to reach its
+    /// endstop, mm.
+    pub force_z: f64,
+}
+
 /// Why a move was refused.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MoveError {
@@ -238,6 +255,8 @@ pub struct DeltaLimits {
     pub max_accel: f64,
     /// max_z_velocity, mm/s.
     pub max_z_velocity: f64,
+    /// How the towers home, if they can (set by the machine's reader).
+    pub homing: Option<DeltaHoming>,
     need_home: bool,
 }
 
@@ -266,6 +285,7 @@ impl DeltaLimits {
             max_velocity,
             max_accel,
             max_z_velocity,
+            homing: None,
             need_home: true,
         }
     }
@@ -286,7 +306,18 @@ impl DeltaLimits {
             limit_xy2 = limit_xy2.min(above * above);
         }
         if end_xy2 > limit_xy2 || end_z > self.max_z || end_z < self.min_z {
-            return Err(move_error(m, "Move out of range"));
+            // Out of range, unless it is the homing move: straight up to
+            // the home position, which may lie above the lowest endstop.
+            let homing = self.homing.is_some_and(|h| {
+                end[0] == h.home[0]
+                    && end[1] == h.home[1]
+                    && end_z >= self.min_z
+                    && end_z <= h.home[2]
+            });
+            if !homing {
+                return Err(move_error(m, "Move out of range"));
+            }
+            limit_xy2 = -1.0;
         }
         if m.axes_d[2] != 0.0 {
             let z_ratio = m.move_d / m.axes_d[2].abs();
@@ -329,11 +360,20 @@ impl Travel {
         }
     }
 
-    /// How `axis` homes, where supported.
+    /// How `axis` homes on its own, where supported (cartesian-style
+    /// machines; a delta's towers home together: [`Self::delta_homing`]).
     pub fn homing_info(&self, axis: usize) -> Option<HomingInfo> {
         match self {
             Self::Cartesian(c) => c.homing.get(axis).copied().flatten(),
             Self::Delta(_) => None,
+        }
+    }
+
+    /// How a delta's towers home, if this is a delta.
+    pub fn delta_homing(&self) -> Option<DeltaHoming> {
+        match self {
+            Self::Cartesian(_) => None,
+            Self::Delta(d) => d.homing,
         }
     }
 

@@ -41,7 +41,7 @@ impl Mcu for QemuMcu {
         step_timer::stop_watching();
     }
 
-    fn take_trigger(&mut self) -> Option<u32> {
+    fn take_trigger(&mut self) -> Option<(usize, u32)> {
         step_timer::take_trigger()
     }
 

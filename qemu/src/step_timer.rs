@@ -121,13 +121,14 @@ pub fn watch_endstop(stepper: usize, endstop: Endstop, stops: u32) {
     crate::machine::pend(Irq::Timer0);
 }
 
-/// Stops watching the endstop.
+/// Stops watching the armed endstops.
 pub fn stop_watching() {
     ENGINE.with(|e| e.stop_watching());
 }
 
-/// The 32-bit clock of the endstop trigger since the last call, if any.
-pub fn take_trigger() -> Option<u32> {
+/// An endstop trigger not yet taken, if any: the stepper whose pins read
+/// that endstop and the trigger's 32-bit clock.
+pub fn take_trigger() -> Option<(usize, u32)> {
     ENGINE.with(|e| e.take_trigger()).flatten()
 }
 

@@ -103,6 +103,10 @@ struct Slot<P, const M: usize> {
     pins: P,
 }
 
+/// Most endstops watched at once (a delta's three towers, each homing on
+/// its own endstop, and a spare).
+pub const WATCHES: usize = 4;
+
 /// An endstop watched while homing.
 #[derive(Debug, Clone, Copy)]
 struct Watch {
@@ -111,6 +115,8 @@ struct Watch {
     endstop: Endstop,
     /// The steppers it stops (bit `i`: stepper `i`).
     stops: u32,
+    /// Clock of its trigger, not yet taken; None while it is armed.
+    trigger: Option<u32>,
 }
 
 /// `S` steppers (at most 14) with move queues of `M` and outboxes of `O`
@@ -134,9 +140,8 @@ pub struct Engine<P, const S: usize, const M: usize, const O: usize> {
     /// The timer count when housekeeping last ran.
     housekept: u32,
     shutdown: Option<Shutdown>,
-    watch: Option<Watch>,
-    /// Clock of the last endstop trigger not yet taken.
-    trigger: Option<u32>,
+    /// The endstops watched (armed, or triggered and not yet taken).
+    watches: [Option<Watch>; WATCHES],
 }
 
 impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M, O> {
@@ -157,39 +162,56 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             clock: Extender::new(0),
             housekept: 0,
             shutdown: None,
-            watch: None,
-            trigger: None,
+            watches: [None; WATCHES],
         }
     }
 
     /// Homing (Klipper's `endstop_home` with a trsync): reads the endstop
     /// on stepper `stepper`'s pins as `endstop` says; when it triggers,
     /// every stepper in `stops` (bit `i`: stepper `i`) stops at once, its
-    /// queued and held commands dropped, and the trigger's clock is kept
-    /// for [`Self::take_trigger`].
+    /// queued and held commands dropped (and those pushed until its step
+    /// clock is reset), and the trigger's clock is kept for
+    /// [`Self::take_trigger`]. Up to [`WATCHES`] endstops are watched at
+    /// once, each with its own `stops` (a delta's towers); arming another
+    /// when all are taken replaces the last.
     pub fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
-        self.watch = Some(Watch {
+        let watch = Watch {
             stepper,
             endstop,
             stops,
-        });
-        self.schedule(S + 1, endstop.next());
+            trigger: None,
+        };
+        let free = self.watches.iter().position(Option::is_none);
+        self.watches[free.unwrap_or(WATCHES - 1)] = Some(watch);
+        self.schedule_endstops();
     }
 
-    /// Stops watching the endstop (the homing move ended untriggered).
+    /// Stops watching every armed endstop (the homing move ended); the
+    /// triggers not yet taken stay.
     pub fn stop_watching(&mut self) {
-        self.watch = None;
+        for w in &mut self.watches {
+            if w.is_some_and(|w| w.trigger.is_none()) {
+                *w = None;
+            }
+        }
         self.unqueue(S + 1);
     }
 
     /// True while an endstop is watched.
     pub fn is_watching(&self) -> bool {
-        self.watch.is_some()
+        self.watches.iter().flatten().any(|w| w.trigger.is_none())
     }
 
-    /// The clock of the endstop trigger since the last call, if any.
-    pub fn take_trigger(&mut self) -> Option<u32> {
-        self.trigger.take()
+    /// An endstop trigger not yet taken, if any: the stepper whose pins
+    /// read that endstop (as given to [`Self::watch_endstop`]) and the
+    /// trigger's clock. Each trigger is taken once.
+    pub fn take_trigger(&mut self) -> Option<(usize, u32)> {
+        self.watches.iter_mut().find_map(|slot| {
+            let w = (*slot)?;
+            let at = w.trigger?;
+            *slot = None;
+            Some((w.stepper, at))
+        })
     }
 
     /// Queues `cmd` for stepper `index`; `first_clock` is its first step's
@@ -282,7 +304,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
                         return None;
                     }
                 }
-                None => self.check_endstop(),
+                None => self.check_endstops(clock),
                 Some(slot) if slot.stepper.in_move() => self.schedule(timer, clock),
                 Some(_) => self.move_ended(timer, clock),
             }
@@ -388,29 +410,53 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         self.queued == 1 && self.outboxes.iter().all(|o| o.is_empty())
     }
 
-    /// Reads the watched endstop (its check is due): on a trigger the
-    /// steppers it stops stop, otherwise the next reading is scheduled.
-    fn check_endstop(&mut self) {
-        let Some(mut watch) = self.watch else {
-            self.unqueue(S + 1);
-            return;
-        };
-        let pressed = self
-            .slots
-            .get_mut(watch.stepper)
-            .is_some_and(|slot| slot.pins.endstop_triggered());
-        match watch.endstop.read(pressed) {
-            Check::At(next) => {
-                self.watch = Some(watch);
-                self.schedule(S + 1, next);
+    /// Reads the armed endstops whose reading is due at clock `now`: on a
+    /// trigger the steppers that endstop stops stop; the check is then
+    /// scheduled for the next reading of those still armed.
+    #[inline(never)]
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
+    fn check_endstops(&mut self, now: u32) {
+        for k in 0..WATCHES {
+            let Some(mut watch) = self.watches[k] else {
+                continue;
+            };
+            if watch.trigger.is_some() || !watch.endstop.is_due(now) {
+                continue;
             }
-            Check::Triggered(at) => {
-                self.stop_watching();
-                self.trigger = Some(at);
+            let pressed = self
+                .slots
+                .get_mut(watch.stepper)
+                .is_some_and(|slot| slot.pins.endstop_triggered());
+            if let Check::Triggered(at) = watch.endstop.read(pressed) {
+                watch.trigger = Some(at);
                 for i in (0..S).filter(|i| watch.stops & (1 << i) != 0) {
                     self.stop_stepper(i);
                 }
             }
+            self.watches[k] = Some(watch);
+        }
+        self.schedule_endstops();
+    }
+
+    /// Schedules the endstop check for the earliest reading of the armed
+    /// endstops (none armed: no check).
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
+    fn schedule_endstops(&mut self) {
+        let mut next: Option<u32> = None;
+        for w in &self.watches {
+            if let Some(Watch {
+                endstop,
+                trigger: None,
+                ..
+            }) = w
+                && next.is_none_or(|n| is_before(endstop.next(), n))
+            {
+                next = Some(endstop.next());
+            }
+        }
+        match next {
+            Some(at) => self.schedule(S + 1, at),
+            None => self.unqueue(S + 1),
         }
     }
 
@@ -475,7 +521,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
             self.stop_stepper(i);
             self.slots[i].stepper = Stepper::new();
         }
-        self.trigger = None;
+        self.watches = [None; WATCHES];
         self.shutdown = None;
     }
 
@@ -736,7 +782,8 @@ mod tests {
         // Read every 700 ticks; a press must be seen 3 times, 50 apart.
         e.watch_endstop(0, Endstop::home(0, 50, 3, 700), 0b011);
         run_until(&mut e, 1_000_000);
-        let trigger = e.take_trigger().expect("triggered");
+        let (endstop, trigger) = e.take_trigger().expect("triggered");
+        assert_eq!(endstop, 0);
         assert_eq!(e.take_trigger(), None, "taken once");
         assert!(!e.is_watching());
         // Pressed at the 120th step (clock 120000): the next reading and
@@ -769,5 +816,93 @@ mod tests {
         assert!(e.is_watching());
         e.stop_watching();
         assert!(!e.is_watching());
+    }
+
+    #[test]
+    fn each_tower_endstop_stops_its_own_stepper_and_the_others_go_on() {
+        // A delta's towers: each stepper reads its own endstop, pressed at
+        // its 100th, 250th and 400th step; each trigger stops that stepper
+        // alone.
+        let mut e = Engine::<Pins, 4, 8, 8>::new(Default::default());
+        let pressed_at = [100, 250, 400];
+        for i in 0..4 {
+            e.push(i, StepCommand::Dir(true), 0).expect("room");
+            let steps = StepCommand::Steps {
+                interval: 1000,
+                count: 600,
+                add: 0,
+            };
+            e.push(i, steps, 1000).expect("room");
+        }
+        for (i, &n) in pressed_at.iter().enumerate() {
+            e.slots[i].pins.endstop_at = Some(n);
+            e.watch_endstop(i, Endstop::home(500, 50, 3, 700), 1 << i);
+        }
+        assert!(e.is_watching());
+        run_until(&mut e, 2_000_000);
+        let mut triggers = Vec::new();
+        while let Some(t) = e.take_trigger() {
+            triggers.push(t);
+        }
+        assert!(!e.is_watching());
+        triggers.sort_by_key(|t| t.1);
+        let order: Vec<usize> = triggers.iter().map(|t| t.0).collect();
+        assert_eq!(order, [0, 1, 2], "each tower once, in the order pressed");
+        for (&(i, trigger), &n) in triggers.iter().zip(&pressed_at) {
+            let pressed = n as u32 * 1000;
+            assert!(
+                (pressed..=pressed + 800).contains(&trigger),
+                "tower {i}: {trigger}"
+            );
+            let made = e.slots[i].pins.steps.len();
+            assert!((n..=n + 1).contains(&made), "tower {i} made {made}");
+            assert!(e.slots[i].pins.steps.iter().all(|s| s.0 <= trigger));
+        }
+        // The others went on after the first trigger; stepper 3 (no
+        // endstop) made its whole move.
+        assert!(e.slots[2].pins.steps.len() > e.slots[0].pins.steps.len());
+        assert_eq!(e.slots[3].pins.steps.len(), 600);
+        // A stopped stepper drops what comes until its clock is reset.
+        let more = StepCommand::Steps {
+            interval: 1000,
+            count: 5,
+            add: 0,
+        };
+        e.push(0, more, 2_100_000).expect("accepted");
+        run_until(&mut e, 2_200_000);
+        assert_eq!(e.slots[0].pins.steps.len(), 100, "dropped before a reset");
+        e.push(0, StepCommand::ResetClock(2_300_000), 2_300_000)
+            .expect("room");
+        e.push(0, more, 2_301_000).expect("room");
+        run_until(&mut e, 2_400_000);
+        assert_eq!(e.slots[0].pins.steps.len(), 105, "steps again after it");
+        assert_eq!(e.shutdown_reason(), None);
+    }
+
+    #[test]
+    fn watches_are_disarmed_together_and_untaken_triggers_stay() {
+        let mut e = Engine::<Pins, 3, 8, 8>::new(Default::default());
+        for i in 0..2 {
+            e.push(i, StepCommand::Dir(true), 0).expect("room");
+            let steps = StepCommand::Steps {
+                interval: 1000,
+                count: 50,
+                add: 0,
+            };
+            e.push(i, steps, 1000).expect("room");
+        }
+        e.slots[1].pins.endstop_at = Some(10);
+        e.watch_endstop(0, Endstop::home(0, 50, 3, 700), 0b01);
+        e.watch_endstop(1, Endstop::home(0, 50, 3, 700), 0b10);
+        run_until(&mut e, 100_000);
+        // Stepper 0's endstop never triggered: its move ran whole.
+        assert_eq!(e.slots[0].pins.steps.len(), 50);
+        assert!((10..=11).contains(&e.slots[1].pins.steps.len()));
+        assert!(e.is_watching());
+        e.stop_watching();
+        assert!(!e.is_watching());
+        let (endstop, _) = e.take_trigger().expect("kept");
+        assert_eq!(endstop, 1);
+        assert_eq!(e.take_trigger(), None);
     }
 }

@@ -46,10 +46,13 @@ pub trait StepSink {
 
     /// A homing move is running, its commands sent up to `until_clock`:
     /// run its steps before that clock with the endstop of `homing.axis`
-    /// armed from `start_clock` (called again with later clocks as more
-    /// steps are sent). On a trigger, the steppers stop and the rest of
-    /// their queued steps is dropped; returns when and how they stopped.
-    /// None: no trigger yet (or no endstops here).
+    /// (or with `homing.towers` each tower's own) armed from `start_clock`
+    /// (called again with later clocks as more steps are sent). On a
+    /// trigger, the steppers it stops stop and the rest of their queued
+    /// steps is dropped (and those sent later, until their step clock is
+    /// reset); returns when and how the move ended once every endstop has
+    /// triggered, or once the move ran to its end with some endstop
+    /// untriggered. None: not over yet (or no endstops here).
     fn home(
         &mut self,
         homing: &HomingMove,
@@ -61,13 +64,20 @@ pub trait StepSink {
     }
 }
 
-/// How a homing move's steppers stopped at their endstop.
+/// How a homing move's steppers stopped at their endstops.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct HomingStop {
-    /// 64-bit MCU clock the steppers stopped at, ticks.
+    /// 64-bit MCU clock the homing move ended at: the (last) trigger's,
+    /// or the move's end if an endstop never triggered, ticks.
     pub clock: u64,
-    /// Each stepper's steps between the trigger and the stop.
+    /// Each stepper's steps between its trigger and its stop.
     pub overshoot: [i64; MAX_STEPPERS],
+    /// Some stepper was stopped by a trigger (it moves again only from a
+    /// step clock reset).
+    pub stopped: bool,
+    /// A watched endstop that never triggered (see
+    /// [`HomingEnd::untriggered`]), if any.
+    pub untriggered: Option<usize>,
 }
 
 /// What a stepper's position follows.
@@ -493,9 +503,12 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
 
     /// Runs a homing move whose steps are all generated: sends its
     /// compressed steps in drips, lets the sink run them against the
-    /// endstop, and on a trigger drops the rest of the move, restarts every
-    /// stepper at the stop and returns where the toolhead stopped, as
-    /// Klipper computes it, with the stop's print time.
+    /// endstops, and once they have stopped the steppers drops the rest of
+    /// the move, restarts every motion stepper at the end (the last
+    /// trigger: steppers stopped earlier stood still since, their steps
+    /// sent meanwhile dropped by the MCU) and returns where the toolhead
+    /// stopped, as Klipper computes it (the target, each stepper moved by
+    /// its overshoot past its own trigger), with the end's print time.
     fn home(&mut self, homing: &HomingMove, sink: &mut impl StepSink) -> HomingEnd {
         let freq = self.freq;
         let clock = |t: f64| (t.max(0.0) * freq) as u64;
@@ -515,19 +528,37 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 self.generate(until, sink);
                 clock(self.sent_until())
             };
-            if let Some(stop) = sink.home(homing, start_clock, sent.min(end_clock)) {
-                break stop;
-            }
-            if last {
-                return HomingEnd {
-                    position: homing.target,
-                    stopped_at: None,
-                };
+            match sink.home(homing, start_clock, sent.min(end_clock)) {
+                Some(stop) if stop.stopped => break stop,
+                // The move ran to its end and no endstop triggered.
+                Some(stop) => {
+                    return HomingEnd {
+                        position: homing.target,
+                        stopped_at: None,
+                        untriggered: stop.untriggered,
+                    };
+                }
+                None if last => {
+                    return HomingEnd {
+                        position: homing.target,
+                        stopped_at: None,
+                        untriggered: None,
+                    };
+                }
+                None => {}
             }
         };
         let stopped_at = stop.clock as f64 / freq;
         self.restart(stop.clock, sink);
-        // The target, moved by each motion stepper's overshoot.
+        // The target, moved by each motion stepper's overshoot (none:
+        // the target itself, as Klipper takes it).
+        if stop.overshoot.iter().all(|&o| o == 0) {
+            return HomingEnd {
+                position: homing.target,
+                stopped_at: Some(stopped_at),
+                untriggered: stop.untriggered,
+            };
+        }
         let mut kin = [StepperKinematics::Axis(0); 3];
         let mut spos = [0.0; 3];
         for (k, ch) in self.channels.iter().take(3).enumerate() {
@@ -540,6 +571,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         HomingEnd {
             position: calc_position(&kin, spos),
             stopped_at: Some(stopped_at),
+            untriggered: stop.untriggered,
         }
     }
 

@@ -60,6 +60,7 @@ impl MoveSink for Planned {
         HomingEnd {
             position: homing.target,
             stopped_at: None,
+            untriggered: None,
         }
     }
 }

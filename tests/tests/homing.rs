@@ -127,3 +127,47 @@ fn homing_from_mid_travel_ends_at_each_trigger_as_in_klipper() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn an_endstop_that_never_triggers_fails_g28_with_klippers_message() {
+    let dir = sd("dead", "G28 X\nG1 X10 F3000\n");
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            start: Start::At([50.0, 80.0, 30.0]),
+            dead_endstop: Some(0),
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert_eq!(s.shutdown, None);
+    let errors: Vec<&str> = s.errors.iter().map(|e| e.1.as_str()).collect();
+    assert_eq!(errors.len(), 2, "{errors:?}");
+    assert_eq!(errors[0], "No trigger on x after full movement");
+    // As after Klipper's failed G28 (motors off): X must be homed again.
+    assert!(errors[1].starts_with("Must home axis first"), "{errors:?}");
+    assert_eq!(s.endstops, []);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_shutdown_while_homing_is_the_error_not_a_missing_trigger() {
+    let dir = sd("shutdown", "G28\n");
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            start: Start::At([150.0, 150.0, 100.0]),
+            // The hot end's thermistor opens 0.5 s in, while X homes.
+            open_sensor: Some((0.5, 0)),
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert!(s.shutdown.is_some(), "{:?}", s.errors);
+    assert!(
+        s.errors.iter().all(|e| !e.1.contains("No trigger")),
+        "{:?}",
+        s.errors
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -16,7 +16,7 @@
 //! names the file, the line and the option, and says why (a file with no
 //! `[printer]` section at all is no printer's config: its message names
 //! the file and the missing section). A file that loads but cannot home
-//! (a delta) gives the G-code error. The test prints a table (file,
+//! or move gives the G-code error. The test prints a table (file,
 //! result, reason with the line it names, the sections reported
 //! unsupported and ignored) and the reasons grouped, and fails if no file
 //! is found, a run panics, a refusal does not name file, line and option,
@@ -26,7 +26,8 @@
 use onechip_app::pin_check;
 use onechip_config::Config;
 use onechip_host::{Options, SimError, Start, Summary};
-use onechip_planner::machine::{Kinematics, Machine};
+use onechip_planner::machine::Machine;
+use onechip_planner::toolhead::Travel;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -56,9 +57,11 @@ const NOW_SUPPORTED: [&str; 8] = [
 ];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with
-/// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers; 130
-/// since `[temperature_sensor]` is read: see [`MIN_LOADED`]).
-const MIN_HOMED_AND_MOVED: usize = 130;
+/// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers;
+/// 139, every file that loads, once the 8 deltas home their towers
+/// together as Klipper does; 138 since `[temperature_sensor]` is read:
+/// see [`MIN_LOADED`]).
+const MIN_HOMED_AND_MOVED: usize = 138;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;
@@ -90,22 +93,18 @@ enum Outcome {
 /// The job for `machine`: home, then move Z and twice XY away from the
 /// endstops; and where the toolhead then is (X, Y, Z, mm), and where it
 /// starts.
-fn job(config: &Config<'_>, machine: &Machine<'_>) -> (String, [f64; 3], [f64; 3]) {
+fn job(machine: &Machine<'_>) -> (String, [f64; 3], [f64; 3]) {
     let mut end = [0.0; 3];
     let mut start = [0.0; 3];
     let mut xy = [[0.0; 2]; 2];
-    if machine.kinematics == Kinematics::Delta {
-        // Delta homing ends at the top; move down, then across.
-        let top = config
-            .section("stepper_a")
-            .and_then(|s| {
-                s.get_float("position_endstop", None, Default::default())
-                    .ok()
-            })
-            .unwrap_or(0.0);
-        end[2] = top - Z_MOVE;
+    if let Travel::Delta(delta) = &machine.travel {
+        // Delta homing ends at the top; move down (far enough below the
+        // top that the XY moves stay inside the radius that tapers
+        // there), then across. The toolhead starts off-centre, lower.
+        let top = delta.max_z;
+        end[2] = top - Z_MOVE - XY_MOVES[1];
         xy = [[XY_MOVES[0], 0.0], [0.0, XY_MOVES[0]]];
-        start[2] = top - START_OFFSET;
+        start = [5.0, -5.0, top - START_OFFSET];
     } else {
         for axis in 0..3 {
             let Some(info) = machine.travel.homing_info(axis) else {
@@ -145,10 +144,7 @@ fn run(file: &Path, dir: &Path) -> RunResult {
     // refuses the file the loader refuses it too, and the job is moot.
     let config = Config::parse("printer.cfg", &text).ok();
     let machine = config.as_ref().and_then(|c| Machine::from_config(c).ok());
-    let planned = config
-        .as_ref()
-        .zip(machine.as_ref())
-        .map(|(c, m)| job(c, m));
+    let planned = machine.as_ref().map(job);
     let (gcode, end, start) = planned.unwrap_or_else(|| ("G28\n".into(), [0.0; 3], [0.0; 3]));
     let board_pins = machine
         .as_ref()
@@ -185,18 +181,17 @@ fn judge(s: &Summary, end: [f64; 3]) -> Outcome {
             &s.final_position[..3]
         ));
     }
-    if s.kinematics != Kinematics::Delta {
-        let homed: Vec<usize> = s.endstops.iter().map(|e| e.0).collect();
-        if (0..3).any(|axis| !homed.contains(&axis)) {
-            return Outcome::LoadedOnly(format!("endstops triggered on axes {homed:?} only"));
-        }
-        // Homing found the endstops where printer.cfg puts them: the
-        // toolhead really is where the firmware thinks (within a step).
-        let real = s.real_position;
-        let there = real.is_some_and(|r| (0..3).all(|k| (r[k] - end[k]).abs() < REAL_TOLERANCE));
-        if !there {
-            return Outcome::LoadedOnly(format!("really at {real:?}, not {end:?}"));
-        }
+    // Every axis' endstop (a delta: every tower's) triggered.
+    let homed: Vec<usize> = s.endstops.iter().map(|e| e.0).collect();
+    if (0..3).any(|axis| !homed.contains(&axis)) {
+        return Outcome::LoadedOnly(format!("endstops triggered on axes {homed:?} only"));
+    }
+    // Homing found the endstops where printer.cfg puts them: the
+    // toolhead really is where the firmware thinks (within a step).
+    let real = s.real_position;
+    let there = real.is_some_and(|r| (0..3).all(|k| (r[k] - end[k]).abs() < REAL_TOLERANCE));
+    if !there {
+        return Outcome::LoadedOnly(format!("really at {real:?}, not {end:?}"));
     }
     Outcome::HomedAndMoved
 }
@@ -261,7 +256,9 @@ fn group_of(text: &str, reason: &str) -> String {
     } else if message.contains("option 'sensor_type'") {
         format!("{message} ({quoted})")
     } else if message.starts_with("Homing is not supported for this kinematics") {
-        "delta homing not implemented (G28: Homing is not supported for this kinematics yet)".into()
+        "homing not implemented for these kinematics (G28)".into()
+    } else if message.starts_with("No trigger on ") {
+        format!("an endstop never triggered while homing ({message})")
     } else {
         message.to_string()
     }
