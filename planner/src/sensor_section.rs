@@ -11,6 +11,7 @@
 //! part of the M105 report.
 
 use crate::temperature_sensor::{self, TemperatureSensor};
+use crate::thermal;
 use crate::thermistor::ZERO_CELSIUS;
 use onechip_config::{Bounds, Config, ConfigError, Section};
 
@@ -234,22 +235,8 @@ fn read<'c, 'a>(
             sensor: temperature_sensor::read(config, section)?,
         }
     };
-    let min_temp = section.get_float(
-        "min_temp",
-        Some(-ZERO_CELSIUS),
-        Bounds {
-            minval: Some(-ZERO_CELSIUS),
-            ..Bounds::NONE
-        },
-    )?;
-    let max_temp = section.get_float(
-        "max_temp",
-        Some(NO_MAX_TEMP),
-        Bounds {
-            above: Some(min_temp),
-            ..Bounds::NONE
-        },
-    )?;
+    let (min_temp, max_temp) =
+        thermal::read_temperature_limits(section, Some(-ZERO_CELSIUS), Some(NO_MAX_TEMP))?;
     let name = section.name_in_file();
     Ok(SensorSection {
         name: name.split_once(' ').map_or(name, |(_, n)| n.trim()),

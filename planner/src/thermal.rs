@@ -198,16 +198,16 @@ pub struct Fan<'a> {
 /// REPORT_TIME + SAMPLE_TIME × SAMPLE_COUNT).
 pub const PWM_DELAY: f64 = 0.300 + 0.001 * 8.0;
 
-/// Reads a heater from `section` (`[extruder]` or `[heater_bed]`) of
-/// `config` (which holds the sensor types it may name).
-pub fn read_heater<'c, 'a>(
-    config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
-) -> Result<Heater<'a>, ConfigError<'c>> {
-    let sensor = temperature_sensor::read(config, section)?;
+/// `min_temp` and `max_temp` (°C), with these defaults (None: required):
+/// not below absolute zero, max_temp above min_temp.
+pub fn read_temperature_limits<'c>(
+    section: &Section<'c, '_>,
+    min_default: Option<f64>,
+    max_default: Option<f64>,
+) -> Result<(f64, f64), ConfigError<'c>> {
     let min_temp = section.get_float(
         "min_temp",
-        None,
+        min_default,
         Bounds {
             minval: Some(-ZERO_CELSIUS),
             ..Bounds::NONE
@@ -215,12 +215,23 @@ pub fn read_heater<'c, 'a>(
     )?;
     let max_temp = section.get_float(
         "max_temp",
-        None,
+        max_default,
         Bounds {
             above: Some(min_temp),
             ..Bounds::NONE
         },
     )?;
+    Ok((min_temp, max_temp))
+}
+
+/// Reads a heater from `section` (`[extruder]` or `[heater_bed]`) of
+/// `config` (which holds the sensor types it may name).
+pub fn read_heater<'c, 'a>(
+    config: &'c Config<'a>,
+    section: &Section<'c, 'a>,
+) -> Result<Heater<'a>, ConfigError<'c>> {
+    let sensor = temperature_sensor::read(config, section)?;
+    let (min_temp, max_temp) = read_temperature_limits(section, None, None)?;
     let control = match section.get_choice("control", &["pid", "watermark"], None)? {
         "pid" => Control::Pid {
             kp: section.get_float("pid_kp", None, Bounds::NONE)?,
