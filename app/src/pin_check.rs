@@ -245,6 +245,11 @@ fn rail(section: &str) -> &str {
     section.trim_end_matches(|c: char| c.is_ascii_digit())
 }
 
+/// True if `a` and `b` name one pin (modifiers aside).
+pub fn same_pin(a: &str, b: &str) -> bool {
+    Pin::parse(a).same_as(&Pin::parse(b))
+}
+
 /// A pin as written: chip, name and modifiers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Pin<'a> {

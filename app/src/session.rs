@@ -155,6 +155,10 @@ struct EngineLink {
     towers: bool,
     /// The motion steppers (bit `i`: stepper `i`): a trigger stops them all.
     rails: u32,
+    /// For each axis, its extra steppers with an endstop of their own
+    /// (bit `i`: stepper `i`): each stops itself alone, as a delta's
+    /// tower, and the rail's own endstop stops the rest.
+    own_endstops: [u32; 3],
     /// The finest of their step distances, mm.
     finest_step: f64,
     /// The engine slot of the probe's input, if there is a probe.
@@ -177,12 +181,13 @@ struct EngineLink {
 
 impl EngineLink {
     fn new(machine: &Machine<'_>, freq: f64) -> Self {
-        let rails = machine.stepper_kinematics.len().min(machine.steppers.len());
+        let rails = machine.motion_steppers();
         let mut link = Self {
             freq,
             endstops: [false; 3],
             towers: machine.travel.delta_homing().is_some(),
             rails: (1 << rails) - 1,
+            own_endstops: [0; 3],
             finest_step: f64::INFINITY,
             probe_slot: machine.probe_slot(),
             z_on_probe: machine.homes_on_probe(2),
@@ -193,8 +198,24 @@ impl EngineLink {
             busy_at: u64::MAX,
         };
         for (i, stepper) in machine.steppers.iter().take(rails).enumerate() {
-            link.endstops[i] = stepper.endstop_pin.is_some();
             link.finest_step = link.finest_step.min(stepper.step_dist);
+            let Some(axis) = machine.rail_of(i).filter(|&a| a < 3) else {
+                continue;
+            };
+            if i == axis {
+                link.endstops[axis] = stepper.endstop_pin.is_some();
+                continue;
+            }
+            // An extra stepper: its own endstop, unless it names the
+            // rail's pin or the probe's.
+            let rail_pin = machine.steppers[axis].endstop_pin;
+            let own = stepper.endstop_pin.filter(|pin| {
+                !crate::probe::is_virtual_endstop(pin)
+                    && rail_pin.is_none_or(|rail| !crate::pin_check::same_pin(pin, rail))
+            });
+            if own.is_some() {
+                link.own_endstops[axis] |= 1 << i;
+            }
         }
         link
     }
@@ -844,8 +865,16 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 }
             } else {
                 let slot = link.endstop_slot(homing.axis, homing.probe);
-                self.mcu.watch_endstop(slot, endstop, link.rails);
+                let own = match link.own_endstops.get(homing.axis) {
+                    Some(&own) if slot == homing.axis => own,
+                    _ => 0,
+                };
+                self.mcu.watch_endstop(slot, endstop, link.rails & !own);
                 link.pending = 1 << slot;
+                for k in (0..32).filter(|k| own & (1 << k) != 0) {
+                    self.mcu.watch_endstop(k, endstop, 1 << k);
+                    link.pending |= 1 << k;
+                }
             }
             link.watching = Some(start_clock);
         }

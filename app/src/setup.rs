@@ -112,7 +112,7 @@ impl<'a> PrinterSetup<'a> {
 
     /// What to wire for each stepper, in the machine's order.
     pub fn steppers(&self) -> impl Iterator<Item = StepperWiring<'a>> + '_ {
-        let rails = self.machine.stepper_kinematics.len();
+        let rails = self.machine.motion_steppers();
         self.machine
             .steppers
             .iter()

@@ -37,7 +37,7 @@ use std::io::{BufReader, Read as _};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
-use virtual_mcu::{Physics, VirtualMcu};
+use virtual_mcu::{ExtraStepper, Physics, VirtualMcu};
 
 /// Bytes of one USB full-speed bulk packet, as the board's console reads
 /// its input.
@@ -81,6 +81,9 @@ pub struct Options {
     /// Fault injection: the endstop of motion stepper `k` (a rail's, or
     /// a delta's tower's) never reads pressed (a broken switch or wire).
     pub dead_endstop: Option<usize>,
+    /// The rails' extra steppers (`[stepper_z1]`) start this much further
+    /// along than their rail's first stepper, mm (a racked gantry).
+    pub racked: f64,
     /// The G-code arrives on the console, in USB packets as the board's
     /// console reads them, instead of from the SD card.
     pub console: bool,
@@ -119,6 +122,7 @@ impl Default for Options {
             open_sensor: None,
             weak_heater: None,
             dead_endstop: None,
+            racked: 0.0,
             bed: [0.0; 3],
             console: false,
             board_pins: true,
@@ -907,6 +911,23 @@ fn physics(machine: &Machine<'_>, options: &Options) -> Option<Physics> {
             at.filter(|_| options.dead_endstop != Some(k))
         }),
         probe: probe_physics::for_machine(machine, options.bed, options.mcu_freq),
+        extras: (3..machine.motion_steppers())
+            .filter_map(|slot| {
+                let rail = machine.rail_of(slot)?;
+                let stepper = machine.steppers.get(slot)?;
+                let own = stepper.endstop_pin.is_some() && options.dead_endstop != Some(slot);
+                Some(ExtraStepper {
+                    slot,
+                    step_dist: stepper.step_dist,
+                    start: kinematics[rail].position(toolhead) + options.racked,
+                    endstop: machine
+                        .travel
+                        .homing_info(rail)
+                        .filter(|info| own && !info.probe)
+                        .map(|info| (info.position_endstop, info.positive_dir)),
+                })
+            })
+            .collect(),
     })
 }
 

@@ -55,12 +55,30 @@ pub struct Physics {
     pub towers: [Option<f64>; 3],
     /// The Z probe, if any: its engine slot and where it triggers.
     pub probe: Option<(usize, crate::probe_physics::ProbePhysics)>,
+    /// The rails' extra steppers (`[stepper_z1]`), by engine slot.
+    pub extras: Vec<ExtraStepper>,
+}
+
+/// A rail's extra stepper as physics sees it: it carries its own end of
+/// the rail (a second Z lead screw), so its own endstop sees its own
+/// position.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExtraStepper {
+    /// Its engine slot.
+    pub slot: usize,
+    /// mm per step.
+    pub step_dist: f64,
+    /// Its position at power-on, mm.
+    pub start: f64,
+    /// Its own endstop, if it has one: the position it is pressed at (mm)
+    /// and whether above (true) or below it.
+    pub endstop: Option<(f64, bool)>,
 }
 
 impl Physics {
     /// The toolhead's real position after `steps` steps of each motion
     /// stepper, mm.
-    fn toolhead(&self, steps: [i64; 3]) -> [f64; 3] {
+    fn toolhead(&self, steps: [i64; MAX_STEPPERS]) -> [f64; 3] {
         let s = core::array::from_fn(|k| self.start[k] + steps[k] as f64 * self.step_dist[k]);
         calc_position(&self.kinematics, s)
     }
@@ -71,7 +89,8 @@ impl Physics {
 #[derive(Debug)]
 struct Rails {
     physics: Physics,
-    steps: Cell<[i64; 3]>,
+    /// Every slot's steps (the rails' first).
+    steps: Cell<[i64; MAX_STEPPERS]>,
     /// The probe's control pin: each change's clock and pulse width (s).
     servo: RefCell<Vec<(u64, f64)>>,
 }
@@ -84,6 +103,13 @@ impl Rails {
             let p = &self.physics;
             let carriage = p.start[axis] + self.steps.get()[axis] as f64 * p.step_dist[axis];
             return carriage >= at;
+        }
+        if let Some(extra) = self.physics.extras.iter().find(|e| e.slot == axis) {
+            let Some((at, above)) = extra.endstop else {
+                return false;
+            };
+            let own = extra.start + self.steps.get()[axis] as f64 * extra.step_dist;
+            return if above { own >= at } else { own <= at };
         }
         let Some(Some((at, above))) = self.physics.endstops.get(axis).copied() else {
             return false;
@@ -292,10 +318,11 @@ impl VirtualMcu {
     pub fn with_physics(mut self, physics: Physics) -> Self {
         let rails = Rc::new(Rails {
             physics,
-            steps: Cell::new([0; 3]),
+            steps: Cell::new([0; MAX_STEPPERS]),
             servo: RefCell::new(Vec::new()),
         });
-        for (k, pins) in self.engine.pins_mut().take(3).enumerate() {
+        let motion = 3 + rails.physics.extras.len();
+        for (k, pins) in self.engine.pins_mut().take(motion).enumerate() {
             pins.rail = Some((k, Rc::clone(&rails)));
         }
         if let Some((slot, _)) = rails.physics.probe

@@ -58,6 +58,26 @@ pub const NO_TRIGGER_RAIL: [&str; 6] = [
     "No trigger on c after full movement",
 ];
 
+/// The same for a rail's extra steppers' own endstops, by axis and the
+/// number in the section's name (`[stepper_z1]`: z1).
+pub const NO_TRIGGER_EXTRA: [[&str; 3]; 3] = [
+    [
+        "No trigger on x1 after full movement",
+        "No trigger on x2 after full movement",
+        "No trigger on x3 after full movement",
+    ],
+    [
+        "No trigger on y1 after full movement",
+        "No trigger on y2 after full movement",
+        "No trigger on y3 after full movement",
+    ],
+    [
+        "No trigger on z1 after full movement",
+        "No trigger on z2 after full movement",
+        "No trigger on z3 after full movement",
+    ],
+];
+
 /// What is homed together: one axis, or a delta's three towers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Rails {
@@ -192,16 +212,24 @@ impl<const N: usize> Toolhead<N> {
         let Some(endstop) = end.untriggered else {
             return Ok(());
         };
-        let rail = match rails {
-            Rails::Axis(axis) => axis,
-            Rails::Towers => 3 + endstop,
+        let reason = match rails {
+            // An extra stepper's own endstop (engine slot 3 on).
+            Rails::Axis(_) if endstop >= 3 => {
+                self.kinematics
+                    .extra_stepper(endstop - 3)
+                    .and_then(|(axis, number)| {
+                        NO_TRIGGER_EXTRA
+                            .get(usize::from(axis))?
+                            .get(usize::from(number).checked_sub(1)?)
+                            .copied()
+                    })
+            }
+            Rails::Axis(axis) => NO_TRIGGER_RAIL.get(axis).copied(),
+            Rails::Towers => NO_TRIGGER_RAIL.get(3 + endstop).copied(),
         };
         self.kinematics.clear_homed();
         Err(MoveError {
-            reason: NO_TRIGGER_RAIL
-                .get(rail)
-                .copied()
-                .unwrap_or(NO_TRIGGER_RAIL[2]),
+            reason: reason.unwrap_or(NO_TRIGGER_RAIL[2]),
             end: self.position(),
             detail: crate::toolhead::Detail::Nothing,
         })

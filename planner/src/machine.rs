@@ -80,8 +80,13 @@ pub struct Machine<'a> {
     pub pressure_advance: f64,
     /// pressure_advance_smooth_time, s.
     pub pressure_advance_smooth_time: f64,
-    /// The steppers: the rails (or towers) in order, then the extruder.
+    /// The steppers: the rails (or towers) in order, then each rail's
+    /// extra steppers (`[stepper_z1]`, …; see [`Self::extra_rails`]),
+    /// then the extruder.
     pub steppers: heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+    /// The rail (0 = X) of each extra stepper, in order: stepper `3 + i`
+    /// moves with rail `extra_rails[i]`.
+    pub extra_rails: heapless::Vec<usize, MAX_STEPPERS>,
     /// How the first three steppers follow the toolhead.
     pub stepper_kinematics: [StepperKinematics; 3],
     /// Input shaping ([input_shaper]), applied by step generation.
@@ -152,6 +157,27 @@ const DELTA_ANGLES: [f64; 3] = [210.0, 330.0, 90.0];
 const SLOW_RATIO: f64 = 3.0;
 
 impl<'a> Machine<'a> {
+    /// How many steppers follow the toolhead: the rails (or towers) and
+    /// their extra steppers; the extruder comes after them.
+    pub fn motion_steppers(&self) -> usize {
+        (self.stepper_kinematics.len() + self.extra_rails.len()).min(self.steppers.len())
+    }
+
+    /// The rail (0 = X; a delta: the tower) stepper `i` belongs to; None
+    /// for the extruder.
+    pub fn rail_of(&self, i: usize) -> Option<usize> {
+        match i.checked_sub(self.stepper_kinematics.len()) {
+            None => (i < self.steppers.len()).then_some(i),
+            Some(extra) => self.extra_rails.get(extra).copied(),
+        }
+    }
+
+    /// How stepper `i` follows the toolhead (an extra stepper as its
+    /// rail's); None for the extruder.
+    pub fn kinematics_of(&self, i: usize) -> Option<StepperKinematics> {
+        self.rail_of(i).map(|rail| self.stepper_kinematics[rail])
+    }
+
     /// Reads the machine from `config`; every option of the sections it
     /// handles must be valid and known.
     pub fn from_config<'c>(config: &'c Config<'a>) -> Result<Self, ConfigError<'c>> {
@@ -210,6 +236,7 @@ impl<'a> Machine<'a> {
         )?;
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
         let mut steppers = heapless::Vec::new();
+        let mut extra_rails = heapless::Vec::new();
         let probe = probe::read(config)?;
         let g28 = safe_home::read(config)?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
@@ -237,8 +264,12 @@ impl<'a> Machine<'a> {
                 )?);
                 let _ = steppers.push(stepper);
             }
+            read_extra_steppers(config, &mut steppers, &mut extra_rails)?;
             let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
             travel.homing = homing;
+            for (named, stepper) in travel.extra_steppers.iter_mut().zip(&steppers[3..]) {
+                *named = extra_stepper_name(stepper.name);
+            }
             use StepperKinematics::{Axis, Difference, Sum};
             let kin = match kinematics {
                 Kinematics::CoreXY => [Sum(0, 1), Difference(0, 1), Axis(2)],
@@ -315,6 +346,7 @@ impl<'a> Machine<'a> {
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
+                && (kinematics == Kinematics::Delta || extra_stepper_rail(name).is_none())
                 && !accessories::is_section(name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
@@ -332,6 +364,7 @@ impl<'a> Machine<'a> {
             kinematics,
             limits,
             travel,
+            extra_rails,
             extruder,
             pressure_advance,
             pressure_advance_smooth_time: smooth_time,
@@ -405,6 +438,9 @@ enum StepperKind {
     Rail,
     /// A delta tower (no travel range; arm and angle read elsewhere).
     Tower,
+    /// Another stepper of a rail (`[stepper_z1]`): pins, step distance
+    /// and an optional endstop of its own.
+    Extra,
     /// The extruder.
     Extruder,
 }
@@ -469,6 +505,7 @@ fn read_stepper<'c, 'a>(
             section.accept(&STEPPER_OTHER);
         }
         StepperKind::Tower => section.accept(&STEPPER_OTHER),
+        StepperKind::Extra => section.accept(&["enable_pin", "endstop_pin"]),
         StepperKind::Extruder => section.accept(&["enable_pin"]),
     }
     Ok(Stepper {
@@ -482,6 +519,44 @@ fn read_stepper<'c, 'a>(
         position_max,
         step_pulse_duration,
     })
+}
+
+/// The rail (0 = X) of an extra stepper section's name: `stepper_z1`
+/// (`stepper_x2`, …) is rail Z's.
+pub fn extra_stepper_rail(section: &str) -> Option<usize> {
+    let rest = section.strip_prefix("stepper_")?;
+    let (axis, number) = rest.split_at_checked(1)?;
+    let rail = ["x", "y", "z"].iter().position(|a| *a == axis)?;
+    (!number.is_empty() && number.bytes().all(|b| b.is_ascii_digit())).then_some(rail)
+}
+
+/// An extra stepper section's axis and number (`stepper_z1`: 2, 1).
+fn extra_stepper_name(section: &str) -> Option<(u8, u8)> {
+    let axis = extra_stepper_rail(section)?;
+    let number = section.get("stepper_x".len()..)?.parse().ok()?;
+    Some((axis as u8, number))
+}
+
+/// Reads every `[stepper_x1]`, `[stepper_z1]`, … (in printer.cfg's
+/// order) after the rails; `rails` gets each one's rail.
+fn read_extra_steppers<'c, 'a>(
+    config: &'c Config<'a>,
+    steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+    rails: &mut heapless::Vec<usize, MAX_STEPPERS>,
+) -> Result<(), ConfigError<'c>> {
+    for name in config.section_names() {
+        let (Some(rail), Some(section)) = (extra_stepper_rail(name), config.section(name)) else {
+            continue;
+        };
+        let stepper = read_stepper(&section, StepperKind::Extra)?;
+        // Room for the extruder after it.
+        if steppers.len() + 1 >= MAX_STEPPERS {
+            return Err(section.error_for("step_pin", "too many steppers"));
+        }
+        let _ = steppers.push(stepper);
+        let _ = rails.push(rail);
+    }
+    Ok(())
 }
 
 /// For a rail homing on `probe:z_virtual_endstop`: the probe's z_offset

@@ -173,7 +173,14 @@ pub struct CartesianLimits {
     pub max_z_accel: f64,
     /// How each axis homes, if configured.
     pub homing: [Option<HomingInfo>; 3],
+    /// The rails' extra steppers in engine-slot order from slot 3
+    /// (`[stepper_z1]`: axis 2, number 1), for Klipper's messages.
+    pub extra_steppers: [Option<(u8, u8)>; MAX_EXTRA_STEPPERS],
 }
+
+/// Most extra steppers of the rails (`[stepper_z1]`, …): the steppers
+/// besides the three rails' and the extruder's.
+pub const MAX_EXTRA_STEPPERS: usize = crate::machine::MAX_STEPPERS - 4;
 
 const NOT_HOMED: (f64, f64) = (1.0, -1.0);
 
@@ -183,6 +190,7 @@ impl CartesianLimits {
         Self {
             range: [NOT_HOMED; 3],
             homing: [None; 3],
+            extra_steppers: [None; MAX_EXTRA_STEPPERS],
             configured,
             max_z_velocity,
             max_z_accel,
@@ -352,6 +360,15 @@ pub enum Travel {
 }
 
 impl Travel {
+    /// Extra stepper `index` (engine slot `3 + index`): its axis and the
+    /// number in its section's name.
+    pub fn extra_stepper(&self, index: usize) -> Option<(u8, u8)> {
+        match self {
+            Self::Cartesian(c) => c.extra_steppers.get(index).copied().flatten(),
+            _ => None,
+        }
+    }
+
     /// Checks a move and applies the kinematics' speed limits.
     pub fn check_move(&mut self, m: &mut Move) -> Result<(), MoveError> {
         match self {

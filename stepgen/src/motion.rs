@@ -286,8 +286,8 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     fn add_channels(&mut self, machine: &Machine<'_>, max_error: u32, pos: [f64; 3]) {
         let freq = self.freq;
         for (i, stepper) in machine.steppers.iter().enumerate() {
-            let (kin, follows, shaper, margins) = match machine.stepper_kinematics.get(i) {
-                Some(&kin) => {
+            let (kin, follows, shaper, margins) = match machine.kinematics_of(i) {
+                Some(kin) => {
                     let shaper = StepperShaper::new(&machine.input_shaper, kin);
                     let margins = if shaper.is_active() {
                         shaper.margins()

@@ -45,7 +45,7 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// MAX31855 (an SPI sensor, refused naming its `sensor_type`).
 const MIN_LOADED: usize = 138;
 /// Section kinds supported now, which no file may list as unsupported.
-const NOW_SUPPORTED: [&str; 8] = [
+const NOW_SUPPORTED: [&str; 9] = [
     "heater_fan",
     "controller_fan",
     "fan_generic",
@@ -54,6 +54,7 @@ const NOW_SUPPORTED: [&str; 8] = [
     "board_pins",
     "filament_switch_sensor",
     "temperature_sensor",
+    "stepper_z1",
 ];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with
