@@ -133,6 +133,62 @@ pub enum ThermalCommand {
     },
     /// A named fan, an output pin, or the motors' state.
     Accessory(AccessoryCommand),
+    /// Wait until a temperature is within a range (TEMPERATURE_WAIT).
+    Wait(Wait),
+}
+
+/// A temperature G-code can name: a heater's (its smoothed temperature,
+/// as Klipper's heaters report) or a `[temperature_sensor]`'s.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SensorRef {
+    /// Index into [`Machine::heaters`].
+    Heater(usize),
+    /// Index into [`Machine::sensors`].
+    Sensor(usize),
+}
+
+/// What a thermal wait waits for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Wait {
+    /// M109/M190: heater `.0` has reached its target and settled.
+    Settled(usize),
+    /// TEMPERATURE_WAIT: the temperature of `sensor` is within
+    /// `min..=max` (°C).
+    Within {
+        /// Whose temperature.
+        sensor: SensorRef,
+        /// MINIMUM, °C (−∞ if not given).
+        min: f64,
+        /// MAXIMUM, °C (+∞ if not given).
+        max: f64,
+    },
+}
+
+/// Why a TEMPERATURE_WAIT was refused (Klipper's messages).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum WaitError<'l> {
+    /// SENSOR names no heater or temperature sensor.
+    UnknownSensor(&'l str),
+    /// Neither MINIMUM nor MAXIMUM.
+    NoRange,
+    /// MAXIMUM is not above MINIMUM (`.0`, °C).
+    MaximumNotAbove(f64),
+}
+
+impl core::fmt::Display for WaitError<'_> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::UnknownSensor(name) => write!(f, "Unknown sensor '{name}'"),
+            Self::NoRange => {
+                f.write_str("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.")
+            }
+            Self::MaximumNotAbove(min) => write!(
+                f,
+                "Error on 'TEMPERATURE_WAIT': MAXIMUM must be above {}",
+                Fixed(*min, 3)
+            ),
+        }
+    }
 }
 
 /// -1, 0 or 1.
@@ -799,7 +855,7 @@ impl Heaters {
                 let clock = (print_time * self.freq) as u64 as u32;
                 self.set_fan(speed, clock, now, hw)
             }
-            ThermalCommand::Report => Ok(()),
+            ThermalCommand::Report | ThermalCommand::Wait(_) => Ok(()),
             ThermalCommand::Accessory(command) => {
                 let io = &mut self.io;
                 self.accessories
@@ -828,12 +884,31 @@ impl Heaters {
         Ok(())
     }
 
-    /// True while heater `heater` is still reaching its target (M109 and
-    /// M190 wait for this to end).
-    pub fn busy(&self, heater: usize) -> bool {
-        self.heaters
-            .get(heater)
-            .is_some_and(|h| h.target > 0.0 && h.control.busy(h.smoothed, h.target))
+    /// True while `wait` is not over: a heater still reaching its target
+    /// (M109, M190), or a temperature outside its range
+    /// (TEMPERATURE_WAIT; before its first reading, too).
+    pub fn waiting(&self, wait: Wait) -> bool {
+        match wait {
+            Wait::Settled(heater) => self
+                .heaters
+                .get(heater)
+                .is_some_and(|h| h.target > 0.0 && h.control.busy(h.smoothed, h.target)),
+            Wait::Within { sensor, min, max } => !self
+                .temperature_of(sensor)
+                .is_some_and(|t| (min..=max).contains(&t)),
+        }
+    }
+
+    /// The temperature of `sensor` now, once it has been read, °C.
+    pub fn temperature_of(&self, sensor: SensorRef) -> Option<f64> {
+        match sensor {
+            SensorRef::Heater(i) => self
+                .heaters
+                .get(i)
+                .filter(|h| h.last_report.is_some())
+                .map(|h| h.smoothed),
+            SensorRef::Sensor(i) => self.sensor(i).map(|r| r.temperature),
+        }
     }
 
     /// True if the extruder may extrude: its heater's smoothed temperature
@@ -1153,7 +1228,7 @@ pub(crate) mod tests {
         assert_eq!(heaters.shutdown_reason(), Some(fault));
         assert!(heaters.io.value(0) == Some(0) && heaters.next_wake().is_none());
         // The bed has no target: it is left alone.
-        assert!(!heaters.busy(1));
+        assert!(!heaters.waiting(Wait::Settled(1)));
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! SET_HEATER_TEMPERATURE, TURN_OFF_HEATERS) are checked here and handed
 //! out by [`Printer::take_thermal`] to whoever runs the heaters.
 
-use crate::heaters::{MAX_HEATERS, ThermalCommand, ThermalError};
+use crate::heaters::{MAX_HEATERS, SensorRef, ThermalCommand, ThermalError, Wait, WaitError};
 use crate::outputs::{AccessoryCommand, AccessoryError, AccessoryNames};
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
@@ -18,6 +18,7 @@ use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
 use onechip_planner::math::clamp;
 use onechip_planner::move_sink::MoveSink;
+use onechip_planner::sensor_section::MAX_SENSORS;
 use onechip_planner::toolhead::Toolhead;
 
 /// Why a line failed.
@@ -29,6 +30,8 @@ pub enum LineError<'l> {
     Thermal(ThermalError),
     /// A fan or pin command was refused.
     Accessory(AccessoryError<'l>),
+    /// A TEMPERATURE_WAIT was refused.
+    Wait(WaitError<'l>),
 }
 
 impl<'l> From<CommandError<'l>> for LineError<'l> {
@@ -49,6 +52,7 @@ impl fmt::Display for LineError<'_> {
             Self::Command(e) => e.fmt(f),
             Self::Thermal(e) => e.fmt(f),
             Self::Accessory(e) => e.fmt(f),
+            Self::Wait(e) => e.fmt(f),
         }
     }
 }
@@ -73,6 +77,8 @@ pub struct Printer<'a, const N: usize> {
     /// The probe, G28's variant and their state ([`crate::probe`]).
     pub(crate) probing: crate::probe::Probing<'a>,
     heaters: heapless::Vec<HeaterName<'a>, MAX_HEATERS>,
+    /// The `[temperature_sensor NAME]`s' names.
+    sensors: heapless::Vec<&'a str, MAX_SENSORS>,
     has_fan: bool,
     /// Heater and fan commands not yet taken.
     thermal: heapless::Deque<ThermalCommand, MAX_HEATERS>,
@@ -115,6 +121,7 @@ impl<'a, const N: usize> Printer<'a, N> {
             addr_of_mut!((*p).gcode).write(GcodeMove::default());
             addr_of_mut!((*p).probing).write(crate::probe::Probing::new(machine));
             addr_of_mut!((*p).heaters).write(heaters);
+            addr_of_mut!((*p).sensors).write(machine.sensors.iter().map(|s| s.name).collect());
             addr_of_mut!((*p).has_fan).write(machine.fan.is_some());
             addr_of_mut!((*p).thermal).write(heapless::Deque::new());
             addr_of_mut!((*p).accessories).write(AccessoryNames::new(&machine.accessories));
@@ -258,6 +265,21 @@ impl<'a, const N: usize> Printer<'a, N> {
                 let heater = e.get("HEATER")?.unwrap_or("");
                 target(self, heater, e.float("TARGET")?.unwrap_or(0.0), false)?
             }
+            Command::Extended(e) if e.name.eq_ignore_ascii_case("TEMPERATURE_WAIT") => {
+                let name = e.get("SENSOR")?.unwrap_or("");
+                let sensor = self
+                    .sensor_ref(name)
+                    .ok_or(LineError::Wait(WaitError::UnknownSensor(name)))?;
+                let min = e.float("MINIMUM")?.unwrap_or(f64::NEG_INFINITY);
+                let max = e.float("MAXIMUM")?.unwrap_or(f64::INFINITY);
+                if min == f64::NEG_INFINITY && max == f64::INFINITY {
+                    return Err(LineError::Wait(WaitError::NoRange));
+                }
+                if max <= min {
+                    return Err(LineError::Wait(WaitError::MaximumNotAbove(min)));
+                }
+                ThermalCommand::Wait(Wait::Within { sensor, min, max })
+            }
             Command::Extended(e) if e.name.eq_ignore_ascii_case("TURN_OFF_HEATERS") => {
                 for heater in 0..self.heaters.len() {
                     self.push_thermal(ThermalCommand::Target {
@@ -270,12 +292,29 @@ impl<'a, const N: usize> Printer<'a, N> {
             }
             _ => return Ok(false),
         };
-        if let ThermalCommand::Target { wait: true, .. } = command {
+        if let ThermalCommand::Target { wait: true, .. } | ThermalCommand::Wait(_) = command {
             // Waiting starts once every queued move has been planned.
             self.toolhead.wait_moves(sink);
         }
         self.push_thermal(command);
         Ok(true)
+    }
+
+    /// The heater or temperature sensor TEMPERATURE_WAIT's SENSOR names
+    /// (`extruder`, `temperature_sensor chamber`).
+    fn sensor_ref(&self, name: &str) -> Option<SensorRef> {
+        if let Some(sensor) = name.strip_prefix("temperature_sensor ") {
+            let sensor = sensor.trim();
+            return self
+                .sensors
+                .iter()
+                .position(|&s| s == sensor)
+                .map(SensorRef::Sensor);
+        }
+        self.heaters
+            .iter()
+            .position(|h| h.name == name)
+            .map(SensorRef::Heater)
     }
 
     /// The index of the heater named `name`.

@@ -9,7 +9,7 @@
 //! Everything a user can observe is decided here, once, for both.
 
 use crate::filament::{FilamentEvent, FilamentSensors};
-use crate::heaters::ThermalCommand;
+use crate::heaters::{ThermalCommand, Wait};
 use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
 use crate::line::command_word;
 use crate::printer::{LineError, Printer};
@@ -87,8 +87,9 @@ pub trait Mcu {
     fn take_trigger(&mut self) -> Option<(usize, u32)>;
     /// Carries out a heater or fan command now.
     fn thermal(&mut self, command: ThermalCommand);
-    /// True while heater `heater` is still reaching its target.
-    fn heater_busy(&mut self, heater: usize) -> bool;
+    /// True while `wait` is not over: a heater still reaching its target,
+    /// or a temperature outside a range.
+    fn thermal_waiting(&mut self, wait: Wait) -> bool;
     /// Writes the temperature report (`T:… /… B:… /…`), no line end.
     fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
     /// Why the MCU role shut down, if it did.
@@ -544,7 +545,12 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 } => {
                     mcu.thermal(command);
                     if self.timing == Timing::RealTime {
-                        self.wait_for_heater(heater, mcu, out)?;
+                        self.wait_for(Wait::Settled(heater), mcu, out)?;
+                    }
+                }
+                ThermalCommand::Wait(wait) => {
+                    if self.timing == Timing::RealTime {
+                        self.wait_for(wait, mcu, out)?;
                     }
                 }
                 _ => mcu.thermal(command),
@@ -553,16 +559,16 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         Ok(())
     }
 
-    /// Waits until `heater` has settled (or the MCU shut down), once every
+    /// Waits until `wait` is over (or the MCU shut down), once every
     /// queued move has run, reporting temperatures every second as
     /// Klipper does; the next move starts after the wait.
-    fn wait_for_heater<M: Mcu>(
+    fn wait_for<M: Mcu>(
         &mut self,
-        heater: usize,
+        wait: Wait,
         mcu: &mut M,
         out: &mut impl Write,
     ) -> Result<(), ErrorText> {
-        let busy = |mcu: &mut M| mcu.shutdown_reason().is_none() && mcu.heater_busy(heater);
+        let busy = |mcu: &mut M| mcu.shutdown_reason().is_none() && mcu.thermal_waiting(wait);
         if !busy(mcu) {
             return Ok(());
         }

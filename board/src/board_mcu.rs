@@ -6,7 +6,7 @@
 //! tick every 10 ms, so a wait never spins and never oversleeps long.
 
 use crate::{heater_io, step_timer};
-use onechip_app::heaters::ThermalCommand;
+use onechip_app::heaters::{ThermalCommand, Wait};
 use onechip_app::session::Mcu;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
@@ -60,8 +60,8 @@ impl Mcu for BoardMcu {
         heater_io::command(command);
     }
 
-    fn heater_busy(&mut self, heater: usize) -> bool {
-        heater_io::busy(heater)
+    fn thermal_waiting(&mut self, wait: Wait) -> bool {
+        heater_io::waiting(wait)
     }
 
     fn report_temperatures(&mut self, out: &mut impl core::fmt::Write) -> core::fmt::Result {

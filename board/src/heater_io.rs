@@ -25,7 +25,7 @@ use embassy_stm32::interrupt::InterruptExt;
 use embassy_stm32::pac;
 use embassy_stm32::peripherals::ADC3;
 use onechip_app::heaters::{
-    Heaters, INPUTS, LinearConversion, OUTPUTS, TYPICAL_STM32H7_CAL, ThermalCommand,
+    Heaters, INPUTS, LinearConversion, OUTPUTS, TYPICAL_STM32H7_CAL, ThermalCommand, Wait,
 };
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
@@ -285,9 +285,10 @@ pub fn shutdown(reason: onechip_sched::shutdown::Shutdown) {
     with_io(|io| io.heaters.shutdown(reason, &mut io.hw));
 }
 
-/// True while heater `heater` is still reaching its target.
-pub fn busy(heater: usize) -> bool {
-    with_io(|io| io.heaters.busy(heater) && io.heaters.shutdown_reason().is_none()).unwrap_or(false)
+/// True while `wait` is not over (and the heaters have not shut down).
+pub fn waiting(wait: Wait) -> bool {
+    with_io(|io| io.heaters.waiting(wait) && io.heaters.shutdown_reason().is_none())
+        .unwrap_or(false)
 }
 
 /// True if the extruder is hot enough to extrude (false before the

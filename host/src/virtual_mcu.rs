@@ -16,7 +16,7 @@ use crate::secondary::attached::Secondaries;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::TmcSim;
-use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand};
+use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand, Wait};
 use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
@@ -690,8 +690,8 @@ impl Mcu for VirtualMcu {
         self.thermal_command(command);
     }
 
-    fn heater_busy(&mut self, heater: usize) -> bool {
-        self.thermal.as_ref().is_some_and(|(h, _)| h.busy(heater))
+    fn thermal_waiting(&mut self, wait: Wait) -> bool {
+        self.thermal.as_ref().is_some_and(|(h, _)| h.waiting(wait))
     }
 
     fn report_temperatures(&mut self, out: &mut impl std::fmt::Write) -> std::fmt::Result {

@@ -12,7 +12,7 @@ use crate::machine::{DUALTIMER, Irq, priority, write};
 use crate::pins::OutPin;
 use crate::probe::{self, Context};
 use crate::step_timer;
-use onechip_app::heaters::{Heaters, INPUTS, OUTPUTS, ThermalCommand};
+use onechip_app::heaters::{Heaters, INPUTS, OUTPUTS, ThermalCommand, Wait};
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 use onechip_sched::shutdown::Shutdown;
@@ -99,9 +99,9 @@ pub fn shutdown(reason: Shutdown) {
     IO.with(|io| io.heaters.shutdown(reason, &mut io.hw));
 }
 
-/// True while heater `heater` is still reaching its target.
-pub fn busy(heater: usize) -> bool {
-    IO.with(|io| io.heaters.busy(heater) && io.heaters.shutdown_reason().is_none())
+/// True while `wait` is not over (and the heaters have not shut down).
+pub fn waiting(wait: Wait) -> bool {
+    IO.with(|io| io.heaters.waiting(wait) && io.heaters.shutdown_reason().is_none())
         .unwrap_or(false)
 }
 

@@ -4,7 +4,7 @@
 //! interrupt has run ([`crate::machine::sleep`]).
 
 use crate::{heater_io, step_timer};
-use onechip_app::heaters::ThermalCommand;
+use onechip_app::heaters::{ThermalCommand, Wait};
 use onechip_app::session::Mcu;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
@@ -49,8 +49,8 @@ impl Mcu for QemuMcu {
         heater_io::command(command);
     }
 
-    fn heater_busy(&mut self, heater: usize) -> bool {
-        heater_io::busy(heater)
+    fn thermal_waiting(&mut self, wait: Wait) -> bool {
+        heater_io::waiting(wait)
     }
 
     fn report_temperatures(&mut self, out: &mut impl core::fmt::Write) -> core::fmt::Result {

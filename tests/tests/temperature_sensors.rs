@@ -158,3 +158,52 @@ fn a_temperature_sensor_past_its_max_temp_shuts_everything_down() {
     );
     assert_eq!(s.shutdown.as_deref(), Some("ADC out of range"), "{s}");
 }
+
+#[test]
+fn temperature_wait_waits_for_a_heater_or_a_sensor_as_klipper() {
+    let sensor = "[temperature_sensor chamber]\nsensor_type: EPCOS 100K B57560G104F\n\
+                  sensor_pin: PF5\ngcode_id: C\n";
+    // The hot end heated to 200 °C, waited for only until 150 °C: the
+    // wait ends on the way up, well before M109 would.
+    let s = run_with_sections(
+        "wait-heater",
+        sensor,
+        "M104 S200\nTEMPERATURE_WAIT SENSOR=extruder MINIMUM=150\nM105\n",
+    );
+    assert_eq!((s.errors.len(), s.shutdown.as_ref()), (0, None), "{s}");
+    let (_, report) = s.temperatures.last().expect("M105");
+    let hot_end: f64 = report[2..]
+        .split_whitespace()
+        .next()
+        .and_then(|t| t.parse().ok())
+        .expect("T");
+    assert!((150.0..165.0).contains(&hot_end), "{report}");
+    assert!(s.heat_wait > 5.0, "waited {} s", s.heat_wait);
+    // A temperature sensor already in range: no wait; the bed's range
+    // (MAXIMUM only) also met at once.
+    let s = run_with_sections(
+        "wait-sensor",
+        sensor,
+        "TEMPERATURE_WAIT SENSOR=\"temperature_sensor chamber\" MINIMUM=20 MAXIMUM=30\n\
+         TEMPERATURE_WAIT SENSOR=heater_bed MAXIMUM=40\nM105\n",
+    );
+    assert_eq!((s.errors.len(), s.shutdown.as_ref()), (0, None), "{s}");
+    assert!(s.heat_wait < 1.0, "waited {} s", s.heat_wait);
+    // Klipper's refusals.
+    let s = run_with_sections(
+        "wait-errors",
+        sensor,
+        "TEMPERATURE_WAIT SENSOR=chamber MINIMUM=20\nTEMPERATURE_WAIT SENSOR=extruder\n\
+         TEMPERATURE_WAIT SENSOR=extruder MINIMUM=50 MAXIMUM=40\n",
+    );
+    let errors: Vec<&str> = s.errors.iter().map(|(_, e)| e.as_str()).collect();
+    assert_eq!(
+        errors,
+        [
+            "Unknown sensor 'chamber'",
+            "Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.",
+            "Error on 'TEMPERATURE_WAIT': MAXIMUM must be above 50.000",
+        ],
+        "{s}"
+    );
+}
