@@ -81,6 +81,12 @@ pub trait Mcu {
     fn stop_watching(&mut self);
     /// The 32-bit clock of an endstop trigger not yet taken.
     fn take_trigger(&mut self) -> Option<u32>;
+    /// Another MCU's endstop ended the homing move (its trsync trigger,
+    /// relayed by the host): the steppers in `stops` (bit `i`: stepper
+    /// `i`) stop at once, their queued commands dropped until their step
+    /// clock is reset, as Klipper's `trsync_trigger` stops them. No fault;
+    /// a watched endstop stays armed.
+    fn stop_steppers(&mut self, stops: u32);
     /// Carries out a heater or fan command now.
     fn thermal(&mut self, command: ThermalCommand);
     /// True while heater `heater` is still reaching its target.

@@ -645,6 +645,16 @@ impl Mcu for VirtualMcu {
         Some(trigger)
     }
 
+    fn stop_steppers(&mut self, stops: u32) {
+        // A real MCU has made every step due before now: in paced virtual
+        // time the engine first catches up with the wall clock.
+        self.run_to_wall_clock();
+        self.refresh();
+        self.engine.stop_steppers(stops);
+        // Its next wake is read afresh.
+        self.pushed = true;
+    }
+
     fn thermal(&mut self, command: ThermalCommand) {
         self.thermal_command(command);
     }
