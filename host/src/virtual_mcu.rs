@@ -374,7 +374,17 @@ impl VirtualMcu {
         let Some(secondaries) = &mut self.secondaries else {
             return;
         };
-        secondaries.service(now);
+        // Another MCU's trigger stops this one's steppers of the homing
+        // move at once (the engine has run up to now).
+        let engine = &mut self.engine;
+        let mut stopped = false;
+        secondaries.service(now, &mut |stops| {
+            engine.stop_steppers(stops);
+            stopped = true;
+        });
+        if stopped {
+            self.pushed = true;
+        }
         let main_down = self.engine.shutdown_reason().is_some();
         match secondaries.failure() {
             Some(reason) if !main_down => self.stop_all(reason),
@@ -532,6 +542,17 @@ impl VirtualMcu {
         let next = self.engine.run(at as u32);
         self.wake = next.map(|n| at + u64::from(n.wrapping_sub(at as u32)));
         self.pushed = false;
+        if let Some(s) = &mut self.secondaries
+            && s.is_homing()
+            && let Some(trigger) = self.engine.take_trigger()
+        {
+            // This MCU's endstop ended a homing across MCUs: the others
+            // are triggered at once.
+            let freq = s.freq();
+            let clock = onechip_sched::clock::widen(trigger, self.now);
+            let now = self.pace.as_ref().map_or(self.now, Pace::clock_now) as f64 / freq;
+            s.main_triggered(clock as f64 / freq, now);
+        }
         if let Some(reason) = self.engine.shutdown_reason()
             && let Some((heaters, plant)) = &mut self.thermal
             && heaters.shutdown_reason().is_none()
@@ -628,16 +649,45 @@ impl Mcu for VirtualMcu {
         } else {
             stepper
         };
-        self.engine.watch_endstop(stepper, endstop, stops);
         self.pushed = true;
+        if let Some(s) = &mut self.secondaries {
+            // Steppers or the endstop on a secondary: a homing across MCUs.
+            let start = onechip_sched::clock::widen(endstop.next(), self.now) as f64 / s.freq();
+            if let Some((main_stops, main_endstop)) =
+                s.start_homing(stepper, endstop.sampling(), stops, start)
+            {
+                if main_endstop {
+                    self.engine.watch_endstop(stepper, endstop, main_stops);
+                }
+                return;
+            }
+        }
+        self.engine.watch_endstop(stepper, endstop, stops);
     }
 
     fn stop_watching(&mut self) {
         self.engine.stop_watching();
         self.pushed = true;
+        let now = self.host_time();
+        if let Some(s) = &mut self.secondaries {
+            s.end_homing(now);
+        }
     }
 
     fn take_trigger(&mut self) -> Option<u32> {
+        let now = self.host_time();
+        if let Some(s) = &mut self.secondaries
+            && s.is_homing()
+        {
+            // The homing across MCUs: its first trigger, on any of them.
+            let (at, _) = s.take_homing_trigger()?;
+            s.end_homing(now);
+            let clock = (at * s.freq()).max(0.0) as u64;
+            self.engine.stop_watching();
+            let real = self.real_position().unwrap_or_default();
+            self.triggers.push((self.watched, real, clock));
+            return Some(clock as u32);
+        }
         let trigger = self.engine.take_trigger()?;
         let real = self.real_position().unwrap_or_default();
         let clock = onechip_sched::clock::widen(trigger, self.now);

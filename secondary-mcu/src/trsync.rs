@@ -182,6 +182,28 @@ impl Dispatch {
         self.triggered
     }
 
+    /// The homing ends untriggered at host time `at` (s; its move ran to
+    /// its end): every secondary's trsync is triggered ([`reason::HOST_REQUEST`]),
+    /// the `trsync_trigger` lines as for a trigger. Nothing once triggered.
+    pub fn end(&mut self, at: f64) -> Relay {
+        if self.triggered.is_some() {
+            return Relay::None;
+        }
+        self.triggered = Some((at, reason::HOST_REQUEST));
+        let mut lines = heapless::Vec::new();
+        for (j, m) in self.members.iter().enumerate().filter(|(_, m)| !m.local) {
+            let mut line = Line::new();
+            let _ = write!(
+                line,
+                "trsync_trigger oid={} reason={}",
+                m.trsync,
+                reason::HOST_REQUEST
+            );
+            let _ = lines.push((j, line));
+        }
+        Relay::Triggered(at, reason::HOST_REQUEST, lines)
+    }
+
     /// Host time (s) member `index`'s trsync expires at, as last set: the
     /// main MCU ([`Member::local`]) stops its steppers by itself
     /// ([`reason::COMMS_TIMEOUT`]) once the host's time passes it.

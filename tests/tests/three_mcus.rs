@@ -500,3 +500,55 @@ fn each_peers_clock_sync_predicts_the_clock_it_reports() {
         assert!(out_max < 0.002, "{name}: max {out_max} s outside");
     }
 }
+
+/// The shipped printer with its X stepper and X endstop on the secondary
+/// MCU at `serial` (Linux MCU pins; its inputs read 1, so the endstop is
+/// pressed whenever it is sampled), running `gcode`.
+fn x_on_secondary(dir: &std::path::Path, serial: &std::path::Path, gcode: &str) {
+    let shipped = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
+    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
+    let cfg = cfg
+        .replace(
+            "[stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nenable_pin: !PF14\n",
+            "[stepper_x]\nstep_pin: ext:gpiochip0/gpio1\ndir_pin: ext:gpiochip0/gpio2\n\
+             enable_pin: !ext:gpiochip0/gpio3\n",
+        )
+        .replace("endstop_pin: PG6\n", "endstop_pin: ext:gpiochip0/gpio5\n")
+        .replace(
+            "[printer]",
+            &format!(
+                "[mcu ext]\nserial: {}\nrestart_method: command\n\n[printer]",
+                serial.display()
+            ),
+        );
+    assert!(cfg.contains("endstop_pin: ext:"), "stepper_x section moved");
+    std::fs::create_dir_all(dir).expect("sd folder");
+    std::fs::write(dir.join("printer.cfg"), cfg).expect("printer.cfg");
+    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+}
+
+#[test]
+fn g28_homes_x_on_a_stock_mcu_and_y_z_on_the_main_with_every_stepper_in_one_trsync_group() {
+    let _alone = one_peer_at_a_time();
+    let peer = Peer::start_with_inputs(Firmware::Linux, "g28", 1);
+    let sd = peer.path.with_file_name("sd");
+    x_on_secondary(&sd, &peer.path, "G28\nG1 X50 F3000\nM400\n");
+    let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(summary.shutdown, None, "{}", summary.transcript);
+    assert!(summary.errors.is_empty(), "{:?}", summary.errors);
+    // Two homing moves per axis, each ended by its endstop: X's on the
+    // peer (a homing across it and the main MCU, whose Y and Z are in the
+    // move), Y's and Z's on the main (the peer's X stopped by the relay).
+    let axes: Vec<usize> = summary.endstops.iter().map(|e| e.0).collect();
+    assert_eq!(axes, [0, 0, 1, 1, 2, 2], "{:?}", summary.endstops);
+    // The peer's X: pressed at once, the homing moves make no step; the
+    // 5 mm retract and the 50 mm move do, at 80 steps/mm.
+    std::thread::sleep(Duration::from_millis(100));
+    let x = peer.position(LINUX_STEP, "gpiochip0/gpio2");
+    println!(
+        "G28 with X on the Linux MCU: triggers at print times {:?}; the peer's X at {x} steps",
+        summary.endstops.iter().map(|e| e.2).collect::<Vec<_>>()
+    );
+    assert_eq!(x, (55.0 * 80.0) as i64, "{}", summary.transcript);
+}

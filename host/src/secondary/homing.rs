@@ -185,23 +185,7 @@ impl Homing {
         wait: Duration,
         heard: &mut Vec<(usize, Heard)>,
     ) -> Result<(), HomingError> {
-        if let Some(part) = self.main
-            && part.stopped.is_none()
-            && self.dispatch.triggered().is_none()
-        {
-            let relay = self.dispatch.on_news(part.index, true, 0, now);
-            self.relay(mcus, relay, now)?;
-            if self.dispatch.expire(part.index).is_some_and(|e| now > e) {
-                // No news from a secondary in time: the main stops by
-                // itself, and so must the others.
-                main.stop_steppers(part.stops);
-                self.set_main_stopped(now, reason::COMMS_TIMEOUT);
-                let relay = self
-                    .dispatch
-                    .on_news(part.index, false, reason::COMMS_TIMEOUT, now);
-                self.relay(mcus, relay, now)?;
-            }
-        }
+        self.main_news(mcus, now, &mut |stops| main.stop_steppers(stops))?;
         self.service_inner(
             mcus,
             &mut |stops| main.stop_steppers(stops),
@@ -209,6 +193,37 @@ impl Homing {
             wait,
             heard,
         )
+    }
+
+    /// The main MCU's news at host time `now` (s): it can still trigger,
+    /// which moves the secondaries' timeouts on; past its own timeout
+    /// `stop_main(stops)` stops its steppers and every secondary is
+    /// triggered.
+    pub fn main_news(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        now: f64,
+        stop_main: &mut dyn FnMut(u32),
+    ) -> Result<(), HomingError> {
+        let Some(part) = self.main else {
+            return Ok(());
+        };
+        if part.stopped.is_some() || self.dispatch.triggered().is_some() {
+            return Ok(());
+        }
+        let relay = self.dispatch.on_news(part.index, true, 0, now);
+        self.relay(mcus, relay, now)?;
+        if self.dispatch.expire(part.index).is_some_and(|e| now > e) {
+            // No news from a secondary in time: the main stops by itself,
+            // and so must the others.
+            stop_main(part.stops);
+            self.set_main_stopped(now, reason::COMMS_TIMEOUT);
+            let relay = self
+                .dispatch
+                .on_news(part.index, false, reason::COMMS_TIMEOUT, now);
+            self.relay(mcus, relay, now)?;
+        }
+        Ok(())
     }
 
     fn set_main_stopped(&mut self, at: f64, why: u8) {
@@ -263,34 +278,64 @@ impl Homing {
                 .service(now, wait, &mut got)
                 .map_err(|e| HomingError(format!("MCU '{}': {e}", mcus[i].name)))?;
             for h in got {
-                let Heard::Response(text) = &h else {
-                    heard.push((i, h));
-                    continue;
+                let taken = match &h {
+                    Heard::Response(text) => self.on_response(mcus, i, text, now, stop_main)?,
+                    _ => false,
                 };
-                let Some(state) = TrsyncState::parse(text) else {
+                if !taken {
                     heard.push((i, h));
-                    continue;
-                };
-                if !self.dispatch.is_current(i, state.clock) {
-                    continue;
                 }
-                if let Some(stopped @ None) = self.stopped.get_mut(i)
-                    && !state.can_trigger
-                {
-                    *stopped = Some(state.reason);
+            }
+        }
+        Ok(())
+    }
+
+    /// Takes response `text` of `mcus[i]`, heard at host time `now` (s):
+    /// false if it is not a trsync report. A trigger stops the main MCU's
+    /// steppers (`stop_main(stops)`) and is relayed to the others.
+    pub fn on_response(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        i: usize,
+        text: &str,
+        now: f64,
+        stop_main: &mut dyn FnMut(u32),
+    ) -> Result<bool, HomingError> {
+        let Some(state) = TrsyncState::parse(text) else {
+            return Ok(false);
+        };
+        if !self.dispatch.is_current(i, state.clock) {
+            return Ok(true);
+        }
+        if let Some(stopped @ None) = self.stopped.get_mut(i)
+            && !state.can_trigger
+        {
+            *stopped = Some(state.reason);
+        }
+        let relay = self
+            .dispatch
+            .on_state(i, state.can_trigger, state.reason, state.clock);
+        if let (Relay::Triggered(..), Some(part)) = (&relay, self.main)
+            && part.stopped.is_none()
+        {
+            // Another MCU triggered: the main's steppers stop now, before
+            // the other secondaries hear of it.
+            stop_main(part.stops);
+            self.set_main_stopped(now, reason::HOST_REQUEST);
+        }
+        self.relay(mcus, relay, now)?;
+        Ok(true)
+    }
+
+    /// Ends the homing at host time `now` (s): every secondary's trsync
+    /// not triggered yet is (`HOST_REQUEST`), as klippy ends a homing
+    /// move that ran to its end.
+    pub fn finish(&mut self, mcus: &mut [&mut Secondary], now: f64) -> Result<(), HomingError> {
+        if let Relay::Triggered(_, _, lines) = self.dispatch.end(now) {
+            for (j, line) in lines {
+                if let Some(mcu) = mcus.get_mut(j) {
+                    send(mcu, &line)?;
                 }
-                let relay = self
-                    .dispatch
-                    .on_state(i, state.can_trigger, state.reason, state.clock);
-                if let (Relay::Triggered(..), Some(part)) = (&relay, self.main)
-                    && part.stopped.is_none()
-                {
-                    // Another MCU triggered: the main's steppers stop now,
-                    // before the other secondaries hear of it.
-                    stop_main(part.stops);
-                    self.set_main_stopped(now, reason::HOST_REQUEST);
-                }
-                self.relay(mcus, relay, now)?;
             }
         }
         Ok(())
