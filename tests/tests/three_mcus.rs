@@ -212,9 +212,8 @@ const MAIN_STEPS: u16 = 20_000;
 struct Stops {
     /// Each MCU's last step after the trigger, s (main, Linux, AVR).
     after: [f64; 3],
-    /// When the host heard of the trigger (and relayed it), after it, s:
-    /// the host time of the service round that read it, up to a link's
-    /// poll wait (1 ms) early.
+    /// When the host had relayed the trigger, after it, s: the end of the
+    /// service round that read it (up to a link's poll wait, 1 ms, late).
     heard: f64,
 }
 
@@ -267,6 +266,8 @@ fn homing(rig: &mut Rig, on: EndstopOn) -> Option<Stops> {
         }
     }
     let mut heard = Vec::new();
+    // When the service round that relayed the trigger ended (host time).
+    let mut relayed_by = None;
     while rig.now() < first + 1.2 {
         main.run_to_wall_clock();
         let now = rig.now();
@@ -280,6 +281,9 @@ fn homing(rig: &mut Rig, on: EndstopOn) -> Option<Stops> {
         homing
             .service_with_main(mcus, &mut main, now, Duration::from_millis(1), &mut heard)
             .unwrap_or_else(|e| panic!("{e}"));
+        if relayed_by.is_none() && homing.relayed_at().is_some() {
+            relayed_by = Some(rig.now());
+        }
     }
     // The peers' logs are written as they step.
     rig.serve_for(0.1, &mut Vec::new());
@@ -340,7 +344,7 @@ fn homing(rig: &mut Rig, on: EndstopOn) -> Option<Stops> {
             "{on:?}: {name} made all {made} steps: never stopped"
         );
     }
-    let heard = homing.relayed_at().expect("relayed") - trigger;
+    let heard = relayed_by.expect("relayed") - trigger;
     Some(Stops { after, heard })
 }
 
@@ -389,7 +393,7 @@ fn an_endstop_on_any_of_three_mcus_stops_the_steppers_on_all_three() {
         let heard: Vec<f64> = stops.iter().map(|s| s.heard).collect();
         let (heard50, heard_max) = p50_max(&heard);
         let mut line = format!(
-            "endstop on {on:?}: host heard it (±1 ms) p50 {:.3} ms, max {:.3} ms after;",
+            "endstop on {on:?}: relayed by p50 {:.3} ms, max {:.3} ms;",
             heard50 * 1e3,
             heard_max * 1e3
         );
