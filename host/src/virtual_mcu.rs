@@ -419,15 +419,19 @@ impl VirtualMcu {
         match (&self.pace, &self.secondaries) {
             (Some(pace), None) => pace.sleep_until(at),
             (Some(pace), Some(s)) => {
-                // The secondaries' links are served while time passes.
-                let (pace, step) = (pace.clone(), (s.freq() * SECONDARY_SERVICE) as u64);
+                // The secondaries' links are served while time passes,
+                // asleep in between (they run in real time: speed 1).
+                let (pace, freq) = (pace.clone(), s.freq());
                 loop {
                     self.service_secondaries();
                     let wall = pace.clock_now();
                     if wall >= at || pace.released() {
                         break;
                     }
-                    pace.sleep_until(at.min(wall + step));
+                    let ahead = (at - wall) as f64 / freq;
+                    std::thread::sleep(std::time::Duration::from_secs_f64(
+                        ahead.min(SECONDARY_SERVICE),
+                    ));
                 }
             }
             (None, _) => {}

@@ -93,6 +93,8 @@ pub struct Secondaries {
     endstops: Vec<Option<RemoteEndstop>>,
     /// The homing running across MCUs, if one is.
     homing: Option<ActiveHoming>,
+    /// Homings ended by a communication timeout.
+    homing_timeouts: usize,
     /// Main clock, Hz (host time is the main clock in seconds).
     freq: f64,
     next_calibrate: f64,
@@ -120,6 +122,7 @@ impl Secondaries {
             stepper_oids: vec![None; machine.steppers.len()],
             endstops: vec![None; machine.steppers.len()],
             homing: None,
+            homing_timeouts: 0,
             freq,
             next_calibrate: 0.0,
             failure: None,
@@ -409,7 +412,15 @@ impl Secondaries {
         }
         let trigger = h.homing.triggered()?;
         h.taken = true;
+        if trigger.1 == onechip_secondary_mcu::trsync::reason::COMMS_TIMEOUT {
+            self.homing_timeouts += 1;
+        }
         Some(trigger)
+    }
+
+    /// Homings ended by a communication timeout so far.
+    pub fn homing_timeouts(&self) -> usize {
+        self.homing_timeouts
     }
 
     /// Ends the homing at host time `now` (s): the secondaries' trsyncs
