@@ -497,10 +497,11 @@ fn each_peers_clock_sync_predicts_the_clock_it_reports() {
             rtt_max * 1e6
         );
         assert!(abs.len() > 100, "{name}: {} answers", abs.len());
-        // Most readings lie in their window; none far outside it (the
-        // estimate is re-fitted once a second from answers that may wait
-        // behind step commands on the link).
-        assert!(out50 < 0.000_1, "{name}: p50 {out50} s outside");
+        // Most readings lie in their window or close to it, none far
+        // outside: the estimate is re-fitted from one answer a second,
+        // which may wait behind step commands on the link or for the
+        // loaded host (runs measured p50 0..84 µs, max 0..506 µs).
+        assert!(out50 < 0.000_3, "{name}: p50 {out50} s outside");
         assert!(out_max < 0.002, "{name}: max {out_max} s outside");
     }
 }
