@@ -85,6 +85,12 @@ pub trait Mcu {
     /// An endstop trigger not yet taken: the stepper whose pins read that
     /// endstop (as armed) and the trigger's 32-bit clock.
     fn take_trigger(&mut self) -> Option<(usize, u32)>;
+    /// Another MCU's endstop ended the homing move (its trsync trigger,
+    /// relayed by the host): the steppers in `stops` (bit `i`: stepper
+    /// `i`) stop at once, their queued commands dropped until their step
+    /// clock is reset, as Klipper's `trsync_trigger` stops them. No fault;
+    /// a watched endstop stays armed.
+    fn stop_steppers(&mut self, stops: u32);
     /// Carries out a heater or fan command now.
     fn thermal(&mut self, command: ThermalCommand);
     /// True while `wait` is not over: a heater still reaching its target,

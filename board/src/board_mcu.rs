@@ -56,6 +56,10 @@ impl Mcu for BoardMcu {
         step_timer::take_trigger()
     }
 
+    fn stop_steppers(&mut self, stops: u32) {
+        step_timer::stop_steppers(stops);
+    }
+
     fn thermal(&mut self, command: ThermalCommand) {
         heater_io::command(command);
     }

@@ -140,6 +140,13 @@ pub fn take_trigger() -> Option<(usize, u32)> {
     with_engine(|e| e.take_trigger()).flatten()
 }
 
+/// Stops the steppers in `stops` (bit `i`: stepper `i`) at once, their
+/// commands dropped until a step clock reset (another MCU's trsync
+/// triggered).
+pub fn stop_steppers(stops: u32) {
+    with_engine(|e| e.stop_steppers(stops));
+}
+
 /// True while stepper `stepper`'s endstop input reads pressed.
 pub fn endstop_triggered(stepper: usize) -> bool {
     with_engine(|e| {

@@ -230,6 +230,11 @@ pub struct Summary {
     pub secondary_links: Vec<(String, onechip_protocol::transport::LinkStats)>,
     /// When (wall clock) a secondary's shutdown or silence was noticed.
     pub secondary_fault_at: Option<std::time::Instant>,
+    /// Homing moves across MCUs ended by a communication timeout (an MCU
+    /// heard no relayed report for 25 ms; klippy's "Communication timeout
+    /// during homing"): each ended where its steppers stopped, as if
+    /// triggered there.
+    pub homing_timeouts: usize,
 }
 
 impl fmt::Display for Summary {
@@ -714,6 +719,7 @@ pub(crate) fn with_session<const L: usize>(
         secondary_steps: Vec::new(),
         secondary_links: Vec::new(),
         secondary_fault_at: None,
+        homing_timeouts: 0,
     };
     input(&mut Run {
         machine,
@@ -767,6 +773,7 @@ pub(crate) fn with_session<const L: usize>(
     mcu.flush_steps().map_err(write_error)?;
     if let Some(secondaries) = mcu.secondaries() {
         summary.secondary_fault_at = secondaries.failed_at();
+        summary.homing_timeouts = secondaries.homing_timeouts();
         let links = secondaries
             .links()
             .map(|(name, stats)| (name.to_string(), stats));

@@ -185,6 +185,8 @@ pub struct VirtualMcu {
     /// Where each endstop triggered: axis (a delta: tower), toolhead
     /// position, clock.
     triggers: Vec<(usize, [f64; 3], u64)>,
+    /// The endstop slot last armed and the axis its triggers count for.
+    watched: (usize, usize),
     /// The probe's control pin: each change's clock and pulse width (s).
     servo: Vec<(u64, f64)>,
     /// Planned moves kept for a plot, and the print-time window they
@@ -219,6 +221,7 @@ impl VirtualMcu {
             pushed: false,
             rails: None,
             triggers: Vec::new(),
+            watched: (0, 0),
             servo: Vec::new(),
             plan: None,
             thermal: None,
@@ -415,7 +418,17 @@ impl VirtualMcu {
         let Some(secondaries) = &mut self.secondaries else {
             return;
         };
-        secondaries.service(now);
+        // Another MCU's trigger stops this one's steppers of the homing
+        // move at once (the engine has run up to now).
+        let engine = &mut self.engine;
+        let mut stopped = false;
+        secondaries.service(now, &mut |stops| {
+            engine.stop_steppers(stops);
+            stopped = true;
+        });
+        if stopped {
+            self.pushed = true;
+        }
         let main_down = self.engine.shutdown_reason().is_some();
         match secondaries.failure() {
             Some(reason) if !main_down => self.stop_all(reason),
@@ -450,15 +463,19 @@ impl VirtualMcu {
         match (&self.pace, &self.secondaries) {
             (Some(pace), None) => pace.sleep_until(at),
             (Some(pace), Some(s)) => {
-                // The secondaries' links are served while time passes.
-                let (pace, step) = (pace.clone(), (s.freq() * SECONDARY_SERVICE) as u64);
+                // The secondaries' links are served while time passes,
+                // asleep in between (they run in real time: speed 1).
+                let (pace, freq) = (pace.clone(), s.freq());
                 loop {
                     self.service_secondaries();
                     let wall = pace.clock_now();
                     if wall >= at || pace.released() {
                         break;
                     }
-                    pace.sleep_until(at.min(wall + step));
+                    let ahead = (at - wall) as f64 / freq;
+                    std::thread::sleep(std::time::Duration::from_secs_f64(
+                        ahead.min(SECONDARY_SERVICE),
+                    ));
                 }
             }
             (None, _) => {}
@@ -573,6 +590,17 @@ impl VirtualMcu {
         let next = self.engine.run(at as u32);
         self.wake = next.map(|n| at + u64::from(n.wrapping_sub(at as u32)));
         self.pushed = false;
+        if let Some(s) = &mut self.secondaries
+            && s.is_homing()
+            && let Some((_, trigger)) = self.engine.take_trigger()
+        {
+            // This MCU's endstop ended a homing across MCUs: the others
+            // are triggered at once.
+            let freq = s.freq();
+            let clock = onechip_sched::clock::widen(trigger, self.now);
+            let now = self.pace.as_ref().map_or(self.now, Pace::clock_now) as f64 / freq;
+            s.main_triggered(clock as f64 / freq, now);
+        }
         if let Some(reason) = self.engine.shutdown_reason()
             && let Some((heaters, plant)) = &mut self.thermal
             && heaters.shutdown_reason().is_none()
@@ -601,6 +629,19 @@ impl VirtualMcu {
             }
             self.run_at(until);
         }
+    }
+}
+
+impl VirtualMcu {
+    /// The axis an endstop on engine slot `slot` homes: the probe's slot
+    /// stops Z, so its triggers count as Z's.
+    fn axis_of(&self, slot: usize) -> usize {
+        let probe_slot = self
+            .rails
+            .as_ref()
+            .and_then(|r| r.physics.probe)
+            .map(|p| p.0);
+        if probe_slot == Some(slot) { 2 } else { slot }
     }
 }
 
@@ -658,32 +699,62 @@ impl Mcu for VirtualMcu {
     }
 
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
-        self.engine.watch_endstop(stepper, endstop, stops);
+        self.watched = (stepper, self.axis_of(stepper));
         self.pushed = true;
+        if let Some(s) = &mut self.secondaries {
+            // Steppers or the endstop on a secondary: a homing across MCUs.
+            let start = onechip_sched::clock::widen(endstop.next(), self.now) as f64 / s.freq();
+            if let Some((main_stops, main_endstop)) =
+                s.start_homing(stepper, endstop.sampling(), stops, start)
+            {
+                if main_endstop {
+                    self.engine.watch_endstop(stepper, endstop, main_stops);
+                }
+                return;
+            }
+        }
+        self.engine.watch_endstop(stepper, endstop, stops);
     }
 
     fn stop_watching(&mut self) {
         self.engine.stop_watching();
         self.pushed = true;
+        let now = self.host_time();
+        if let Some(s) = &mut self.secondaries {
+            s.end_homing(now);
+        }
     }
 
     fn take_trigger(&mut self) -> Option<(usize, u32)> {
+        let now = self.host_time();
+        if let Some(s) = &mut self.secondaries
+            && s.is_homing()
+        {
+            // The homing across MCUs: its first trigger, on any of them.
+            let (at, _) = s.take_homing_trigger()?;
+            s.end_homing(now);
+            let clock = (at * s.freq()).max(0.0) as u64;
+            self.engine.stop_watching();
+            let real = self.real_position().unwrap_or_default();
+            self.triggers.push((self.watched.1, real, clock));
+            return Some((self.watched.0, clock as u32));
+        }
         let (stepper, trigger) = self.engine.take_trigger()?;
-        // The probe's slot stops Z: its triggers are reported as Z's.
-        let probe_slot = self
-            .rails
-            .as_ref()
-            .and_then(|r| r.physics.probe)
-            .map(|p| p.0);
-        let axis = if probe_slot == Some(stepper) {
-            2
-        } else {
-            stepper
-        };
+        let axis = self.axis_of(stepper);
         let real = self.real_position().unwrap_or_default();
         let clock = onechip_sched::clock::widen(trigger, self.now);
         self.triggers.push((axis, real, clock));
         Some((stepper, trigger))
+    }
+
+    fn stop_steppers(&mut self, stops: u32) {
+        // A real MCU has made every step due before now: in paced virtual
+        // time the engine first catches up with the wall clock.
+        self.run_to_wall_clock();
+        self.refresh();
+        self.engine.stop_steppers(stops);
+        // Its next wake is read afresh.
+        self.pushed = true;
     }
 
     fn thermal(&mut self, command: ThermalCommand) {

@@ -45,6 +45,10 @@ impl Mcu for QemuMcu {
         step_timer::take_trigger()
     }
 
+    fn stop_steppers(&mut self, stops: u32) {
+        step_timer::stop_steppers(stops);
+    }
+
     fn thermal(&mut self, command: ThermalCommand) {
         heater_io::command(command);
     }

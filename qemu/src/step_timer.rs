@@ -132,6 +132,13 @@ pub fn take_trigger() -> Option<(usize, u32)> {
     ENGINE.with(|e| e.take_trigger()).flatten()
 }
 
+/// Stops the steppers in `stops` (bit `i`: stepper `i`) at once, their
+/// commands dropped until a step clock reset (another MCU's trsync
+/// triggered).
+pub fn stop_steppers(stops: u32) {
+    ENGINE.with(|e| e.stop_steppers(stops));
+}
+
 /// True while stepper `stepper`'s endstop reads pressed.
 pub fn endstop_triggered(stepper: usize) -> bool {
     ENGINE

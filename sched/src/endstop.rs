@@ -56,6 +56,13 @@ impl Endstop {
         }
     }
 
+    /// Its sampling as `endstop_home` gives it: `(sample_ticks,
+    /// sample_count, rest_ticks)`, ticks (for arming the same endstop on
+    /// another MCU, in its clock).
+    pub fn sampling(&self) -> (u32, u8, u32) {
+        (self.sample_ticks, self.sample_count, self.rest_ticks)
+    }
+
     /// Clock of the next reading.
     pub fn next(&self) -> u32 {
         self.next

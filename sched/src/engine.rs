@@ -534,6 +534,18 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         }
     }
 
+    /// Another MCU's trsync triggered (its endstop, relayed by the host):
+    /// every stepper in `stops` (bit `i`: stepper `i`) stops at once, as
+    /// Klipper's `trsync_do_trigger` stops the steppers tied to it; their
+    /// queued and held commands are dropped, and those that come until
+    /// each one's step clock is reset. No fault; a watched endstop stays
+    /// armed ([`Self::stop_watching`] disarms it).
+    pub fn stop_steppers(&mut self, stops: u32) {
+        for i in (0..S).filter(|i| stops & (1 << i) != 0) {
+            self.stop_stepper(i);
+        }
+    }
+
     /// The steppers' pins, in stepper order.
     pub fn pins(&self) -> impl Iterator<Item = &P> {
         self.slots.iter().map(|slot| &slot.pins)
@@ -904,5 +916,45 @@ mod tests {
         let (endstop, _) = e.take_trigger().expect("kept");
         assert_eq!(endstop, 1);
         assert_eq!(e.take_trigger(), None);
+    }
+
+    #[test]
+    fn a_trigger_from_another_mcu_stops_the_steppers_of_its_mask_until_reset() {
+        let mut e = Engine::<Pins, 3, 8, 8>::new(Default::default());
+        for i in 0..3 {
+            e.push(i, StepCommand::Dir(true), 0).expect("room");
+            let steps = StepCommand::Steps {
+                interval: 1000,
+                count: 500,
+                add: 0,
+            };
+            e.push(i, steps, 1000).expect("room");
+        }
+        // Stepper 1 waits for its endstop; the trigger comes from elsewhere.
+        e.watch_endstop(1, Endstop::home(0, 50, 3, 700), 0b010);
+        run_until(&mut e, 100_500);
+        e.stop_steppers(0b101);
+        run_until(&mut e, 1_000_000);
+        for i in [0, 2] {
+            assert_eq!(e.slots[i].pins.steps.len(), 100, "stepper {i}");
+            assert_eq!(e.position(i), Some(100));
+        }
+        assert_eq!(e.slots[1].pins.steps.len(), 500, "not in the mask");
+        assert!(e.is_watching(), "its endstop is not disarmed");
+        assert_eq!(e.take_trigger(), None, "no trigger of its own");
+        assert_eq!(e.shutdown_reason(), None);
+        // Commands before a reset are dropped; after it they run.
+        let one = StepCommand::Steps {
+            interval: 1000,
+            count: 1,
+            add: 0,
+        };
+        e.push(0, one, 1_001_000).expect("room");
+        e.push(0, StepCommand::ResetClock(1_100_000), 1_100_000)
+            .expect("room");
+        e.push(0, one, 1_101_000).expect("room");
+        run_until(&mut e, 1_200_000);
+        assert_eq!(e.slots[0].pins.steps.len(), 101);
+        assert_eq!(e.slots[0].pins.steps[100].0, 1_101_000);
     }
 }

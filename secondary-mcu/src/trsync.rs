@@ -6,6 +6,13 @@
 //! every MCU's timeout on (an MCU that hears nothing for [`TIMEOUT`] stops
 //! by itself), a report that has triggered triggers every other MCU.
 //!
+//! The main MCU takes part as one more member ([`Member::local`]), as
+//! klippy's main MCU does: its "reports" are the host's own news (it is
+//! alive while the host serves the links), its timeout is kept by the
+//! host, and its trigger is the engine's stop ([`Relay::Triggered`] lists
+//! only the secondaries' commands; the host stops the main's steppers
+//! itself when another member triggered).
+//!
 //! Sans I/O: [`Dispatch`] takes the reports and returns the commands to
 //! send, as text for each MCU's dictionary; times are host seconds.
 
@@ -49,6 +56,13 @@ pub struct Member {
     last_report: f64,
     /// Host time its trsync expires at, as last sent, s.
     expire: f64,
+    /// The main MCU (no command lines: the host acts on it directly).
+    local: bool,
+    /// Its clock at the homing's start (its trsync's first report), ticks.
+    start_clock: u64,
+    /// A report of this homing came: every later one is (the link keeps
+    /// their order).
+    current: bool,
 }
 
 impl Member {
@@ -59,7 +73,26 @@ impl Member {
             sync,
             last_report: 0.0,
             expire: 0.0,
+            local: false,
+            start_clock: 0,
+            current: false,
         }
+    }
+
+    /// The main MCU, whose clock of `freq` Hz is host time (host time is
+    /// the main clock in seconds): no lines are made for it; the host
+    /// gives its news with [`Dispatch::on_news`], reads its timeout with
+    /// [`Dispatch::expire`] and stops its steppers itself.
+    pub fn local(freq: f64) -> Self {
+        Self {
+            local: true,
+            ..Self::new(u8::MAX, ClockSync::new(freq, 0, 0.0))
+        }
+    }
+
+    /// True for the main MCU ([`Self::local`]).
+    pub fn is_local(&self) -> bool {
+        self.local
     }
 }
 
@@ -71,7 +104,8 @@ pub enum Relay {
     /// Every MCU's new timeout, `(member, line)` each.
     Extend(heapless::Vec<(usize, Line), MAX_MCUS>),
     /// An MCU triggered at host time `.0` (s) for reason `.1`: the
-    /// `trsync_trigger` for every other one, `(member, line)` each.
+    /// `trsync_trigger` for every other one but the main MCU,
+    /// `(member, line)` each.
     Triggered(f64, u8, heapless::Vec<(usize, Line), MAX_MCUS>),
 }
 
@@ -92,6 +126,7 @@ impl Dispatch {
         for m in members.iter().take(MAX_MCUS) {
             let _ = all.push(Member {
                 last_report: start,
+                start_clock: m.sync.clock_at(start),
                 expire: start
                     + if members.len() > 1 {
                         TIMEOUT
@@ -122,7 +157,7 @@ impl Dispatch {
     /// timeout, `COMMS_TIMEOUT` when it expires) and `trsync_set_timeout`.
     pub fn start_lines(&self, index: usize, start: f64) -> [Line; 2] {
         let mut lines = [Line::new(), Line::new()];
-        if let Some(m) = self.members.get(index) {
+        if let Some(m) = self.members.get(index).filter(|m| !m.local) {
             let freq = m.sync.mcu_freq();
             let report_ticks = (self.timeout() * REPORT_FRACTION * freq) as u32;
             let clock = m.sync.clock_at(start) as u32;
@@ -147,20 +182,79 @@ impl Dispatch {
         self.triggered
     }
 
-    /// Takes member `index`'s `trsync_state can_trigger=… trigger_reason=…
-    /// clock=…` (`clock` 32-bit on its MCU): what to relay.
-    pub fn on_state(&mut self, index: usize, can_trigger: bool, why: u8, clock: u32) -> Relay {
+    /// The homing ends untriggered at host time `at` (s; its move ran to
+    /// its end): every secondary's trsync is triggered ([`reason::HOST_REQUEST`]),
+    /// the `trsync_trigger` lines as for a trigger. Nothing once triggered.
+    pub fn end(&mut self, at: f64) -> Relay {
+        if self.triggered.is_some() {
+            return Relay::None;
+        }
+        self.triggered = Some((at, reason::HOST_REQUEST));
+        let mut lines = heapless::Vec::new();
+        for (j, m) in self.members.iter().enumerate().filter(|(_, m)| !m.local) {
+            let mut line = Line::new();
+            let _ = write!(
+                line,
+                "trsync_trigger oid={} reason={}",
+                m.trsync,
+                reason::HOST_REQUEST
+            );
+            let _ = lines.push((j, line));
+        }
+        Relay::Triggered(at, reason::HOST_REQUEST, lines)
+    }
+
+    /// Host time (s) member `index`'s trsync expires at, as last set: the
+    /// main MCU ([`Member::local`]) stops its steppers by itself
+    /// ([`reason::COMMS_TIMEOUT`]) once the host's time passes it.
+    pub fn expire(&self, index: usize) -> Option<f64> {
+        self.members.get(index).map(|m| m.expire)
+    }
+
+    /// Takes a report of member `index` at `clock` (32-bit, on its MCU):
+    /// false if it was sent before its `trsync_start` reached it (the
+    /// previous homing's state, still on its way), which says nothing of
+    /// this homing. The first report of this homing is its trsync's first
+    /// periodic one, at the start's clock (or later); the link keeps their
+    /// order, so every report after it is current too (a trigger's reply
+    /// to `trsync_trigger` says clock 0).
+    pub fn is_current(&mut self, index: usize, clock: u32) -> bool {
         let Some(m) = self.members.get_mut(index) else {
+            return false;
+        };
+        m.current |= m.sync.widen(clock) >= m.start_clock;
+        m.current
+    }
+
+    /// Takes member `index`'s `trsync_state can_trigger=… trigger_reason=…
+    /// clock=…` (`clock` 32-bit on its MCU): what to relay (nothing for a
+    /// stale one, see [`Self::is_current`]).
+    pub fn on_state(&mut self, index: usize, can_trigger: bool, why: u8, clock: u32) -> Relay {
+        if !self.is_current(index, clock) {
+            return Relay::None;
+        }
+        let Some(m) = self.members.get(index) else {
             return Relay::None;
         };
         let at = m.sync.time_at(m.sync.widen(clock));
+        self.on_news(index, can_trigger, why, at)
+    }
+
+    /// Member `index`'s news at host time `at` (s): it can still trigger,
+    /// or it triggered for reason `why` (the main MCU's news, or a report
+    /// already converted to host time); what to relay.
+    pub fn on_news(&mut self, index: usize, can_trigger: bool, why: u8, at: f64) -> Relay {
+        let Some(m) = self.members.get_mut(index) else {
+            return Relay::None;
+        };
         if !can_trigger {
             if self.triggered.is_some() {
                 return Relay::None;
             }
             self.triggered = Some((at, why));
             let mut lines = heapless::Vec::new();
-            for (j, other) in self.members.iter().enumerate().filter(|(j, _)| *j != index) {
+            let others = self.members.iter().enumerate();
+            for (j, other) in others.filter(|(j, m)| *j != index && !m.local) {
                 let mut line = Line::new();
                 let _ = write!(
                     line,
@@ -197,6 +291,9 @@ impl Dispatch {
                 continue;
             }
             m.expire = expire;
+            if m.local {
+                continue;
+            }
             let mut line = Line::new();
             let clock = m.sync.clock_at(expire) as u32;
             let _ = write!(line, "trsync_set_timeout oid={} clock={clock}", m.trsync);
@@ -245,6 +342,25 @@ mod tests {
     }
 
     #[test]
+    fn a_report_from_before_the_start_is_stale() {
+        let mut d = Dispatch::new(&[member(3, 50e6), member(1, 16e6)], 2.0);
+        // The previous homing's "triggered", sent before trsync_start.
+        assert_eq!(
+            d.on_state(0, false, reason::ENDSTOP_HIT, 99_000_000),
+            Relay::None
+        );
+        assert_eq!(d.triggered(), None);
+        assert!(!d.is_current(0, 99_000_000));
+        assert_eq!(d.on_state(0, true, 0, 100_000_000), Relay::None);
+        // From its first report of this homing on, every one counts.
+        assert!(d.is_current(0, 0));
+        assert!(matches!(
+            d.on_state(0, false, reason::ENDSTOP_HIT, 0),
+            Relay::Triggered(..)
+        ));
+    }
+
+    #[test]
     fn reports_move_each_timeout_to_the_others_oldest_news_plus_the_timeout() {
         let mut d = Dispatch::new(&[member(0, 50e6), member(1, 16e6)], 0.5);
         // The 50 MHz one reports at 1 s: the other may run until then +
@@ -264,5 +380,46 @@ mod tests {
         assert!((clock(&lines[0].1) - 2.025 * 50e6).abs() <= 1.0);
         // A report that moves nothing on sends nothing.
         assert_eq!(d.on_state(1, true, 0, 32_000_001), Relay::None);
+    }
+
+    #[test]
+    fn the_main_mcu_takes_part_without_lines_and_keeps_its_own_timeout() {
+        let mut d = Dispatch::new(&[Member::local(260e6), member(4, 16e6)], 1.0);
+        assert!(d.start_lines(0, 1.0).iter().all(|l| l.is_empty()));
+        assert!(d.start_lines(1, 1.0)[0].starts_with("trsync_start oid=4 "));
+        assert_eq!(d.expire(0), Some(1.0 + TIMEOUT));
+        // The host's news moves the secondary's timeout on (a line for it
+        // alone); the secondary's report moves the main's (no line).
+        let Relay::Extend(lines) = d.on_news(0, true, 0, 1.010) else {
+            panic!("no extension");
+        };
+        assert_eq!(lines.len(), 1);
+        assert_eq!(lines[0].0, 1);
+        assert!((clock(&lines[0].1) - 1.035 * 16e6).abs() <= 1.0);
+        assert_eq!(d.on_state(1, true, 0, 16_160_000), Relay::None);
+        assert!((d.expire(0).unwrap_or(0.0) - 1.035).abs() < 1e-9);
+        // The secondary's trigger: nothing to send (the host stops the
+        // main MCU's steppers itself).
+        let Relay::Triggered(at, why, lines) =
+            d.on_state(1, false, reason::ENDSTOP_HIT, 16_320_000)
+        else {
+            panic!("no trigger");
+        };
+        assert!((at - 1.02).abs() < 1e-9);
+        assert_eq!(why, reason::ENDSTOP_HIT);
+        assert!(lines.is_empty());
+        // The main's trigger goes to every secondary.
+        let mut d = Dispatch::new(&[member(4, 16e6), Member::local(260e6)], 1.0);
+        let Relay::Triggered(_, _, lines) = d.on_news(1, false, reason::ENDSTOP_HIT, 1.5) else {
+            panic!("no trigger");
+        };
+        assert_eq!(lines.len(), 1);
+        assert_eq!(
+            lines[0],
+            (
+                0,
+                Line::try_from("trsync_trigger oid=4 reason=3").unwrap_or_default()
+            )
+        );
     }
 }

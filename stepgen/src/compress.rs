@@ -257,6 +257,16 @@ impl<const Q: usize> Compressor<Q> {
         self.sds_ticks = sds_ticks(freq);
     }
 
+    /// The clock this compressor counts on, Hz.
+    pub fn freq(&self) -> f64 {
+        self.freq
+    }
+
+    /// The clock of time `time` (s from its clock 0), ticks.
+    pub fn clock_at(&self, time: f64) -> u64 {
+        to_clock(time * self.freq + 0.5)
+    }
+
     /// Adds a step at print time `time` s in direction `dir`. Commands go
     /// to `out` with the 64-bit clock of their first step (for a direction
     /// change: of the last step before it), which the 32-bit interval of

@@ -586,8 +586,15 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         self.known_until = at;
         for (i, ch) in self.channels.iter_mut().enumerate() {
             let mut out = |cmd, clock| sink.command(i, cmd, clock);
+            // A stepper on another MCU restarts at the stop on its clock.
+            let own = ch.compressor.clock_at(at - ch.time_offset);
+            let own = if ch.time_offset == 0.0 && ch.compressor.freq() == self.freq {
+                clock
+            } else {
+                own
+            };
             match ch.follows {
-                Follows::Toolhead(..) => ch.compressor.reset(clock, &mut out),
+                Follows::Toolhead(..) => ch.compressor.reset(own, &mut out),
                 Follows::Extruder(_) => ch.compressor.flush(&mut out),
             }
             ch.solver.restart(at);

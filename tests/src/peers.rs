@@ -14,6 +14,19 @@ pub fn peers_dir() -> PathBuf {
     )
 }
 
+/// Where peers keep their device link and pin log: `/dev/shm` if there
+/// is one (the Linux peer writes a log line per pin edge as it steps; on a
+/// disk, a write may wait tens of ms for the file system's journal, which
+/// stalls the MCU past trsync's 25 ms), else the system's temp dir.
+fn scratch_dir() -> PathBuf {
+    let shm = Path::new("/dev/shm");
+    if shm.is_dir() {
+        shm.to_path_buf()
+    } else {
+        std::env::temp_dir()
+    }
+}
+
 /// Which stock firmware.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Firmware {
@@ -52,7 +65,7 @@ impl Peer {
     ///
     /// As [`Self::start`].
     pub fn start_with_inputs(firmware: Firmware, test: &str, level: u8) -> Self {
-        let dir = std::env::temp_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
+        let dir = scratch_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("peer folder");
         let path = dir.join("mcu");

@@ -1,7 +1,13 @@
 //! The secondary MCUs of a simulated printer: their steppers' commands go
 //! to the real boards (or peers) instead of the virtual MCU, each in that
 //! MCU's clock, within its move queue, and their faults stop the printer.
+//! A homing move whose steppers or endstop are on secondaries runs across
+//! the MCUs with trsync ([`super::homing::Homing`], the main MCU one of
+//! them): each secondary gets one more trsync for it (`config_trsync`
+//! after klippy's config), its steppers are tied to it, and an endstop on
+//! it is armed there.
 
+use super::homing::Homing;
 use super::{ConnectError, Heard, Secondary};
 use crate::thermal_plant::mcu_sensor;
 use onechip_app::heaters::McuSetup;
@@ -34,6 +40,31 @@ struct Attached {
     /// End clocks of the `queue_step`s the MCU may still hold, soonest
     /// first: at most `move_count`.
     slots: BinaryHeap<Reverse<u64>>,
+    /// The trsync its steppers and endstop use while homing.
+    trsync: u8,
+}
+
+/// A rail's endstop on a secondary.
+#[derive(Debug, Clone, Copy)]
+struct RemoteEndstop {
+    /// Its MCU (index into `attached`).
+    mcu: usize,
+    /// Its oid.
+    oid: u8,
+    /// Its pin is inverted (`!`): it reads 0 when pressed.
+    inverted: bool,
+}
+
+/// A homing across the main MCU and some secondaries.
+struct ActiveHoming {
+    homing: Homing,
+    /// The secondaries taking part (indices into `attached`, ascending).
+    members: Vec<usize>,
+    /// The endstop, if on a secondary: its MCU (index into `attached`)
+    /// and oid.
+    endstop: Option<(usize, u8)>,
+    /// The trigger was taken by the session.
+    taken: bool,
 }
 
 /// A routed stepper's commands and what they add up to.
@@ -57,6 +88,14 @@ pub struct Secondaries {
     routes: Vec<Option<(usize, StepCommandEncoder<'static>)>>,
     /// What each stepper on a secondary was sent.
     sent: Vec<SentSteps>,
+    /// Each stepper's oid, if on a secondary.
+    stepper_oids: Vec<Option<u8>>,
+    /// Each rail's endstop, if on a secondary.
+    endstops: Vec<Option<RemoteEndstop>>,
+    /// The homing running across MCUs, if one is.
+    homing: Option<ActiveHoming>,
+    /// Homings ended by a communication timeout.
+    homing_timeouts: usize,
     /// Main clock, Hz (host time is the main clock in seconds).
     freq: f64,
     next_calibrate: f64,
@@ -81,6 +120,10 @@ impl Secondaries {
             attached: Vec::new(),
             routes: vec![None; machine.steppers.len()],
             sent: vec![SentSteps::default(); machine.steppers.len()],
+            stepper_oids: vec![None; machine.steppers.len()],
+            endstops: vec![None; machine.steppers.len()],
+            homing: None,
+            homing_timeouts: 0,
             freq,
             next_calibrate: 0.0,
             failure: None,
@@ -96,9 +139,15 @@ impl Secondaries {
                 let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
                 let mut lines = Vec::new();
                 let ticks = |i: usize| pulse_ticks(pulse(i), mcu_freq);
-                oids.set(write_config(machine, &setup, name, &ticks, &mut |l| {
+                let o = write_config(machine, &setup, name, &ticks, &mut |l| {
                     lines.push(l.to_string())
-                }));
+                });
+                // One more object: the trsync for homing moves.
+                if let Some(first) = lines.first_mut() {
+                    *first = format!("allocate_oids count={}", u16::from(o.count) + 1);
+                }
+                lines.push(format!("config_trsync oid={}", o.count));
+                oids.set(o);
                 lines
             };
             let path = Path::new(secondary.serial);
@@ -119,11 +168,26 @@ impl Secondaries {
                 let encoder = StepCommandEncoder::new(dict, oid, invert)
                     .map_err(|e| ConnectError::Dictionary(e.to_string()))?;
                 all.routes[i] = Some((all.attached.len(), encoder));
+                all.stepper_oids[i] = Some(oid);
+            }
+            for (i, endstop) in oids.endstops.iter().enumerate() {
+                let (Some((oid, _)), Some(pin)) = (
+                    *endstop,
+                    machine.steppers.get(i).and_then(|s| s.endstop_pin),
+                ) else {
+                    continue;
+                };
+                all.endstops[i] = Some(RemoteEndstop {
+                    mcu: all.attached.len(),
+                    oid,
+                    inverted: pin_ref(pin).inverted,
+                });
             }
             all.attached.push(Attached {
                 mcu,
                 name,
                 slots: BinaryHeap::new(),
+                trsync: oids.count,
             });
         }
         Ok(all)
@@ -190,9 +254,12 @@ impl Secondaries {
 
     /// Runs every link's I/O at host time `now` (s): sends what is due,
     /// takes what arrived; a secondary's shutdown or silence becomes the
-    /// printer's shutdown.
-    pub fn service(&mut self, now: f64) {
-        for a in &mut self.attached {
+    /// printer's shutdown. While a homing runs across MCUs its trsync
+    /// reports are relayed; `stop_main(stops)` stops the main MCU's
+    /// steppers when another MCU triggered (or the reports stopped).
+    pub fn service(&mut self, now: f64, stop_main: &mut dyn FnMut(u32)) {
+        let mut responses = Vec::new();
+        for (k, a) in self.attached.iter_mut().enumerate() {
             let mut heard = Vec::new();
             let io = a.mcu.service(now, Duration::ZERO, &mut heard);
             if self.failure.is_some() {
@@ -210,13 +277,174 @@ impl Secondaries {
                         });
                     }
                     Heard::Failed(_) => failure = Some(lost),
-                    Heard::Response(_) => {}
+                    Heard::Response(text) => responses.push((k, text)),
                 }
             }
             if failure.is_some() {
                 self.failure = failure;
                 self.failed_at = Some(Instant::now());
             }
+        }
+        if let Some(h) = &mut self.homing {
+            let mut mcus: Vec<&mut Secondary> = self
+                .attached
+                .iter_mut()
+                .enumerate()
+                .filter(|(k, _)| h.members.contains(k))
+                .map(|(_, a)| &mut a.mcu)
+                .collect();
+            for (k, text) in responses {
+                if let Some(i) = h.members.iter().position(|&m| m == k) {
+                    let _ = h.homing.on_response(&mut mcus, i, &text, now, stop_main);
+                }
+            }
+            let _ = h.homing.main_news(&mut mcus, now, stop_main);
+        }
+    }
+
+    /// Starts a homing across MCUs at host time `start` (s) if stepper
+    /// `endstop_of`'s endstop or any stepper in `stops` (bit `i`: stepper
+    /// `i`) is on a secondary: each secondary taking part gets its trsync
+    /// started and its steppers tied to it, the endstop (if on one) is
+    /// armed there with `sampling` (`endstop_home`'s `(sample_ticks,
+    /// sample_count, rest_ticks)` in main clock ticks). Returns the steppers
+    /// in `stops` on the main MCU and whether the main MCU's own endstop
+    /// is the one; None if no secondary takes part (the main MCU homes
+    /// alone), or the homing could not be started.
+    pub fn start_homing(
+        &mut self,
+        endstop_of: usize,
+        sampling: (u32, u8, u32),
+        stops: u32,
+        start: f64,
+    ) -> Option<(u32, bool)> {
+        self.homing = None;
+        let remote = self.endstops.get(endstop_of).copied().flatten();
+        let mut main_stops = 0;
+        let mut members: Vec<usize> = remote.iter().map(|e| e.mcu).collect();
+        for i in (0..32).filter(|i| stops & (1 << i) != 0) {
+            match self.routes.get(i) {
+                Some(Some((k, _))) => members.push(*k),
+                _ => main_stops |= 1 << i,
+            }
+        }
+        members.sort_unstable();
+        members.dedup();
+        if members.is_empty() {
+            return None;
+        }
+        let main_takes_part = main_stops != 0 || remote.is_none();
+        let trsyncs: Vec<u8> = members.iter().map(|&k| self.attached[k].trsync).collect();
+        let steppers: Vec<Vec<u8>> = members
+            .iter()
+            .map(|&k| {
+                (0..self.routes.len())
+                    .filter(|&i| stops & (1 << i) != 0)
+                    .filter(|&i| matches!(self.routes[i], Some((m, _)) if m == k))
+                    .filter_map(|i| self.stepper_oids[i])
+                    .collect()
+            })
+            .collect();
+        let freq = self.freq;
+        let mut mcus: Vec<&mut Secondary> = self
+            .attached
+            .iter_mut()
+            .enumerate()
+            .filter(|(k, _)| members.contains(k))
+            .map(|(_, a)| &mut a.mcu)
+            .collect();
+        let steppers: Vec<&[u8]> = steppers.iter().map(Vec::as_slice).collect();
+        let main = main_takes_part.then_some((main_stops, freq));
+        let homing = Homing::start_with_main(&mut mcus, &trsyncs, &steppers, main, start).ok()?;
+        let mut endstop = None;
+        if let Some(e) = remote {
+            let a = &mut self.attached[e.mcu];
+            let sync = *a.mcu.connection().clock()?;
+            let ticks =
+                |main_ticks: u32| (f64::from(main_ticks) / freq * sync.mcu_freq()).max(1.0) as u32;
+            let (sample_ticks, sample_count, rest_ticks) = sampling;
+            let home = format!(
+                "endstop_home oid={} clock={} sample_ticks={} sample_count={sample_count} rest_ticks={} pin_value={} trsync_oid={} trigger_reason={}",
+                e.oid,
+                sync.clock_at(start) & 0xffff_ffff,
+                ticks(sample_ticks),
+                ticks(rest_ticks),
+                u8::from(!e.inverted),
+                a.trsync,
+                onechip_secondary_mcu::trsync::reason::ENDSTOP_HIT
+            );
+            a.mcu.connection().send_text(&home, 0).ok()?;
+            endstop = Some((e.mcu, e.oid));
+        }
+        self.homing = Some(ActiveHoming {
+            homing,
+            members,
+            endstop,
+            taken: false,
+        });
+        Some((main_stops, remote.is_none()))
+    }
+
+    /// True while a homing runs across MCUs.
+    pub fn is_homing(&self) -> bool {
+        self.homing.is_some()
+    }
+
+    /// The main MCU's endstop triggered at host time `at` (s): every
+    /// secondary of the homing is triggered.
+    pub fn main_triggered(&mut self, at: f64, now: f64) {
+        let Some(h) = &mut self.homing else { return };
+        let mut mcus: Vec<&mut Secondary> = self
+            .attached
+            .iter_mut()
+            .enumerate()
+            .filter(|(k, _)| h.members.contains(k))
+            .map(|(_, a)| &mut a.mcu)
+            .collect();
+        let _ = h.homing.main_triggered(&mut mcus, at, now);
+    }
+
+    /// The homing's trigger (host time, s, and `trsync::reason`), once,
+    /// when one came.
+    pub fn take_homing_trigger(&mut self) -> Option<(f64, u8)> {
+        let h = self.homing.as_mut()?;
+        if h.taken {
+            return None;
+        }
+        let trigger = h.homing.triggered()?;
+        h.taken = true;
+        if trigger.1 == onechip_secondary_mcu::trsync::reason::COMMS_TIMEOUT {
+            self.homing_timeouts += 1;
+        }
+        Some(trigger)
+    }
+
+    /// Homings ended by a communication timeout so far.
+    pub fn homing_timeouts(&self) -> usize {
+        self.homing_timeouts
+    }
+
+    /// Ends the homing at host time `now` (s): the secondaries' trsyncs
+    /// not triggered yet are, and an endstop on a secondary is disarmed.
+    pub fn end_homing(&mut self, now: f64) {
+        let Some(mut h) = self.homing.take() else {
+            return;
+        };
+        let mut mcus: Vec<&mut Secondary> = self
+            .attached
+            .iter_mut()
+            .enumerate()
+            .filter(|(k, _)| h.members.contains(k))
+            .map(|(_, a)| &mut a.mcu)
+            .collect();
+        let _ = h.homing.finish(&mut mcus, now);
+        if let Some((k, oid)) = h.endstop {
+            let _ = self.attached[k].mcu.connection().send_text(
+                &format!(
+                    "endstop_home oid={oid} clock=0 sample_ticks=0 sample_count=0 rest_ticks=0 pin_value=0 trsync_oid=0 trigger_reason=0"
+                ),
+                0,
+            );
         }
     }
 
@@ -244,7 +472,8 @@ impl Secondaries {
         for a in &mut self.attached {
             let _ = a.mcu.connection().send_text("emergency_stop", 0);
         }
-        self.service(now);
+        self.homing = None;
+        self.service(now, &mut |_| {});
     }
 
     /// Re-fits each secondary stepper's clock line for moves queued up to

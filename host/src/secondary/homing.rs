@@ -1,22 +1,41 @@
-//! Homing across secondary MCUs with trsync, as klippy drives it: each
-//! MCU's trsync started and its steppers tied to it, the endstop armed on
-//! its own MCU, and every `trsync_state` report relayed to the others
+//! Homing across MCUs with trsync, as klippy drives it: each secondary's
+//! trsync started and its steppers tied to it, the endstop armed on its
+//! own MCU, and every `trsync_state` report relayed to the others
 //! ([`onechip_secondary_mcu::trsync::Dispatch`]) while their links are
-//! served.
+//! served. The main MCU (the session's [`Mcu`], our own engine) may take
+//! part as one more member: a secondary's trigger stops its steppers at
+//! once ([`Mcu::stop_steppers`]), its own endstop's trigger
+//! ([`Homing::main_triggered`]) goes to every secondary as
+//! `trsync_trigger`, and it stops by itself if the secondaries' reports
+//! stop coming (klippy's main MCU's trsync timeout).
 
 use super::{Heard, Secondary};
+use onechip_app::session::Mcu;
 use onechip_secondary_mcu::connection::SendTextError;
-use onechip_secondary_mcu::trsync::{Dispatch, MAX_MCUS, Member, Relay};
+use onechip_secondary_mcu::trsync::{Dispatch, MAX_MCUS, Member, Relay, reason};
 use std::time::Duration;
 
 /// A homing in progress over some secondaries (`mcus[i]` with trsync
-/// `trsyncs[i]`).
+/// `trsyncs[i]`), and perhaps the main MCU.
 pub struct Homing {
     dispatch: Dispatch,
     /// Why each MCU's trsync stopped its steppers, once it reported it.
     stopped: Vec<Option<u8>>,
     /// Host time (s) the first trigger was heard and relayed.
     relayed_at: Option<f64>,
+    /// The main MCU's part, if it takes part.
+    main: Option<MainPart>,
+}
+
+/// The main MCU in a homing.
+#[derive(Debug, Clone, Copy)]
+struct MainPart {
+    /// Its member index in the dispatch (after the secondaries).
+    index: usize,
+    /// Its steppers in the homing move (bit `i`: stepper `i`).
+    stops: u32,
+    /// Host time (s) and reason its steppers were stopped.
+    stopped: Option<(f64, u8)>,
 }
 
 /// Why a homing command could not be queued.
@@ -49,7 +68,21 @@ impl Homing {
         steppers: &[&[u8]],
         start: f64,
     ) -> Result<Self, HomingError> {
-        if trsyncs.len() != mcus.len() || mcus.len() > MAX_MCUS {
+        Self::start_with_main(mcus, trsyncs, steppers, None, start)
+    }
+
+    /// [`Self::start`] with the main MCU taking part if `main` is given:
+    /// `(stops, freq)`, its steppers in the homing move (bit `i`: stepper
+    /// `i`) and its clock, Hz (host time is that clock in seconds).
+    pub fn start_with_main(
+        mcus: &mut [&mut Secondary],
+        trsyncs: &[u8],
+        steppers: &[&[u8]],
+        main: Option<(u32, f64)>,
+        start: f64,
+    ) -> Result<Self, HomingError> {
+        let members_count = mcus.len() + usize::from(main.is_some());
+        if trsyncs.len() != mcus.len() || members_count > MAX_MCUS {
             return Err(HomingError(format!(
                 "{} MCUs with {} trsyncs (one each, at most {MAX_MCUS})",
                 mcus.len(),
@@ -64,6 +97,14 @@ impl Homing {
                 })?;
             members.push(Member::new(trsync, sync));
         }
+        let main = main.map(|(stops, freq)| {
+            members.push(Member::local(freq));
+            MainPart {
+                index: mcus.len(),
+                stops,
+                stopped: None,
+            }
+        });
         let dispatch = Dispatch::new(&members, start);
         for (i, (mcu, &trsync)) in mcus.iter_mut().zip(trsyncs).enumerate() {
             for line in dispatch.start_lines(i, start) {
@@ -80,7 +121,115 @@ impl Homing {
             dispatch,
             stopped: vec![None; mcus.len()],
             relayed_at: None,
+            main,
         })
+    }
+
+    /// Host time (s) and reason the main MCU's steppers were stopped
+    /// (`HOST_REQUEST`: a secondary triggered; `ENDSTOP_HIT`: its own
+    /// endstop; `COMMS_TIMEOUT`: the secondaries' reports stopped coming).
+    pub fn main_stopped(&self) -> Option<(f64, u8)> {
+        self.main.and_then(|m| m.stopped)
+    }
+
+    /// The main MCU's endstop triggered at host time `at` (s; its engine
+    /// stopped its steppers): every secondary's trsync is triggered.
+    pub fn main_triggered(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        at: f64,
+        now: f64,
+    ) -> Result<(), HomingError> {
+        let Some(main) = &mut self.main else {
+            return Ok(());
+        };
+        main.stopped.get_or_insert((at, reason::ENDSTOP_HIT));
+        let relay = self
+            .dispatch
+            .on_news(main.index, false, reason::ENDSTOP_HIT, at);
+        self.relay(mcus, relay, now)
+    }
+
+    /// Sends what the dispatch decided.
+    fn relay(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        relay: Relay,
+        now: f64,
+    ) -> Result<(), HomingError> {
+        let lines = match relay {
+            Relay::None => return Ok(()),
+            Relay::Extend(lines) => lines,
+            Relay::Triggered(_, _, lines) => {
+                self.relayed_at.get_or_insert(now);
+                lines
+            }
+        };
+        for (j, line) in lines {
+            if let Some(mcu) = mcus.get_mut(j) {
+                send(mcu, &line)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// [`Self::service`] with the main MCU `main` taking part: its news
+    /// (it can still trigger, as long as the host serves the links) moves
+    /// the secondaries' timeouts on, its own timeout stops its steppers,
+    /// and a secondary's trigger stops them at once.
+    pub fn service_with_main<M: Mcu>(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        main: &mut M,
+        now: f64,
+        wait: Duration,
+        heard: &mut Vec<(usize, Heard)>,
+    ) -> Result<(), HomingError> {
+        self.main_news(mcus, now, &mut |stops| main.stop_steppers(stops))?;
+        self.service_inner(
+            mcus,
+            &mut |stops| main.stop_steppers(stops),
+            now,
+            wait,
+            heard,
+        )
+    }
+
+    /// The main MCU's news at host time `now` (s): it can still trigger,
+    /// which moves the secondaries' timeouts on; past its own timeout
+    /// `stop_main(stops)` stops its steppers and every secondary is
+    /// triggered.
+    pub fn main_news(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        now: f64,
+        stop_main: &mut dyn FnMut(u32),
+    ) -> Result<(), HomingError> {
+        let Some(part) = self.main else {
+            return Ok(());
+        };
+        if part.stopped.is_some() || self.dispatch.triggered().is_some() {
+            return Ok(());
+        }
+        let relay = self.dispatch.on_news(part.index, true, 0, now);
+        self.relay(mcus, relay, now)?;
+        if self.dispatch.expire(part.index).is_some_and(|e| now > e) {
+            // No news from a secondary in time: the main stops by itself,
+            // and so must the others.
+            stop_main(part.stops);
+            self.set_main_stopped(now, reason::COMMS_TIMEOUT);
+            let relay = self
+                .dispatch
+                .on_news(part.index, false, reason::COMMS_TIMEOUT, now);
+            self.relay(mcus, relay, now)?;
+        }
+        Ok(())
+    }
+
+    fn set_main_stopped(&mut self, at: f64, why: u8) {
+        if let Some(part) = &mut self.main {
+            part.stopped.get_or_insert((at, why));
+        }
     }
 
     /// Why each MCU's trsync stopped its steppers (`trsync::reason`), as
@@ -111,40 +260,81 @@ impl Homing {
         wait: Duration,
         heard: &mut Vec<(usize, Heard)>,
     ) -> Result<(), HomingError> {
+        self.service_inner(mcus, &mut |_| {}, now, wait, heard)
+    }
+
+    /// Serves the links; `stop_main(stops)` stops the main MCU's steppers.
+    fn service_inner(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        stop_main: &mut dyn FnMut(u32),
+        now: f64,
+        wait: Duration,
+        heard: &mut Vec<(usize, Heard)>,
+    ) -> Result<(), HomingError> {
         for i in 0..mcus.len() {
             let mut got = Vec::new();
             mcus[i]
                 .service(now, wait, &mut got)
                 .map_err(|e| HomingError(format!("MCU '{}': {e}", mcus[i].name)))?;
             for h in got {
-                let Heard::Response(text) = &h else {
-                    heard.push((i, h));
-                    continue;
+                let taken = match &h {
+                    Heard::Response(text) => self.on_response(mcus, i, text, now, stop_main)?,
+                    _ => false,
                 };
-                let Some(state) = TrsyncState::parse(text) else {
+                if !taken {
                     heard.push((i, h));
-                    continue;
-                };
-                if let Some(stopped @ None) = self.stopped.get_mut(i)
-                    && !state.can_trigger
-                {
-                    *stopped = Some(state.reason);
                 }
-                let relay = self
-                    .dispatch
-                    .on_state(i, state.can_trigger, state.reason, state.clock);
-                let lines = match relay {
-                    Relay::None => continue,
-                    Relay::Extend(lines) => lines,
-                    Relay::Triggered(_, _, lines) => {
-                        self.relayed_at = Some(now);
-                        lines
-                    }
-                };
-                for (j, line) in lines {
-                    if let Some(mcu) = mcus.get_mut(j) {
-                        send(mcu, &line)?;
-                    }
+            }
+        }
+        Ok(())
+    }
+
+    /// Takes response `text` of `mcus[i]`, heard at host time `now` (s):
+    /// false if it is not a trsync report. A trigger stops the main MCU's
+    /// steppers (`stop_main(stops)`) and is relayed to the others.
+    pub fn on_response(
+        &mut self,
+        mcus: &mut [&mut Secondary],
+        i: usize,
+        text: &str,
+        now: f64,
+        stop_main: &mut dyn FnMut(u32),
+    ) -> Result<bool, HomingError> {
+        let Some(state) = TrsyncState::parse(text) else {
+            return Ok(false);
+        };
+        if !self.dispatch.is_current(i, state.clock) {
+            return Ok(true);
+        }
+        if let Some(stopped @ None) = self.stopped.get_mut(i)
+            && !state.can_trigger
+        {
+            *stopped = Some(state.reason);
+        }
+        let relay = self
+            .dispatch
+            .on_state(i, state.can_trigger, state.reason, state.clock);
+        if let (Relay::Triggered(..), Some(part)) = (&relay, self.main)
+            && part.stopped.is_none()
+        {
+            // Another MCU triggered: the main's steppers stop now, before
+            // the other secondaries hear of it.
+            stop_main(part.stops);
+            self.set_main_stopped(now, reason::HOST_REQUEST);
+        }
+        self.relay(mcus, relay, now)?;
+        Ok(true)
+    }
+
+    /// Ends the homing at host time `now` (s): every secondary's trsync
+    /// not triggered yet is (`HOST_REQUEST`), as klippy ends a homing
+    /// move that ran to its end.
+    pub fn finish(&mut self, mcus: &mut [&mut Secondary], now: f64) -> Result<(), HomingError> {
+        if let Relay::Triggered(_, _, lines) = self.dispatch.end(now) {
+            for (j, line) in lines {
+                if let Some(mcu) = mcus.get_mut(j) {
+                    send(mcu, &line)?;
                 }
             }
         }

@@ -16,7 +16,7 @@ use port::Port;
 use std::fmt::{self, Write as _};
 use std::io;
 use std::path::Path;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// Largest inflated data dictionary accepted, bytes (Klipper's are 10–15 KB).
 const DICTIONARY_MAX: usize = 64 * 1024;
@@ -214,9 +214,15 @@ impl Secondary {
         let mut out = [0u8; POLL_OUT];
         let n = self.conn.poll(now, &mut out, &mut *on_event);
         let mut buf = [0u8; 4096];
+        let asked = Instant::now();
         let got = self.port.round_trip(&out[..n], wait, &mut buf)?;
         if got > 0 {
-            self.conn.receive(&buf[..got], now, &mut *on_event);
+            // Stamped when it arrived, as klippy's serial queue stamps
+            // what it reads (host time follows the wall clock while
+            // secondaries are served): a clock query answered within this
+            // wait has a true round trip, not none.
+            let received = now + asked.elapsed().as_secs_f64();
+            self.conn.receive(&buf[..got], received, &mut *on_event);
         }
         Ok(())
     }
