@@ -78,7 +78,7 @@ pub const OUTPUTS: usize = MAX_HEATERS + 1 + onechip_planner::accessories::MAX_O
 #[derive(Debug, Clone, PartialEq)]
 pub struct Temperatures {
     heaters: heapless::Vec<(&'static str, f64, f64, f64), MAX_HEATERS>,
-    sensors: heapless::Vec<(heapless::String<MAX_LABEL>, f64), MAX_SENSORS>,
+    sensors: heapless::Vec<(heapless::String<MAX_LABEL>, f64, f64), MAX_SENSORS>,
 }
 
 impl core::fmt::Display for Temperatures {
@@ -87,7 +87,10 @@ impl core::fmt::Display for Temperatures {
             .heaters
             .iter()
             .map(|(l, t, target, _)| (*l, *t, *target));
-        let sensors = self.sensors.iter().map(|(l, t)| (l.as_str(), *t, 0.0));
+        let sensors = self
+            .sensors
+            .iter()
+            .map(|(l, t, target)| (l.as_str(), *t, *target));
         for (i, (label, temperature, target)) in heaters.chain(sensors).enumerate() {
             let sep = if i == 0 { "" } else { " " };
             write!(
@@ -723,11 +726,21 @@ impl Heaters {
             }
         }
         let first = self.heaters.len();
+        let delay = ticks(REPORT_TIME, self.freq);
         for (i, sensor) in self.sensors.iter_mut().enumerate() {
             if let Some(report) = self.io.take_report(first + i) {
                 let t = sensor
                     .conversion
                     .temperature(f64::from(report.value) / self.adc_full);
+                let io = &mut self.io;
+                self.accessories.sensor_report(
+                    i,
+                    t,
+                    report.clock,
+                    now,
+                    delay,
+                    &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
+                )?;
                 sensor.reading = Some(match sensor.reading {
                     Some(r) => SensorReading {
                         temperature: t,
@@ -961,10 +974,11 @@ impl Heaters {
                 .iter()
                 .map(|h| (h.label, h.smoothed, h.target, h.last_power))
                 .collect(),
-            sensors: self
-                .sensors
-                .iter()
-                .filter_map(|s| Some((s.label.clone()?, s.reading?.temperature)))
+            sensors: (self.sensors.iter().enumerate())
+                .filter_map(|(i, s)| {
+                    let target = self.accessories.cooling_target(i).unwrap_or(0.0);
+                    Some((s.label.clone()?, s.reading?.temperature, target))
+                })
                 .collect(),
         }
     }
@@ -1288,7 +1302,7 @@ pub(crate) mod tests {
         assert_eq!(report, "T:0.0 /200.0 B:0.0 /0.0 @:0 B@:0");
         // Two heaters and four sensors: a few hundred bytes at most,
         // against the whole heaters (over 1 KB).
-        assert!(core::mem::size_of::<Temperatures>() <= 200);
+        assert!(core::mem::size_of::<Temperatures>() <= 240);
         heaters.command(target(0.0), 0, &mut Hw).expect("off");
         assert!(text(&copy).starts_with("T:0.0 /200.0"));
     }

@@ -14,8 +14,9 @@
 use crate::heaters::{full_scale, scaled, ticks};
 use onechip_config::decimal::Fixed;
 use onechip_planner::accessories::{Accessories, MAX_OUTPUTS};
-use onechip_planner::fan_sections::{FanRole, MAX_FANS};
+use onechip_planner::fan_sections::{CoolingLaw, FanRole, MAX_COOLING, MAX_FANS, TemperatureFan};
 use onechip_planner::gcode::{Command, Extended, GcodeError, Line};
+use onechip_planner::math::clamp;
 use onechip_planner::output_pin::{MAX_OUTPUT_PINS, OutputPin};
 use onechip_planner::thermal::Fan;
 use onechip_sched::clock::is_before;
@@ -221,6 +222,19 @@ pub enum AccessoryCommand {
     /// The stepper drivers were enabled (a move) or disabled (M84, M18):
     /// controller fans follow.
     Motors(bool),
+    /// `SET_TEMPERATURE_FAN_TARGET`: temperature fan `fan` (index among
+    /// the temperature fans) holds `target` (°C, 0: off) within its
+    /// speeds.
+    Cooling {
+        /// Index among the temperature fans.
+        fan: usize,
+        /// Target, °C.
+        target: f64,
+        /// min_speed, 0..1.
+        min_speed: f64,
+        /// max_speed, 0..1.
+        max_speed: f64,
+    },
 }
 
 /// Why an accessory command was refused (Klipper's messages).
@@ -244,6 +258,29 @@ pub enum AccessoryError<'l> {
     InvalidPinValue,
     /// `CYCLE_TIME` other than the configured cycle_time.
     CycleTime,
+    /// A temperature fan's TARGET outside min_temp..max_temp, °C.
+    TargetOutOfRange {
+        /// Requested.
+        celsius: f64,
+        /// min_temp.
+        min: f64,
+        /// max_temp.
+        max: f64,
+    },
+    /// MIN_SPEED above MAX_SPEED.
+    MinAboveMax {
+        /// MIN_SPEED.
+        min: f64,
+        /// MAX_SPEED.
+        max: f64,
+    },
+    /// A speed outside 0..1 (`which`: min or max).
+    SpeedOutOfRange {
+        /// `min` or `max`.
+        which: &'static str,
+        /// Requested.
+        speed: f64,
+    },
 }
 
 impl<'l> From<GcodeError<'l>> for AccessoryError<'l> {
@@ -264,6 +301,24 @@ impl core::fmt::Display for AccessoryError<'_> {
             Self::CycleTime => {
                 f.write_str("CYCLE_TIME other than the pin's cycle_time is not supported yet")
             }
+            Self::TargetOutOfRange { celsius, min, max } => write!(
+                f,
+                "Requested temperature ({}) out of range ({}:{})",
+                Fixed(*celsius, 1),
+                Fixed(*min, 1),
+                Fixed(*max, 1)
+            ),
+            Self::MinAboveMax { min, max } => write!(
+                f,
+                "Requested min speed ({}) is greater than max speed ({})",
+                Fixed(*min, 1),
+                Fixed(*max, 1)
+            ),
+            Self::SpeedOutOfRange { which, speed } => write!(
+                f,
+                "Requested {which} speed ({}) out of range (0.0 : 1.0)",
+                Fixed(*speed, 1)
+            ),
         }
     }
 }
@@ -277,10 +332,19 @@ struct PinName<'a> {
     cycle_time: f64,
 }
 
+/// A temperature fan as SET_TEMPERATURE_FAN_TARGET sees it: its
+/// configured target and range, and the speeds last set.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct CoolingName<'a> {
+    name: &'a str,
+    role: TemperatureFan,
+}
+
 /// The names G-code uses for the fans and pins.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct AccessoryNames<'a> {
     fans: heapless::Vec<&'a str, MAX_FANS>,
+    cooling: heapless::Vec<CoolingName<'a>, MAX_COOLING>,
     pins: heapless::Vec<PinName<'a>, MAX_OUTPUT_PINS>,
     /// Any controller fan: motors on/off matter.
     controller_fans: bool,
@@ -291,6 +355,12 @@ impl<'a> AccessoryNames<'a> {
     pub fn new(accessories: &Accessories<'a>) -> Self {
         Self {
             fans: accessories.fans.iter().map(|f| f.name).collect(),
+            cooling: (accessories.cooling.iter())
+                .map(|&role| CoolingName {
+                    name: accessories.fans.get(role.fan).map_or("", |f| f.name),
+                    role,
+                })
+                .collect(),
             pins: accessories
                 .output_pins
                 .iter()
@@ -313,16 +383,20 @@ impl<'a> AccessoryNames<'a> {
         self.controller_fans
     }
 
-    /// The command `line` gives, if it is SET_FAN_SPEED or SET_PIN;
-    /// `print_time` is when the queued moves end.
+    /// The command `line` gives, if it is SET_FAN_SPEED, SET_PIN or
+    /// SET_TEMPERATURE_FAN_TARGET; `print_time` is when the queued moves
+    /// end.
     pub fn parse<'l>(
-        &self,
+        &mut self,
         line: &Line<'l>,
         print_time: f64,
     ) -> Result<Option<AccessoryCommand>, AccessoryError<'l>> {
         let Command::Extended(e) = line.command else {
             return Ok(None);
         };
+        if e.name.eq_ignore_ascii_case("SET_TEMPERATURE_FAN_TARGET") {
+            return self.cooling_target(&e).map(Some);
+        }
         if e.name.eq_ignore_ascii_case("SET_FAN_SPEED") {
             let fan = Self::find(&e, "FAN", self.fans.iter().copied())?;
             let speed = e.float("SPEED")?.unwrap_or(0.0);
@@ -355,6 +429,43 @@ impl<'a> AccessoryNames<'a> {
         }))
     }
 
+    /// SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN= [TARGET=] [MIN_SPEED=]
+    /// [MAX_SPEED=], checked as Klipper does: TARGET defaults to the
+    /// configured target, the speeds to those last set.
+    fn cooling_target<'l>(
+        &mut self,
+        e: &Extended<'l>,
+    ) -> Result<AccessoryCommand, AccessoryError<'l>> {
+        let index = Self::find(e, "TEMPERATURE_FAN", self.cooling.iter().map(|c| c.name))?;
+        let configured = self.cooling[index].role;
+        let target = e.float("TARGET")?.unwrap_or(configured.target);
+        if target != 0.0 && !(configured.min_temp..=configured.max_temp).contains(&target) {
+            return Err(AccessoryError::TargetOutOfRange {
+                celsius: target,
+                min: configured.min_temp,
+                max: configured.max_temp,
+            });
+        }
+        let c = &mut self.cooling[index];
+        let min = e.float("MIN_SPEED")?.unwrap_or(c.role.min_speed);
+        let max = e.float("MAX_SPEED")?.unwrap_or(c.role.max_speed);
+        if min > max {
+            return Err(AccessoryError::MinAboveMax { min, max });
+        }
+        for (which, speed) in [("min", min), ("max", max)] {
+            if speed != 0.0 && !(0.0..=1.0).contains(&speed) {
+                return Err(AccessoryError::SpeedOutOfRange { which, speed });
+            }
+        }
+        (c.role.min_speed, c.role.max_speed) = (min, max);
+        Ok(AccessoryCommand::Cooling {
+            fan: index,
+            target,
+            min_speed: min,
+            max_speed: max,
+        })
+    }
+
     /// The index of the name parameter `key` gives among `names`.
     fn find<'l>(
         e: &Extended<'l>,
@@ -365,6 +476,111 @@ impl<'a> AccessoryNames<'a> {
         names
             .position(|n| n == value)
             .ok_or(AccessoryError::NotValid { key, value })
+    }
+}
+
+/// Klipper's temperature fans' update spacing: a speed is sent again at
+/// least this often (0.75 of its MAX_FAN_TIME of 5 s), s.
+const COOLING_REFRESH: f64 = 0.75 * 5.0;
+/// The temperature a temperature fan's PID starts from, °C (Klipper's).
+const COOLING_AMBIENT: f64 = 25.0;
+
+/// A temperature fan's control at run time: Klipper's `ControlBangBang`
+/// or `ControlPID`, and `set_tf_speed`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Cooling {
+    /// Target and speeds as last set.
+    role: TemperatureFan,
+    /// Watermark: below target − max_delta until above target + max_delta.
+    heating: bool,
+    /// PID: the previous reading (°C), its clock, the temperature's
+    /// derivative (°C/s) and the error's integral (°C·s).
+    prev_temp: f64,
+    prev_clock: Option<u32>,
+    prev_deriv: f64,
+    prev_integ: f64,
+    /// The speed last sent, and the clock before which a change under 5 %
+    /// is not sent.
+    last_speed: f64,
+    next_speed: u32,
+}
+
+impl Cooling {
+    fn new(role: TemperatureFan) -> Self {
+        Self {
+            role,
+            heating: false,
+            prev_temp: COOLING_AMBIENT,
+            prev_clock: None,
+            prev_deriv: 0.0,
+            prev_integ: 0.0,
+            last_speed: 0.0,
+            next_speed: 0,
+        }
+    }
+
+    /// A reading of `temp` °C at `clock` (on a `freq` Hz clock): the
+    /// speed the control asks for.
+    fn speed(&mut self, temp: f64, clock: u32, freq: f64) -> f64 {
+        let r = self.role;
+        match r.law {
+            CoolingLaw::Watermark { max_delta } => {
+                if self.heating && temp >= r.target + max_delta {
+                    self.heating = false;
+                } else if !self.heating && temp <= r.target - max_delta {
+                    self.heating = true;
+                }
+                if self.heating { 0.0 } else { r.max_speed }
+            }
+            CoolingLaw::Pid {
+                kp,
+                ki,
+                kd,
+                deriv_time,
+            } => {
+                // Klipper measures from time 0 before its first reading.
+                let since = self.prev_clock.map_or(clock, |p| clock.wrapping_sub(p));
+                let dt = f64::from(since) / freq;
+                let diff = temp - self.prev_temp;
+                let deriv = if dt >= deriv_time {
+                    diff / dt
+                } else {
+                    (self.prev_deriv * (deriv_time - dt) + diff) / deriv_time
+                };
+                let err = r.target - temp;
+                let integ_max = if ki != 0.0 { r.max_speed / ki } else { 0.0 };
+                let integ = clamp(self.prev_integ + err * dt, 0.0, integ_max);
+                let co = kp * err + ki * integ - kd * deriv;
+                let bounded = clamp(co, 0.0, r.max_speed);
+                (self.prev_temp, self.prev_clock, self.prev_deriv) = (temp, Some(clock), deriv);
+                if co == bounded {
+                    self.prev_integ = integ;
+                }
+                r.min_speed.max(r.max_speed - bounded)
+            }
+        }
+    }
+
+    /// Klipper's `set_tf_speed` for a reading at `clock`: the speed to
+    /// send and when (`delay` ticks later), unless the change is too
+    /// small to send yet.
+    fn update(&mut self, speed: f64, clock: u32, delay: u32, refresh: u32) -> Option<(u32, f64)> {
+        let mut speed = if speed <= 0.0 {
+            0.0
+        } else {
+            speed.max(self.role.min_speed)
+        };
+        if self.role.target <= 0.0 {
+            speed = 0.0;
+        }
+        let early = is_before(clock, self.next_speed) || self.last_speed == 0.0;
+        if early && (speed - self.last_speed).abs() < 0.05 {
+            return None;
+        }
+        let at = clock.wrapping_add(delay);
+        self.next_speed = at.wrapping_add(refresh);
+        self.last_speed = speed;
+        Some((at, speed))
     }
 }
 
@@ -444,6 +660,8 @@ pub type HeaterReadings<'h> = &'h [(f64, f64)];
 pub struct AccessoryOutputs {
     /// In io order, from io output `first`.
     states: heapless::Vec<State, MAX_OUTPUTS>,
+    /// The temperature fans' controls.
+    cooling: heapless::Vec<Cooling, MAX_COOLING>,
     first: usize,
     /// Clock of the next fan check.
     next_check: u32,
@@ -491,6 +709,11 @@ impl AccessoryOutputs {
             .collect();
         Self {
             states,
+            cooling: accessories
+                .cooling
+                .iter()
+                .map(|&t| Cooling::new(t))
+                .collect(),
             first,
             next_check: start,
             check_ticks: ticks(CHECK_TIME, freq),
@@ -509,10 +732,15 @@ impl AccessoryOutputs {
     /// check of heater and controller fans, a pin's repeat, or the end of
     /// an output's [`PIN_MIN_TIME`] spacing (to forget its clock).
     pub fn next_wake(&self) -> Option<u32> {
-        let checks = self
-            .states
-            .iter()
-            .any(|s| matches!(s, State::Fan { role, .. } if *role != FanRole::Generic));
+        let checks = self.states.iter().any(|s| {
+            matches!(
+                s,
+                State::Fan {
+                    role: FanRole::Heater { .. } | FanRole::Controller { .. },
+                    ..
+                }
+            )
+        });
         let deadlines = self
             .states
             .iter()
@@ -549,6 +777,7 @@ impl AccessoryOutputs {
                     control,
                     role,
                     idle_left,
+                    ..
                 } if check => {
                     let speed = Self::fan_speed(*role, idle_left, self.motors, heaters);
                     if let Some(speed) = speed {
@@ -591,7 +820,7 @@ impl AccessoryOutputs {
                 .map(|(_, h)| *h)
         };
         match role {
-            FanRole::Generic => None,
+            FanRole::Generic | FanRole::Temperature(_) => None,
             FanRole::Heater {
                 heaters: mask,
                 heater_temp,
@@ -640,6 +869,18 @@ impl AccessoryOutputs {
             AccessoryCommand::Pin {
                 pin, print_time, ..
             } => (self.fan_count() + pin, print_time),
+            AccessoryCommand::Cooling {
+                fan,
+                target,
+                min_speed,
+                max_speed,
+            } => {
+                if let Some(c) = self.cooling.get_mut(fan) {
+                    (c.role.target, c.role.min_speed, c.role.max_speed) =
+                        (target, min_speed, max_speed);
+                }
+                return Ok(());
+            }
         };
         let at = clock(print_time);
         let output = self.first + index;
@@ -681,6 +922,43 @@ impl AccessoryOutputs {
             .iter()
             .take_while(|s| matches!(s, State::Fan { .. }))
             .count()
+    }
+
+    /// Temperature sensor `sensor` read `temp` °C at clock `clock`: the
+    /// temperature fans it drives update their speed, `delay` ticks
+    /// later (Klipper's report time); `queue` as for [`Self::poll`].
+    pub fn sensor_report(
+        &mut self,
+        sensor: usize,
+        temp: f64,
+        clock: u32,
+        now: u32,
+        delay: u32,
+        queue: &mut impl FnMut(usize, u32, u32) -> Result<(), Shutdown>,
+    ) -> Result<(), Shutdown> {
+        let refresh = ticks(COOLING_REFRESH, self.freq);
+        for c in self.cooling.iter_mut().filter(|c| c.role.sensor == sensor) {
+            let speed = c.speed(temp, clock, self.freq);
+            let Some((at, speed)) = c.update(speed, clock, delay, refresh) else {
+                continue;
+            };
+            let fan = c.role.fan;
+            if let Some(State::Fan { control, .. }) = self.states.get_mut(fan) {
+                for (clock, value) in control.set(speed, at, now) {
+                    queue(self.first + fan, clock, value)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The target of the temperature fan that reads sensor `sensor`, if
+    /// one does, °C.
+    pub fn cooling_target(&self, sensor: usize) -> Option<f64> {
+        self.cooling
+            .iter()
+            .find(|c| c.role.sensor == sensor)
+            .map(|c| c.role.target)
     }
 
     /// Named fan `fan`'s power (0..1), as last set.

@@ -19,6 +19,24 @@ pub const AMBIENT: f64 = 25.0;
 pub const ADC_MAX: u16 = 4095;
 /// The simulated MCU's die temperature, °C.
 pub const MCU_TEMPERATURE: f64 = 40.0;
+/// Where a temperature fan's sensor settles with its fan off (the
+/// electronics or chamber it cools), °C; at full speed the fan brings
+/// it down to [`AMBIENT`].
+pub const COOLED_HOT: f64 = 45.0;
+/// How fast it follows, s (first order).
+pub const COOLED_TIME: f64 = 20.0;
+
+/// A temperature sensor as physics: what it senses, and the fan that
+/// cools it, if a temperature fan does.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Sensed {
+    conversion: Conversion,
+    /// °C at clock `at`.
+    temp: f64,
+    at: u64,
+    /// The output of the fan cooling it.
+    cooled_by: Option<usize>,
+}
 
 /// The simulated MCU's internal temperature sensor: a typical STM32H7's
 /// factory calibration.
@@ -106,7 +124,7 @@ pub struct Plant {
     pub outputs: Vec<OutputLog>,
     /// Each `[temperature_sensor]`'s conversion and the temperature it
     /// senses, °C (ADC inputs after the heaters').
-    sensors: Vec<(Conversion, f64)>,
+    sensors: Vec<Sensed>,
     /// From this clock on, heater `.1`'s thermistor reads as open circuit
     /// (fault injection).
     pub open_sensor: Option<(u64, usize)>,
@@ -134,15 +152,25 @@ impl Plant {
             .collect::<Vec<_>>();
         let outputs =
             lumps.len() + usize::from(machine.fan.is_some()) + machine.accessories.output_count();
-        let sensors = machine
-            .sensors
-            .iter()
-            .map(|s| {
-                let sensed = match s.input {
-                    SensorInput::Mcu(_) => MCU_TEMPERATURE,
-                    SensorInput::Adc { .. } => AMBIENT,
+        let first_fan = lumps.len() + usize::from(machine.fan.is_some());
+        let cooling = |sensor: usize| {
+            let fans = &machine.accessories.cooling;
+            fans.iter().find(|t| t.sensor == sensor).map(|t| t.fan)
+        };
+        let sensors = (machine.sensors.iter().enumerate())
+            .map(|(i, s)| {
+                let cooled_by = cooling(i).map(|fan| first_fan + fan);
+                let temp = match (s.input, cooled_by) {
+                    (_, Some(_)) => COOLED_HOT,
+                    (SensorInput::Mcu(_), None) => MCU_TEMPERATURE,
+                    (SensorInput::Adc { .. }, None) => AMBIENT,
                 };
-                (s.conversion(mcu_sensor()), sensed)
+                Sensed {
+                    conversion: s.conversion(mcu_sensor()),
+                    temp,
+                    at: 0,
+                    cooled_by,
+                }
             })
             .collect();
         Self {
@@ -158,7 +186,35 @@ impl Plant {
     /// Temperature sensor `index` senses `celsius` from now on.
     pub fn set_sensed(&mut self, index: usize, celsius: f64) {
         if let Some(sensor) = self.sensors.get_mut(index) {
-            sensor.1 = celsius;
+            (sensor.temp, sensor.at) = (celsius, self.now);
+        }
+    }
+
+    /// Temperature sensor `index`'s temperature now, °C.
+    pub fn sensed(&mut self, index: usize) -> Option<f64> {
+        self.advance_sensor(index);
+        self.sensors.get(index).map(|s| s.temp)
+    }
+
+    /// Runs a cooled sensor's physics to now (exact for a constant fan
+    /// power).
+    fn advance_sensor(&mut self, index: usize) {
+        let (now, freq) = (self.now, self.freq);
+        let Some(s) = self.sensors.get(index).copied() else {
+            return;
+        };
+        let Some(fan) = s.cooled_by.filter(|_| now > s.at) else {
+            return;
+        };
+        let power = self
+            .outputs
+            .get(fan)
+            .and_then(|o| o.drive)
+            .map_or(0.0, Self::power);
+        let settle = COOLED_HOT - (COOLED_HOT - AMBIENT) * power;
+        let decay = (-((now - s.at) as f64 / freq) / COOLED_TIME).exp();
+        if let Some(s) = self.sensors.get_mut(index) {
+            (s.temp, s.at) = (settle + (s.temp - settle) * decay, now);
         }
     }
 
@@ -200,6 +256,12 @@ impl Plant {
 
 impl Peripherals for Plant {
     fn drive(&mut self, index: usize, drive: Drive) {
+        // What the old power did to the sensors this output cools.
+        for sensor in 0..self.sensors.len() {
+            if self.sensors[sensor].cooled_by == Some(index) {
+                self.advance_sensor(sensor);
+            }
+        }
         let now = self.now;
         let Some(log) = self.outputs.get_mut(index) else {
             return;
@@ -231,10 +293,14 @@ impl Peripherals for Plant {
                 lump.advance(now, freq);
                 lump.sensor.adc(lump.temp)
             }
-            None => match self.sensors.get(index - self.lumps.len()) {
-                Some((conversion, celsius)) => conversion.reading(*celsius),
-                None => return 0,
-            },
+            None => {
+                let sensor = index - self.lumps.len();
+                self.advance_sensor(sensor);
+                match self.sensors.get(sensor) {
+                    Some(s) => s.conversion.reading(s.temp),
+                    None => return 0,
+                }
+            }
         };
         (reading * f64::from(ADC_MAX))
             .round()

@@ -4,9 +4,10 @@
 //! `[filament_switch_sensor]`, read together for [`crate::machine`].
 
 use crate::board_pins::{self, BoardPins};
-use crate::fan_sections::{self, MAX_FANS, NamedFan};
+use crate::fan_sections::{self, CoolingTables, MAX_COOLING, MAX_FANS, NamedFan, TemperatureFan};
 use crate::filament_sensor::{self, FilamentSensor, MAX_FILAMENT_SENSORS};
 use crate::output_pin::{self, MAX_OUTPUT_PINS, MAX_STATIC_PINS, OutputPin, StaticPin};
+use crate::sensor_section::{MAX_SENSORS, SensorSection};
 use onechip_config::{Config, ConfigError};
 
 /// Most outputs all these sections drive together (fans, output pins,
@@ -20,6 +21,8 @@ pub struct Accessories<'a> {
     pub board_pins: BoardPins<'a>,
     /// Named fans, in printer.cfg's order.
     pub fans: heapless::Vec<NamedFan<'a>, MAX_FANS>,
+    /// The temperature fans' controls, in printer.cfg's order.
+    pub cooling: heapless::Vec<TemperatureFan, MAX_COOLING>,
     /// `[output_pin]`s, in printer.cfg's order.
     pub output_pins: heapless::Vec<OutputPin<'a>, MAX_OUTPUT_PINS>,
     /// Every `[static_digital_output]` pin.
@@ -39,12 +42,14 @@ pub fn is_section(section: &str) -> bool {
 
 impl<'a> Accessories<'a> {
     /// Reads them from `config`; `heaters` and `steppers` are the
-    /// machine's heater and stepper names, in order. A section past a
-    /// table's size is an error naming it.
+    /// machine's heater and stepper names, in order; temperature fans'
+    /// sensors join `sensors`. A section past a table's size is an error
+    /// naming it.
     pub fn read<'c>(
         config: &'c Config<'a>,
         heaters: &[&str],
         steppers: &[&str],
+        sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
     ) -> Result<Self, ConfigError<'c>> {
         let mut this = Self {
             board_pins: BoardPins::read(config)?,
@@ -57,7 +62,12 @@ impl<'a> Accessories<'a> {
             };
             let full = "is in one section too many of its kind for onechip";
             if fan_sections::is_section(name) {
-                let fan = fan_sections::read(config, &section, heaters, steppers)?;
+                let tables = CoolingTables {
+                    sensors: &mut *sensors,
+                    cooling: &mut this.cooling,
+                    fan: this.fans.len(),
+                };
+                let fan = fan_sections::read(config, &section, heaters, steppers, tables)?;
                 this.fans
                     .push(fan)
                     .map_err(|_| section.error_for("pin", full))?;

@@ -5,6 +5,7 @@
 //! SPEED=…`). Each has every `[fan]` option ([`crate::thermal::Fan`]).
 
 use crate::output_pin::named;
+use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::thermal::{self, Fan};
 use onechip_config::{Bounds, Config, ConfigError, Section};
 
@@ -49,6 +50,56 @@ pub enum FanRole {
     },
     /// `[fan_generic]`: set by G-code only.
     Generic,
+    /// `[temperature_fan]`: its own sensor's temperature held at a
+    /// target by cooling; its control is entry `.0` of the temperature
+    /// fans ([`crate::accessories::Accessories::cooling`]).
+    Temperature(u8),
+}
+
+/// Most `[temperature_fan]`s.
+pub const MAX_COOLING: usize = 2;
+
+/// A `[temperature_fan]`'s control, with Klipper's options.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TemperatureFan {
+    /// Its fan: index among the named fans.
+    pub fan: usize,
+    /// Its sensor: index into the machine's temperature sensors.
+    pub sensor: usize,
+    /// target_temp, °C.
+    pub target: f64,
+    /// min_temp and max_temp, °C (the range a target may have).
+    pub min_temp: f64,
+    /// max_temp, °C.
+    pub max_temp: f64,
+    /// min_speed, 0..1.
+    pub min_speed: f64,
+    /// max_speed, 0..1.
+    pub max_speed: f64,
+    /// `control`.
+    pub law: CoolingLaw,
+}
+
+/// How a temperature fan's speed follows its temperature.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CoolingLaw {
+    /// `watermark`: max_speed from target + max_delta up, off from
+    /// target − max_delta down.
+    Watermark {
+        /// max_delta, °C.
+        max_delta: f64,
+    },
+    /// `pid`: the gains as Klipper uses them (printer.cfg's over 255).
+    Pid {
+        /// pid_Kp / 255.
+        kp: f64,
+        /// pid_Ki / 255.
+        ki: f64,
+        /// pid_Kd / 255.
+        kd: f64,
+        /// pid_deriv_time, s.
+        deriv_time: f64,
+    },
 }
 
 /// A named fan.
@@ -65,7 +116,12 @@ pub struct NamedFan<'a> {
 }
 
 /// The section kinds this module reads, by prefix.
-pub const PREFIXES: [&str; 3] = ["heater_fan", "controller_fan", "fan_generic"];
+pub const PREFIXES: [&str; 4] = [
+    "heater_fan",
+    "controller_fan",
+    "fan_generic",
+    "temperature_fan",
+];
 
 /// True if `section` is a named fan this module reads.
 pub fn is_section(section: &str) -> bool {
@@ -94,14 +150,26 @@ fn bits<'c>(
     Ok(mask)
 }
 
+/// What a temperature fan adds besides its fan: its sensor and control.
+pub struct CoolingTables<'t, 'a> {
+    /// The machine's temperature sensors.
+    pub sensors: &'t mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
+    /// The temperature fans' controls.
+    pub cooling: &'t mut heapless::Vec<TemperatureFan, MAX_COOLING>,
+    /// The index the fan read will have among the named fans.
+    pub fan: usize,
+}
+
 /// Reads the named fan `section`; `heaters` and `steppers` are the
-/// machine's heater and stepper names, in order.
+/// machine's heater and stepper names, in order; a temperature fan's
+/// sensor and control join `tables`.
 #[inline(never)]
 pub fn read<'c, 'a>(
-    config: &Config<'a>,
+    config: &'c Config<'a>,
     section: &Section<'c, 'a>,
     heaters: &[&str],
     steppers: &[&str],
+    tables: CoolingTables<'_, 'a>,
 ) -> Result<NamedFan<'a>, ConfigError<'c>> {
     let written = section.name_in_file();
     let (kind, name) = PREFIXES
@@ -139,6 +207,16 @@ pub fn read<'c, 'a>(
                 0.0,
             )
         }
+        "temperature_fan" => {
+            let mut control = read_temperature_fan(config, section, tables.sensors)?;
+            control.fan = tables.fan;
+            let index = tables.cooling.len() as u8;
+            tables
+                .cooling
+                .push(control)
+                .map_err(|_| section.error_for("pin", "is one temperature fan too many"))?;
+            (FanRole::Temperature(index), 1.0)
+        }
         _ => (FanRole::Generic, 0.0),
     };
     Ok(NamedFan {
@@ -149,12 +227,76 @@ pub fn read<'c, 'a>(
     })
 }
 
+/// A `[temperature_fan]`'s sensor (min_temp and max_temp required) and
+/// control, with Klipper's defaults.
+fn read_temperature_fan<'c, 'a>(
+    config: &'c Config<'a>,
+    section: &Section<'c, 'a>,
+    sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
+) -> Result<TemperatureFan, ConfigError<'c>> {
+    let sensor = sensor_section::read(config, section, (None, None))?;
+    let (min_temp, max_temp) = (sensor.min_temp, sensor.max_temp);
+    let index = sensors.len();
+    sensors
+        .push(sensor)
+        .map_err(|_| section.error_for("sensor_type", "too many temperature sensors"))?;
+    let max_speed = section.get_float(
+        "max_speed",
+        Some(1.0),
+        Bounds {
+            above: Some(0.0),
+            maxval: Some(1.0),
+            ..Bounds::NONE
+        },
+    )?;
+    let min_speed = section.get_float("min_speed", Some(0.3), UNIT)?;
+    let target = section.get_float(
+        "target_temp",
+        Some(if max_temp > 40.0 { 40.0 } else { max_temp }),
+        Bounds {
+            minval: Some(min_temp),
+            maxval: Some(max_temp),
+            ..Bounds::NONE
+        },
+    )?;
+    let law = match section.get_choice("control", &["watermark", "pid"], None)? {
+        "pid" => CoolingLaw::Pid {
+            kp: section.get_float("pid_kp", None, Bounds::NONE)? / PID_PARAM_BASE,
+            ki: section.get_float("pid_ki", None, Bounds::NONE)? / PID_PARAM_BASE,
+            kd: section.get_float("pid_kd", None, Bounds::NONE)? / PID_PARAM_BASE,
+            deriv_time: section.get_float("pid_deriv_time", Some(2.0), Bounds::POSITIVE)?,
+        },
+        _ => CoolingLaw::Watermark {
+            max_delta: section.get_float("max_delta", Some(2.0), Bounds::POSITIVE)?,
+        },
+    };
+    Ok(TemperatureFan {
+        fan: 0,
+        sensor: index,
+        target,
+        min_temp,
+        max_temp,
+        min_speed,
+        max_speed,
+        law,
+    })
+}
+
+/// Klipper's PID gains are written 255 times what acts on 0..1.
+const PID_PARAM_BASE: f64 = 255.0;
+
 #[cfg(test)]
 mod tests {
     extern crate std;
     use super::*;
 
     const HEATERS: [&str; 2] = ["extruder", "heater_bed"];
+
+    std::thread_local! {
+        /// The temperature fan control the last [`fan`] read, if any.
+        static COOLING: std::cell::RefCell<Option<TemperatureFan>> =
+            const { std::cell::RefCell::new(None) };
+    }
     const STEPPERS: [&str; 4] = ["stepper_x", "stepper_y", "stepper_z", "extruder"];
 
     fn fan(text: &str, section: &str) -> Result<NamedFan<'static>, std::string::String> {
@@ -163,7 +305,16 @@ mod tests {
             Config::parse("printer.cfg", text).expect("parses"),
         ));
         let section = config.section(section).expect("section");
-        read(config, &section, &HEATERS, &STEPPERS).map_err(|e| std::format!("{e}"))
+        let (mut sensors, mut cooling) = (heapless::Vec::new(), heapless::Vec::new());
+        let tables = CoolingTables {
+            sensors: &mut sensors,
+            cooling: &mut cooling,
+            fan: 0,
+        };
+        let fan =
+            read(config, &section, &HEATERS, &STEPPERS, tables).map_err(|e| std::format!("{e}"))?;
+        COOLING.with(|c| *c.borrow_mut() = cooling.first().copied());
+        Ok(fan)
     }
 
     #[test]
@@ -210,6 +361,53 @@ mod tests {
             (generic.role, generic.fan.max_power),
             (FanRole::Generic, 0.5)
         );
+    }
+
+    #[test]
+    fn a_temperature_fan_reads_its_sensor_and_control_with_klippers_defaults() {
+        let f = fan(
+            "[temperature_fan board]\npin: PD12\nsensor_type: temperature_mcu\nmin_temp: 0\n\
+             max_temp: 90\ncontrol: pid\npid_Kp: 2\npid_Ki: 5\npid_Kd: 0.5\n",
+            "temperature_fan board",
+        )
+        .expect("reads");
+        assert_eq!(f.role, FanRole::Temperature(0));
+        let t = COOLING.with(|c| c.borrow().expect("a control"));
+        assert_eq!(
+            (t.sensor, t.target, t.min_temp, t.max_temp),
+            (0, 40.0, 0.0, 90.0)
+        );
+        assert_eq!((t.min_speed, t.max_speed), (0.3, 1.0));
+        assert_eq!(
+            t.law,
+            CoolingLaw::Pid {
+                kp: 2.0 / 255.0,
+                ki: 5.0 / 255.0,
+                kd: 0.5 / 255.0,
+                deriv_time: 2.0
+            }
+        );
+        // Full speed at shutdown, as Klipper's temperature fans.
+        assert_eq!(f.fan.shutdown_speed, 1.0);
+        let low = fan(
+            "[temperature_fan t]\npin: PD12\nsensor_type: temperature_mcu\nmin_temp: 0\n\
+             max_temp: 30\ncontrol: watermark\n",
+            "temperature_fan t",
+        )
+        .expect("reads");
+        assert_eq!(low.role, FanRole::Temperature(0));
+        let t = COOLING.with(|c| c.borrow().expect("a control"));
+        assert_eq!(
+            (t.target, t.law),
+            (30.0, CoolingLaw::Watermark { max_delta: 2.0 })
+        );
+        let e = fan(
+            "[temperature_fan t]\npin: PD12\nsensor_type: temperature_mcu\nmax_temp: 30\n\
+             control: watermark\n",
+            "temperature_fan t",
+        )
+        .expect_err("min_temp is required");
+        assert!(e.contains("min_temp"), "{e}");
     }
 
     #[test]

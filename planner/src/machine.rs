@@ -340,9 +340,9 @@ impl<'a> Machine<'a> {
         let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
         let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
             steppers.iter().map(|s| s.name).collect();
-        let accessories = Accessories::read(config, &heater_names, &stepper_names)?;
+        let mut sensors = sensor_section::read_all(config)?;
+        let accessories = Accessories::read(config, &heater_names, &stepper_names, &mut sensors)?;
         let tmc = tmc::config::read_all(config, step_distance)?;
-        let sensors = sensor_section::read_all(config)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)

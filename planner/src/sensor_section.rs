@@ -203,7 +203,7 @@ pub fn read_all<'c, 'a>(
         let Some(section) = config.section(name) else {
             continue;
         };
-        let sensor = read(config, &section)?;
+        let sensor = read(config, &section, (Some(-ZERO_CELSIUS), Some(NO_MAX_TEMP)))?;
         sensors
             .push(sensor)
             .map_err(|_| section.error_for("sensor_type", "too many temperature sensors"))?;
@@ -211,11 +211,13 @@ pub fn read_all<'c, 'a>(
     Ok(sensors)
 }
 
-/// Reads one section, with Klipper's defaults (no lower or upper limit
-/// to speak of).
-fn read<'c, 'a>(
+/// Reads the sensor of `section` (a `[temperature_sensor]`, or a
+/// `[temperature_fan]`'s), min_temp and max_temp with these defaults
+/// (None: required).
+pub fn read<'c, 'a>(
     config: &'c Config<'a>,
     section: &Section<'c, 'a>,
+    (min_default, max_default): (Option<f64>, Option<f64>),
 ) -> Result<SensorSection<'a>, ConfigError<'c>> {
     let input = if section
         .get("sensor_type")?
@@ -235,8 +237,7 @@ fn read<'c, 'a>(
             sensor: temperature_sensor::read(config, section)?,
         }
     };
-    let (min_temp, max_temp) =
-        thermal::read_temperature_limits(section, Some(-ZERO_CELSIUS), Some(NO_MAX_TEMP))?;
+    let (min_temp, max_temp) = thermal::read_temperature_limits(section, min_default, max_default)?;
     let name = section.name_in_file();
     Ok(SensorSection {
         name: name.split_once(' ').map_or(name, |(_, n)| n.trim()),

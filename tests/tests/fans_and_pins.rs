@@ -302,3 +302,99 @@ fn a_filament_runout_pauses_a_print_from_the_card() {
     assert!(p.is_printing());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The value after `label:` in an M105 reply, and its target.
+fn reported(reply: &str, label: &str) -> (f64, f64) {
+    let at = reply
+        .find(&format!(" {label}:"))
+        .unwrap_or_else(|| panic!("{label} in {reply}"));
+    let mut words = reply[at + label.len() + 2..].split_whitespace();
+    let temp = words.next().and_then(|t| t.parse().ok()).expect("temp");
+    let target = words
+        .next()
+        .and_then(|t| t.trim_start_matches('/').parse().ok())
+        .expect("target");
+    (temp, target)
+}
+
+/// A temperature fan cooling the simulated electronics (45 °C with the
+/// fan off, 25 °C at full speed) on a thermistor input.
+fn cooling(control: &str) -> String {
+    format!(
+        "\n[temperature_fan board]\npin: PD12\nsensor_type: EPCOS 100K B57560G104F\n\
+         sensor_pin: PF5\nmin_temp: 0\nmax_temp: 100\ntarget_temp: 35\ngcode_id: BRD\n{control}\n"
+    )
+}
+
+#[test]
+fn a_watermark_temperature_fan_holds_its_target_within_max_delta() {
+    let dir = sd(
+        "tfan-watermark",
+        &cooling("control: watermark\nmax_delta: 2"),
+    );
+    let mut p = printer(&dir);
+    let (mut temps, mut speeds) = (Vec::new(), Vec::new());
+    for _ in 0..240 {
+        p.run_for(0.5);
+        let (temp, target) = reported(&p.send("M105"), "BRD");
+        assert_eq!(target, 35.0);
+        temps.push(temp);
+        speeds.push(output(&mut p, "PD12"));
+    }
+    // Hot at first: full speed from the first report on (0.2 s, set
+    // 0.3 s later), down to 33 °C; then off until 37 °C, on again: the
+    // temperature cycles within the band (a report's lag and a 0.5 s
+    // sample apart).
+    assert_eq!(speeds[1], 1.0, "{speeds:?}");
+    let switches = speeds.windows(2).filter(|w| w[0] != w[1]).count();
+    assert!(switches >= 4, "{switches} switches: {speeds:?}");
+    assert!(speeds.iter().all(|&s| s == 0.0 || s == 1.0));
+    let settled = &temps[temps.iter().position(|&t| t < 35.0).expect("cooled")..];
+    let (low, high) = settled
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(l, h), &t| (l.min(t), h.max(t)));
+    assert!(low > 32.0 && high < 38.0, "{low}..{high}: {temps:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_pid_temperature_fan_settles_at_its_target_and_set_temperature_fan_target_moves_it() {
+    let pid = "control: pid\npid_Kp: 40\npid_Ki: 2\npid_Kd: 0\nmin_speed: 0.1";
+    let dir = sd("tfan-pid", &cooling(pid));
+    let mut p = printer(&dir);
+    p.run_for(240.0);
+    let (temp, _) = reported(&p.send("M105"), "BRD");
+    let speed = output(&mut p, "PD12");
+    assert!((temp - 35.0).abs() < 1.0, "{temp} °C at speed {speed}");
+    // 35 °C needs half the cooling between 45 and 25 °C.
+    assert!((0.35..0.65).contains(&speed), "{speed}");
+    // A lower target takes more cooling; the range and speeds are checked
+    // as Klipper does.
+    assert_eq!(
+        p.send("SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=board TARGET=30"),
+        "ok\n"
+    );
+    p.run_for(240.0);
+    let (temp, target) = reported(&p.send("M105"), "BRD");
+    assert_eq!(target, 30.0);
+    assert!((temp - 30.0).abs() < 1.0, "{temp}");
+    assert!(output(&mut p, "PD12") > speed);
+    for (line, error) in [
+        (
+            "SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=board TARGET=150",
+            "Requested temperature (150.0) out of range (0.0:100.0)",
+        ),
+        (
+            "SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=board MIN_SPEED=0.8 MAX_SPEED=0.5",
+            "Requested min speed (0.8) is greater than max speed (0.5)",
+        ),
+        (
+            "SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=nope",
+            "The value 'nope' is not valid for TEMPERATURE_FAN",
+        ),
+    ] {
+        let reply = p.send(line);
+        assert!(reply.contains(error), "{line}: {reply}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -45,7 +45,7 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// MAX31855 (an SPI sensor, refused naming its `sensor_type`).
 const MIN_LOADED: usize = 138;
 /// Section kinds supported now, which no file may list as unsupported.
-const NOW_SUPPORTED: [&str; 9] = [
+const NOW_SUPPORTED: [&str; 10] = [
     "heater_fan",
     "controller_fan",
     "fan_generic",
@@ -55,14 +55,19 @@ const NOW_SUPPORTED: [&str; 9] = [
     "filament_switch_sensor",
     "temperature_sensor",
     "stepper_z1",
+    "temperature_fan",
 ];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with
 /// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers;
 /// 139, every file that loads, once the 8 deltas home their towers
 /// together as Klipper does; 138 since `[temperature_sensor]` is read:
-/// see [`MIN_LOADED`]).
-const MIN_HOMED_AND_MOVED: usize = 138;
+/// see [`MIN_LOADED`]; 137 since `[temperature_fan]` runs:
+/// generic-duet2-duex.cfg's chamber fan has min_temp 40 and its fan
+/// cools the simulated chamber below that, which the MCU's range check
+/// shuts down with Klipper's "ADC out of range", as Klipper would in a
+/// room that cool).
+const MIN_HOMED_AND_MOVED: usize = 137;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;
