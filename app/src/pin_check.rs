@@ -206,6 +206,13 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
             option: "sensor_pin",
             pin,
         }),
+        // The chip select; a bus's clock and data pins are shared by its
+        // chips, as Klipper allows.
+        SensorInput::Spi { bus, .. } => Some(PinUse {
+            section: s.name,
+            option: "sensor_pin",
+            pin: bus.cs_pin,
+        }),
         SensorInput::Mcu(_) => None,
     });
     let fan = machine.fan.iter().map(|f| PinUse {

@@ -2,13 +2,16 @@
 //! each heater is a lump that the heater output warms and the room cools
 //! (first order, exact between pin changes), read through its temperature
 //! sensor (the conversion the firmware's heater control uses, run
-//! backwards) and a 12-bit ADC; every output's changes are tallied.
+//! backwards) and a 12-bit ADC, or an SPI converter chip answering its
+//! register reads with the raw value of the temperature (Klipper's
+//! conversion run backwards); every output's changes are tallied.
 
 use onechip_app::heaters::PWM_MAX;
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::{
     Conversion, LinearConversion, SensorInput, TYPICAL_STM32H7_CAL,
 };
+use onechip_planner::spi_temperature::{Chip, SpiSensor};
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
@@ -110,6 +113,12 @@ pub struct Plant {
     /// From this clock on, heater `.1`'s thermistor reads as open circuit
     /// (fault injection).
     pub open_sensor: Option<(u64, usize)>,
+    /// From clock `.0` on, SPI input `.1`'s chip reports fault bits `.2`
+    /// (in the word of a MAX6675 or MAX31855, in the fault status register
+    /// of a MAX31856 or MAX31865; fault injection).
+    pub spi_fault: Option<(u64, usize, u32)>,
+    /// Every register write to an SPI chip: its input and the bytes.
+    pub spi_writes: Vec<(usize, Vec<u8>)>,
 }
 
 impl Plant {
@@ -140,7 +149,7 @@ impl Plant {
             .map(|s| {
                 let sensed = match s.input {
                     SensorInput::Mcu(_) => MCU_TEMPERATURE,
-                    SensorInput::Adc { .. } => AMBIENT,
+                    SensorInput::Adc { .. } | SensorInput::Spi { .. } => AMBIENT,
                 };
                 (s.conversion(mcu_sensor()), sensed)
             })
@@ -152,6 +161,8 @@ impl Plant {
             outputs: vec![OutputLog::default(); outputs],
             sensors,
             open_sensor: None,
+            spi_fault: None,
+            spi_writes: Vec::new(),
         }
     }
 
@@ -186,6 +197,25 @@ impl Plant {
             Drive::Level(on) => f64::from(u8::from(on)),
             Drive::Duty(d) => f64::from(d) / f64::from(PWM_MAX),
         }
+    }
+
+    /// Input `index`'s SPI chip and the temperature it senses now, °C.
+    fn spi_chip(&mut self, index: usize) -> Option<(SpiSensor, f64)> {
+        let (now, freq) = (self.now, self.freq);
+        let (sensor, celsius) = match self.lumps.get_mut(index) {
+            Some(lump) => {
+                lump.advance(now, freq);
+                (lump.sensor, lump.temp)
+            }
+            None => {
+                let (conversion, celsius) = self.sensors.get(index - self.lumps.len())?;
+                match conversion {
+                    Conversion::Sensor(sensor) => (*sensor, *celsius),
+                    Conversion::Linear(_) => return None,
+                }
+            }
+        };
+        Some((*sensor.spi()?, celsius))
     }
 
     /// Ends every output's log at the current time.
@@ -239,5 +269,53 @@ impl Peripherals for Plant {
         (reading * f64::from(ADC_MAX))
             .round()
             .clamp(0.0, f64::from(ADC_MAX)) as u16
+    }
+
+    /// The chip answers as the real one does to the reads Klipper's MCU
+    /// code makes: a MAX6675's 16-bit or a MAX31855's 32-bit word, a
+    /// MAX31856's or MAX31865's value and fault status registers; writes
+    /// (address bit 7 set) are recorded.
+    fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
+        let Some((chip, celsius)) = self.spi_chip(index) else {
+            data.fill(0);
+            return;
+        };
+        let now = self.now;
+        let fault = self
+            .spi_fault
+            .filter(|&(from, input, _)| input == index && now >= from)
+            .map_or(0, |f| f.2);
+        let raw = chip.raw(celsius);
+        let register = data.first().copied().unwrap_or(0);
+        let reply: [u8; 4] = match chip.chip {
+            Chip::Max6675 => {
+                let word = ((raw | fault) as u16).to_be_bytes();
+                [word[0], word[1], 0, 0]
+            }
+            Chip::Max31855 => (raw | fault).to_be_bytes(),
+            Chip::Max31856 | Chip::Max31865 if register & 0x80 != 0 => {
+                self.spi_writes.push((index, data.to_vec()));
+                return;
+            }
+            Chip::Max31856 => match register {
+                0x0C => (raw & 0x00FF_FFFF).to_be_bytes(),
+                0x0F => [0, fault as u8, 0, 0],
+                _ => [0; 4],
+            },
+            Chip::Max31865 => match register {
+                0x01 => {
+                    let value = (raw as u16).to_be_bytes();
+                    [0, value[0], value[1], 0]
+                }
+                0x07 => [0, fault as u8, 0, 0],
+                _ => [0; 4],
+            },
+        };
+        // The word chips answer from the first byte; the register chips
+        // after the address byte.
+        let from = usize::from(matches!(chip.chip, Chip::Max31856 | Chip::Max31865));
+        for (i, byte) in data.iter_mut().enumerate().skip(from) {
+            *byte = reply.get(i).copied().unwrap_or(0);
+        }
     }
 }
