@@ -27,6 +27,8 @@ pub use onechip_planner::sensor_section::{
     LinearConversion, MCU_TEMPERATURE_PIN, TYPICAL_STM32H7_CAL,
 };
 use onechip_planner::spi_temperature::{Chip, SpiSensor};
+// An SPI sensor's bus, for the shells that wire it.
+pub use onechip_planner::spi_temperature::{SpiBus, SpiBusPins};
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_planner::thermal::{Control, PWM_DELAY, VerifyHeater};
 use onechip_sched::adc::AdcQuery;
@@ -518,6 +520,19 @@ impl<'a> McuSetup<'a> {
             .extend(accessories.take(setup.outputs.capacity() - setup.outputs.len()));
         setup
     }
+}
+
+/// Each input's SPI bus (None: an ADC input), in [`McuSetup::inputs`]'
+/// order: the heaters', then the temperature sensors'.
+pub fn input_buses<'m, 'a>(
+    machine: &'m Machine<'a>,
+) -> impl Iterator<Item = Option<SpiBus<'a>>> + 'm {
+    let heaters = machine.heaters.iter().map(|h| h.spi);
+    let sensors = machine.sensors.iter().map(|s| match s.input {
+        onechip_planner::sensor_section::SensorInput::Spi { bus, .. } => Some(bus),
+        _ => None,
+    });
+    heaters.chain(sensors)
 }
 
 /// An output's full-scale value: its cycle ticks (software PWM) or
