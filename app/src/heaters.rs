@@ -26,9 +26,9 @@ use onechip_planner::sensor_section::{Conversion, MAX_SENSORS};
 pub use onechip_planner::sensor_section::{
     LinearConversion, MCU_TEMPERATURE_PIN, TYPICAL_STM32H7_CAL,
 };
-use onechip_planner::spi_temperature::{Chip, SpiSensor};
-// An SPI sensor's bus, for the shells that wire it.
-pub use onechip_planner::spi_temperature::{SpiBus, SpiBusPins};
+use onechip_planner::spi_temperature::Chip;
+// An SPI sensor's chip and bus, for the shells that wire or simulate it.
+pub use onechip_planner::spi_temperature::{SpiBus, SpiBusPins, SpiSensor};
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_planner::thermal::{Control, PWM_DELAY, VerifyHeater};
 use onechip_sched::adc::AdcQuery;
@@ -530,6 +530,17 @@ pub fn input_buses<'m, 'a>(
     let heaters = machine.heaters.iter().map(|h| h.spi);
     let sensors = machine.sensors.iter().map(|s| match s.input {
         onechip_planner::sensor_section::SensorInput::Spi { bus, .. } => Some(bus),
+        _ => None,
+    });
+    heaters.chain(sensors)
+}
+
+/// Each input's SPI chip (None: an ADC input), in
+/// [`McuSetup::inputs`]' order.
+pub fn input_chips<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = Option<SpiSensor>> + 'm {
+    let heaters = machine.heaters.iter().map(|h| h.sensor.spi().copied());
+    let sensors = machine.sensors.iter().map(|s| match s.input {
+        onechip_planner::sensor_section::SensorInput::Spi { sensor, .. } => Some(sensor),
         _ => None,
     });
     heaters.chain(sensors)

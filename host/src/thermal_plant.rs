@@ -11,7 +11,7 @@ use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::{
     Conversion, LinearConversion, SensorInput, TYPICAL_STM32H7_CAL,
 };
-use onechip_planner::spi_temperature::{Chip, SpiSensor};
+use onechip_planner::spi_temperature::SpiSensor;
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
@@ -272,9 +272,7 @@ impl Peripherals for Plant {
     }
 
     /// The chip answers as the real one does to the reads Klipper's MCU
-    /// code makes: a MAX6675's 16-bit or a MAX31855's 32-bit word, a
-    /// MAX31856's or MAX31865's value and fault status registers; writes
-    /// (address bit 7 set) are recorded.
+    /// code makes ([`SpiSensor::simulate_reply`]); writes are recorded.
     fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
         let Some((chip, celsius)) = self.spi_chip(index) else {
             data.fill(0);
@@ -285,37 +283,8 @@ impl Peripherals for Plant {
             .spi_fault
             .filter(|&(from, input, _)| input == index && now >= from)
             .map_or(0, |f| f.2);
-        let raw = chip.raw(celsius);
-        let register = data.first().copied().unwrap_or(0);
-        let reply: [u8; 4] = match chip.chip {
-            Chip::Max6675 => {
-                let word = ((raw | fault) as u16).to_be_bytes();
-                [word[0], word[1], 0, 0]
-            }
-            Chip::Max31855 => (raw | fault).to_be_bytes(),
-            Chip::Max31856 | Chip::Max31865 if register & 0x80 != 0 => {
-                self.spi_writes.push((index, data.to_vec()));
-                return;
-            }
-            Chip::Max31856 => match register {
-                0x0C => (raw & 0x00FF_FFFF).to_be_bytes(),
-                0x0F => [0, fault as u8, 0, 0],
-                _ => [0; 4],
-            },
-            Chip::Max31865 => match register {
-                0x01 => {
-                    let value = (raw as u16).to_be_bytes();
-                    [0, value[0], value[1], 0]
-                }
-                0x07 => [0, fault as u8, 0, 0],
-                _ => [0; 4],
-            },
-        };
-        // The word chips answer from the first byte; the register chips
-        // after the address byte.
-        let from = usize::from(matches!(chip.chip, Chip::Max31856 | Chip::Max31865));
-        for (i, byte) in data.iter_mut().enumerate().skip(from) {
-            *byte = reply.get(i).copied().unwrap_or(0);
+        if !chip.simulate_reply(celsius, fault, data) {
+            self.spi_writes.push((index, data.to_vec()));
         }
     }
 }

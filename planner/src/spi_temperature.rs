@@ -169,6 +169,44 @@ impl SpiSensor {
         (a.min(b), a.max(b))
     }
 
+    /// A simulated chip's answer to the transfer `data` (bytes sent,
+    /// replaced by those received) at `celsius` with fault bits `fault`
+    /// (in the word of a MAX6675 or MAX31855, in the fault status
+    /// register of a MAX31856 or MAX31865), for the reads Klipper's MCU
+    /// code makes; false for a register write (address bit 7 set), which
+    /// is not answered.
+    pub fn simulate_reply(&self, celsius: f64, fault: u32, data: &mut [u8]) -> bool {
+        let raw = self.raw(celsius);
+        let register = data.first().copied().unwrap_or(0);
+        let (reply, from): ([u8; 4], usize) = match self.chip {
+            Chip::Max6675 => {
+                let word = ((raw | fault) as u16).to_be_bytes();
+                ([word[0], word[1], 0, 0], 0)
+            }
+            Chip::Max31855 => ((raw | fault).to_be_bytes(), 0),
+            _ if register & 0x80 != 0 => return false,
+            Chip::Max31856 => match register {
+                0x0C => ((raw & 0x00FF_FFFF).to_be_bytes(), 1),
+                0x0F => ([0, fault as u8, 0, 0], 1),
+                _ => ([0; 4], 1),
+            },
+            Chip::Max31865 => match register {
+                0x01 => {
+                    let value = (raw as u16).to_be_bytes();
+                    ([0, value[0], value[1], 0], 1)
+                }
+                0x07 => ([0, fault as u8, 0, 0], 1),
+                _ => ([0; 4], 1),
+            },
+        };
+        // The word chips answer from the first byte; the register chips
+        // after the address byte.
+        for (i, byte) in data.iter_mut().enumerate().skip(from) {
+            *byte = reply.get(i).copied().unwrap_or(0);
+        }
+        true
+    }
+
     /// What Klipper's host logs for fault bits `fault` of a report
     /// (`handle_fault`), one message per bit set.
     pub fn fault_messages(&self, fault: u8) -> impl Iterator<Item = &'static str> {
