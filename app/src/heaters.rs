@@ -1,7 +1,9 @@
 //! Heaters and the part-cooling fan, from printer.cfg to the MCU role's
 //! outputs: each heater is a software-PWM output with Klipper's 3 s
 //! max_duration and a thermistor ADC input sampled 8 times every 0.3 s and
-//! range-checked against min_temp/max_temp; each temperature report runs
+//! range-checked against min_temp/max_temp (or an SPI chip read once every
+//! 0.3 s with Klipper's range and fault checks, [`InputQuery::Spi`]); each
+//! temperature report runs
 //! the heater's control (PID or watermark) at once, which queues the next
 //! PWM value 0.308 s after the report, as Klipper's host does.
 //!

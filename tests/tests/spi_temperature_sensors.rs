@@ -65,7 +65,7 @@ fn the_hot_end_reaches_200_c_through_every_spi_chip() {
     ];
     for (name, sensor) in cases {
         let s = run(
-            name,
+            &format!("heat-{name}"),
             sensor,
             "",
             "M109 S200\nM105\n",
@@ -109,7 +109,9 @@ fn a_thermocouple_fault_shuts_everything_down_with_klippers_message() {
             spi_fault: Some((30.0, 0, bits)),
             ..onechip_host::Options::default()
         };
-        let s = run(name, sensor, "", "M104 S200\nG4 P60000\n", &options);
+        // Each test its own folder (they run in parallel).
+        let folder = format!("fault-{name}");
+        let s = run(&folder, sensor, "", "M104 S200\nG4 P60000\n", &options);
         assert_eq!(
             s.shutdown.as_deref(),
             Some("Thermocouple reader fault"),
