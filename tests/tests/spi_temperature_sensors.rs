@@ -159,3 +159,67 @@ fn a_max31855_temperature_sensor_is_reported_by_m105() {
     let (_, report) = s.temperatures.last().expect("M105");
     assert!(report.contains(" K:25.0 /0.0"), "{report}");
 }
+
+#[test]
+fn the_chips_configuration_is_written_at_start_and_a_max31865_fault_clears_it() {
+    use onechip_app::heaters::{Heaters, McuSetup};
+    use onechip_host::thermal_plant::{Plant, mcu_sensor};
+    // A MAX31856 (J type, 8 samples) on the hot end, a 3-wire MAX31865
+    // sensor beside it.
+    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
+    let text = text.replace(
+        "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F",
+        "sensor_pin: PA4\nsensor_type: MAX31856\ntc_type: J\ntc_averaging_count: 8",
+    ) + "\n[temperature_sensor rtd]\nsensor_type: MAX31865\nsensor_pin: PG12\n\
+         rtd_num_of_wires: 3\n";
+    let config = onechip_config::Config::parse("printer.cfg", &text).expect("parses");
+    let machine = onechip_planner::machine::Machine::from_config(&config).expect("machine");
+    let freq = 1_000_000.0;
+    let setup = McuSetup::new(&machine, freq, 4095, mcu_sensor(), 0);
+    let spi = |i: usize| *setup.inputs[i].1.spi().expect("an SPI query");
+    // Klipper's query_thermocouple: every 0.3 s, min_temp..max_temp (0 and
+    // 250 °C: 250 × 128 = 32000 counts, << 5) for the hot end; the sensor
+    // is unlimited below (clamped to 0) and above (clamped to 2^15 << 1).
+    assert_eq!(setup.inputs[0].0, "PA4");
+    assert_eq!(
+        (
+            spi(0).rest_ticks,
+            spi(0).min,
+            spi(0).max,
+            spi(0).max_invalid
+        ),
+        (300_000, 0, 32_000 << 5, 3)
+    );
+    assert_eq!((spi(2).min, spi(2).max), (0, 32_768 << 1));
+    let mut plant = Plant::new(&machine, freq);
+    let mut heaters = Heaters::new(&machine, freq, 4095, mcu_sensor(), 0, &mut plant);
+    // CR0 (auto), CR1 (J = 2, 8 samples = 0x30), MASK; then the RTD's
+    // configuration: bias, auto, 3-wire, fault clear.
+    assert_eq!(
+        plant.spi_writes,
+        [(0, vec![0x80, 0x80, 0x32, 0x03]), (2, vec![0x80, 0xD2])]
+    );
+    // The RTD reports a fault: the configuration is written again after
+    // each faulted read (Klipper's host does so to clear it); the fourth
+    // such read shuts down.
+    plant.spi_fault = Some((0, 2, 0x40));
+    let mut fault = None;
+    while let Some(wake) = heaters.next_wake().filter(|&w| w < 3_000_000) {
+        plant.now = u64::from(wake);
+        if let Err(reason) = heaters.run(wake, &mut plant) {
+            fault = Some(reason);
+            break;
+        }
+    }
+    assert_eq!(
+        fault.map(|f| f.message()),
+        Some("Thermocouple reader fault")
+    );
+    let rewrites = plant.spi_writes.iter().filter(|(i, _)| *i == 2).count();
+    assert_eq!(rewrites, 1 + 4);
+    assert_eq!(
+        heaters.sensor(0),
+        None,
+        "a faulted report has no temperature"
+    );
+}
