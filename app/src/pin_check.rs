@@ -19,6 +19,7 @@ use core::fmt;
 use onechip_planner::board_pins::{BoardPins, ReservedPin};
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::SensorInput;
+use onechip_planner::spi_temperature::SpiBusPins;
 
 /// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
 /// `board/` wires them: USB on OTG_HS's internal full-speed PHY (PA11,
@@ -215,6 +216,27 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
         }),
         SensorInput::Mcu(_) => None,
     });
+    // A software SPI bus's pins, which the bus's chips share.
+    let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
+    let sensor_buses = machine.sensors.iter().map(|s| match s.input {
+        SensorInput::Spi { bus, .. } => (s.name, Some(bus)),
+        _ => (s.name, None),
+    });
+    let spi = heater_buses.chain(sensor_buses).flat_map(|(section, bus)| {
+        let pins = match bus.map(|b| b.pins) {
+            Some(SpiBusPins::Software { sclk, mosi, miso }) => Some([
+                ("spi_software_sclk_pin", sclk),
+                ("spi_software_mosi_pin", mosi),
+                ("spi_software_miso_pin", miso),
+            ]),
+            _ => None,
+        };
+        pins.into_iter().flatten().map(move |(option, pin)| PinUse {
+            section,
+            option,
+            pin,
+        })
+    });
     let fan = machine.fan.iter().map(|f| PinUse {
         section: "fan",
         option: "pin",
@@ -231,6 +253,7 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
     steppers
         .chain(heaters)
         .chain(sensors)
+        .chain(spi)
         .chain(fan)
         .chain(crate::probe::pin_uses(machine))
         .chain(accessories)
@@ -242,6 +265,8 @@ fn may_share(a: &PinUse<'_>, b: &PinUse<'_>) -> bool {
     a.option == b.option
         && match a.option {
             "enable_pin" => true,
+            // Chips on one software SPI bus.
+            "spi_software_sclk_pin" | "spi_software_mosi_pin" | "spi_software_miso_pin" => true,
             "endstop_pin" => rail(a.section).eq_ignore_ascii_case(rail(b.section)),
             _ => false,
         }
