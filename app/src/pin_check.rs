@@ -21,6 +21,10 @@ use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::SensorInput;
 use onechip_planner::spi_temperature::SpiBusPins;
 
+/// The board's hardware SPI bus for SPI sensors (Klipper's name for SPI1
+/// on PA5, PA6 and PA7 on the STM32H7).
+pub const BOARD_SPI_BUS: &str = "spi1";
+
 /// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
 /// `board/` wires them: USB on OTG_HS's internal full-speed PHY (PA11,
 /// PA12), the micro-SD slot on SDMMC1 in 4-bit mode (PC8 to PC12, PD2),
@@ -91,6 +95,12 @@ pub enum PinConflict<'a> {
         /// What the board uses it for (`USB D-`).
         by: &'a str,
     },
+    /// An SPI sensor names a hardware bus the board does not have (only
+    /// checked with the board's pins).
+    NoSuchBus {
+        /// The `spi_bus` option (its `pin`: the bus name).
+        used: PinUse<'a>,
+    },
     /// The option names a `[board_pins]` alias reserved with `<NAME>`.
     ReservedAlias {
         /// The option naming it.
@@ -106,7 +116,9 @@ impl<'a> PinConflict<'a> {
     pub fn at(&self) -> PinUse<'a> {
         match *self {
             Self::Duplicate { second, .. } | Self::Modifiers { second, .. } => second,
-            Self::Reserved { used, .. } | Self::ReservedAlias { used, .. } => used,
+            Self::Reserved { used, .. }
+            | Self::ReservedAlias { used, .. }
+            | Self::NoSuchBus { used } => used,
         }
     }
 }
@@ -136,6 +148,11 @@ impl fmt::Display for PinConflict<'_> {
                 )
             }
             Self::ReservedAlias { used, reserved } => write!(f, "{reserved} ({used})"),
+            Self::NoSuchBus { used } => write!(
+                f,
+                "{used} {} is not on this board (its SPI is {BOARD_SPI_BUS}: PA5 SCK, PA6 MISO, PA7 MOSI)",
+                used.pin.trim()
+            ),
         }
     }
 }
@@ -172,6 +189,27 @@ pub fn check<'a>(
             if earlier.modifiers != pin.modifiers {
                 return Err(PinConflict::Modifiers { first, second });
             }
+        }
+    }
+    if reserved.is_empty() {
+        return Ok(());
+    }
+    // With the board's pins: its one hardware SPI bus.
+    let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
+    let sensor_buses = machine.sensors.iter().map(|s| match s.input {
+        SensorInput::Spi { bus, .. } => (s.name, Some(bus)),
+        _ => (s.name, None),
+    });
+    for (section, bus) in heater_buses.chain(sensor_buses) {
+        if let Some(SpiBusPins::Hardware(Some(name))) = bus.map(|b| b.pins)
+            && !name.trim().eq_ignore_ascii_case(BOARD_SPI_BUS)
+        {
+            let used = PinUse {
+                section,
+                option: "spi_bus",
+                pin: name,
+            };
+            return Err(PinConflict::NoSuchBus { used });
         }
     }
     Ok(())

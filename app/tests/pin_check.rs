@@ -229,3 +229,25 @@ fn a_software_spi_bus_is_shared_by_its_chips_and_by_nothing_else() {
         )
     );
 }
+
+#[test]
+fn an_spi_sensor_on_a_bus_the_board_lacks_is_refused_with_the_boards_pins() {
+    let from = "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F";
+    let on = |bus: &str| format!("sensor_pin: PA4\nsensor_type: MAX31855\nspi_bus: {bus}");
+    expect(
+        &[
+            (from, &on("spi1"), None),
+            (
+                from,
+                &on("spi2b"),
+                Some(
+                    "[extruder] spi_bus spi2b is not on this board (its SPI is spi1: \
+                     PA5 SCK, PA6 MISO, PA7 MOSI)",
+                ),
+            ),
+        ],
+        BOARD_RESERVED,
+    );
+    // Without the board's pins (a config for another board), any bus.
+    expect(&[(from, &on("spi2b"), None)], &[]);
+}

@@ -120,7 +120,10 @@ impl SpiDevice {
                 }
             }
             (SpiBusPins::Hardware(name), _) => {
-                if let Some(name) = name.filter(|n| !n.trim().eq_ignore_ascii_case("spi1")) {
+                if let Some(name) = name.filter(|n| {
+                    !n.trim()
+                        .eq_ignore_ascii_case(onechip_app::pin_check::BOARD_SPI_BUS)
+                }) {
                     return Err(SpiError::Bus(name));
                 }
                 spi1_setup();
