@@ -28,6 +28,9 @@ mod reg {
     pub const CR1_SSI: u32 = 1 << 12;
     /// CFG1: frames of 8 bits (DSIZE = bits − 1).
     pub const CFG1_DSIZE_8: u32 = 7;
+    /// CFG1: CRCSIZE at its reset value, 8 bits (CRC off; the field is
+    /// to be at least DSIZE).
+    pub const CFG1_CRCSIZE_8: u32 = 7 << 16;
     /// CFG1: the baud-rate divider's position (MBR: kernel / 2^(MBR+1)).
     pub const CFG1_MBR_SHIFT: u32 = 28;
     /// CFG2: clock phase.
@@ -128,7 +131,9 @@ impl SpiDevice {
                 }
                 spi1_setup();
                 Bus::Spi1 {
-                    cfg1: reg::CFG1_DSIZE_8 | mbr(bus.speed) << reg::CFG1_MBR_SHIFT,
+                    cfg1: reg::CFG1_DSIZE_8
+                        | reg::CFG1_CRCSIZE_8
+                        | mbr(bus.speed) << reg::CFG1_MBR_SHIFT,
                     cfg2: reg::CFG2_MASTER
                         | reg::CFG2_SSM
                         | reg::CFG2_AFCNTR
@@ -142,10 +147,17 @@ impl SpiDevice {
     }
 
     /// One transfer, chip selected throughout: `data` out, replies in.
+    /// The bus takes the chip's mode (clock polarity) before the chip is
+    /// selected.
     pub fn transfer(&mut self, data: &mut [u8]) {
-        self.cs.set(false);
         let done = match &self.bus {
-            Bus::Spi1 { cfg1, cfg2 } => spi1_transfer(*cfg1, *cfg2, data),
+            Bus::Spi1 { cfg1, cfg2 } => {
+                spi1_configure(*cfg1, *cfg2);
+                self.cs.set(false);
+                let done = spi1_transfer(data);
+                self.cs.set(true);
+                done
+            }
             Bus::Software {
                 sclk,
                 mosi,
@@ -153,11 +165,13 @@ impl SpiDevice {
                 mode,
                 half,
             } => {
+                sclk.set(mode & 2 != 0);
+                self.cs.set(false);
                 software_transfer(sclk, mosi, miso, *mode, *half, data);
+                self.cs.set(true);
                 true
             }
         };
-        self.cs.set(true);
         if !done {
             data.fill(0);
         }
@@ -192,15 +206,23 @@ fn poll(mut done: impl FnMut() -> bool) -> bool {
     (0..SPI1_POLLS).any(|_| done())
 }
 
-/// One full-duplex transfer on SPI1 (RM0468's master sequence: configure
-/// while disabled, TSIZE bytes, enable, start, a byte in for each out,
-/// wait for the end, clear it, disable); false if a wait timed out.
-fn spi1_transfer(cfg1: u32, cfg2: u32, data: &mut [u8]) -> bool {
-    use pac::spi::regs::{Cfg1, Cfg2, Cr1, Cr2, Ifcr};
+/// SPI1 disabled and configured for a chip (RM0468: CFG1 and CFG2 are
+/// written while SPE is 0; with AFCNTR the clock pin then idles at the
+/// new polarity).
+fn spi1_configure(cfg1: u32, cfg2: u32) {
+    use pac::spi::regs::{Cfg1, Cfg2, Cr1};
     let spi = pac::SPI1;
     spi.cr1().write_value(Cr1(reg::CR1_SSI));
     spi.cfg1().write_value(Cfg1(cfg1));
     spi.cfg2().write_value(Cfg2(cfg2));
+}
+
+/// One full-duplex transfer on SPI1, configured (RM0468's master
+/// sequence: TSIZE bytes, enable, start, a byte in for each out, wait for
+/// the end, clear it, disable); false if a wait timed out.
+fn spi1_transfer(data: &mut [u8]) -> bool {
+    use pac::spi::regs::{Cr1, Cr2, Ifcr};
+    let spi = pac::SPI1;
     spi.cr2().write_value(Cr2(data.len() as u32 & 0xffff));
     spi.cr1().write_value(Cr1(reg::CR1_SSI | reg::CR1_SPE));
     spi.cr1()

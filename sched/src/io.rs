@@ -416,7 +416,7 @@ mod tests {
             init: [0; 4],
             init_len: 0,
         };
-        assert_eq!(io.query(1, AdcQuery { ..adc_query() }), Err(NoSuchSlot));
+        assert_eq!(io.query(1, adc_query()), Err(NoSuchSlot));
         io.query_spi(1, query, &mut hw).expect("spi input");
         assert_eq!(io.next_wake(), Some(50));
         io.run(50, &mut hw).expect("good");
