@@ -223,3 +223,32 @@ fn the_chips_configuration_is_written_at_start_and_a_max31865_fault_clears_it() 
         "a faulted report has no temperature"
     );
 }
+
+#[test]
+fn a_bus_the_board_lacks_is_a_config_error_naming_file_line_and_option() {
+    let dir = std::env::temp_dir().join(format!("onechip-spi-bus-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
+    let at = text
+        .lines()
+        .position(|l| l == "sensor_pin: PF4")
+        .expect("the hot end's sensor_pin")
+        + 1;
+    let text = text.replace(
+        "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F",
+        "sensor_pin: PA4\nsensor_type: MAX31855\nspi_bus: spi2b",
+    );
+    std::fs::write(dir.join("printer.cfg"), text).expect("write cfg");
+    std::fs::write(dir.join("job.gcode"), "M105\n").expect("write gcode");
+    let s = onechip_host::run(&dir, None);
+    std::fs::remove_dir_all(&dir).ok();
+    let text = match s {
+        Ok(s) => format!("{:?}", s.errors),
+        Err(e) => e.to_string(),
+    };
+    let expected = format!(
+        "printer.cfg:{}: [extruder] spi_bus spi2b is not on this board",
+        at + 2
+    );
+    assert!(text.contains(&expected), "{text}");
+}
