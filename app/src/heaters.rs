@@ -1,7 +1,9 @@
 //! Heaters and the part-cooling fan, from printer.cfg to the MCU role's
 //! outputs: each heater is a software-PWM output with Klipper's 3 s
 //! max_duration and a thermistor ADC input sampled 8 times every 0.3 s and
-//! range-checked against min_temp/max_temp; each temperature report runs
+//! range-checked against min_temp/max_temp (or an SPI chip read once every
+//! 0.3 s with Klipper's range and fault checks, [`InputQuery::Spi`]); each
+//! temperature report runs
 //! the heater's control (PID or watermark) at once, which queues the next
 //! PWM value 0.308 s after the report, as Klipper's host does.
 //!
@@ -26,12 +28,17 @@ use onechip_planner::sensor_section::{Conversion, MAX_SENSORS};
 pub use onechip_planner::sensor_section::{
     LinearConversion, MCU_TEMPERATURE_PIN, TYPICAL_STM32H7_CAL,
 };
+use onechip_planner::spi_temperature::Chip;
+// An SPI sensor's chip and bus, for the shells that wire or simulate it.
+pub use onechip_planner::spi_temperature::{SpiBus, SpiBusPins, SpiSensor};
+use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_planner::thermal::{Control, PWM_DELAY, VerifyHeater};
-use onechip_sched::adc::{AdcQuery, AdcReport};
+use onechip_sched::adc::AdcQuery;
 use onechip_sched::clock::is_before;
 use onechip_sched::io::{Io, Peripherals};
 use onechip_sched::outputs::{OutputConfig, OutputKind, QueueError};
 use onechip_sched::shutdown::{self, Shutdown};
+use onechip_sched::thermocouple::{SpiChip, SpiQuery, SpiReport};
 
 use crate::outputs::{AccessoryCommand, AccessoryOutputs, FanControl, fan_config};
 use onechip_config::decimal::Fixed;
@@ -44,6 +51,9 @@ pub const SAMPLE_COUNT: u8 = 8;
 pub const REPORT_TIME: f64 = 0.300;
 /// Reports out of range in a row that shut everything down.
 pub const RANGE_CHECK_COUNT: u8 = 4;
+/// Bad reads of an SPI sensor in a row that are tolerated (Klipper's
+/// MAX_INVALID_COUNT: the next one shuts everything down).
+pub const SPI_MAX_INVALID: u8 = 3;
 /// Longest a heater output may hold a value without an update, s.
 pub const MAX_HEAT_TIME: f64 = 3.0;
 /// Full scale of a hardware PWM duty.
@@ -426,9 +436,82 @@ struct HeaterState {
 pub struct McuSetup<'a> {
     /// Each output's pin (as printer.cfg writes it) and configuration.
     pub outputs: heapless::Vec<(&'a str, OutputConfig), OUTPUTS>,
-    /// Each heater's sensor pin and ADC query, then each temperature
-    /// sensor's.
-    pub inputs: heapless::Vec<(&'a str, AdcQuery), INPUTS>,
+    /// Each heater's sensor pin and query, then each temperature
+    /// sensor's (an SPI chip's pin is its chip select).
+    pub inputs: heapless::Vec<(&'a str, InputQuery), INPUTS>,
+}
+
+/// How an input is read: an ADC channel's query, or an SPI chip's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputQuery {
+    /// Klipper's `query_analog_in`.
+    Adc(AdcQuery),
+    /// Klipper's `query_thermocouple`, with the chip's start-up bytes.
+    Spi(SpiQuery),
+}
+
+impl InputQuery {
+    /// The ADC query, if it is one.
+    pub fn adc(&self) -> Option<&AdcQuery> {
+        match self {
+            Self::Adc(q) => Some(q),
+            Self::Spi(_) => None,
+        }
+    }
+
+    /// The SPI query, if it is one.
+    pub fn spi(&self) -> Option<&SpiQuery> {
+        match self {
+            Self::Spi(q) => Some(q),
+            Self::Adc(_) => None,
+        }
+    }
+}
+
+/// The MCU's query of SPI chip `sensor`: a read every [`REPORT_TIME`]
+/// from clock `start`, its raw values of `min_temp` and `max_temp` the
+/// range (Klipper's `setup_minmax`).
+fn spi_query(sensor: &SpiSensor, min_temp: f64, max_temp: f64, freq: f64, start: u32) -> SpiQuery {
+    let (min, max) = sensor.raw_range(min_temp, max_temp);
+    let mut init = [0; 4];
+    let bytes = sensor.init_bytes();
+    let len = bytes.len().min(init.len());
+    init[..len].copy_from_slice(&bytes[..len]);
+    SpiQuery {
+        chip: match sensor.chip {
+            Chip::Max6675 => SpiChip::Max6675,
+            Chip::Max31855 => SpiChip::Max31855,
+            Chip::Max31856 => SpiChip::Max31856,
+            Chip::Max31865 => SpiChip::Max31865,
+        },
+        clock: start,
+        rest_ticks: ticks(REPORT_TIME, freq),
+        min,
+        max,
+        max_invalid: SPI_MAX_INVALID,
+        init,
+        init_len: len as u8,
+    }
+}
+
+/// The query of a sensor read as `conversion` says, limited to
+/// `min_temp..max_temp`.
+fn input_query(
+    conversion: &Conversion,
+    (min_temp, max_temp): (f64, f64),
+    freq: f64,
+    adc_max: u16,
+    start: u32,
+) -> InputQuery {
+    match conversion {
+        Conversion::Sensor(TemperatureSensor::Spi(chip)) => {
+            InputQuery::Spi(spi_query(chip, min_temp, max_temp, freq, start))
+        }
+        _ => {
+            let range = conversion.reading_range(min_temp, max_temp);
+            InputQuery::Adc(adc_query(range, freq, adc_max, start))
+        }
+    }
 }
 
 /// A fraction (0..1) of an output's full scale, rounded, as Klipper's
@@ -468,16 +551,25 @@ impl<'a> McuSetup<'a> {
                 max_duration: ticks(MAX_HEAT_TIME, freq),
             };
             let _ = setup.outputs.push((heater.heater_pin, output));
-            let range = heater.sensor.adc_range(heater.min_temp, heater.max_temp);
-            let _ = setup
-                .inputs
-                .push((heater.sensor_pin, adc_query(range, freq, adc_max, start)));
+            let query = match heater.sensor {
+                TemperatureSensor::Spi(chip) => InputQuery::Spi(spi_query(
+                    &chip,
+                    heater.min_temp,
+                    heater.max_temp,
+                    freq,
+                    start,
+                )),
+                sensor => {
+                    let range = sensor.adc_range(heater.min_temp, heater.max_temp);
+                    InputQuery::Adc(adc_query(range, freq, adc_max, start))
+                }
+            };
+            let _ = setup.inputs.push((heater.sensor_pin, query));
         }
         for sensor in &machine.sensors {
-            let range = sensor
-                .conversion(mcu_sensor)
-                .reading_range(sensor.min_temp, sensor.max_temp);
-            let query = adc_query(range, freq, adc_max, start);
+            let limits = (sensor.min_temp, sensor.max_temp);
+            let conversion = sensor.conversion(mcu_sensor);
+            let query = input_query(&conversion, limits, freq, adc_max, start);
             let _ = setup.inputs.push((sensor.input.pin(), query));
         }
         if let Some(fan) = &machine.fan {
@@ -489,6 +581,30 @@ impl<'a> McuSetup<'a> {
             .extend(accessories.take(setup.outputs.capacity() - setup.outputs.len()));
         setup
     }
+}
+
+/// Each input's SPI bus (None: an ADC input), in [`McuSetup::inputs`]'
+/// order: the heaters', then the temperature sensors'.
+pub fn input_buses<'m, 'a>(
+    machine: &'m Machine<'a>,
+) -> impl Iterator<Item = Option<SpiBus<'a>>> + 'm {
+    let heaters = machine.heaters.iter().map(|h| h.spi);
+    let sensors = machine.sensors.iter().map(|s| match s.input {
+        onechip_planner::sensor_section::SensorInput::Spi { bus, .. } => Some(bus),
+        _ => None,
+    });
+    heaters.chain(sensors)
+}
+
+/// Each input's SPI chip (None: an ADC input), in
+/// [`McuSetup::inputs`]' order.
+pub fn input_chips<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = Option<SpiSensor>> + 'm {
+    let heaters = machine.heaters.iter().map(|h| h.sensor.spi().copied());
+    let sensors = machine.sensors.iter().map(|s| match s.input {
+        onechip_planner::sensor_section::SensorInput::Spi { sensor, .. } => Some(sensor),
+        _ => None,
+    });
+    heaters.chain(sensors)
 }
 
 /// An output's full-scale value: its cycle ticks (software PWM) or
@@ -631,8 +747,17 @@ impl Heaters {
             let _ = io.add_output(*config, hw);
         }
         for (_, query) in &setup.inputs {
-            if let Ok(index) = io.add_input() {
-                let _ = io.query(index, *query);
+            match query {
+                InputQuery::Adc(q) => {
+                    if let Ok(index) = io.add_input() {
+                        let _ = io.query(index, *q);
+                    }
+                }
+                InputQuery::Spi(q) => {
+                    if let Ok(index) = io.add_spi_input() {
+                        let _ = io.query_spi(index, *q, hw);
+                    }
+                }
             }
         }
         // Each output's scale comes from its MCU configuration: heaters
@@ -721,26 +846,34 @@ impl Heaters {
     pub fn run(&mut self, now: u32, hw: &mut impl Peripherals) -> Result<(), Shutdown> {
         self.io.run(now, hw)?;
         for index in 0..self.heaters.len() {
-            if let Some(report) = self.io.take_report(index) {
-                self.control(index, report, now, hw)?;
+            let Some(h) = self.heaters.get(index) else {
+                continue;
+            };
+            let conversion = Conversion::Sensor(h.sensor);
+            if let Some((clock, temp)) = self.reading(index, &conversion) {
+                self.control(index, clock, temp, now, hw)?;
             }
         }
         let first = self.heaters.len();
         let delay = ticks(REPORT_TIME, self.freq);
-        for (i, sensor) in self.sensors.iter_mut().enumerate() {
-            if let Some(report) = self.io.take_report(first + i) {
-                let t = sensor
-                    .conversion
-                    .temperature(f64::from(report.value) / self.adc_full);
-                let io = &mut self.io;
-                self.accessories.sensor_report(
-                    i,
-                    t,
-                    report.clock,
-                    now,
-                    delay,
-                    &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
-                )?;
+        for i in 0..self.sensors.len() {
+            let Some(sensor) = self.sensors.get(i) else {
+                continue;
+            };
+            let conversion = sensor.conversion;
+            let Some((clock, t)) = self.reading(first + i, &conversion) else {
+                continue;
+            };
+            let io = &mut self.io;
+            self.accessories.sensor_report(
+                i,
+                t,
+                clock,
+                now,
+                delay,
+                &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
+            )?;
+            if let Some(sensor) = self.sensors.get_mut(i) {
                 sensor.reading = Some(match sensor.reading {
                     Some(r) => SensorReading {
                         temperature: t,
@@ -773,35 +906,51 @@ impl Heaters {
             })
     }
 
-    /// A heater's report: new temperature, control, and the update it
-    /// causes (Klipper's `temperature_callback` and `set_pwm`); then, if
-    /// a second has passed since the last, its verify_heater check, whose
-    /// failure shuts everything down.
+    /// Input `index`'s new report, if any, as its clock and temperature
+    /// (°C) through `conversion`. An SPI chip's report with its fault
+    /// register set carries no temperature (Klipper's host logs the fault
+    /// and drops it; the MCU counts it towards a shutdown).
+    fn reading(&mut self, index: usize, conversion: &Conversion) -> Option<(u32, f64)> {
+        if let Some(report) = self.io.take_report(index) {
+            let reading = f64::from(report.value) / self.adc_full;
+            return Some((report.clock, conversion.temperature(reading)));
+        }
+        let SpiReport {
+            clock,
+            value,
+            fault,
+        } = self.io.take_spi_report(index)?;
+        (fault == 0).then(|| (clock, conversion.temperature(f64::from(value))))
+    }
+
+    /// A heater's report (temperature `temp`, °C, read at `clock`): the
+    /// control, and the update it causes (Klipper's
+    /// `temperature_callback` and `set_pwm`); then, if a second has
+    /// passed since the last, its verify_heater check, whose failure
+    /// shuts everything down.
     fn control(
         &mut self,
         index: usize,
-        report: AdcReport,
+        clock: u32,
+        temp: f64,
         now: u32,
         hw: &mut impl Peripherals,
     ) -> Result<(), Shutdown> {
         let Some(h) = self.heaters.get_mut(index) else {
             return Ok(());
         };
-        let temp = h
-            .sensor
-            .temperature(f64::from(report.value) / self.adc_full);
         let dt = PWM_DELAY;
         let mut power = h.control.update(temp, h.target, h.max_power, dt, h.smooth);
         // Exponential smoothing over smooth_time (the first reading is
         // taken as it is).
         let weight = h.last_report.map_or(1.0, |last| {
-            let elapsed = f64::from(report.clock.wrapping_sub(last)) / self.freq;
+            let elapsed = f64::from(clock.wrapping_sub(last)) / self.freq;
             (elapsed / h.smooth_time).min(1.0)
         });
-        h.last_report = Some(report.clock);
+        h.last_report = Some(clock);
         h.smoothed += (temp - h.smoothed) * weight;
         h.can_extrude = h.smoothed >= h.min_extrude_temp;
-        if !Self::verify(h, report.clock, self.verify_ticks) {
+        if !Self::verify(h, clock, self.verify_ticks) {
             let reason = Shutdown::NotHeating(h.which);
             self.io.shutdown(reason, hw);
             return Err(reason);
@@ -809,11 +958,11 @@ impl Heaters {
         if h.target <= 0.0 {
             power = 0.0;
         }
-        let fresh = is_before(report.clock, h.refresh_by) && h.last_power != 0.0;
+        let fresh = is_before(clock, h.refresh_by) && h.last_power != 0.0;
         if (fresh || h.last_power == 0.0) && (power - h.last_power).abs() < 0.05 {
             return Ok(());
         }
-        let at = report.clock.wrapping_add(self.pwm_delay);
+        let at = clock.wrapping_add(self.pwm_delay);
         h.refresh_by = at.wrapping_add(self.refresh_ticks);
         h.last_power = power;
         let on_ticks = scaled(power, h.cycle_ticks);

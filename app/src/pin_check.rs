@@ -19,6 +19,11 @@ use core::fmt;
 use onechip_planner::board_pins::{BoardPins, ReservedPin};
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::SensorInput;
+use onechip_planner::spi_temperature::SpiBusPins;
+
+/// The board's hardware SPI bus for SPI sensors (Klipper's name for SPI1
+/// on PA5, PA6 and PA7 on the STM32H7).
+pub const BOARD_SPI_BUS: &str = "spi1";
 
 /// The pins the BigTreeTech Octopus Pro (STM32H723) build uses itself, as
 /// `board/` wires them: USB on OTG_HS's internal full-speed PHY (PA11,
@@ -90,6 +95,12 @@ pub enum PinConflict<'a> {
         /// What the board uses it for (`USB D-`).
         by: &'a str,
     },
+    /// An SPI sensor names a hardware bus the board does not have (only
+    /// checked with the board's pins).
+    NoSuchBus {
+        /// The `spi_bus` option (its `pin`: the bus name).
+        used: PinUse<'a>,
+    },
     /// The option names a `[board_pins]` alias reserved with `<NAME>`.
     ReservedAlias {
         /// The option naming it.
@@ -105,7 +116,9 @@ impl<'a> PinConflict<'a> {
     pub fn at(&self) -> PinUse<'a> {
         match *self {
             Self::Duplicate { second, .. } | Self::Modifiers { second, .. } => second,
-            Self::Reserved { used, .. } | Self::ReservedAlias { used, .. } => used,
+            Self::Reserved { used, .. }
+            | Self::ReservedAlias { used, .. }
+            | Self::NoSuchBus { used } => used,
         }
     }
 }
@@ -135,6 +148,11 @@ impl fmt::Display for PinConflict<'_> {
                 )
             }
             Self::ReservedAlias { used, reserved } => write!(f, "{reserved} ({used})"),
+            Self::NoSuchBus { used } => write!(
+                f,
+                "{used} {} is not on this board (its SPI is {BOARD_SPI_BUS}: PA5 SCK, PA6 MISO, PA7 MOSI)",
+                used.pin.trim()
+            ),
         }
     }
 }
@@ -173,6 +191,27 @@ pub fn check<'a>(
             }
         }
     }
+    if reserved.is_empty() {
+        return Ok(());
+    }
+    // With the board's pins: its one hardware SPI bus.
+    let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
+    let sensor_buses = machine.sensors.iter().map(|s| match s.input {
+        SensorInput::Spi { bus, .. } => (s.name, Some(bus)),
+        _ => (s.name, None),
+    });
+    for (section, bus) in heater_buses.chain(sensor_buses) {
+        if let Some(SpiBusPins::Hardware(Some(name))) = bus.map(|b| b.pins)
+            && !name.trim().eq_ignore_ascii_case(BOARD_SPI_BUS)
+        {
+            let used = PinUse {
+                section,
+                option: "spi_bus",
+                pin: name,
+            };
+            return Err(PinConflict::NoSuchBus { used });
+        }
+    }
     Ok(())
 }
 
@@ -206,7 +245,35 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
             option: "sensor_pin",
             pin,
         }),
+        // The chip select; a bus's clock and data pins are shared by its
+        // chips, as Klipper allows.
+        SensorInput::Spi { bus, .. } => Some(PinUse {
+            section: s.name,
+            option: "sensor_pin",
+            pin: bus.cs_pin,
+        }),
         SensorInput::Mcu(_) => None,
+    });
+    // A software SPI bus's pins, which the bus's chips share.
+    let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
+    let sensor_buses = machine.sensors.iter().map(|s| match s.input {
+        SensorInput::Spi { bus, .. } => (s.name, Some(bus)),
+        _ => (s.name, None),
+    });
+    let spi = heater_buses.chain(sensor_buses).flat_map(|(section, bus)| {
+        let pins = match bus.map(|b| b.pins) {
+            Some(SpiBusPins::Software { sclk, mosi, miso }) => Some([
+                ("spi_software_sclk_pin", sclk),
+                ("spi_software_mosi_pin", mosi),
+                ("spi_software_miso_pin", miso),
+            ]),
+            _ => None,
+        };
+        pins.into_iter().flatten().map(move |(option, pin)| PinUse {
+            section,
+            option,
+            pin,
+        })
     });
     let fan = machine.fan.iter().map(|f| PinUse {
         section: "fan",
@@ -224,6 +291,7 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
     steppers
         .chain(heaters)
         .chain(sensors)
+        .chain(spi)
         .chain(fan)
         .chain(crate::probe::pin_uses(machine))
         .chain(accessories)
@@ -235,6 +303,8 @@ fn may_share(a: &PinUse<'_>, b: &PinUse<'_>) -> bool {
     a.option == b.option
         && match a.option {
             "enable_pin" => true,
+            // Chips on one software SPI bus.
+            "spi_software_sclk_pin" | "spi_software_mosi_pin" | "spi_software_miso_pin" => true,
             "endstop_pin" => rail(a.section).eq_ignore_ascii_case(rail(b.section)),
             _ => false,
         }

@@ -196,3 +196,58 @@ fn pins_the_board_uses_are_refused() {
         assert_eq!(conflict("pin: PA8", &cfg, &[]), None, "{pin}");
     }
 }
+
+#[test]
+fn a_software_spi_bus_is_shared_by_its_chips_and_by_nothing_else() {
+    // Two MAX6675s on one software bus (as the Flashforge Creator Pro's
+    // two hot ends): the clock and data pins are shared, the chip selects
+    // not; a bus pin that is also a heater's is refused.
+    let bus = "spi_software_sclk_pin: PE2\nspi_software_miso_pin: PE5\n\
+        spi_software_mosi_pin: PE6";
+    let hot_end = format!("sensor_pin: PE3\nsensor_type: MAX6675\n{bus}");
+    let sensor = format!(
+        "[temperature_sensor chamber]\nsensor_type: MAX6675\nsensor_pin: PE4\n{bus}\n\n[fan]"
+    );
+    let both = SHIPPED
+        .replacen(
+            "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F",
+            &hot_end,
+            1,
+        )
+        .replacen("[fan]", &sensor, 1);
+    let config = Config::parse("printer.cfg", &both).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    assert_eq!(check(&machine, BOARD_RESERVED), Ok(()));
+    let clash = both.replacen("heater_pin: PA1", "heater_pin: PE5", 1);
+    let config = Config::parse("printer.cfg", &clash).expect("config");
+    let machine = Machine::from_config(&config).expect("machine");
+    assert_eq!(
+        check(&machine, &[]).map_err(|e| e.to_string()),
+        Err(
+            "pin PE5 used by both [heater_bed] heater_pin and [extruder] spi_software_miso_pin"
+                .to_string()
+        )
+    );
+}
+
+#[test]
+fn an_spi_sensor_on_a_bus_the_board_lacks_is_refused_with_the_boards_pins() {
+    let from = "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F";
+    let on = |bus: &str| format!("sensor_pin: PA4\nsensor_type: MAX31855\nspi_bus: {bus}");
+    expect(
+        &[
+            (from, &on("spi1"), None),
+            (
+                from,
+                &on("spi2b"),
+                Some(
+                    "[extruder] spi_bus spi2b is not on this board (its SPI is spi1: \
+                     PA5 SCK, PA6 MISO, PA7 MOSI)",
+                ),
+            ),
+        ],
+        BOARD_RESERVED,
+    );
+    // Without the board's pins (a config for another board), any bus.
+    expect(&[(from, &on("spi2b"), None)], &[]);
+}

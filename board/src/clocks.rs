@@ -13,7 +13,10 @@
 //! to the crystal: 25 MHz, undivided by ADC3's prescaler, half the 50 MHz
 //! limit embassy-stm32 applies to H7 ADCs (Klipper runs its H7 ADCs at
 //! 25 MHz too). Its kernel-clock mux (`adcsel`) would otherwise stay at its
-//! reset value, PLL2's P output, which is off.
+//! reset value, PLL2's P output, which is off. SPI1 (the SPI temperature
+//! chips) runs from `per_ck` too: 25 MHz, divided by its baud-rate
+//! divider (its reset mux, PLL1's Q output, would work too, but 130 MHz
+//! divides to 4 MHz less closely).
 //!
 //! [`RCC`] is a constant so that the assertions below check the very
 //! configuration `embassy_stm32::init` applies, at compile time: ADC3's
@@ -71,8 +74,21 @@ pub const RCC: rcc::Config = {
     rcc.mux.sdmmcsel = mux::Sdmmcsel::PLL1_Q;
     rcc.mux.persel = mux::Persel::HSE;
     rcc.mux.adcsel = mux::Adcsel::PER;
+    rcc.mux.spi123sel = mux::Saisel::PER;
     rcc
 };
+
+/// SPI1's kernel clock (`per_ck`, the crystal), Hz: the SPI temperature
+/// chips' bus divides it.
+pub const SPI1_KERNEL_HZ: u32 = 25_000_000;
+
+// SPI1 runs from per_ck, the crystal.
+const _: () = assert!(
+    RCC.mux.spi123sel.to_bits() == mux::Saisel::PER.to_bits()
+        && RCC.mux.persel.to_bits() == mux::Persel::HSE.to_bits()
+        && is(hse_hz(&RCC), SPI1_KERNEL_HZ),
+    "SPI1's kernel clock is not SPI1_KERNEL_HZ"
+);
 
 // ADC3's kernel clock is a running clock, and ADC3 runs at ADC3_HZ, within
 // its limit.

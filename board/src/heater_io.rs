@@ -49,8 +49,10 @@ pub struct BoardPeripherals {
     pub inputs: heapless::Vec<AdcInput, INPUTS>,
 }
 
-/// What one ADC input reads.
+/// What one input reads.
 pub enum AdcInput {
+    /// An SPI temperature chip.
+    Spi(crate::spi_sensors::SpiDevice),
     /// A thermistor input's channel (its pin kept in analog mode).
     Pin(AnyAdcChannel<'static, ADC3>),
     /// The internal temperature sensor (ADC3 channel 18, RM0468; Klipper's
@@ -59,9 +61,10 @@ pub enum AdcInput {
 }
 
 impl AdcInput {
-    /// Its ADC3 channel.
+    /// Its ADC3 channel (none for an SPI chip).
     fn channel(&self) -> u8 {
         match self {
+            Self::Spi(_) => u8::MAX,
             Self::Pin(channel) => channel.get_hw_channel(),
             Self::Temperature => adc3::TEMPERATURE_CHANNEL,
         }
@@ -224,6 +227,14 @@ impl Peripherals for BoardPeripherals {
             .get(index)
             .and_then(|input| self.adc.read(input.channel()))
             .unwrap_or(ADC_MAX)
+    }
+
+    fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
+        // An input that is no SPI chip reads zeros (out of range).
+        match self.inputs.get_mut(index) {
+            Some(AdcInput::Spi(chip)) => chip.transfer(data),
+            _ => data.fill(0),
+        }
     }
 }
 

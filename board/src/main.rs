@@ -23,6 +23,7 @@ mod priority;
 mod probe_servo;
 mod safety;
 mod sd_card;
+mod spi_sensors;
 mod step_pins;
 mod step_timer;
 mod tcm;
@@ -298,8 +299,11 @@ fn install_heaters(
         let out = step_pins::OutPin::new(&pin).map_err(|e| error_text(&e))?;
         let _ = outputs.push(out);
     }
-    for (pin, _) in &mcu_setup.inputs {
-        let input = if *pin == onechip_app::heaters::MCU_TEMPERATURE_PIN {
+    let buses = onechip_app::heaters::input_buses(machine);
+    for ((pin, _), bus) in mcu_setup.inputs.iter().zip(buses) {
+        let input = if let Some(bus) = bus {
+            heater_io::AdcInput::Spi(spi_device(setup, &bus)?)
+        } else if *pin == onechip_app::heaters::MCU_TEMPERATURE_PIN {
             heater_io::AdcInput::Temperature
         } else {
             heater_io::AdcInput::Pin(thermistors.channel(pin).ok_or_else(|| {
@@ -325,6 +329,27 @@ fn install_heaters(
     );
     heater_io::install(heaters, hw);
     Ok(())
+}
+
+/// The SPI temperature chip on `bus`: its chip select and (software
+/// bus) clock and data pins resolved through `[board_pins]`.
+fn spi_device(
+    setup: &PrinterSetup<'_>,
+    bus: &onechip_app::heaters::SpiBus<'_>,
+) -> Result<spi_sensors::SpiDevice, ErrorText> {
+    use onechip_app::heaters::SpiBusPins;
+    let fail =
+        |e: &dyn core::fmt::Display| error_text(&format_args!("SPI sensor on {}: {e}", bus.cs_pin));
+    let pin = |written| setup.resolve_pin(written).map_err(|e| fail(&e));
+    let cs = pin(bus.cs_pin)?;
+    let software = match bus.pins {
+        SpiBusPins::Software { sclk, mosi, miso } => Some([pin(sclk)?, pin(mosi)?, pin(miso)?]),
+        SpiBusPins::Hardware(_) => None,
+    };
+    let names = software
+        .as_ref()
+        .map(|[a, b, c]| [a.as_str(), b.as_str(), c.as_str()]);
+    spi_sensors::SpiDevice::new(bus, &cs, names).map_err(|e| fail(&e))
 }
 
 /// Wakes thread code at least every 10 ms (its priming timeout and

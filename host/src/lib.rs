@@ -75,6 +75,10 @@ pub struct Options {
     /// Fault injection: from print time `.0` (s) on, heater `.1`'s
     /// thermistor reads as an open circuit.
     pub open_sensor: Option<(f64, usize)>,
+    /// Fault injection: from print time `.0` (s) on, SPI input `.1`
+    /// (heaters first, then the temperature sensors) reports fault bits
+    /// `.2` ([`thermal_plant::Plant::spi_fault`]).
+    pub spi_fault: Option<(f64, usize, u32)>,
     /// Fault injection: heater `.0`'s simulated element gives `.1` times
     /// its power (0: it does not heat at all).
     pub weak_heater: Option<(usize, f64)>,
@@ -120,6 +124,7 @@ impl Default for Options {
             start: Start::MidTravel,
             plot: None,
             open_sensor: None,
+            spi_fault: None,
             weak_heater: None,
             dead_endstop: None,
             racked: 0.0,
@@ -613,6 +618,9 @@ fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, S
     }
     if let (Some((t, heater)), Some((_, plant))) = (options.open_sensor, mcu.thermal()) {
         plant.open_sensor = Some((clock_at(t + origin, freq), heater));
+    }
+    if let (Some((t, input, bits)), Some((_, plant))) = (options.spi_fault, mcu.thermal()) {
+        plant.spi_fault = Some((clock_at(t + origin, freq), input, bits));
     }
     if let (Some((heater, factor)), Some((_, plant))) = (options.weak_heater, mcu.thermal()) {
         plant.weaken(heater, factor);

@@ -2,13 +2,16 @@
 //! each heater is a lump that the heater output warms and the room cools
 //! (first order, exact between pin changes), read through its temperature
 //! sensor (the conversion the firmware's heater control uses, run
-//! backwards) and a 12-bit ADC; every output's changes are tallied.
+//! backwards) and a 12-bit ADC, or an SPI converter chip answering its
+//! register reads with the raw value of the temperature (Klipper's
+//! conversion run backwards); every output's changes are tallied.
 
 use onechip_app::heaters::PWM_MAX;
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::{
     Conversion, LinearConversion, SensorInput, TYPICAL_STM32H7_CAL,
 };
+use onechip_planner::spi_temperature::SpiSensor;
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
@@ -128,6 +131,12 @@ pub struct Plant {
     /// From this clock on, heater `.1`'s thermistor reads as open circuit
     /// (fault injection).
     pub open_sensor: Option<(u64, usize)>,
+    /// From clock `.0` on, SPI input `.1`'s chip reports fault bits `.2`
+    /// (in the word of a MAX6675 or MAX31855, in the fault status register
+    /// of a MAX31856 or MAX31865; fault injection).
+    pub spi_fault: Option<(u64, usize, u32)>,
+    /// Every register write to an SPI chip: its input and the bytes.
+    pub spi_writes: Vec<(usize, Vec<u8>)>,
 }
 
 impl Plant {
@@ -163,7 +172,7 @@ impl Plant {
                 let temp = match (s.input, cooled_by) {
                     (_, Some(_)) => COOLED_HOT,
                     (SensorInput::Mcu(_), None) => MCU_TEMPERATURE,
-                    (SensorInput::Adc { .. }, None) => AMBIENT,
+                    (SensorInput::Adc { .. } | SensorInput::Spi { .. }, None) => AMBIENT,
                 };
                 Sensed {
                     conversion: s.conversion(mcu_sensor()),
@@ -180,6 +189,8 @@ impl Plant {
             outputs: vec![OutputLog::default(); outputs],
             sensors,
             open_sensor: None,
+            spi_fault: None,
+            spi_writes: Vec::new(),
         }
     }
 
@@ -244,6 +255,27 @@ impl Plant {
         }
     }
 
+    /// Input `index`'s SPI chip and the temperature it senses now, °C.
+    fn spi_chip(&mut self, index: usize) -> Option<(SpiSensor, f64)> {
+        let (now, freq) = (self.now, self.freq);
+        let (sensor, celsius) = match self.lumps.get_mut(index) {
+            Some(lump) => {
+                lump.advance(now, freq);
+                (lump.sensor, lump.temp)
+            }
+            None => {
+                let sensor = index - self.lumps.len();
+                self.advance_sensor(sensor);
+                let s = self.sensors.get(sensor)?;
+                match s.conversion {
+                    Conversion::Sensor(chip) => (chip, s.temp),
+                    Conversion::Linear(_) => return None,
+                }
+            }
+        };
+        Some((*sensor.spi()?, celsius))
+    }
+
     /// Ends every output's log at the current time.
     pub fn finish(&mut self) {
         for index in 0..self.outputs.len() {
@@ -305,5 +337,22 @@ impl Peripherals for Plant {
         (reading * f64::from(ADC_MAX))
             .round()
             .clamp(0.0, f64::from(ADC_MAX)) as u16
+    }
+
+    /// The chip answers as the real one does to the reads Klipper's MCU
+    /// code makes ([`SpiSensor::simulate_reply`]); writes are recorded.
+    fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
+        let Some((chip, celsius)) = self.spi_chip(index) else {
+            data.fill(0);
+            return;
+        };
+        let now = self.now;
+        let fault = self
+            .spi_fault
+            .filter(|&(from, input, _)| input == index && now >= from)
+            .map_or(0, |f| f.2);
+        if !chip.simulate_reply(celsius, fault, data) {
+            self.spi_writes.push((index, data.to_vec()));
+        }
     }
 }

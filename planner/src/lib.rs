@@ -31,6 +31,7 @@ pub mod probe;
 pub mod safe_home;
 pub mod sensor_section;
 pub mod shaper_config;
+pub mod spi_temperature;
 pub mod temperature_sensor;
 pub mod thermal;
 pub mod thermistor;

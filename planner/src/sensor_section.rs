@@ -49,15 +49,23 @@ pub enum SensorInput<'a> {
         /// Its conversion.
         sensor: TemperatureSensor,
     },
+    /// An SPI converter chip (Klipper's `spi_temperature`).
+    Spi {
+        /// The chip and its conversion.
+        sensor: crate::spi_temperature::SpiSensor,
+        /// Its bus (`sensor_pin` is the chip select).
+        bus: crate::spi_temperature::SpiBus<'a>,
+    },
     /// `temperature_mcu`: the main MCU's internal sensor.
     Mcu(McuCalibration),
 }
 
 impl<'a> SensorInput<'a> {
-    /// The ADC pin read.
+    /// The ADC pin read (an SPI chip's chip select).
     pub fn pin(&self) -> &'a str {
         match self {
             Self::Adc { pin, .. } => pin,
+            Self::Spi { bus, .. } => bus.cs_pin,
             Self::Mcu(_) => MCU_TEMPERATURE_PIN,
         }
     }
@@ -184,6 +192,7 @@ impl SensorSection<'_> {
     pub fn conversion(&self, factory: LinearConversion) -> Conversion {
         match self.input {
             SensorInput::Adc { sensor, .. } => Conversion::Sensor(sensor),
+            SensorInput::Spi { sensor, .. } => Conversion::Sensor(TemperatureSensor::Spi(sensor)),
             SensorInput::Mcu(cal) => Conversion::Linear(factory.calibrated(&cal)),
         }
     }
@@ -232,9 +241,12 @@ pub fn read<'c, 'a>(
         section.get_float("reference_voltage", Some(3.3), Bounds::POSITIVE)?;
         SensorInput::Mcu(read_calibration(section)?)
     } else {
-        SensorInput::Adc {
-            pin: section.get("sensor_pin")?,
-            sensor: temperature_sensor::read(config, section)?,
+        match temperature_sensor::read(config, section)? {
+            (TemperatureSensor::Spi(sensor), Some(bus)) => SensorInput::Spi { sensor, bus },
+            (sensor, _) => SensorInput::Adc {
+                pin: section.get("sensor_pin")?,
+                sensor,
+            },
         }
     };
     let (min_temp, max_temp) = thermal::read_temperature_limits(section, min_default, max_default)?;

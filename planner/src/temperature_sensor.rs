@@ -6,37 +6,55 @@
 //! heater control, and °C back to a reading for the MCU's range check and
 //! the simulator's thermal plant.
 //!
-//! Sensors on a bus (SPI thermocouple converters, I2C and 1-wire sensors)
-//! and the MCU's internal sensor are refused with a config error naming
-//! `sensor_type`.
+//! Klipper's SPI converters (MAX6675, MAX31855, MAX31856, MAX31865) are
+//! [`crate::spi_temperature`]'s: their "reading" is the chip's raw
+//! register value instead of a fraction of an ADC's full scale. I2C and
+//! 1-wire sensors and (on a heater) the MCU's internal sensor are refused
+//! with a config error naming `sensor_type`.
 
 use crate::adc_temperature::{self, Column, LinearSensor, Samples};
+use crate::spi_temperature::{self, Chip, SpiBus, SpiSensor};
 use crate::thermistor::{self, Curve, Thermistor};
 use onechip_config::{Config, ConfigError, Section};
 
-/// A sensor read through an ADC input.
+/// A sensor read through an ADC input, or an SPI converter chip.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum TemperatureSensor {
     /// A thermistor behind a pullup resistor.
     Thermistor(Thermistor),
     /// A table of volts or Ω, interpolated.
     Linear(LinearSensor),
+    /// An SPI converter: its readings are the chip's raw register values
+    /// (as `f64`), not fractions of an ADC's full scale.
+    Spi(SpiSensor),
 }
 
 impl TemperatureSensor {
-    /// Temperature at ADC reading `adc` (fraction of full scale), °C.
+    /// Temperature at ADC reading `adc` (fraction of full scale; an SPI
+    /// chip's raw value), °C.
     pub fn temperature(&self, adc: f64) -> f64 {
         match self {
             Self::Thermistor(t) => t.temperature(adc),
             Self::Linear(l) => l.temperature(adc),
+            Self::Spi(s) => s.temperature(adc as u32),
         }
     }
 
-    /// ADC reading (fraction of full scale) at temperature `celsius`, °C.
+    /// ADC reading (fraction of full scale; an SPI chip's raw value) at
+    /// temperature `celsius`, °C.
     pub fn adc(&self, celsius: f64) -> f64 {
         match self {
             Self::Thermistor(t) => t.adc(celsius),
             Self::Linear(l) => l.adc(celsius),
+            Self::Spi(s) => f64::from(s.raw(celsius)),
+        }
+    }
+
+    /// The SPI chip, if the sensor is one.
+    pub fn spi(&self) -> Option<&SpiSensor> {
+        match self {
+            Self::Spi(s) => Some(s),
+            _ => None,
         }
     }
 
@@ -137,14 +155,9 @@ pub(crate) fn position(names: &[&str], name: &str) -> Option<usize> {
     names.iter().position(|n| *n == name)
 }
 
-/// Klipper's sensors on SPI: thermocouple and RTD converters.
-static SPI: [&str; 4] = ["MAX6675", "MAX31855", "MAX31856", "MAX31865"];
-
 /// Why onechip refuses sensor type `name`.
 fn unsupported(name: &str) -> &'static str {
-    if position(&SPI, name).is_some() {
-        "is an SPI sensor, which onechip does not support yet"
-    } else if name == "temperature_mcu" {
+    if name == "temperature_mcu" {
         "is the MCU's own sensor, which onechip does not read yet"
     } else {
         "is not a sensor type onechip knows (no I2C or 1-wire sensors yet)"
@@ -154,14 +167,30 @@ fn unsupported(name: &str) -> &'static str {
 /// Reads the sensor of the heater section `section` (`sensor_type`, and
 /// the options its kind reads: a thermistor's `pullup_resistor` and
 /// `inline_resistor`, a volts table's `adc_voltage` and `voltage_offset`,
-/// an Ω table's `pullup_resistor`), with Klipper's defaults.
-pub fn read<'c>(
-    config: &'c Config<'_>,
-    section: &Section<'c, '_>,
-) -> Result<TemperatureSensor, ConfigError<'c>> {
+/// an Ω table's `pullup_resistor`, an SPI chip's own and bus options),
+/// with Klipper's defaults; an SPI chip's bus too.
+pub fn read<'c, 'a>(
+    config: &'c Config<'a>,
+    section: &Section<'c, 'a>,
+) -> Result<(TemperatureSensor, Option<SpiBus<'a>>), ConfigError<'c>> {
     let name = section.get("sensor_type")?;
+    // A `[thermistor NAME]` of the same name wins, as over the built-in
+    // thermistors.
+    let definition = find(config, name)?;
+    if let (None, Some(chip)) = (definition, Chip::from_name(name)) {
+        let (sensor, bus) = spi_temperature::read(section, chip)?;
+        return Ok((TemperatureSensor::Spi(sensor), Some(bus)));
+    }
     let definition =
-        find(config, name)?.ok_or_else(|| section.error_for("sensor_type", unsupported(name)))?;
+        definition.ok_or_else(|| section.error_for("sensor_type", unsupported(name)))?;
+    Ok((read_adc_sensor(section, definition)?, None))
+}
+
+/// An ADC sensor's options, for its definition.
+fn read_adc_sensor<'c>(
+    section: &Section<'c, '_>,
+    definition: Definition,
+) -> Result<TemperatureSensor, ConfigError<'c>> {
     Ok(match definition {
         Definition::Thermistor(curve) => {
             let (pullup, inline) = thermistor::read_resistors(section)?;
@@ -327,8 +356,6 @@ mod tests {
     #[test]
     fn sensors_onechip_cannot_read_are_refused_naming_sensor_type() {
         for (name, why) in [
-            ("MAX6675", "is an SPI sensor"),
-            ("MAX31865", "is an SPI sensor"),
             ("temperature_mcu", "is the MCU's own sensor"),
             ("BME280", "no I2C or 1-wire"),
             ("EPCOS 100K", "is not a sensor type onechip knows"),
@@ -342,6 +369,22 @@ mod tests {
         }
         let e = extruder_sensor("sensor_type: Generic 3950\nvo_ref: 1.5", "").expect_err("recore");
         assert!(e.contains("option 'vo_ref'"), "{e}");
+    }
+
+    #[test]
+    fn spi_chips_are_read_with_their_own_options_only() {
+        let s = extruder_sensor("sensor_type: MAX31855\nspi_bus: spi1", "").expect("MAX31855");
+        assert_eq!(s.spi().map(|c| c.chip), Some(Chip::Max31855));
+        // The reading is the raw word: 0x0320 << 18 is 200 °C.
+        assert_eq!(s.temperature(f64::from(0x0320u32 << 18)), 200.0);
+        assert_eq!(s.adc(200.0), f64::from(0x0320u32 << 18));
+        // A thermocouple's options are not an RTD's, nor the other way.
+        let e = extruder_sensor("sensor_type: MAX31855\ntc_type: J", "").expect_err("tc_type");
+        assert!(e.contains("'tc_type' is not valid"), "{e}");
+        let e = extruder_sensor("sensor_type: MAX31856\nrtd_nominal_r: 1000", "").expect_err("rtd");
+        assert!(e.contains("'rtd_nominal_r' is not valid"), "{e}");
+        let e = extruder_sensor("sensor_type: MAX31865\nrtd_nominal_r: 0", "").expect_err("bound");
+        assert!(e.contains("printer.cfg:39: option 'rtd_nominal_r'"), "{e}");
     }
 
     #[test]

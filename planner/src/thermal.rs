@@ -37,10 +37,12 @@ pub struct Heater<'a> {
     pub name: &'a str,
     /// heater_pin, as written (`!` inverts).
     pub heater_pin: &'a str,
-    /// sensor_pin (an ADC pin).
+    /// sensor_pin (an ADC pin, or an SPI chip's chip select).
     pub sensor_pin: &'a str,
     /// The temperature sensor.
     pub sensor: TemperatureSensor,
+    /// An SPI sensor's bus (None: an ADC sensor).
+    pub spi: Option<crate::spi_temperature::SpiBus<'a>>,
     /// The control.
     pub control: Control,
     /// Lowest temperature the sensor may read, °C (below: shutdown).
@@ -230,7 +232,7 @@ pub fn read_heater<'c, 'a>(
     config: &'c Config<'a>,
     section: &Section<'c, 'a>,
 ) -> Result<Heater<'a>, ConfigError<'c>> {
-    let sensor = temperature_sensor::read(config, section)?;
+    let (sensor, spi) = temperature_sensor::read(config, section)?;
     let (min_temp, max_temp) = read_temperature_limits(section, None, None)?;
     let control = match section.get_choice("control", &["pid", "watermark"], None)? {
         "pid" => Control::Pid {
@@ -257,6 +259,7 @@ pub fn read_heater<'c, 'a>(
         heater_pin: section.get("heater_pin")?,
         sensor_pin: section.get("sensor_pin")?,
         sensor,
+        spi,
         control,
         min_temp,
         max_temp,

@@ -3,8 +3,9 @@
 //! interrupt runs them on the board.
 //!
 //! This machine has no temperature sensors: each heater's ADC input reads what
-//! its sensor would read at [`ROOM`] °C, so the heaters' control, reports
-//! and safety checks run (and cost what they cost) but nothing heats.
+//! its sensor would read at [`ROOM`] °C (an SPI chip answers with its raw
+//! value there), so the heaters' control, reports and safety checks run
+//! (and cost what they cost) but nothing heats.
 //! Outputs are pins ([`OutPin`]) the plugin logs like the steppers'.
 
 use crate::handler_cell::HandlerCell;
@@ -12,7 +13,7 @@ use crate::machine::{DUALTIMER, Irq, priority, write};
 use crate::pins::OutPin;
 use crate::probe::{self, Context};
 use crate::step_timer;
-use onechip_app::heaters::{Heaters, INPUTS, OUTPUTS, ThermalCommand, Wait};
+use onechip_app::heaters::{Heaters, INPUTS, OUTPUTS, SpiSensor, ThermalCommand, Wait};
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 use onechip_sched::shutdown::Shutdown;
@@ -46,6 +47,8 @@ pub struct QemuPeripherals {
     pub outputs: heapless::Vec<OutPin, OUTPUTS>,
     /// What each heater's ADC input reads.
     pub readings: heapless::Vec<u16, INPUTS>,
+    /// Each input's SPI chip, if it is one.
+    pub chips: heapless::Vec<Option<SpiSensor>, INPUTS>,
 }
 
 impl Peripherals for QemuPeripherals {
@@ -59,6 +62,16 @@ impl Peripherals for QemuPeripherals {
     fn read_adc(&mut self, index: usize) -> u16 {
         // No such input reads as an open thermistor (a range error).
         self.readings.get(index).copied().unwrap_or(ADC_MAX)
+    }
+
+    fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
+        // No such chip reads zeros (out of range for a heater).
+        match self.chips.get(index).copied().flatten() {
+            Some(chip) => {
+                let _ = chip.simulate_reply(ROOM, 0, data);
+            }
+            None => data.fill(0),
+        }
     }
 }
 

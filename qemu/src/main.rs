@@ -150,6 +150,9 @@ fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut hw = heater_io::QemuPeripherals {
         outputs: heapless::Vec::new(),
         readings: heapless::Vec::new(),
+        chips: onechip_app::heaters::input_chips(machine)
+            .take(onechip_app::heaters::INPUTS)
+            .collect(),
     };
     for (pin, _) in &mcu_setup.outputs {
         let _ = hw

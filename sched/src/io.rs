@@ -4,7 +4,9 @@
 //!
 //! [`Io::run`] is the timer's work: every update, software PWM edge, ADC
 //! reading and timeout due by then, after which [`Io::next_wake`] says when
-//! to run again. The host role queues output updates and takes ADC reports.
+//! to run again. The host role queues output updates and takes ADC reports
+//! (and the reports of SPI temperature chips, inputs of their own kind:
+//! [`crate::thermocouple`]).
 //! A fault shuts the io down: every output back to its default, sampling
 //! stopped, the first reason kept; whoever runs it then stops the steppers
 //! too.
@@ -13,6 +15,7 @@ use crate::adc::{AdcQuery, AdcReport, AnalogIn};
 use crate::clock::{due, earliest};
 use crate::outputs::{Drive, Output, OutputConfig, QueueError};
 use crate::shutdown::Shutdown;
+use crate::thermocouple::{SpiQuery, SpiReport, Thermocouple};
 
 /// The hardware behind the outputs and ADC inputs. Indices are the order
 /// in which outputs and inputs were added to the [`Io`].
@@ -22,13 +25,37 @@ pub trait Peripherals {
     fn drive(&mut self, index: usize, drive: Drive);
     /// Reads ADC input `index` now, raw counts.
     fn read_adc(&mut self, index: usize) -> u16;
+    /// One full-duplex transfer with SPI input `index`'s chip, its chip
+    /// select held for the whole of `data`: the bytes sent are replaced
+    /// by those received. Hardware without SPI inputs need not implement
+    /// it (it reads zeros).
+    fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
+        let _ = index;
+        data.fill(0);
+    }
 }
 
-/// `O` outputs and `A` ADC inputs.
+/// An input: an ADC channel, or an SPI temperature chip.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Input {
+    Adc(AnalogIn),
+    Spi(Thermocouple),
+}
+
+impl Input {
+    fn next_event(&self) -> Option<u32> {
+        match self {
+            Self::Adc(a) => a.next_event(),
+            Self::Spi(t) => t.next_event(),
+        }
+    }
+}
+
+/// `O` outputs and `A` inputs (ADC channels or SPI chips).
 #[derive(Debug, Clone)]
 pub struct Io<const O: usize, const A: usize> {
     outputs: heapless::Vec<Output, O>,
-    inputs: heapless::Vec<AnalogIn, A>,
+    inputs: heapless::Vec<Input, A>,
     shutdown: Option<Shutdown>,
 }
 
@@ -69,15 +96,43 @@ impl<const O: usize, const A: usize> Io<O, A> {
     /// Adds an ADC input, not yet sampled; returns its index.
     pub fn add_input(&mut self) -> Result<usize, NoSuchSlot> {
         self.inputs
-            .push(AnalogIn::default())
+            .push(Input::Adc(AnalogIn::default()))
             .map_err(|_| NoSuchSlot)?;
         Ok(self.inputs.len() - 1)
     }
 
-    /// Starts sampling input `index` as `query` says.
+    /// Adds an SPI temperature input, not yet read; returns its index.
+    pub fn add_spi_input(&mut self) -> Result<usize, NoSuchSlot> {
+        self.inputs
+            .push(Input::Spi(Thermocouple::default()))
+            .map_err(|_| NoSuchSlot)?;
+        Ok(self.inputs.len() - 1)
+    }
+
+    /// Starts sampling ADC input `index` as `query` says.
     pub fn query(&mut self, index: usize, query: AdcQuery) -> Result<(), NoSuchSlot> {
         if self.shutdown.is_none() {
-            self.inputs.get_mut(index).ok_or(NoSuchSlot)?.query(query);
+            match self.inputs.get_mut(index) {
+                Some(Input::Adc(adc)) => adc.query(query),
+                _ => return Err(NoSuchSlot),
+            }
+        }
+        Ok(())
+    }
+
+    /// Starts reading SPI input `index` as `query` says (its
+    /// configuration bytes are written at once).
+    pub fn query_spi(
+        &mut self,
+        index: usize,
+        query: SpiQuery,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), NoSuchSlot> {
+        if self.shutdown.is_none() {
+            match self.inputs.get_mut(index) {
+                Some(Input::Spi(chip)) => chip.query(query, &mut |d| hw.spi_transfer(index, d)),
+                _ => return Err(NoSuchSlot),
+            }
         }
         Ok(())
     }
@@ -109,9 +164,20 @@ impl<const O: usize, const A: usize> Io<O, A> {
         }
     }
 
-    /// The newest report of input `index` not yet taken.
+    /// The newest report of ADC input `index` not yet taken.
     pub fn take_report(&mut self, index: usize) -> Option<AdcReport> {
-        self.inputs.get_mut(index)?.take_report()
+        match self.inputs.get_mut(index)? {
+            Input::Adc(adc) => adc.take_report(),
+            Input::Spi(_) => None,
+        }
+    }
+
+    /// The newest report of SPI input `index` not yet taken.
+    pub fn take_spi_report(&mut self, index: usize) -> Option<SpiReport> {
+        match self.inputs.get_mut(index)? {
+            Input::Spi(chip) => chip.take_report(),
+            Input::Adc(_) => None,
+        }
     }
 
     /// The current value of output `index` (on ticks, or duty).
@@ -123,7 +189,7 @@ impl<const O: usize, const A: usize> Io<O, A> {
     /// something is queued). May be due already.
     pub fn next_wake(&self) -> Option<u32> {
         let outputs = self.outputs.iter().map(Output::next_event);
-        let inputs = self.inputs.iter().map(AnalogIn::next_event);
+        let inputs = self.inputs.iter().map(Input::next_event);
         outputs.chain(inputs).fold(None, earliest)
     }
 
@@ -148,7 +214,10 @@ impl<const O: usize, const A: usize> Io<O, A> {
         }
         for (index, input) in self.inputs.iter_mut().enumerate() {
             while due(input.next_event(), now).is_some() {
-                input.sample(hw.read_adc(index))?;
+                match input {
+                    Input::Adc(adc) => adc.sample(hw.read_adc(index))?,
+                    Input::Spi(chip) => chip.read(&mut |d| hw.spi_transfer(index, d))?,
+                }
             }
         }
         Ok(())
@@ -167,7 +236,10 @@ impl<const O: usize, const A: usize> Io<O, A> {
             hw.drive(index, output.reset());
         }
         for input in &mut self.inputs {
-            input.stop();
+            match input {
+                Input::Adc(adc) => adc.stop(),
+                Input::Spi(chip) => chip.stop(),
+            }
         }
     }
 }
@@ -304,6 +376,78 @@ mod tests {
             io.shutdown_reason().map(Shutdown::message),
             Some("ADC out of range")
         );
+    }
+
+    /// A MAX6675 whose word is `word`.
+    struct SpiBench {
+        word: u16,
+        reads: usize,
+    }
+
+    impl Peripherals for SpiBench {
+        fn drive(&mut self, _: usize, _: Drive) {}
+        fn read_adc(&mut self, _: usize) -> u16 {
+            0
+        }
+        fn spi_transfer(&mut self, index: usize, data: &mut [u8]) {
+            assert_eq!((index, data.len()), (1, 2));
+            self.reads += 1;
+            data.copy_from_slice(&self.word.to_be_bytes());
+        }
+    }
+
+    #[test]
+    fn spi_inputs_are_read_beside_adc_inputs_and_their_faults_shut_down() {
+        use crate::thermocouple::SpiChip;
+        let mut hw = SpiBench {
+            word: 100 << 5,
+            reads: 0,
+        };
+        let mut io: Io<0, 2> = Io::new();
+        assert_eq!(io.add_input(), Ok(0));
+        assert_eq!(io.add_spi_input(), Ok(1));
+        let query = SpiQuery {
+            chip: SpiChip::Max6675,
+            clock: 50,
+            rest_ticks: 300,
+            min: 0,
+            max: 1040 << 3,
+            max_invalid: 3,
+            init: [0; 4],
+            init_len: 0,
+        };
+        assert_eq!(io.query(1, adc_query()), Err(NoSuchSlot));
+        io.query_spi(1, query, &mut hw).expect("spi input");
+        assert_eq!(io.next_wake(), Some(50));
+        io.run(50, &mut hw).expect("good");
+        assert_eq!(io.take_report(1), None);
+        assert_eq!(
+            io.take_spi_report(1),
+            Some(SpiReport {
+                clock: 50,
+                value: 100 << 5,
+                fault: 0
+            })
+        );
+        // Open thermocouple (bit 2): the fourth read in a row shuts down.
+        hw.word |= 0x04;
+        for at in [350, 650, 950] {
+            io.run(at, &mut hw).expect("tolerated");
+        }
+        assert_eq!(io.run(1250, &mut hw), Err(Shutdown::ThermocoupleFault));
+        assert_eq!((hw.reads, io.next_wake()), (5, None));
+    }
+
+    fn adc_query() -> AdcQuery {
+        AdcQuery {
+            clock: 0,
+            sample_ticks: 1,
+            sample_count: 1,
+            rest_ticks: 10,
+            min: 0,
+            max: 10,
+            range_check_count: 0,
+        }
     }
 
     #[test]

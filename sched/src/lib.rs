@@ -11,6 +11,8 @@
 //! - [`outputs`]: digital outputs, software and hardware PWM, with
 //!   max_duration;
 //! - [`adc`]: ADC sampling with range checks;
+//! - [`thermocouple`]: SPI temperature chips read with Klipper's range
+//!   and fault checks;
 //! - [`io`]: outputs and ADC inputs run from a timer, behind the
 //!   [`io::Peripherals`] hardware trait;
 //! - [`shutdown`]: why everything stopped, in Klipper's words;
@@ -27,3 +29,4 @@ pub mod outputs;
 pub mod shutdown;
 pub mod step_command;
 pub mod stepper;
+pub mod thermocouple;

@@ -17,6 +17,10 @@ pub enum Shutdown {
     TimerTooClose,
     /// An ADC reading left its configured range.
     AdcOutOfRange,
+    /// An SPI temperature chip's value left its configured range.
+    ThermocoupleOutOfRange,
+    /// An SPI temperature chip reported a fault.
+    ThermocoupleFault,
     /// A digital output stayed away from its default past max_duration
     /// without a refresh.
     DigitalOutExpired,
@@ -78,6 +82,8 @@ impl Shutdown {
             Self::StepperTooFarInPast => "Stepper too far in past",
             Self::TimerTooClose => "Timer too close",
             Self::AdcOutOfRange => "ADC out of range",
+            Self::ThermocoupleOutOfRange => "Thermocouple ADC out of range",
+            Self::ThermocoupleFault => "Thermocouple reader fault",
             Self::DigitalOutExpired => "Missed scheduling of next digital out event",
             Self::PwmExpired => "Missed scheduling of next hard pwm event",
             Self::EmergencyStop => "Shutdown due to M112 command",

@@ -82,6 +82,7 @@ fn heater_and_thermistor_configuration_matches_klippy() {
         );
 
         let (sensor, query) = setup.inputs[0];
+        let query = *query.adc().expect("a thermistor's ADC query");
         let adc = command(&commands, "config_analog_in", &[("pin", sensor)]);
         let q = command(
             &commands,

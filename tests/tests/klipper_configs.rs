@@ -42,8 +42,10 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// such device exists here. 137 since `[probe]`/`[bltouch]` and
 /// `probe:z_virtual_endstop` load, 139 with the TMC drivers too; 138 since
 /// `[temperature_sensor]` is read, as generic-bigtreetech-gtr's has a
-/// MAX31855 (an SPI sensor, refused naming its `sensor_type`).
-const MIN_LOADED: usize = 138;
+/// MAX31855 (an SPI sensor, refused naming its `sensor_type`); 141 with
+/// the SPI sensors (that MAX31855, and the MAX6675 hot ends of
+/// generic-mightyboard and printer-flashforge-creator-pro-2018).
+const MIN_LOADED: usize = 141;
 /// Section kinds supported now, which no file may list as unsupported.
 const NOW_SUPPORTED: [&str; 10] = [
     "heater_fan",
@@ -62,12 +64,12 @@ const NOW_SUPPORTED: [&str; 10] = [
 /// `[safe_z_home]` and `[homing_override]`; 131 with the TMC drivers;
 /// 139, every file that loads, once the 8 deltas home their towers
 /// together as Klipper does; 138 since `[temperature_sensor]` is read:
-/// see [`MIN_LOADED`]; 137 since `[temperature_fan]` runs:
-/// generic-duet2-duex.cfg's chamber fan has min_temp 40 and its fan
-/// cools the simulated chamber below that, which the MCU's range check
-/// shuts down with Klipper's "ADC out of range", as Klipper would in a
-/// room that cool).
-const MIN_HOMED_AND_MOVED: usize = 137;
+/// see [`MIN_LOADED`]; 141 with the SPI sensors; 140 since
+/// `[temperature_fan]` runs: generic-duet2-duex.cfg's chamber fan has
+/// min_temp 40 and its fan cools the simulated chamber below that, which
+/// the MCU's range check shuts down with Klipper's "ADC out of range", as
+/// Klipper would in a room that cool).
+const MIN_HOMED_AND_MOVED: usize = 140;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;
