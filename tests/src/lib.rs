@@ -21,3 +21,34 @@ pub fn golden_adc_max(case: &str) -> u16 {
         .and_then(|n| n.parse().ok())
         .expect("ADC_MAX")
 }
+
+/// Checks a run that heated the hot end to 200 °C with M109 and reported
+/// M105 (`name` in the messages): no error or shutdown; M109 waited until
+/// the firmware measured 200 °C, the simulated hot end really is there
+/// (within a reading or so), and M105 says so.
+///
+/// # Panics
+///
+/// If any of that does not hold.
+pub fn assert_held_200(s: &onechip_host::Summary, name: &str) {
+    assert_eq!(
+        (s.errors.len(), s.shutdown.as_ref()),
+        (0, None),
+        "{name}: {s}"
+    );
+    let hot_end = &s.heaters[0];
+    assert!(s.heat_wait > 10.0, "{name}: {}", s.heat_wait);
+    assert!(
+        (hot_end.temperature - 200.0).abs() < 3.0,
+        "{name}: measured {hot_end:?}"
+    );
+    assert!(
+        (195.0..210.0).contains(&hot_end.peak),
+        "{name}: really reached {hot_end:?}"
+    );
+    let (_, report) = s.temperatures.last().expect("M105");
+    assert!(
+        report.starts_with("T:19") || report.starts_with("T:20"),
+        "{name}: {report}"
+    );
+}

@@ -71,26 +71,7 @@ fn the_hot_end_reaches_200_c_through_every_spi_chip() {
             "M109 S200\nM105\n",
             &onechip_host::Options::default(),
         );
-        assert_eq!(
-            (s.errors.len(), s.shutdown.as_ref()),
-            (0, None),
-            "{name}: {s}"
-        );
-        let hot_end = &s.heaters[0];
-        assert!(s.heat_wait > 10.0, "{name}: {}", s.heat_wait);
-        assert!(
-            (hot_end.temperature - 200.0).abs() < 3.0,
-            "{name}: measured {hot_end:?}"
-        );
-        assert!(
-            (195.0..210.0).contains(&hot_end.peak),
-            "{name}: really reached {hot_end:?}"
-        );
-        let (_, report) = s.temperatures.last().expect("M105");
-        assert!(
-            report.starts_with("T:19") || report.starts_with("T:20"),
-            "{name}: {report}"
-        );
+        onechip_tests::assert_held_200(&s, name);
     }
 }
 

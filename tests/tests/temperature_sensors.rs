@@ -49,28 +49,7 @@ fn the_hot_end_reaches_its_target_through_every_kind_of_sensor() {
     ];
     for (name, sensor, extra) in cases {
         let s = heat_with(name, sensor, extra);
-        assert_eq!(
-            (s.errors.len(), s.shutdown.as_ref()),
-            (0, None),
-            "{name}: {s}"
-        );
-        let hot_end = &s.heaters[0];
-        // M109 waited until the firmware measured 200 °C; the simulated
-        // hot end really is there (within a 12-bit reading or so).
-        assert!(s.heat_wait > 10.0, "{name}: {}", s.heat_wait);
-        assert!(
-            (hot_end.temperature - 200.0).abs() < 3.0,
-            "{name}: measured {hot_end:?}"
-        );
-        assert!(
-            (195.0..210.0).contains(&hot_end.peak),
-            "{name}: really reached {hot_end:?}"
-        );
-        let (_, report) = s.temperatures.last().expect("M105");
-        assert!(
-            report.starts_with("T:19") || report.starts_with("T:20"),
-            "{name}: {report}"
-        );
+        onechip_tests::assert_held_200(&s, name);
     }
 }
 

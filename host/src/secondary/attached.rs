@@ -32,6 +32,17 @@ const CALIBRATE_PERIOD: f64 = 1.0;
 /// How long a secondary may take to connect.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
 
+/// The secondaries among `attached` whose indices are `members` (a
+/// homing's), in order.
+fn members<'a>(attached: &'a mut [Attached], members: &[usize]) -> Vec<&'a mut Secondary> {
+    attached
+        .iter_mut()
+        .enumerate()
+        .filter(|(k, _)| members.contains(k))
+        .map(|(_, a)| &mut a.mcu)
+        .collect()
+}
+
 /// One connected secondary and its move queue.
 struct Attached {
     mcu: Secondary,
@@ -286,13 +297,7 @@ impl Secondaries {
             }
         }
         if let Some(h) = &mut self.homing {
-            let mut mcus: Vec<&mut Secondary> = self
-                .attached
-                .iter_mut()
-                .enumerate()
-                .filter(|(k, _)| h.members.contains(k))
-                .map(|(_, a)| &mut a.mcu)
-                .collect();
+            let mut mcus = members(&mut self.attached, &h.members);
             for (k, text) in responses {
                 if let Some(i) = h.members.iter().position(|&m| m == k) {
                     let _ = h.homing.on_response(&mut mcus, i, &text, now, stop_main);
@@ -394,13 +399,7 @@ impl Secondaries {
     /// secondary of the homing is triggered.
     pub fn main_triggered(&mut self, at: f64, now: f64) {
         let Some(h) = &mut self.homing else { return };
-        let mut mcus: Vec<&mut Secondary> = self
-            .attached
-            .iter_mut()
-            .enumerate()
-            .filter(|(k, _)| h.members.contains(k))
-            .map(|(_, a)| &mut a.mcu)
-            .collect();
+        let mut mcus = members(&mut self.attached, &h.members);
         let _ = h.homing.main_triggered(&mut mcus, at, now);
     }
 
@@ -430,13 +429,7 @@ impl Secondaries {
         let Some(mut h) = self.homing.take() else {
             return;
         };
-        let mut mcus: Vec<&mut Secondary> = self
-            .attached
-            .iter_mut()
-            .enumerate()
-            .filter(|(k, _)| h.members.contains(k))
-            .map(|(_, a)| &mut a.mcu)
-            .collect();
+        let mut mcus = members(&mut self.attached, &h.members);
         let _ = h.homing.finish(&mut mcus, now);
         if let Some((k, oid)) = h.endstop {
             let _ = self.attached[k].mcu.connection().send_text(
