@@ -509,14 +509,24 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         } else {
             ["x", "y", "z"]
         };
+        let state = |mcu: &mut _, slot| {
+            if Mcu::endstop_triggered(mcu, slot) {
+                "TRIGGERED"
+            } else {
+                "open"
+            }
+        };
         for (axis, name) in names.iter().enumerate() {
             if self.engine.endstops[axis] {
-                let state = if mcu.endstop_triggered(self.engine.endstop_slot(axis, false)) {
-                    "TRIGGERED"
-                } else {
-                    "open"
-                };
-                let _ = write!(out, "{sep}{name}:{state}");
+                let slot = self.engine.endstop_slot(axis, false);
+                let _ = write!(out, "{sep}{name}:{}", state(mcu, slot));
+                sep = " ";
+            }
+            // The rail's extra steppers with endstops of their own
+            // (`[stepper_z1]`: z1), numbered in order.
+            let own = self.engine.own_endstops.get(axis).copied().unwrap_or(0);
+            for (n, slot) in (0..32).filter(|k| own & (1 << k) != 0).enumerate() {
+                let _ = write!(out, "{sep}{name}{}:{}", n + 1, state(mcu, slot));
                 sep = " ";
             }
         }

@@ -37,7 +37,11 @@ fn racked_run(name: &str, endstop: &str) -> Summary {
          {rotation}\n{endstop}\n"
     );
     std::fs::write(dir.join("printer.cfg"), text + &extra).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), "G28\nM114\nG1 Z10 F600\nM114\n").expect("gcode");
+    std::fs::write(
+        dir.join("job.gcode"),
+        "G28\nM114\nG1 Z10 F600\nM114\nM400\nM119\n",
+    )
+    .expect("gcode");
     let s = onechip_host::run_with(
         &dir,
         &Options {
