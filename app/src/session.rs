@@ -828,6 +828,10 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
         self.motion.sink(self.steps).set_position(pos);
     }
 
+    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
+        (self.motion.sink(self.steps)).set_pressure_advance(advance, smooth_time);
+    }
+
     fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
         self.motion.sink(self.steps).homing_move_end(homing)
     }

@@ -107,6 +107,48 @@ fn positive<'a>(param: &'a str, value: Option<f64>) -> Result<Option<f64>, Comma
     }
 }
 
+/// SET_PRESSURE_ADVANCE [EXTRUDER=extruder] [ADVANCE=] [SMOOTH_TIME=], as
+/// Klipper: the values not given stay, the new ones take effect after the
+/// moves queued so far, and both are reported.
+fn set_pressure_advance<'a, const N: usize>(
+    e: &Extended<'a>,
+    toolhead: &mut Toolhead<N>,
+    sink: &mut impl MoveSink,
+    out: &mut impl Write,
+) -> Result<(), CommandError<'a>> {
+    if let Some(extruder) = e.get("EXTRUDER")?
+        && extruder != "extruder"
+    {
+        return Err(CommandError::Invalid {
+            param: "EXTRUDER",
+            rule: "names no extruder",
+        });
+    }
+    let (advance, smooth_time) = toolhead.pressure_advance();
+    let advance = e.float("ADVANCE")?.unwrap_or(advance);
+    let smooth_time = e.float("SMOOTH_TIME")?.unwrap_or(smooth_time);
+    if advance < 0.0 {
+        return Err(CommandError::Invalid {
+            param: "ADVANCE",
+            rule: "must not be negative",
+        });
+    }
+    if !(0.0..=0.200).contains(&smooth_time) {
+        return Err(CommandError::Invalid {
+            param: "SMOOTH_TIME",
+            rule: "must be between 0 and 0.2",
+        });
+    }
+    toolhead.set_pressure_advance(advance, smooth_time, sink);
+    let _ = writeln!(
+        out,
+        "// pressure_advance: {}\n// pressure_advance_smooth_time: {}",
+        Fixed(advance, 6),
+        Fixed(smooth_time, 6)
+    );
+    Ok(())
+}
+
 impl GcodeMove {
     /// The G-code position (X, Y, Z, E) as M114 reports it, mm.
     pub fn gcode_position(&self) -> [f64; 4] {
@@ -354,6 +396,8 @@ impl GcodeMove {
             Ok(())
         } else if name.eq_ignore_ascii_case("SET_GCODE_OFFSET") {
             self.set_gcode_offset(e, toolhead, sink)
+        } else if name.eq_ignore_ascii_case("SET_PRESSURE_ADVANCE") && toolhead.extruder.is_some() {
+            set_pressure_advance(e, toolhead, sink, out)
         } else {
             let _ = writeln!(
                 out,

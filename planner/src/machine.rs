@@ -404,16 +404,30 @@ impl<'a> Machine<'a> {
         } else {
             0.0
         };
+        self.shaper_scan_delay().max(pa)
+    }
+
+    /// The input shaper's part of [`Self::scan_delay`], s.
+    fn shaper_scan_delay(&self) -> f64 {
         [self.input_shaper.x, self.input_shaper.y]
             .into_iter()
             .flatten()
             .map(|s| s.pulses())
-            .fold(pa, |w, p| w.max(p.lead()).max(p.lag()))
+            .fold(0.0, |w, p| w.max(p.lead()).max(p.lag()))
     }
 
     /// A toolhead for this machine with a lookahead of `N` moves.
     pub fn toolhead<const N: usize>(&self) -> Toolhead<N> {
-        Toolhead::new(self.limits, self.travel, self.extruder, self.scan_delay())
+        let mut toolhead =
+            Toolhead::new(self.limits, self.travel, self.extruder, self.scan_delay());
+        self.note_pressure_advance(&mut toolhead);
+        toolhead
+    }
+
+    /// Tells `toolhead` the configured pressure advance.
+    fn note_pressure_advance<const N: usize>(&self, toolhead: &mut Toolhead<N>) {
+        let pa = (self.pressure_advance, self.pressure_advance_smooth_time);
+        toolhead.note_pressure_advance(pa, self.shaper_scan_delay());
     }
 
     /// [`Self::toolhead`] built in place in `slot`; returns it.
@@ -421,13 +435,15 @@ impl<'a> Machine<'a> {
         &self,
         slot: &'t mut core::mem::MaybeUninit<Toolhead<N>>,
     ) -> &'t mut Toolhead<N> {
-        Toolhead::init_in(
+        let toolhead = Toolhead::init_in(
             slot,
             self.limits,
             self.travel,
             self.extruder,
             self.scan_delay(),
-        )
+        );
+        self.note_pressure_advance(toolhead);
+        toolhead
     }
 }
 

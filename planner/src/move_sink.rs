@@ -38,6 +38,13 @@ pub trait MoveSink {
     fn set_position(&mut self, pos: [f64; 3]) {
         let _ = pos;
     }
+    /// SET_PRESSURE_ADVANCE, after every move so far has been handed
+    /// over: the extruder's moves from now on follow pressure advance
+    /// `advance` (s) smoothed over `smooth_time` (s). Sinks that make no
+    /// steps ignore it.
+    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
+        let _ = (advance, smooth_time);
+    }
     /// The probe's control pin (a BLTouch's servo signal) takes
     /// `pulse_width` s pulses (0: signal off) from print time `print_time`
     /// s on. Sinks without a probe ignore it.

@@ -558,6 +558,11 @@ pub struct Toolhead<const N: usize> {
     /// Step-generation scan window (the later of SDS_CHECK_TIME and the
     /// machine's pressure advance / input shaper windows), s.
     kin_flush_delay: f64,
+    /// The extruder's pressure advance (s) and smoothing time (s), as
+    /// SET_PRESSURE_ADVANCE reports and changes them, and the scan window
+    /// of everything else (the input shaper's), s.
+    pressure_advance: (f64, f64),
+    other_scan: f64,
     /// The last move released: its start print time (s) and the move
     /// (where a probing move was at its trigger).
     last_released: Option<(f64, Move)>,
@@ -609,6 +614,8 @@ impl<const N: usize> Toolhead<N> {
             addr_of_mut!((*p).need_step_gen_time).write(0.0);
             addr_of_mut!((*p).last_step_gen_time).write(0.0);
             addr_of_mut!((*p).kin_flush_delay).write(scan_delay.max(SDS_CHECK_TIME));
+            addr_of_mut!((*p).pressure_advance).write((0.0, 0.0));
+            addr_of_mut!((*p).other_scan).write(scan_delay);
             addr_of_mut!((*p).last_released).write(None);
             slot.assume_init_mut()
         }
@@ -848,6 +855,38 @@ impl<const N: usize> Toolhead<N> {
         Some(core::array::from_fn(|i| {
             m.start_pos[i] + m.axes_r[i] * dist
         }))
+    }
+
+    /// The extruder's pressure advance and smoothing time, s.
+    pub fn pressure_advance(&self) -> (f64, f64) {
+        self.pressure_advance
+    }
+
+    /// The configured pressure advance and smoothing time (s), and the
+    /// scan window of everything else (the input shaper's), s.
+    pub fn note_pressure_advance(&mut self, pressure_advance: (f64, f64), other_scan: f64) {
+        (self.pressure_advance, self.other_scan) = (pressure_advance, other_scan);
+    }
+
+    /// Takes pressure advance `advance` (s) smoothed over `smooth_time`
+    /// (s) from after the moves so far (Klipper's SET_PRESSURE_ADVANCE):
+    /// step generation is flushed, the sink told, and the scan window
+    /// follows the new smoothing.
+    pub fn set_pressure_advance(
+        &mut self,
+        advance: f64,
+        smooth_time: f64,
+        sink: &mut impl MoveSink,
+    ) {
+        self.flush_step_generation(sink);
+        sink.set_pressure_advance(advance, smooth_time);
+        self.pressure_advance = (advance, smooth_time);
+        let pa_scan = if advance > 0.0 {
+            0.5 * smooth_time
+        } else {
+            0.0
+        };
+        self.kin_flush_delay = self.other_scan.max(pa_scan).max(SDS_CHECK_TIME);
     }
 
     pub(crate) fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {

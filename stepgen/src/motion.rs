@@ -492,6 +492,19 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
 
     /// Generates every queued step, then lets a new position take effect
     /// (homing, SET_KINEMATIC_POSITION).
+    /// Generates every queued step, then the extruder's next moves follow
+    /// pressure advance `advance` (s) smoothed over `smooth_time` (s).
+    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64, sink: &mut impl StepSink) {
+        self.generate_through(sink);
+        let pa = PressureAdvance::new(advance, smooth_time);
+        for ch in &mut self.channels {
+            if let Follows::Extruder(_) = ch.follows {
+                ch.follows = Follows::Extruder(pa);
+                ch.margins = Margins::both(pa.half_smooth_time);
+            }
+        }
+    }
+
     fn set_position(&mut self, pos: [f64; 3], sink: &mut impl StepSink) {
         self.generate_through(sink);
         for ch in &mut self.channels {
@@ -645,6 +658,11 @@ impl<const N: usize, const Q: usize, S: StepSink> MoveSink for MotionSink<'_, N,
 
     fn set_position(&mut self, pos: [f64; 3]) {
         self.motion.set_position(pos, self.steps);
+    }
+
+    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
+        self.motion
+            .set_pressure_advance(advance, smooth_time, self.steps);
     }
 
     fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {

@@ -78,11 +78,20 @@ impl<const N: usize> Trapq<N> {
         };
         let mut start = m.print_time;
         match self.segs.pop() {
-            // The tail now ends where the move starts, at its position.
+            // The tail now ends where the move starts, at its position;
+            // a queue left with the tail alone (every move before it
+            // passed) keeps a lead-in as a new one, so that a filter
+            // looking back from the move (pressure advance turned on
+            // since) finds the rest before it.
             Some(tail) => {
                 start = start.max(tail.print_time);
-                if start > tail.print_time {
-                    self.push(still(tail.print_time, start - tail.print_time));
+                let from = if self.segs.is_empty() {
+                    tail.print_time.min(start - LEAD_TIME)
+                } else {
+                    tail.print_time
+                };
+                if start > from {
+                    self.push(still(from, start - from));
                 }
             }
             None => self.push(still(start - LEAD_TIME, LEAD_TIME)),

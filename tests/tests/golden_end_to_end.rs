@@ -49,22 +49,32 @@ fn klippy_batch(case: &str, origin: f64) -> KlippyBatch {
 
 /// Runs `case` on `config` from MCU clock `origin`; compares every stepper.
 fn check(case: &str, config: &str, origin: u64) {
+    check_edited(case, config, origin, |cfg| cfg, "");
+}
+
+/// [`check`] with printer.cfg passed through `edit` and `prefix` put
+/// before the G-code.
+fn check_edited(
+    case: &str,
+    config: &str,
+    origin: u64,
+    edit: impl FnOnce(String) -> String,
+    prefix: &str,
+) {
     let work = std::env::temp_dir().join(format!(
-        "onechip-e2e-{case}-{origin}-{}",
+        "onechip-e2e-{case}-{origin}-{}-{}",
+        prefix.len(),
         std::process::id()
     ));
     let sd = work.join("sd");
     std::fs::create_dir_all(&sd).expect("sd folder");
-    std::fs::copy(
-        golden_dir().join("configs").join(config),
-        sd.join("printer.cfg"),
-    )
-    .expect("cfg");
-    std::fs::copy(
-        golden_dir().join("gcode").join(format!("{case}.gcode")),
-        sd.join(format!("{case}.gcode")),
-    )
-    .expect("gcode");
+    let read = |path: std::path::PathBuf| {
+        std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    };
+    let cfg = read(golden_dir().join("configs").join(config));
+    std::fs::write(sd.join("printer.cfg"), edit(cfg)).expect("cfg");
+    let gcode = read(golden_dir().join("gcode").join(format!("{case}.gcode")));
+    std::fs::write(sd.join(format!("{case}.gcode")), format!("{prefix}{gcode}")).expect("gcode");
     let freq = summary_value(case, "clock_freq");
     let max_error = summary_value(case, "max_error_ticks") as u64;
     let out = work.join("steps");
@@ -122,6 +132,22 @@ fn cartesian() {
 fn corexy() {
     both("corexy_square", "corexy.cfg");
     both("corexy_extrude", "corexy.cfg");
+}
+
+#[test]
+fn pressure_advance_set_by_gcode_steps_as_when_configured() {
+    // corexy_extrude's machine has pressure_advance 0.04 (smoothed over
+    // 40 ms) in printer.cfg; here printer.cfg has none and the G-code
+    // sets it first: klippy's steps all the same.
+    let without = |cfg: String| {
+        assert!(
+            cfg.contains("pressure_advance: 0.04\n"),
+            "the golden config's PA"
+        );
+        cfg.replace("pressure_advance: 0.04\n", "pressure_advance: 0\n")
+    };
+    let prefix = "SET_PRESSURE_ADVANCE ADVANCE=0.04 SMOOTH_TIME=0.040\n";
+    check_edited("corexy_extrude", "corexy.cfg", 0, without, prefix);
 }
 
 #[test]
