@@ -551,19 +551,9 @@ impl<'a> McuSetup<'a> {
                 max_duration: ticks(MAX_HEAT_TIME, freq),
             };
             let _ = setup.outputs.push((heater.heater_pin, output));
-            let query = match heater.sensor {
-                TemperatureSensor::Spi(chip) => InputQuery::Spi(spi_query(
-                    &chip,
-                    heater.min_temp,
-                    heater.max_temp,
-                    freq,
-                    start,
-                )),
-                sensor => {
-                    let range = sensor.adc_range(heater.min_temp, heater.max_temp);
-                    InputQuery::Adc(adc_query(range, freq, adc_max, start))
-                }
-            };
+            let limits = (heater.min_temp, heater.max_temp);
+            let conversion = Conversion::Sensor(heater.sensor);
+            let query = input_query(&conversion, limits, freq, adc_max, start);
             let _ = setup.inputs.push((heater.sensor_pin, query));
         }
         for sensor in &machine.sensors {
@@ -691,20 +681,8 @@ struct SensorState {
     conversion: Conversion,
     /// Its M105 label (`gcode_id`), if any.
     label: Option<heapless::String<MAX_LABEL>>,
-    /// The last reading, and the lowest and highest so far, °C.
-    reading: Option<SensorReading>,
-}
-
-/// A temperature sensor's last reading and its extremes so far, °C
-/// (Klipper's `temperature`, `measured_min_temp`, `measured_max_temp`).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SensorReading {
-    /// The last temperature, °C.
-    pub temperature: f64,
-    /// The lowest so far, °C.
-    pub min: f64,
-    /// The highest so far, °C.
-    pub max: f64,
+    /// The last temperature read, °C.
+    reading: Option<f64>,
 }
 
 /// The heaters, the fan, the temperature sensors and the MCU role's io
@@ -874,18 +852,7 @@ impl Heaters {
                 &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
             )?;
             if let Some(sensor) = self.sensors.get_mut(i) {
-                sensor.reading = Some(match sensor.reading {
-                    Some(r) => SensorReading {
-                        temperature: t,
-                        min: r.min.min(t),
-                        max: r.max.max(t),
-                    },
-                    None => SensorReading {
-                        temperature: t,
-                        min: t,
-                        max: t,
-                    },
-                });
+                sensor.reading = Some(t);
             }
         }
         if self.io.shutdown_reason().is_some() {
@@ -1069,7 +1036,7 @@ impl Heaters {
                 .get(i)
                 .filter(|h| h.last_report.is_some())
                 .map(|h| h.smoothed),
-            SensorRef::Sensor(i) => self.sensor(i).map(|r| r.temperature),
+            SensorRef::Sensor(i) => self.sensor(i),
         }
     }
 
@@ -1126,15 +1093,15 @@ impl Heaters {
             sensors: (self.sensors.iter().enumerate())
                 .filter_map(|(i, s)| {
                     let target = self.accessories.cooling_target(i).unwrap_or(0.0);
-                    Some((s.label.clone()?, s.reading?.temperature, target))
+                    Some((s.label.clone()?, s.reading?, target))
                 })
                 .collect(),
         }
     }
 
-    /// Temperature sensor `index`'s readings (in [`Machine::sensors`]
-    /// order), once it has reported.
-    pub fn sensor(&self, index: usize) -> Option<SensorReading> {
+    /// Temperature sensor `index`'s temperature (in [`Machine::sensors`]
+    /// order), once it has reported, °C.
+    pub fn sensor(&self, index: usize) -> Option<f64> {
         self.sensors.get(index)?.reading
     }
 

@@ -194,19 +194,6 @@ impl Plant {
         }
     }
 
-    /// Temperature sensor `index` senses `celsius` from now on.
-    pub fn set_sensed(&mut self, index: usize, celsius: f64) {
-        if let Some(sensor) = self.sensors.get_mut(index) {
-            (sensor.temp, sensor.at) = (celsius, self.now);
-        }
-    }
-
-    /// Temperature sensor `index`'s temperature now, °C.
-    pub fn sensed(&mut self, index: usize) -> Option<f64> {
-        self.advance_sensor(index);
-        self.sensors.get(index).map(|s| s.temp)
-    }
-
     /// Runs a cooled sensor's physics to now (exact for a constant fan
     /// power).
     fn advance_sensor(&mut self, index: usize) {
@@ -255,25 +242,25 @@ impl Plant {
         }
     }
 
+    /// Input `index` (a heater's, then a temperature sensor's): its
+    /// conversion and the temperature it senses now, °C.
+    fn input(&mut self, index: usize) -> Option<(Conversion, f64)> {
+        let (now, freq) = (self.now, self.freq);
+        if let Some(lump) = self.lumps.get_mut(index) {
+            lump.advance(now, freq);
+            return Some((Conversion::Sensor(lump.sensor), lump.temp));
+        }
+        let sensor = index - self.lumps.len();
+        self.advance_sensor(sensor);
+        self.sensors.get(sensor).map(|s| (s.conversion, s.temp))
+    }
+
     /// Input `index`'s SPI chip and the temperature it senses now, °C.
     fn spi_chip(&mut self, index: usize) -> Option<(SpiSensor, f64)> {
-        let (now, freq) = (self.now, self.freq);
-        let (sensor, celsius) = match self.lumps.get_mut(index) {
-            Some(lump) => {
-                lump.advance(now, freq);
-                (lump.sensor, lump.temp)
-            }
-            None => {
-                let sensor = index - self.lumps.len();
-                self.advance_sensor(sensor);
-                let s = self.sensors.get(sensor)?;
-                match s.conversion {
-                    Conversion::Sensor(chip) => (chip, s.temp),
-                    Conversion::Linear(_) => return None,
-                }
-            }
-        };
-        Some((*sensor.spi()?, celsius))
+        match self.input(index)? {
+            (Conversion::Sensor(sensor), celsius) => Some((*sensor.spi()?, celsius)),
+            (Conversion::Linear(_), _) => None,
+        }
     }
 
     /// Ends every output's log at the current time.
@@ -313,27 +300,17 @@ impl Peripherals for Plant {
     }
 
     fn read_adc(&mut self, index: usize) -> u16 {
-        let (now, freq) = (self.now, self.freq);
+        let now = self.now;
         if self
             .open_sensor
             .is_some_and(|(from, heater)| heater == index && now >= from)
         {
             return ADC_MAX;
         }
-        let reading = match self.lumps.get_mut(index) {
-            Some(lump) => {
-                lump.advance(now, freq);
-                lump.sensor.adc(lump.temp)
-            }
-            None => {
-                let sensor = index - self.lumps.len();
-                self.advance_sensor(sensor);
-                match self.sensors.get(sensor) {
-                    Some(s) => s.conversion.reading(s.temp),
-                    None => return 0,
-                }
-            }
+        let Some((conversion, celsius)) = self.input(index) else {
+            return 0;
         };
+        let reading = conversion.reading(celsius);
         (reading * f64::from(ADC_MAX))
             .round()
             .clamp(0.0, f64::from(ADC_MAX)) as u16

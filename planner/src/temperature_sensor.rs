@@ -57,13 +57,6 @@ impl TemperatureSensor {
             _ => None,
         }
     }
-
-    /// The ADC readings (fractions of full scale) between `min_temp` and
-    /// `max_temp` (°C), lowest first, whichever way the sensor runs.
-    pub fn adc_range(&self, min_temp: f64, max_temp: f64) -> (f64, f64) {
-        let (a, b) = (self.adc(min_temp), self.adc(max_temp));
-        (a.min(b), a.max(b))
-    }
 }
 
 /// What a `sensor_type` names: a thermistor curve, or a table.
@@ -390,10 +383,11 @@ mod tests {
     #[test]
     fn the_adc_range_runs_lowest_first_for_either_kind() {
         let ntc = extruder_sensor("sensor_type: Generic 3950", "").expect("NTC");
-        let (low, high) = ntc.adc_range(0.0, 300.0);
+        let range = |s| crate::sensor_section::Conversion::Sensor(s).reading_range(0.0, 300.0);
+        let (low, high) = range(ntc);
         assert_eq!((low, high), (ntc.adc(300.0), ntc.adc(0.0)));
         let amp = extruder_sensor("sensor_type: AD8495", "").expect("AD8495");
-        let (low, high) = amp.adc_range(0.0, 300.0);
+        let (low, high) = range(amp);
         assert_eq!((low, high), (amp.adc(0.0), amp.adc(300.0)));
         assert!(low < high);
     }

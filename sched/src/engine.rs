@@ -429,9 +429,7 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
                 .is_some_and(|slot| slot.pins.endstop_triggered());
             if let Check::Triggered(at) = watch.endstop.read(pressed) {
                 watch.trigger = Some(at);
-                for i in (0..S).filter(|i| watch.stops & (1 << i) != 0) {
-                    self.stop_stepper(i);
-                }
+                self.stop_steppers(watch.stops);
             }
             self.watches[k] = Some(watch);
         }
@@ -534,9 +532,10 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
         }
     }
 
-    /// Another MCU's trsync triggered (its endstop, relayed by the host):
-    /// every stepper in `stops` (bit `i`: stepper `i`) stops at once, as
-    /// Klipper's `trsync_do_trigger` stops the steppers tied to it; their
+    /// A trsync triggered (a watched endstop here, or another MCU's relayed
+    /// by the host): every stepper in `stops` (bit `i`: stepper `i`) stops
+    /// at once, as Klipper's `trsync_do_trigger` stops the steppers tied
+    /// to it; their
     /// queued and held commands are dropped, and those that come until
     /// each one's step clock is reset. No fault; a watched endstop stays
     /// armed ([`Self::stop_watching`] disarms it).

@@ -119,6 +119,19 @@ struct Channel<const Q: usize> {
     time_offset: f64,
 }
 
+/// The position `w · p` (`w`: a linear stepper's weights of the
+/// coordinates) along `seg`: two coefficients per segment, two operations
+/// per time.
+fn along_segment(seg: &Segment, w: [f64; 3]) -> AlongSegment {
+    let dot = |v: [f64; 3]| w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
+    AlongSegment {
+        base: dot(seg.start_pos),
+        ratio: dot(seg.axes_r),
+        start_v: seg.start_v,
+        half_accel: seg.half_accel,
+    }
+}
+
 impl<const Q: usize> Channel<Q> {
     /// Generates up to `until` (s) from `segs` and sends the steps that lie
     /// [`COMPRESS_LAG`] behind what is generated.
@@ -140,16 +153,7 @@ impl<const Q: usize> Channel<Q> {
                 Some(w) if !shaper.is_active() => {
                     // Affine in the distance along each segment: two
                     // coefficients per segment, two operations per time.
-                    let position = |i: usize| {
-                        let seg: &Segment = &segs[i];
-                        let dot = |v: [f64; 3]| w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
-                        AlongSegment {
-                            base: dot(seg.start_pos),
-                            ratio: dot(seg.axes_r),
-                            start_v: seg.start_v,
-                            half_accel: seg.half_accel,
-                        }
-                    };
+                    let position = |i: usize| along_segment(&segs[i], w);
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }
                 None if !shaper.is_active()
@@ -176,16 +180,9 @@ impl<const Q: usize> Channel<Q> {
             },
             Follows::Extruder(pa) if pa.half_smooth_time == 0.0 => {
                 // Without pressure advance the filament follows its own
-                // queue's segments (signed velocities, direction +1).
-                let position = |i: usize| {
-                    let seg: &Segment = &segs[i];
-                    AlongSegment {
-                        base: seg.start_pos[0],
-                        ratio: 1.0,
-                        start_v: seg.start_v,
-                        half_accel: seg.half_accel,
-                    }
-                };
+                // queue's segments: coordinate 0 (signed velocities,
+                // direction +1).
+                let position = |i: usize| along_segment(&segs[i], [1.0, 0.0, 0.0]);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
             Follows::Extruder(pa) => {
@@ -490,8 +487,6 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         self.error
     }
 
-    /// Generates every queued step, then lets a new position take effect
-    /// (homing, SET_KINEMATIC_POSITION).
     /// Generates every queued step, then the extruder's next moves follow
     /// pressure advance `advance` (s) smoothed over `smooth_time` (s).
     fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64, sink: &mut impl StepSink) {
@@ -505,6 +500,8 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         }
     }
 
+    /// Generates every queued step, then lets a new position take effect
+    /// (homing, SET_KINEMATIC_POSITION).
     fn set_position(&mut self, pos: [f64; 3], sink: &mut impl StepSink) {
         self.generate_through(sink);
         for ch in &mut self.channels {
@@ -600,11 +597,10 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         for (i, ch) in self.channels.iter_mut().enumerate() {
             let mut out = |cmd, clock| sink.command(i, cmd, clock);
             // A stepper on another MCU restarts at the stop on its clock.
-            let own = ch.compressor.clock_at(at - ch.time_offset);
             let own = if ch.time_offset == 0.0 && ch.compressor.freq() == self.freq {
                 clock
             } else {
-                own
+                ch.compressor.clock_at(at - ch.time_offset)
             };
             match ch.follows {
                 Follows::Toolhead(..) => ch.compressor.reset(own, &mut out),
