@@ -8,7 +8,9 @@ use crate::files::Folder;
 use crate::step_log::StepLog;
 use crate::thermal_plant::{ADC_MAX, mcu_sensor};
 use crate::virtual_mcu::VirtualMcu;
-use crate::{HostSession, Options, SimError, load_setup, restart_if_asked, virtual_mcu};
+use crate::{
+    HostSession, Options, SimError, attach_secondaries, load_setup, restart_if_asked, virtual_mcu,
+};
 use onechip_app::console::Console;
 use onechip_app::emergency::EmergencyParser;
 use onechip_app::heaters::{McuSetup, full_scale};
@@ -37,13 +39,13 @@ pub struct ConsolePrinter {
 impl ConsolePrinter {
     /// The printer of SD folder `sd` (its printer.cfg; the folder is its
     /// card), as `options` say (clock, start position, step files, plot,
-    /// faults). The
-    /// config is kept for the life of the process.
+    /// faults), its secondary MCUs connected (time then follows the wall
+    /// clock). The config is kept for the life of the process.
     pub fn new(sd: &Path, options: &Options) -> Result<Self, SimError> {
         let buf = Box::leak(vec![0u8; crate::files::CONFIG_BUFFER].into_boxed_slice());
         let scratch = Box::leak(Box::new(std::mem::MaybeUninit::uninit()));
-        let setup = load_setup(sd, options, buf, scratch)?;
-        let machine: &'static Machine<'static> = Box::leak(Box::new(setup)).machine();
+        let setup = Box::leak(Box::new(load_setup(sd, options, buf, scratch)?));
+        let machine: &'static Machine<'static> = setup.machine();
         let freq = options.mcu_freq;
         let mut session = Box::new(HostSession::new(
             machine,
@@ -51,7 +53,10 @@ impl ConsolePrinter {
             profile::MAX_STEP_ERROR,
             options.clock_origin,
         ));
-        let mcu = virtual_mcu(machine, options)?;
+        let mut mcu = virtual_mcu(machine, options)?;
+        if !machine.secondaries.is_empty() {
+            attach_secondaries(setup, options, &mut mcu)?;
+        }
         // Without simulated switches a homing move runs to its end, as in
         // klippy's batch mode.
         session.set_endstops_modelled(mcu.real_position().is_some());

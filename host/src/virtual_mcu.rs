@@ -273,12 +273,19 @@ impl VirtualMcu {
 
     /// Leaves a shutdown (FIRMWARE_RESTART): the engine idle and
     /// unfaulted, the heaters and fan rebuilt for `machine` (their physics
-    /// from ambient again) if they were simulated.
+    /// from ambient again) if they were simulated, the secondary MCUs
+    /// reset and configured again.
     pub fn restart(&mut self, machine: &Machine<'_>, freq: f64) {
         self.engine.restart();
         self.pushed = true;
         if self.thermal.is_some() {
             self.start_heaters(machine, freq);
+        }
+        if let (Some(secondaries), Some(pace)) = (&mut self.secondaries, &self.pace) {
+            let (pace, freq) = (pace.clone(), secondaries.freq());
+            secondaries.restart(machine, &move || pace.clock_now() as f64 / freq);
+            // Time went on while they were brought back.
+            self.run_to_wall_clock();
         }
     }
 

@@ -44,6 +44,13 @@ pub enum Shutdown {
         /// Its name.
         mcu: &'static str,
     },
+    /// A secondary MCU could not be brought back by FIRMWARE_RESTART:
+    /// Klipper's message, which names it (`Failed automated reset of MCU
+    /// 'ext'`).
+    SecondaryNotReady {
+        /// The message.
+        message: &'static str,
+    },
 }
 
 /// The heaters a shutdown can name.
@@ -78,6 +85,7 @@ impl Shutdown {
         match self {
             Self::Secondary { reason, .. } => reason,
             Self::LostCommunication { .. } => "Lost communication with MCU",
+            Self::SecondaryNotReady { message } => message,
             Self::MoveQueueOverflow => "Move queue overflow",
             Self::StepperTooFarInPast => "Stepper too far in past",
             Self::TimerTooClose => "Timer too close",

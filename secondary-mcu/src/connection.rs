@@ -55,6 +55,9 @@ pub struct Full;
 pub enum Failure {
     /// Configured before with other commands (and not restarted).
     CrcMismatch,
+    /// Still configured after it was to be reset (klippy's firmware
+    /// restart did not take).
+    NotReset,
     /// `get_config` still says unconfigured after the config was sent.
     NotConfigured,
     /// The MCU is shut down, so it cannot take a config.
@@ -70,6 +73,7 @@ impl Failure {
     pub fn write(&self, name: &str, f: &mut impl fmt::Write) -> fmt::Result {
         match self {
             Self::CrcMismatch => write!(f, "MCU '{name}' CRC does not match config"),
+            Self::NotReset => write!(f, "Failed automated reset of MCU '{name}'"),
             Self::NotConfigured => write!(f, "Unable to configure MCU '{name}'"),
             Self::ShutDown => write!(f, "Can not update MCU '{name}' config as it is shutdown"),
             Self::Lost => write!(f, "Lost communication with MCU '{name}'"),

@@ -36,6 +36,75 @@ pub enum Firmware {
     Avr,
 }
 
+/// A stepper's pins on a peer, as the firmware names them.
+#[derive(Debug, Clone, Copy)]
+pub struct StepperPins {
+    /// Step.
+    pub step: &'static str,
+    /// Direction.
+    pub dir: &'static str,
+    /// Enable (written inverted in printer.cfg).
+    pub enable: &'static str,
+}
+
+/// The pins [`printer_with_extruder_on`] gives the extruder on `firmware`.
+pub const fn extruder_pins(firmware: Firmware) -> StepperPins {
+    match firmware {
+        Firmware::Linux => StepperPins {
+            step: "gpiochip0/gpio10",
+            dir: "gpiochip0/gpio11",
+            enable: "gpiochip0/gpio12",
+        },
+        Firmware::Avr => StepperPins {
+            step: "PA4",
+            dir: "PA6",
+            enable: "PA2",
+        },
+    }
+}
+
+/// An SD folder `dir`: the shipped printer with its extruder on the
+/// secondary MCU `ext` (`firmware`, at `serial`, reset by
+/// `restart_method`) on [`extruder_pins`], cold extrusion allowed, and
+/// `gcode` as its one G-code file.
+///
+/// # Panics
+///
+/// If the shipped printer.cfg changed so that its extruder cannot be
+/// moved, or the folder cannot be written.
+pub fn printer_with_extruder_on(
+    firmware: Firmware,
+    dir: &Path,
+    serial: &Path,
+    restart_method: &str,
+    gcode: &str,
+) {
+    let shipped = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
+    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
+    let pins = extruder_pins(firmware);
+    let moved = cfg
+        .replace(
+            "[extruder]\nstep_pin: PF9\ndir_pin: PF10\nenable_pin: !PG2\n",
+            &format!(
+                "[extruder]\nstep_pin: ext:{}\ndir_pin: ext:{}\nenable_pin: !ext:{}\n\
+                 min_extrude_temp: 0\n",
+                pins.step, pins.dir, pins.enable
+            ),
+        )
+        .replace(
+            "[printer]",
+            &format!(
+                "[mcu ext]\nserial: {}\nrestart_method: {restart_method}\n\n[printer]",
+                serial.display()
+            ),
+        );
+    assert!(moved.contains("step_pin: ext:"), "extruder section moved");
+    std::fs::create_dir_all(dir).expect("sd folder");
+    std::fs::write(dir.join("printer.cfg"), moved).expect("printer.cfg");
+    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+}
+
 /// A running peer.
 pub struct Peer {
     child: Child,

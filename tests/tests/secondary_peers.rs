@@ -5,7 +5,9 @@
 use onechip_host::secondary::{Heard, Secondary};
 use onechip_secondary_mcu::clock_sync::{MAX_PENDING_QUERIES, QUERY_PERIOD};
 use onechip_tests::noisy_link::NoisyLink;
-use onechip_tests::peers::{Firmware, Peer, RealtimeGuard};
+use onechip_tests::peers::{
+    Firmware, Peer, RealtimeGuard, extruder_pins, printer_with_extruder_on,
+};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -126,32 +128,10 @@ fn atmega2560_identifies_configures_and_steps_on_its_pins() {
     hundred_steps(Firmware::Avr, "PA4", "PA6", 32, 16e6);
 }
 
-/// An SD folder: the shipped printer with its extruder on the secondary
-/// MCU at `serial` (Linux MCU pins), cold extrusion allowed, and `gcode`.
+/// An SD folder: the shipped printer with its extruder on the Linux MCU
+/// at `serial`, and `gcode`.
 fn extruder_on_secondary(dir: &std::path::Path, serial: &std::path::Path, gcode: &str) {
-    let shipped = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
-    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
-    let cfg = cfg
-        .replace(
-            "[extruder]\nstep_pin: PF9\ndir_pin: PF10\nenable_pin: !PG2\n",
-            "[extruder]\nstep_pin: ext:gpiochip0/gpio10\ndir_pin: ext:gpiochip0/gpio11\n\
-             enable_pin: !ext:gpiochip0/gpio12\nmin_extrude_temp: 0\n",
-        )
-        .replace(
-            "[printer]",
-            &format!(
-                "[mcu ext]\nserial: {}\nrestart_method: command\n\n[printer]",
-                serial.display()
-            ),
-        );
-    assert!(
-        cfg.contains("ext:gpiochip0/gpio10"),
-        "extruder section moved"
-    );
-    std::fs::create_dir_all(dir).expect("sd folder");
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("printer.cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+    printer_with_extruder_on(Firmware::Linux, dir, serial, "command", gcode);
 }
 
 /// p50, p99 and max of `values`' magnitudes.
@@ -162,10 +142,9 @@ fn percentiles(values: &[f64]) -> (f64, f64, f64) {
     (at(0.5), at(0.99), at(1.0))
 }
 
-/// The extruder's step and direction pins on the Linux MCU (see
-/// [`extruder_on_secondary`]).
-const EXTRUDER_STEP: &str = "gpiochip0/gpio10";
-const EXTRUDER_DIR: &str = "gpiochip0/gpio11";
+/// The extruder's step and direction pins on the Linux MCU.
+const EXTRUDER_STEP: &str = extruder_pins(Firmware::Linux).step;
+const EXTRUDER_DIR: &str = extruder_pins(Firmware::Linux).dir;
 
 /// The extruder's steps on the peer's pins against the plan: every
 /// planned step made, nothing more, ending where planned; returns how far

@@ -8,12 +8,13 @@
 //! it is armed there.
 
 use super::homing::Homing;
-use super::{ConnectError, Heard, Secondary};
+use super::{ConnectError, Heard, Secondary, Start};
 use crate::thermal_plant::mcu_sensor;
 use onechip_app::heaters::McuSetup;
 use onechip_app::mcu_config::{Oids, pin_ref, write_config};
 use onechip_app::step_pulse::pulse_ticks;
 use onechip_planner::machine::Machine;
+use onechip_planner::mcu_section::RestartMethod;
 use onechip_protocol::transport::LinkStats;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
@@ -53,6 +54,8 @@ struct Attached {
     slots: BinaryHeap<Reverse<u64>>,
     /// The trsync its steppers and endstop use while homing.
     trsync: u8,
+    /// How it is reset (its `restart_method`).
+    restart: RestartMethod,
 }
 
 /// A rail's endstop on a secondary.
@@ -115,17 +118,68 @@ pub struct Secondaries {
     failed_at: Option<Instant>,
     /// `emergency_stop` went to every secondary.
     stopped: bool,
+    /// Each stepper's step pulse, s (for configuring them again).
+    pulses: Vec<f64>,
 }
 
 impl Secondaries {
     /// Connects every `[mcu NAME]` of `machine` and configures its
     /// steppers (`pulse(i)`: stepper `i`'s step pulse, s); `now` is host
-    /// time (s) on the main clock of `freq` Hz.
+    /// time (s) on the main clock of `freq` Hz. One holding another
+    /// config is reset and configured anew, as klippy's automated
+    /// firmware restart.
     pub fn connect(
         machine: &Machine<'_>,
         pulse: &dyn Fn(usize) -> f64,
         freq: f64,
         now: &dyn Fn() -> f64,
+    ) -> Result<Self, ConnectError> {
+        let pulses = (0..machine.steppers.len()).map(pulse).collect();
+        Self::connect_all(machine, pulses, freq, now, Start::Fresh)
+    }
+
+    /// FIRMWARE_RESTART: every secondary is reset as its
+    /// `restart_method` says, then connected and configured again (one
+    /// still configured is `Failed automated reset of MCU 'NAME'`).
+    /// What the steppers were sent is kept. On an error the printer stays
+    /// shut down with its message.
+    pub fn restart(&mut self, machine: &Machine<'_>, now: &dyn Fn() -> f64) {
+        let reset = self
+            .attached
+            .iter_mut()
+            .try_for_each(|a| a.mcu.reset(a.restart, now));
+        let again = reset.and_then(|()| {
+            let pulses = self.pulses.clone();
+            Self::connect_all(machine, pulses, self.freq, now, Start::Restarted)
+        });
+        match again {
+            Ok(fresh) => {
+                let sent = std::mem::take(&mut self.sent);
+                let timeouts = self.homing_timeouts;
+                *self = fresh;
+                self.sent = sent;
+                self.homing_timeouts = timeouts;
+            }
+            Err(e) => {
+                // Klipper's message alone: the config loaded before.
+                let e = match e {
+                    ConnectError::Mcu { error, .. } => *error,
+                    e => e,
+                };
+                let message = Box::leak(e.to_string().into_boxed_str());
+                self.failure = Some(Shutdown::SecondaryNotReady { message });
+                self.failed_at = Some(Instant::now());
+                self.homing = None;
+            }
+        }
+    }
+
+    fn connect_all(
+        machine: &Machine<'_>,
+        pulses: Vec<f64>,
+        freq: f64,
+        now: &dyn Fn() -> f64,
+        start: Start,
     ) -> Result<Self, ConnectError> {
         let mut all = Self {
             attached: Vec::new(),
@@ -140,6 +194,7 @@ impl Secondaries {
             failure: None,
             failed_at: None,
             stopped: false,
+            pulses,
         };
         for secondary in &machine.secondaries {
             let name: &'static str = Box::leak(secondary.name.to_string().into_boxed_str());
@@ -149,7 +204,7 @@ impl Secondaries {
             let lines = |mcu_freq: f64| {
                 let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
                 let mut lines = Vec::new();
-                let ticks = |i: usize| pulse_ticks(pulse(i), mcu_freq);
+                let ticks = |i: usize| pulse_ticks(all.pulses[i], mcu_freq);
                 let o = write_config(machine, &setup, name, &ticks, &mut |l| {
                     lines.push(l.to_string())
                 });
@@ -162,15 +217,23 @@ impl Secondaries {
                 lines
             };
             let path = Path::new(secondary.serial);
-            let mcu =
-                Secondary::connect(name, path, &lines, now, CONNECT_TIMEOUT).map_err(|e| {
-                    let (file, line) = secondary.serial_at;
-                    ConnectError::Mcu {
-                        mcu: name.to_string(),
-                        at: (file.to_string(), line),
-                        error: Box::new(e),
-                    }
-                })?;
+            let method = secondary.restart_method;
+            let mcu = match start {
+                Start::Fresh => {
+                    Secondary::connect_or_restart(name, path, method, &lines, now, CONNECT_TIMEOUT)
+                }
+                Start::Restarted => {
+                    Secondary::connect_as(name, path, &lines, now, CONNECT_TIMEOUT, start)
+                }
+            };
+            let mcu = mcu.map_err(|e| {
+                let (file, line) = secondary.serial_at;
+                ConnectError::Mcu {
+                    mcu: name.to_string(),
+                    at: (file.to_string(), line),
+                    error: Box::new(e),
+                }
+            })?;
             let dict = mcu.dictionary();
             let oids = oids.get();
             for (i, oid) in oids.steppers.iter().enumerate() {
@@ -199,6 +262,7 @@ impl Secondaries {
                 name,
                 slots: BinaryHeap::new(),
                 trsync: oids.count,
+                restart: secondary.restart_method,
             });
         }
         Ok(all)

@@ -6,6 +6,7 @@ pub mod attached;
 pub mod homing;
 pub mod port;
 
+use onechip_planner::mcu_section::RestartMethod;
 use onechip_protocol::dictionary::Dictionary;
 use onechip_protocol::transport::{
     DEFAULT_RECEIVE_WINDOW, HostLink, LinkStats, MAX_PENDING_BLOCKS,
@@ -22,6 +23,10 @@ use std::time::{Duration, Instant};
 const DICTIONARY_MAX: usize = 64 * 1024;
 /// How long one round of the start-up waits for an answer.
 const EXCHANGE_WAIT: Duration = Duration::from_millis(5);
+/// How long klippy lets an MCU act on a reset command, s.
+const RESET_PAUSE: f64 = 0.015;
+/// Between two tries to open a device not there yet.
+const REOPEN_PAUSE: Duration = Duration::from_millis(50);
 /// Bytes one poll may write.
 const OUT_MAX: usize = 1 + MAX_PENDING_BLOCKS * onechip_protocol::block::MAX_LEN;
 
@@ -34,8 +39,15 @@ pub enum ConnectError {
     Timeout(&'static str),
     /// The dictionary is not valid.
     Dictionary(String),
-    /// The config phase failed (Klipper's message).
-    Failed(String),
+    /// The config phase failed.
+    Failed {
+        /// The MCU's name.
+        mcu: String,
+        /// Why (Klipper's message names the MCU).
+        why: Failure,
+    },
+    /// The reset asked for could not be carried out (`restart_method`).
+    Reset(String),
     /// A secondary could not be brought up.
     Mcu {
         /// Its name (`[mcu NAME]`).
@@ -53,7 +65,8 @@ impl fmt::Display for ConnectError {
             Self::Io(e) => write!(f, "{e}"),
             Self::Timeout(phase) => write!(f, "Timeout during {phase}"),
             Self::Dictionary(e) => write!(f, "invalid data dictionary: {e}"),
-            Self::Failed(m) => f.write_str(m),
+            Self::Failed { mcu, why } => why.write(mcu, f),
+            Self::Reset(why) => f.write_str(why),
             Self::Mcu { mcu, at, error } => write!(
                 f,
                 "{}:{}: option 'serial' in section 'mcu {mcu}': {error}",
@@ -61,6 +74,17 @@ impl fmt::Display for ConnectError {
             ),
         }
     }
+}
+
+/// Why a secondary is being connected (klippy's start reason).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Start {
+    /// The printer starts: a config the MCU holds is kept if it is
+    /// this one.
+    Fresh,
+    /// It was just reset: a config it still holds means the reset did
+    /// not take.
+    Restarted,
 }
 
 /// What a secondary said, as text, for the owner to act on.
@@ -97,18 +121,133 @@ impl Secondary {
         now: &dyn Fn() -> f64,
         timeout: Duration,
     ) -> Result<Self, ConnectError> {
-        let mut port = Port::open(path).map_err(ConnectError::Io)?;
+        Self::connect_as(name, path, config, now, timeout, Start::Fresh)
+    }
+
+    /// [`Self::connect`], and as klippy's automated firmware restart: an
+    /// MCU that holds another config (its CRC differs) is reset by
+    /// `restart` and configured anew.
+    pub fn connect_or_restart(
+        name: &str,
+        path: &Path,
+        restart: RestartMethod,
+        config: &dyn Fn(f64) -> Vec<String>,
+        now: &dyn Fn() -> f64,
+        timeout: Duration,
+    ) -> Result<Self, ConnectError> {
         let deadline = now() + timeout.as_secs_f64();
-        let (link, dict) = identify(&mut port, now, deadline)?;
-        let mut secondary = Self {
+        let mut secondary = Self::identified(name, path, now, deadline)?;
+        match secondary.configure(config, now, deadline, Start::Fresh) {
+            Err(ConnectError::Failed {
+                why: Failure::CrcMismatch,
+                ..
+            }) => {
+                secondary.reset(restart, now)?;
+                drop(secondary);
+                Self::connect_as(name, path, config, now, timeout, Start::Restarted)
+            }
+            Err(e) => Err(e),
+            Ok(()) => Ok(secondary),
+        }
+    }
+
+    /// [`Self::connect`] of an MCU that was just reset when `start` says
+    /// so: then one still configured is [`Failure::NotReset`].
+    pub fn connect_as(
+        name: &str,
+        path: &Path,
+        config: &dyn Fn(f64) -> Vec<String>,
+        now: &dyn Fn() -> f64,
+        timeout: Duration,
+        start: Start,
+    ) -> Result<Self, ConnectError> {
+        let deadline = now() + timeout.as_secs_f64();
+        let mut secondary = Self::identified(name, path, now, deadline)?;
+        secondary.configure(config, now, deadline, start)?;
+        Ok(secondary)
+    }
+
+    /// Opens `path` and fetches the dictionary, by host time `deadline`
+    /// (s): the MCU before its config phase.
+    fn identified(
+        name: &str,
+        path: &Path,
+        now: &dyn Fn() -> f64,
+        deadline: f64,
+    ) -> Result<Self, ConnectError> {
+        // As klippy's serial connect: a device that is not there yet, or
+        // goes before it answered (the old one of an MCU being reset), is
+        // tried again until the deadline.
+        let (port, link, dict) = loop {
+            let mut port = open_when_there(path, now, deadline)?;
+            match identify(&mut port, now, deadline) {
+                Ok((link, dict)) => break (port, link, dict),
+                Err(ConnectError::Io(_)) if now() < deadline => {
+                    std::thread::sleep(REOPEN_PAUSE);
+                }
+                Err(e) => return Err(e),
+            }
+        };
+        Ok(Self {
             name: name.to_string(),
             port,
             conn: Connection::new(dict, link),
             move_count: 0,
+        })
+    }
+
+    /// Resets the MCU as klippy's `microcontroller_restart` does for
+    /// `method`: `command` sends `reset`, or (an MCU without it, as
+    /// Klipper's Linux MCU) `emergency_stop` then `config_reset`, each
+    /// followed by 15 ms for it to act; `arduino` and `cheetah` pulse the
+    /// serial line's DTR (RTS too for the Cheetah) in 100 ms steps. The
+    /// link is given up after: connect again.
+    pub fn reset(
+        &mut self,
+        method: RestartMethod,
+        now: &dyn Fn() -> f64,
+    ) -> Result<(), ConnectError> {
+        let dict = self.conn.dictionary();
+        let has = |name: &str| dict.by_name(name).is_some();
+        let send = |secondary: &mut Self, line: &str| -> Result<(), ConnectError> {
+            let queued = secondary.conn.send_text(line, 0);
+            queued.map_err(|_| {
+                ConnectError::Reset(format!("MCU '{}': {line} not sent", secondary.name))
+            })?;
+            let until = now() + RESET_PAUSE;
+            while now() < until {
+                // Its device may go as it resets (the Linux MCU's does).
+                if secondary
+                    .service(now(), EXCHANGE_WAIT, &mut Vec::new())
+                    .is_err()
+                {
+                    break;
+                }
+            }
+            Ok(())
         };
-        let config = config(secondary.clock_freq());
-        secondary.configure(&config, now, deadline)?;
-        Ok(secondary)
+        let by_line = |why: io::Error| {
+            ConnectError::Reset(format!(
+                "MCU '{}': unable to reset by the serial line: {why}",
+                self.name
+            ))
+        };
+        match method {
+            RestartMethod::Command if has("reset") => send(self, "reset"),
+            RestartMethod::Command if has("config_reset") => {
+                send(self, "emergency_stop")?;
+                send(self, "config_reset")
+            }
+            // klippy logs that it cannot and goes on: the MCU then
+            // answers as not reset.
+            RestartMethod::Command => Ok(()),
+            RestartMethod::Arduino => self.port.pulse_dtr(false).map_err(by_line),
+            RestartMethod::Cheetah => self.port.pulse_dtr(true).map_err(by_line),
+            RestartMethod::RpiUsb => Err(ConnectError::Reset(format!(
+                "MCU '{}': restart_method rpi_usb needs a Raspberry Pi's USB hub",
+                self.name
+            ))),
+        }
     }
 
     /// The MCU's nominal clock (`CLOCK_FREQ`), Hz.
@@ -135,13 +274,16 @@ impl Secondary {
         self.conn.link_stats()
     }
 
-    /// Runs the config phase to its end.
+    /// Runs the config phase to its end with the config for the MCU's
+    /// clock; `start` says whether it was just reset.
     fn configure(
         &mut self,
-        config: &[String],
+        config: &dyn Fn(f64) -> Vec<String>,
         now: &dyn Fn() -> f64,
         deadline: f64,
+        start: Start,
     ) -> Result<(), ConnectError> {
+        let config = config(self.clock_freq());
         let mut failure = None;
         while self.move_count == 0 {
             let t = now();
@@ -157,15 +299,20 @@ impl Secondary {
                 Event::Shutdown(_) => failure = Some(Failure::ShutDown),
                 Event::Response(_) => {}
             })?;
-            if let Some(crc) = configure
-                && let Err(why) = self.conn.configure(config.iter().map(String::as_str), crc)
-            {
-                failure = Some(why);
+            match configure {
+                Some(Some(_)) if start == Start::Restarted => failure = Some(Failure::NotReset),
+                Some(crc) => {
+                    if let Err(why) = self.conn.configure(config.iter().map(String::as_str), crc) {
+                        failure = Some(why);
+                    }
+                }
+                None => {}
             }
             if let Some(why) = failure {
-                let mut text = String::new();
-                let _ = why.write(&self.name, &mut text);
-                return Err(ConnectError::Failed(text));
+                return Err(ConnectError::Failed {
+                    mcu: self.name.clone(),
+                    why,
+                });
             }
             if let Some(n) = ready {
                 self.move_count = n;
@@ -225,6 +372,22 @@ impl Secondary {
             self.conn.receive(&buf[..got], received, &mut *on_event);
         }
         Ok(())
+    }
+}
+
+/// Opens `path` once it is there (a reset MCU's device may come back
+/// under it a little later), until `deadline` (host time, s).
+fn open_when_there(
+    path: &Path,
+    now: &dyn Fn() -> f64,
+    deadline: f64,
+) -> Result<Port, ConnectError> {
+    loop {
+        match Port::open(path) {
+            Ok(port) => return Ok(port),
+            Err(e) if now() > deadline => return Err(ConnectError::Io(e)),
+            Err(_) => std::thread::sleep(REOPEN_PAUSE),
+        }
     }
 }
 

@@ -68,6 +68,37 @@ impl Port {
         self.read(input)
     }
 
+    /// Pulses the modem lines as klippy resets an Arduino-style board
+    /// (its DTR is wired to the chip's reset): DTR raised then dropped,
+    /// 100 ms apart. With `cheetah`, as klippy's Fysetc Cheetah reset:
+    /// RTS held raised over a first pulse, then a second pulse. An error
+    /// if the device has no modem lines (a pseudo-terminal).
+    pub fn pulse_dtr(&mut self, cheetah: bool) -> io::Result<()> {
+        let step = Duration::from_millis(100);
+        let set = |line: libc::c_int, on: bool| -> io::Result<()> {
+            let request = if on { libc::TIOCMBIS } else { libc::TIOCMBIC };
+            // SAFETY: the fd is open; the request reads one c_int.
+            if unsafe { libc::ioctl(self.file.as_raw_fd(), request, &line) } < 0 {
+                return Err(io::Error::last_os_error());
+            }
+            Ok(())
+        };
+        let pulse = || -> io::Result<()> {
+            set(libc::TIOCM_DTR, true)?;
+            std::thread::sleep(step);
+            set(libc::TIOCM_DTR, false)?;
+            std::thread::sleep(step);
+            Ok(())
+        };
+        if cheetah {
+            set(libc::TIOCM_RTS, true)?;
+            pulse()?;
+            set(libc::TIOCM_RTS, false)?;
+            std::thread::sleep(step);
+        }
+        pulse()
+    }
+
     fn wait(&self, events: libc::c_short, timeout: Duration) -> io::Result<()> {
         let mut poll = libc::pollfd {
             fd: self.file.as_raw_fd(),
