@@ -91,6 +91,13 @@ pub trait Mcu {
     /// clock is reset, as Klipper's `trsync_trigger` stops them. No fault;
     /// a watched endstop stays armed.
     fn stop_steppers(&mut self, stops: u32);
+    /// True if the trigger just taken ([`Self::take_trigger`]) ended a
+    /// homing across MCUs by a communication timeout (the relayed trsync
+    /// reports stopped; Klipper's `REASON_COMMS_TIMEOUT`) rather than an
+    /// endstop. False by default (no other MCU).
+    fn homing_comms_timeout(&mut self) -> bool {
+        false
+    }
     /// Carries out a heater or fan command now.
     fn thermal(&mut self, command: ThermalCommand);
     /// True while `wait` is not over: a heater still reaching its target,
@@ -910,11 +917,20 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             overshoot: [0; MAX_STEPPERS],
             stopped: true,
             untriggered,
+            comms_timeout: false,
         };
         let shutdown = loop {
             while let Some((slot, trigger)) = self.mcu.take_trigger() {
                 // The 64-bit clock of the trigger, which lies before now.
                 let clock = widen(trigger, self.mcu.now());
+                if self.mcu.homing_comms_timeout() {
+                    // Every MCU stopped by itself: the homing is over.
+                    link.watching = None;
+                    return Some(HomingStop {
+                        comms_timeout: true,
+                        ..stop(clock, None)
+                    });
+                }
                 link.last_trigger = Some(link.last_trigger.map_or(clock, |t| t.max(clock)));
                 link.pending &= !(1u32.checked_shl(slot as u32).unwrap_or(0));
                 if link.pending == 0 {

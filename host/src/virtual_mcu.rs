@@ -206,6 +206,8 @@ pub struct VirtualMcu {
     no_filament: Vec<usize>,
     /// The secondary MCUs and the steppers on them.
     secondaries: Option<Secondaries>,
+    /// The last homing trigger taken was a trsync communication timeout.
+    comms_timeout: bool,
     /// The simulated TMC drivers.
     tmc: TmcSim,
 }
@@ -228,6 +230,7 @@ impl VirtualMcu {
             io_wake: None,
             pace: None,
             secondaries: None,
+            comms_timeout: false,
             emergency: None,
             no_filament: Vec::new(),
             tmc: TmcSim::default(),
@@ -738,7 +741,8 @@ impl Mcu for VirtualMcu {
             && s.is_homing()
         {
             // The homing across MCUs: its first trigger, on any of them.
-            let (at, _) = s.take_homing_trigger()?;
+            let (at, reason) = s.take_homing_trigger()?;
+            self.comms_timeout = reason == onechip_secondary_mcu::trsync::reason::COMMS_TIMEOUT;
             s.end_homing(now);
             let clock = (at * s.freq()).max(0.0) as u64;
             self.engine.stop_watching();
@@ -752,6 +756,10 @@ impl Mcu for VirtualMcu {
         let clock = onechip_sched::clock::widen(trigger, self.now);
         self.triggers.push((axis, real, clock));
         Some((stepper, trigger))
+    }
+
+    fn homing_comms_timeout(&mut self) -> bool {
+        core::mem::take(&mut self.comms_timeout)
     }
 
     fn stop_steppers(&mut self, stops: u32) {

@@ -78,6 +78,18 @@ pub const NO_TRIGGER_EXTRA: [[&str; 3]; 3] = [
     ],
 ];
 
+/// Klipper's error for a homing move ended by a communication timeout
+/// (another MCU's trsync reports stopped), by the endstop's name as in
+/// [`NO_TRIGGER_RAIL`].
+pub const COMMS_TIMEOUT: [&str; 6] = [
+    "Error during homing x: Communication timeout during homing",
+    "Error during homing y: Communication timeout during homing",
+    "Error during homing z: Communication timeout during homing",
+    "Error during homing a: Communication timeout during homing",
+    "Error during homing b: Communication timeout during homing",
+    "Error during homing c: Communication timeout during homing",
+];
+
 /// What is homed together: one axis, or a delta's three towers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Rails {
@@ -209,6 +221,15 @@ impl<const N: usize> Toolhead<N> {
     /// ended as `end` never triggered (as Klipper's G28 then turns the
     /// motors off, every axis must be homed again).
     fn check_triggered(&mut self, rails: Rails, end: &HomingEnd) -> Result<(), MoveError> {
+        if end.comms_timeout {
+            // The move's first endstop names it, as in Klipper: the
+            // rail's, or tower A's.
+            let name = match rails {
+                Rails::Axis(axis) => COMMS_TIMEOUT.get(axis),
+                Rails::Towers => COMMS_TIMEOUT.get(3),
+            };
+            return Err(self.homing_failed(name.copied().unwrap_or(COMMS_TIMEOUT[2])));
+        }
         let Some(endstop) = end.untriggered else {
             return Ok(());
         };
@@ -227,12 +248,18 @@ impl<const N: usize> Toolhead<N> {
             Rails::Axis(axis) => NO_TRIGGER_RAIL.get(axis).copied(),
             Rails::Towers => NO_TRIGGER_RAIL.get(3 + endstop).copied(),
         };
+        Err(self.homing_failed(reason.unwrap_or(NO_TRIGGER_RAIL[2])))
+    }
+
+    /// A homing move failed with `reason`: as Klipper's G28 then turns
+    /// the motors off, every axis must be homed again.
+    fn homing_failed(&mut self, reason: &'static str) -> MoveError {
         self.kinematics.clear_homed();
-        Err(MoveError {
-            reason: reason.unwrap_or(NO_TRIGGER_RAIL[2]),
+        MoveError {
+            reason,
             end: self.position(),
             detail: crate::toolhead::Detail::Nothing,
-        })
+        }
     }
 
     /// One homing move of `rails` to `target`, ending where the endstop

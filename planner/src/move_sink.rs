@@ -60,6 +60,7 @@ pub trait MoveSink {
             position: homing.target,
             stopped_at: None,
             untriggered: None,
+            comms_timeout: false,
         }
     }
 }
@@ -107,4 +108,9 @@ pub struct HomingEnd {
     /// endstop is modelled (klippy's batch mode, where the move's end
     /// counts as the trigger).
     pub untriggered: Option<usize>,
+    /// The move was ended by a trsync communication timeout: another MCU's
+    /// reports stopped reaching the host in time, so every MCU stopped its
+    /// steppers by itself (Klipper's `Communication timeout during
+    /// homing`).
+    pub comms_timeout: bool,
 }

@@ -21,6 +21,9 @@ use onechip_config::{Bounds, Config, ConfigError, Section};
 pub const VIRTUAL_ENDSTOP: &str = "probe:z_virtual_endstop";
 /// Klipper's error when a probing move reaches its end untriggered.
 pub const NO_TRIGGER: &str = "No trigger on probe after full movement";
+/// Klipper's error when a communication timeout ends a probing move
+/// (another MCU's trsync reports stopped).
+pub const COMMS_TIMEOUT: &str = "Error during homing probe: Communication timeout during homing";
 /// Klipper's error when probing before Z is homed.
 pub const MUST_HOME: &str = "Must home before probe";
 /// Klipper's error when samples spread more than samples_tolerance.
@@ -348,9 +351,11 @@ impl<const N: usize> Toolhead<N> {
             probe: true,
         };
         let mut hooks = ProbeHooks { probe, state, now };
-        let trigger = self
-            .homing_move(Rails::Axis(2), &info, target, speed, sink, &mut hooks)?
-            .stopped_at;
+        let end = self.homing_move(Rails::Axis(2), &info, target, speed, sink, &mut hooks)?;
+        if end.comms_timeout {
+            return Err(error(COMMS_TIMEOUT, self.position()));
+        }
+        let trigger = end.stopped_at;
         // Klipper's probe_pos: where the toolhead was at the trigger, not
         // the move's target.
         if let Some(mut at) = trigger.and_then(|t| self.released_position_at(t)) {

@@ -78,6 +78,9 @@ pub struct HomingStop {
     /// A watched endstop that never triggered (see
     /// [`HomingEnd::untriggered`]), if any.
     pub untriggered: Option<usize>,
+    /// Ended by a trsync communication timeout (see
+    /// [`HomingEnd::comms_timeout`]).
+    pub comms_timeout: bool,
 }
 
 /// What a stepper's position follows.
@@ -546,6 +549,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                         position: homing.target,
                         stopped_at: None,
                         untriggered: stop.untriggered,
+                        comms_timeout: stop.comms_timeout,
                     };
                 }
                 None if last => {
@@ -553,6 +557,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                         position: homing.target,
                         stopped_at: None,
                         untriggered: None,
+                        comms_timeout: false,
                     };
                 }
                 None => {}
@@ -567,6 +572,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 position: homing.target,
                 stopped_at: Some(stopped_at),
                 untriggered: stop.untriggered,
+                comms_timeout: stop.comms_timeout,
             };
         }
         let mut kin = [StepperKinematics::Axis(0); 3];
@@ -582,6 +588,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             position: calc_position(&kin, spos),
             stopped_at: Some(stopped_at),
             untriggered: stop.untriggered,
+            comms_timeout: stop.comms_timeout,
         }
     }
 

@@ -36,6 +36,7 @@ impl StepSink for Steps {
             overshoot: [0; MAX_STEPPERS],
             stopped: true,
             untriggered: None,
+            comms_timeout: false,
         })
     }
 }

@@ -2,7 +2,8 @@
 //! pseudo-terminal (the host opens its path) and a peer's device that
 //! damages bytes in both directions with a seeded random generator —
 //! each byte, with probability `rate`, has one bit flipped or is dropped
-//! (half and half), so runs are reproducible for one seed.
+//! (half and half), so runs are reproducible for one seed. It can also
+//! stall (hold every byte for a while, as a hub or cable that hiccups).
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read, Write};
@@ -44,6 +45,8 @@ pub struct NoisyLink {
     /// The device the host opens (a symlink to the relay's pty).
     pub path: PathBuf,
     stop: Arc<AtomicBool>,
+    /// While raised, no byte passes either way (they wait in the ptys).
+    held: Arc<AtomicBool>,
     thread: Option<JoinHandle<Report>>,
 }
 
@@ -61,18 +64,28 @@ impl NoisyLink {
         }
         std::os::unix::fs::symlink(name, path)?;
         let stop = Arc::new(AtomicBool::new(false));
-        let flag = Arc::clone(&stop);
+        let held = Arc::new(AtomicBool::new(false));
+        let flags = (Arc::clone(&stop), Arc::clone(&held));
         let thread = std::thread::spawn(move || {
             // The slave stays open here: the master never reads as hung up
             // while the host reopens it, and it stays raw.
             let _slave = slave;
-            relay(File::from(master), peer, rate, seed, &flag)
+            relay(File::from(master), peer, rate, seed, &flags.0, &flags.1)
         });
         Ok(Self {
             path: path.to_path_buf(),
             stop,
+            held,
             thread: Some(thread),
         })
+    }
+
+    /// Stalls the cable for `time`: nothing passes either way meanwhile,
+    /// then what waited goes on.
+    pub fn stall(&self, time: std::time::Duration) {
+        self.held.store(true, Ordering::Relaxed);
+        std::thread::sleep(time);
+        self.held.store(false, Ordering::Relaxed);
     }
 
     /// Stops the cable: what it did to the bytes.
@@ -145,12 +158,23 @@ fn make_raw(fd: i32) -> io::Result<()> {
 }
 
 /// Moves bytes both ways, damaging them, until `stop` is raised or a
-/// side is gone.
-fn relay(mut host: File, mut peer: File, rate: f64, seed: u64, stop: &AtomicBool) -> Report {
+/// side is gone; none while `held` is raised.
+fn relay(
+    mut host: File,
+    mut peer: File,
+    rate: f64,
+    seed: u64,
+    stop: &AtomicBool,
+    held: &AtomicBool,
+) -> Report {
     let mut noise = Noise::new(rate, seed);
     let mut report = Report::default();
     let mut buf = [0u8; 4096];
     while !stop.load(Ordering::Relaxed) {
+        if held.load(Ordering::Relaxed) {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+            continue;
+        }
         let mut fds = [host.as_raw_fd(), peer.as_raw_fd()].map(|fd| libc::pollfd {
             fd,
             events: libc::POLLIN,

@@ -61,6 +61,7 @@ impl MoveSink for Planned {
             position: homing.target,
             stopped_at: None,
             untriggered: None,
+            comms_timeout: false,
         }
     }
 }

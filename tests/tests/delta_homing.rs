@@ -311,6 +311,7 @@ impl onechip_planner::move_sink::MoveSink for Recorder {
             position: homing.target,
             stopped_at: None,
             untriggered: None,
+            comms_timeout: false,
         }
     }
 }

@@ -16,6 +16,7 @@ use onechip_planner::kinematics::StepperKinematics;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::step_command::StepCommand;
 use onechip_secondary_mcu::trsync::{REPORT_FRACTION, TIMEOUT, reason};
+use onechip_tests::noisy_link::NoisyLink;
 use onechip_tests::peers::{Firmware, Peer, RealtimeGuard};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
@@ -633,4 +634,48 @@ fn g28_as_planned(summary: &onechip_host::Summary, peer: &Peer) {
         summary.endstops.iter().map(|e| e.2).collect::<Vec<_>>()
     );
     assert_eq!(x, (55.0 * 80.0) as i64, "{}", summary.transcript);
+}
+
+#[test]
+fn a_link_stalled_while_homing_ends_g28_with_klippers_communication_timeout() {
+    let _alone = one_peer_at_a_time();
+    let realtime = RealtimeGuard::new();
+    // X's endstop on the Linux MCU is never pressed (its inputs read 0):
+    // X homes over its whole travel (352 mm at 50 mm/s) unless its trsync
+    // reports stop reaching the host; its cable stalls for 150 ms.
+    let peer = Peer::start_with_inputs(Firmware::Linux, "stalled-homing", 0);
+    let cable =
+        NoisyLink::start(&peer.path, &peer.path.with_file_name("cable"), 0.0, 1).expect("cable");
+    let sd = peer.path.with_file_name("sd");
+    x_on_secondary(&sd, &cable.path, "G28 X\n");
+    let (summary, made_after_stall) = std::thread::scope(|s| {
+        let stall = s.spawn(|| {
+            let homing = peer.wait_for_edges(LINUX_STEP, 400, Duration::from_secs(20));
+            assert!(homing, "X never moved");
+            cable.stall(Duration::from_millis(150));
+            peer.rising_edges(LINUX_STEP).len()
+        });
+        let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
+        (summary, stall.join().expect("stalled the cable"))
+    });
+    println!(
+        "cable stalled while homing (relay at real-time priority: {}): {:?}",
+        realtime.is_raised(),
+        summary.errors
+    );
+    assert_eq!(summary.shutdown, None, "{}", summary.transcript);
+    assert!(
+        summary
+            .transcript
+            .contains("!! Error during homing x: Communication timeout during homing\n"),
+        "{}",
+        summary.transcript
+    );
+    assert_eq!(summary.homing_timeouts, 1);
+    // The peer stopped by its own trsync timeout (25 ms) while the cable
+    // was stalled: no step since, and far fewer than the whole travel's.
+    std::thread::sleep(Duration::from_millis(200));
+    let made = peer.rising_edges(LINUX_STEP).len();
+    assert_eq!(made, made_after_stall);
+    assert!(made < 352 * 80 / 2, "{made} steps");
 }
