@@ -98,6 +98,15 @@ pub trait Mcu {
     fn homing_comms_timeout(&mut self) -> bool {
         false
     }
+    /// How far stepper `stepper` moved after 64-bit clock `clock` (a
+    /// homing trigger) until it stopped, in steps (+1 per positive step):
+    /// klippy's halt position less its trigger position. A homing across
+    /// MCUs stops a stepper when the trigger reaches its MCU. 0 by
+    /// default: an MCU alone stops its steppers at its trigger.
+    fn moved_since(&mut self, stepper: usize, clock: u64) -> i64 {
+        let _ = (stepper, clock);
+        0
+    }
     /// Carries out a heater or fan command now.
     fn thermal(&mut self, command: ThermalCommand);
     /// True while `wait` is not over: a heater still reaching its target,
@@ -185,6 +194,9 @@ struct EngineLink {
     pending: u32,
     /// The clock of the homing move's last trigger so far, ticks.
     last_trigger: Option<u64>,
+    /// How far each motion stepper moved past its trigger before it
+    /// stopped, steps (see [`Mcu::moved_since`]).
+    overshoot: [i64; 3],
     /// The endstop inputs read real switches. False in a simulation
     /// without them (klippy's batch mode): a homing move that runs to its
     /// end is then taken as triggered there, not as an error.
@@ -208,6 +220,7 @@ impl EngineLink {
             watching: None,
             pending: 0,
             last_trigger: None,
+            overshoot: [0; 3],
             endstops_modelled: true,
             busy_at: u64::MAX,
         };
@@ -882,6 +895,12 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
         until_clock: u64,
     ) -> Option<HomingStop> {
         let link = &mut *self.link;
+        let slot = link.endstop_slot(homing.axis, homing.probe);
+        // The rail's extra steppers with endstops of their own.
+        let own = match link.own_endstops.get(homing.axis) {
+            Some(&own) if slot == homing.axis && !homing.towers => own,
+            _ => 0,
+        };
         if link.watching != Some(start_clock) {
             let endstop = Endstop::for_homing(
                 start_clock as u32,
@@ -891,17 +910,13 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             );
             link.pending = 0;
             link.last_trigger = None;
+            link.overshoot = [0; 3];
             if homing.towers {
                 for (k, _) in link.endstops.iter().enumerate().filter(|e| *e.1) {
                     self.mcu.watch_endstop(k, endstop, 1 << k);
                     link.pending |= 1 << k;
                 }
             } else {
-                let slot = link.endstop_slot(homing.axis, homing.probe);
-                let own = match link.own_endstops.get(homing.axis) {
-                    Some(&own) if slot == homing.axis => own,
-                    _ => 0,
-                };
                 self.mcu.watch_endstop(slot, endstop, link.rails & !own);
                 link.pending = 1 << slot;
                 for k in (0..32).filter(|k| own & (1 << k) != 0) {
@@ -911,13 +926,16 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             }
             link.watching = Some(start_clock);
         }
-        let stop = |clock, untriggered| HomingStop {
-            clock,
-            // Stopped at once: no step past a trigger.
-            overshoot: [0; MAX_STEPPERS],
-            stopped: true,
-            untriggered,
-            comms_timeout: false,
+        let stop = |clock, untriggered, moved: [i64; 3]| {
+            let mut overshoot = [0; MAX_STEPPERS];
+            overshoot[..3].copy_from_slice(&moved);
+            HomingStop {
+                clock,
+                overshoot,
+                stopped: true,
+                untriggered,
+                comms_timeout: false,
+            }
         };
         let shutdown = loop {
             while let Some((slot, trigger)) = self.mcu.take_trigger() {
@@ -928,14 +946,26 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                     link.watching = None;
                     return Some(HomingStop {
                         comms_timeout: true,
-                        ..stop(clock, None)
+                        ..stop(clock, None, [0; 3])
                     });
+                }
+                // How far the motion steppers this trigger stopped went
+                // past it (on another MCU than the endstop's, until the
+                // trigger reached theirs), as klippy's halt positions.
+                let stopped = match 1u32.checked_shl(slot as u32) {
+                    Some(bit) if homing.towers => bit,
+                    Some(bit) if own & bit != 0 => 0,
+                    _ => link.rails,
+                };
+                for k in (0..3).filter(|k| stopped & (1 << k) != 0) {
+                    link.overshoot[k] = self.mcu.moved_since(k, clock);
                 }
                 link.last_trigger = Some(link.last_trigger.map_or(clock, |t| t.max(clock)));
                 link.pending &= !(1u32.checked_shl(slot as u32).unwrap_or(0));
                 if link.pending == 0 {
                     link.watching = None;
-                    return Some(stop(link.last_trigger.unwrap_or(clock), None));
+                    let moved = link.overshoot;
+                    return Some(stop(link.last_trigger.unwrap_or(clock), None, moved));
                 }
             }
             let now = self.mcu.now();
@@ -957,12 +987,13 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             if link.last_trigger.is_some() {
                 // Some steppers stopped at their trigger: all restart at
                 // the move's end.
-                return Some(stop(until_clock.max(end_clock), untriggered));
+                let moved = link.overshoot;
+                return Some(stop(until_clock.max(end_clock), untriggered, moved));
             }
             if untriggered.is_some() {
                 return Some(HomingStop {
                     stopped: false,
-                    ..stop(until_clock, untriggered)
+                    ..stop(until_clock, untriggered, [0; 3])
                 });
             }
         }

@@ -3,6 +3,7 @@
 //! `steps-<stepper>.txt` file as it happens, and only the steps inside a
 //! plot's window kept.
 
+use std::collections::VecDeque;
 use std::fs::File;
 use std::io::{self, BufWriter, Write as _};
 use std::ops::RangeInclusive;
@@ -29,7 +30,14 @@ pub struct StepLog {
     file: Option<StepFile>,
     /// The clocks kept (ticks), and the clocks of the steps kept there.
     window: Option<(RangeInclusive<u64>, Vec<u64>)>,
+    /// The last [`RECENT`] steps: clock (ticks) and direction (true:
+    /// positive), oldest first.
+    recent: VecDeque<(u64, bool)>,
 }
+
+/// Steps [`StepLog::moved_since`] looks back over (at 100,000 steps/s,
+/// 40 ms: beyond any relay latency between MCUs).
+const RECENT: usize = 4096;
 
 /// A `steps-*.txt` file being written: one `<clock> <dir>` line per step.
 #[derive(Debug)]
@@ -49,6 +57,10 @@ impl StepLog {
         }
         self.count += 1;
         self.last = Some(clock);
+        if self.recent.len() == RECENT {
+            self.recent.pop_front();
+        }
+        self.recent.push_back((clock, positive));
         self.position += if positive { 1 } else { -1 };
         if let Some(file) = &mut self.file
             && file.error.is_none()
@@ -61,6 +73,15 @@ impl StepLog {
         {
             steps.push(clock);
         }
+    }
+
+    /// Where the steps made after 64-bit clock `clock` (ticks) moved it,
+    /// in steps (+1 per positive step), among the last [`RECENT`].
+    pub fn moved_since(&self, clock: u64) -> i64 {
+        let after = self.recent.iter().rev().take_while(|s| s.0 > clock);
+        after
+            .map(|&(_, positive)| if positive { 1 } else { -1 })
+            .sum()
     }
 
     /// Writes every step from now on to `dir/steps-<name>.txt` (created,
@@ -119,6 +140,21 @@ mod tests {
             (4, 2, Some(10), Some(200))
         );
         assert!(log.window_steps().is_empty());
+        // Past 130: back one, forward one.
+        assert_eq!(log.moved_since(130), 0);
+        assert_eq!(log.moved_since(135), 0);
+        assert_eq!(log.moved_since(99), 2);
+        assert_eq!(log.moved_since(140), 1);
+        assert_eq!(log.moved_since(200), 0);
+    }
+
+    #[test]
+    fn only_the_last_steps_are_looked_back_over() {
+        let mut log = StepLog::default();
+        for clock in 0..RECENT as u64 + 10 {
+            log.record(clock, true);
+        }
+        assert_eq!(log.moved_since(0), RECENT as i64);
     }
 
     #[test]

@@ -758,6 +758,21 @@ impl Mcu for VirtualMcu {
         Some((stepper, trigger))
     }
 
+    fn moved_since(&mut self, stepper: usize, clock: u64) -> i64 {
+        if let (Some(s), Some(pace)) = (&mut self.secondaries, &self.pace)
+            && s.routes(stepper)
+        {
+            let (pace, freq) = (pace.clone(), s.freq());
+            let now = move || pace.clock_now() as f64 / freq;
+            return s
+                .moved_since(stepper, clock as f64 / freq, &now)
+                .unwrap_or(0);
+        }
+        self.logs()
+            .nth(stepper)
+            .map_or(0, |log| log.moved_since(clock))
+    }
+
     fn homing_comms_timeout(&mut self) -> bool {
         core::mem::take(&mut self.comms_timeout)
     }

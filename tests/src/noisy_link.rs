@@ -3,8 +3,10 @@
 //! damages bytes in both directions with a seeded random generator —
 //! each byte, with probability `rate`, has one bit flipped or is dropped
 //! (half and half), so runs are reproducible for one seed. It can also
-//! stall (hold every byte for a while, as a hub or cable that hiccups).
+//! stall (hold every byte for a while, as a hub or cable that hiccups),
+//! and delay every byte by a fixed time (a slow link).
 
+use std::collections::VecDeque;
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read, Write};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
@@ -13,6 +15,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 
 /// How long the relay waits for bytes before looking at its stop flag,
 /// ms.
@@ -55,6 +58,16 @@ impl NoisyLink {
     /// damaging each byte with probability `rate` (0..1), random
     /// generator seeded with `seed`.
     pub fn start(peer: &Path, path: &Path, rate: f64, seed: u64) -> io::Result<Self> {
+        Self::start_with(peer, path, Noise::new(rate, seed), Duration::ZERO)
+    }
+
+    /// A cable from a new pty at `path` to the device `peer` that damages
+    /// nothing but delays every byte by `delay`, both ways.
+    pub fn start_slow(peer: &Path, path: &Path, delay: Duration) -> io::Result<Self> {
+        Self::start_with(peer, path, Noise::new(0.0, 1), delay)
+    }
+
+    fn start_with(peer: &Path, path: &Path, noise: Noise, delay: Duration) -> io::Result<Self> {
         let peer = open_raw(peer)?;
         let (master, slave) = open_pty()?;
         let name = std::fs::read_link(format!("/proc/self/fd/{}", slave.as_raw_fd()))?;
@@ -70,7 +83,8 @@ impl NoisyLink {
             // The slave stays open here: the master never reads as hung up
             // while the host reopens it, and it stays raw.
             let _slave = slave;
-            relay(File::from(master), peer, rate, seed, &flags.0, &flags.1)
+            let ends = [File::from(master), peer];
+            relay(ends, noise, delay, &flags.0, &flags.1)
         });
         Ok(Self {
             path: path.to_path_buf(),
@@ -82,7 +96,7 @@ impl NoisyLink {
 
     /// Stalls the cable for `time`: nothing passes either way meanwhile,
     /// then what waited goes on.
-    pub fn stall(&self, time: std::time::Duration) {
+    pub fn stall(&self, time: Duration) {
         self.held.store(true, Ordering::Relaxed);
         std::thread::sleep(time);
         self.held.store(false, Ordering::Relaxed);
@@ -157,71 +171,74 @@ fn make_raw(fd: i32) -> io::Result<()> {
     Ok(())
 }
 
-/// Moves bytes both ways, damaging them, until `stop` is raised or a
+/// Moves bytes both ways between `ends` (host, peer), damaging them and
+/// passing each on `delay` after it came, until `stop` is raised or a
 /// side is gone; none while `held` is raised.
 fn relay(
-    mut host: File,
-    mut peer: File,
-    rate: f64,
-    seed: u64,
+    mut ends: [File; 2],
+    mut noise: Noise,
+    delay: Duration,
     stop: &AtomicBool,
     held: &AtomicBool,
 ) -> Report {
-    let mut noise = Noise::new(rate, seed);
     let mut report = Report::default();
     let mut buf = [0u8; 4096];
+    // Per direction (0: to the peer, 1: from it): bytes and when they
+    // are due at the other end.
+    let mut due: [VecDeque<(Instant, Vec<u8>)>; 2] = Default::default();
     while !stop.load(Ordering::Relaxed) {
         if held.load(Ordering::Relaxed) {
-            std::thread::sleep(std::time::Duration::from_millis(1));
+            std::thread::sleep(Duration::from_millis(1));
             continue;
         }
-        let mut fds = [host.as_raw_fd(), peer.as_raw_fd()].map(|fd| libc::pollfd {
-            fd,
+        let next = due.iter().filter_map(|q| q.front().map(|d| d.0)).min();
+        let wait = next.map_or(POLL_MS, |at| {
+            let ms = at.saturating_duration_since(Instant::now()).as_millis();
+            i32::try_from(ms).unwrap_or(POLL_MS).min(POLL_MS)
+        });
+        let mut fds = ends.each_ref().map(|f| libc::pollfd {
+            fd: f.as_raw_fd(),
             events: libc::POLLIN,
             revents: 0,
         });
         // SAFETY: two valid pollfds for the duration of the call.
-        if unsafe { libc::poll(fds.as_mut_ptr(), 2, POLL_MS) } <= 0 {
-            continue;
+        let polled = unsafe { libc::poll(fds.as_mut_ptr(), 2, wait) };
+        for (way, fd) in fds.iter().enumerate() {
+            if polled <= 0 || fd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) == 0 {
+                continue;
+            }
+            let damage = if way == 0 {
+                &mut report.to_peer
+            } else {
+                &mut report.from_peer
+            };
+            match read_damaged(&mut ends[way], &mut noise, damage, &mut buf) {
+                Ok(kept) => due[way].push_back((Instant::now() + delay, kept)),
+                Err(_) => return report,
+            }
         }
-        let ready = |i: usize| fds[i].revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0;
-        let (to_peer, from_peer) = (ready(0), ready(1));
-        if to_peer
-            && pass(
-                &mut host,
-                &mut peer,
-                &mut noise,
-                &mut report.to_peer,
-                &mut buf,
-            )
-            .is_err()
-        {
-            break;
-        }
-        if from_peer
-            && pass(
-                &mut peer,
-                &mut host,
-                &mut noise,
-                &mut report.from_peer,
-                &mut buf,
-            )
-            .is_err()
-        {
-            break;
+        let now = Instant::now();
+        for (way, queue) in due.iter_mut().enumerate() {
+            while queue.front().is_some_and(|d| d.0 <= now) {
+                let Some((_, bytes)) = queue.pop_front() else {
+                    break;
+                };
+                if ends[1 - way].write_all(&bytes).is_err() {
+                    return report;
+                }
+            }
         }
     }
     report
 }
 
-/// Reads what `from` has and writes it to `to`, damaged.
-fn pass(
+/// Reads what `from` has: the bytes to pass on, damaged.
+fn read_damaged(
     from: &mut File,
-    to: &mut File,
     noise: &mut Noise,
     damage: &mut Damage,
     buf: &mut [u8],
-) -> io::Result<()> {
+) -> io::Result<Vec<u8>> {
     let n = from.read(buf)?;
     if n == 0 {
         return Err(io::ErrorKind::UnexpectedEof.into());
@@ -238,7 +255,7 @@ fn pass(
             None => damage.dropped += 1,
         }
     }
-    to.write_all(&kept)
+    Ok(kept)
 }
 
 /// Seeded damage: xorshift64* random numbers.

@@ -105,6 +105,37 @@ pub fn printer_with_extruder_on(
     std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
 }
 
+/// How a peer's inputs read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Inputs {
+    /// Always this level.
+    Level(u8),
+    /// What the test writes to a file (Linux MCU only).
+    File,
+}
+
+/// The Linux MCU's GPIO shim with inputs read from a file, built once per
+/// test process.
+fn driven_shim() -> PathBuf {
+    static SHIM: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    SHIM.get_or_init(|| {
+        let so = scratch_dir().join(format!("onechip-fakegpio-driven-{}.so", std::process::id()));
+        let source = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("peer-shim/inputs_from_file.c");
+        let status = Command::new("cc")
+            .args(["-shared", "-fPIC", "-O2", "-I"])
+            .arg(peers_dir().join("linux"))
+            .arg("-o")
+            .arg(&so)
+            .arg(source)
+            .arg("-ldl")
+            .status()
+            .expect("cc");
+        assert!(status.success(), "building the driven GPIO shim failed");
+        so
+    })
+    .clone()
+}
+
 /// A running peer.
 pub struct Peer {
     child: Child,
@@ -112,6 +143,9 @@ pub struct Peer {
     pub path: PathBuf,
     /// Its pin-edge log.
     pub pin_log: PathBuf,
+    /// The file its inputs read, if a test drives them
+    /// ([`Self::start_driven`]).
+    inputs: Option<PathBuf>,
 }
 
 impl Peer {
@@ -134,17 +168,58 @@ impl Peer {
     ///
     /// As [`Self::start`].
     pub fn start_with_inputs(firmware: Firmware, test: &str, level: u8) -> Self {
+        Self::launch(firmware, test, Inputs::Level(level))
+    }
+
+    /// A Linux MCU whose inputs the test sets while it runs
+    /// ([`Self::set_inputs`]; they read 0 at first), through the project's
+    /// wrapper of the peer's GPIO shim (`tests/peer-shim`, built with `cc`).
+    ///
+    /// # Panics
+    ///
+    /// As [`Self::start`], or if the wrapper cannot be built.
+    pub fn start_driven(test: &str) -> Self {
+        Self::launch(Firmware::Linux, test, Inputs::File)
+    }
+
+    /// Every input of a peer started by [`Self::start_driven`] reads
+    /// `level` from now on: returns when, on the Linux peer's pin-log
+    /// clock (CLOCK_MONOTONIC, s).
+    ///
+    /// # Panics
+    ///
+    /// If the peer's inputs are not driven, or the file cannot be written.
+    pub fn set_inputs(&self, level: u8) -> f64 {
+        let path = self.inputs.as_ref().expect("a peer started driven");
+        std::fs::write(path, level.to_string()).expect("inputs file");
+        let mut now = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: a valid timespec for the call to fill.
+        unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut now) };
+        now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9
+    }
+
+    fn launch(firmware: Firmware, test: &str, inputs: Inputs) -> Self {
         let dir = scratch_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("peer folder");
         let path = dir.join("mcu");
         let pin_log = dir.join("pins.log");
+        let input_file = dir.join("inputs");
         let mut cmd = match firmware {
             Firmware::Linux => {
                 let mut c = Command::new(peers_dir().join("start-linux-mcu"));
-                c.arg(&path)
-                    .env("FAKEGPIO_LOG", &pin_log)
-                    .env("FAKEGPIO_IN", level.to_string());
+                c.arg(&path).env("FAKEGPIO_LOG", &pin_log);
+                match inputs {
+                    Inputs::Level(level) => c.env("FAKEGPIO_IN", level.to_string()),
+                    Inputs::File => {
+                        std::fs::write(&input_file, "0").expect("inputs file");
+                        c.env("FAKEGPIO_SO", driven_shim())
+                            .env("FAKEGPIO_IN_FILE", &input_file)
+                    }
+                };
                 // Real-time priority keeps its steps punctual; it needs root.
                 // SAFETY: geteuid has no preconditions.
                 if unsafe { libc::geteuid() } == 0 {
@@ -185,6 +260,7 @@ impl Peer {
             child,
             path,
             pin_log,
+            inputs: (inputs == Inputs::File).then_some(input_file),
         }
     }
 
@@ -211,12 +287,19 @@ impl Peer {
     /// Where the stepper on pins `step`/`dir` went, by the pin log: +1 for
     /// each rising step edge while `dir` is high, −1 while low.
     pub fn position(&self, step: &str, dir: &str) -> i64 {
+        self.position_until(step, dir, f64::INFINITY)
+    }
+
+    /// [`Self::position`] by the edges up to time `until` (s, the pin
+    /// log's time: see [`Self::rising_edges`]).
+    pub fn position_until(&self, step: &str, dir: &str, until: f64) -> i64 {
+        let text = std::fs::read_to_string(&self.pin_log).unwrap_or_default();
         let mut forward = false;
         let mut position = 0;
-        for (name, high, rising) in pin_changes(&self.pin_log) {
-            if name == dir {
-                forward = high;
-            } else if name == step && rising {
+        for change in changes(&text).take_while(|c| c.time <= until) {
+            if change.name == dir {
+                forward = change.high;
+            } else if change.name == step && change.rising {
                 position += if forward { 1 } else { -1 };
             }
         }
@@ -309,14 +392,6 @@ fn edges(log: &Path, pin: &str) -> Vec<f64> {
     changes(&text)
         .filter(|c| c.name == pin && c.rising)
         .map(|c| c.time)
-        .collect()
-}
-
-/// Every change of every pin in a pin log: name, level, rising edge.
-fn pin_changes(log: &Path) -> Vec<(String, bool, bool)> {
-    let text = std::fs::read_to_string(log).unwrap_or_default();
-    changes(&text)
-        .map(|c| (c.name.to_string(), c.high, c.rising))
         .collect()
 }
 

@@ -18,6 +18,7 @@ use onechip_sched::step_command::StepCommand;
 use onechip_secondary_mcu::trsync::{REPORT_FRACTION, TIMEOUT, reason};
 use onechip_tests::noisy_link::NoisyLink;
 use onechip_tests::peers::{Firmware, Peer, RealtimeGuard};
+use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -678,4 +679,179 @@ fn a_link_stalled_while_homing_ends_g28_with_klippers_communication_timeout() {
     let made = peer.rising_edges(LINUX_STEP).len();
     assert_eq!(made, made_after_stall);
     assert!(made < 352 * 80 / 2, "{made} steps");
+}
+
+/// An SD folder for homing X then moving it to X50: the shipped printer
+/// with X's endstop `endstop` (a secondary's pin, pressed by the test
+/// mid-move), X's stepper on the Linux MCU `stepper_on` if given (its
+/// `gpio1`..`gpio3`), the secondaries `mcus` (name, device), and a long
+/// axis (3 m of homing travel at `speed` mm/s, 80 steps/mm) with one
+/// homing move and no retract, so that a press lands mid-move.
+fn long_x_homing(
+    sd: &Path,
+    mcus: &[(&str, &Path)],
+    stepper_on: Option<&str>,
+    endstop: &str,
+    speed: u32,
+) {
+    let shipped = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
+    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
+    let mut cfg = cfg.replace(
+        "endstop_pin: PG6\nposition_endstop: 0\nposition_max: 235\nhoming_speed: 50\n",
+        &format!(
+            "endstop_pin: {endstop}\nposition_endstop: 0\nposition_max: 2000\n\
+             homing_speed: {speed}\nhoming_retract_dist: 0\n"
+        ),
+    );
+    if let Some(mcu) = stepper_on {
+        cfg = cfg.replace(
+            "[stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nenable_pin: !PF14\n",
+            &format!(
+                "[stepper_x]\nstep_pin: {mcu}:gpiochip0/gpio1\ndir_pin: {mcu}:gpiochip0/gpio2\n\
+                 enable_pin: !{mcu}:gpiochip0/gpio3\n"
+            ),
+        );
+    }
+    for (name, path) in mcus {
+        cfg = cfg.replace(
+            "[printer]",
+            &format!(
+                "[mcu {name}]\nserial: {}\nrestart_method: command\n\n[printer]",
+                path.display()
+            ),
+        );
+    }
+    assert!(
+        cfg.contains("homing_retract_dist: 0"),
+        "stepper_x section moved"
+    );
+    assert_eq!(stepper_on.is_some(), cfg.contains("step_pin: ext:"));
+    std::fs::create_dir_all(sd).expect("sd folder");
+    std::fs::write(sd.join("printer.cfg"), cfg).expect("printer.cfg");
+    std::fs::write(sd.join("job.gcode"), "G28 X\nG1 X50 F6000\nM400\n").expect("gcode");
+}
+
+/// Runs the SD folder `sd` with `options`, pressing `switch`'s inputs 5 s
+/// in (connected in about 1.5 s, the homing move then runs 15 s):
+/// returns the run and when the press came (the switch's pin-log clock).
+/// A run a communication timeout cut short (the relay late on a loaded
+/// machine) is tried again, as a user would.
+fn press_mid_homing(
+    sd: &Path,
+    options: &onechip_host::Options,
+    switch: &Peer,
+) -> (onechip_host::Summary, f64) {
+    for attempt in 1..=HOMING_ATTEMPTS {
+        switch.set_inputs(0);
+        let (summary, pressed) = std::thread::scope(|s| {
+            let press = s.spawn(|| {
+                std::thread::sleep(Duration::from_secs(5));
+                switch.set_inputs(1)
+            });
+            let summary = onechip_host::run_with(sd, options).unwrap_or_else(|e| panic!("{e}"));
+            (summary, press.join().expect("pressed"))
+        });
+        if summary.homing_timeouts > 0 {
+            println!(
+                "homing, attempt {attempt}: ended by a communication timeout at {:?} s",
+                summary.endstops.first().map(|e| e.2)
+            );
+            continue;
+        }
+        assert_eq!(summary.shutdown, None, "{}", summary.transcript);
+        assert!(summary.errors.is_empty(), "{:?}", summary.errors);
+        return (summary, pressed);
+    }
+    panic!("{HOMING_ATTEMPTS} homings cut short by communication timeouts");
+}
+
+#[test]
+fn x_homed_on_a_stock_mcus_endstop_counts_the_steps_made_after_its_trigger_as_klippy() {
+    let _alone = one_peer_at_a_time();
+    let realtime = RealtimeGuard::new();
+    // X's stepper on the main MCU, its endstop on a Linux MCU: X stops
+    // when the trigger has come back from the peer, some steps past it.
+    let peer = Peer::start_driven("overshoot");
+    let sd = peer.path.with_file_name("sd");
+    // At 100 mm/s: 8,000 steps/s.
+    long_x_homing(
+        &sd,
+        &[("ext", &peer.path)],
+        None,
+        "ext:gpiochip0/gpio5",
+        100,
+    );
+    let steps = sd.join("steps");
+    let options = onechip_host::Options {
+        steps_dir: Some(steps.clone()),
+        ..onechip_host::Options::default()
+    };
+    let (summary, _) = press_mid_homing(&sd, &options, &peer);
+    let trigger = summary.endstops.first().expect("X triggered").2;
+    let clock = |t: f64| (t * summary.mcu_freq) as u64 + options.clock_origin;
+    let log = std::fs::read_to_string(steps.join("steps-stepper_x.txt")).expect("X's steps");
+    let position_at = |at: u64| -> i64 {
+        log.lines()
+            .filter_map(|l| l.split_once(' '))
+            .filter(|(c, _)| c.parse::<u64>().is_ok_and(|c| c <= at))
+            .map(|(_, d)| if d == "1" { 1 } else { -1 })
+            .sum()
+    };
+    let at_trigger = position_at(clock(trigger));
+    let halted = position_at(clock(trigger + 0.05));
+    let end = position_at(u64::MAX);
+    println!(
+        "X on the main homed on the Linux MCU's endstop (relay at real-time priority: {}): {} steps past the trigger",
+        realtime.is_raised(),
+        at_trigger - halted
+    );
+    // The trigger is position_endstop (0): X50 is 4000 steps (0.0125 mm
+    // each) from where X was at the trigger, whatever it made past it.
+    // (Where X was at the trigger is as klippy finds it, from the time
+    // the peer reported, through its clock sync: tens of µs off.)
+    assert_eq!(end - at_trigger, 4000);
+}
+
+#[test]
+fn x_on_one_stock_mcu_homed_on_anothers_endstop_counts_the_steps_it_made_after_the_trigger() {
+    let _alone = one_peer_at_a_time();
+    let realtime = RealtimeGuard::new();
+    // X's stepper on one Linux MCU, its endstop on another: X stops when
+    // the trigger, relayed by the host, reaches its MCU, over a cable that
+    // delays every byte by 4 ms (16 steps). Its position is asked of that
+    // MCU (`stepper_get_position`) as klippy does.
+    let motor = Peer::start(Firmware::Linux, "overshoot-motor");
+    let cable = NoisyLink::start_slow(
+        &motor.path,
+        &motor.path.with_file_name("cable"),
+        Duration::from_millis(4),
+    )
+    .expect("cable");
+    let switch = Peer::start_driven("overshoot-switch");
+    let sd = motor.path.with_file_name("sd");
+    let mcus = [("ext", cable.path.as_path()), ("sw", switch.path.as_path())];
+    // At 50 mm/s: 4,000 steps/s (each a line in the peer's pin log).
+    long_x_homing(&sd, &mcus, Some("ext"), "sw:gpiochip0/gpio5", 50);
+    let (_, pressed) = press_mid_homing(&sd, &onechip_host::Options::default(), &switch);
+    std::thread::sleep(Duration::from_millis(100));
+    // Both peers' pin logs run on CLOCK_MONOTONIC: where X was when the
+    // switch was pressed.
+    let at_press = motor.position_until(LINUX_STEP, "gpiochip0/gpio2", pressed);
+    let halted = motor.position_until(LINUX_STEP, "gpiochip0/gpio2", pressed + 0.05);
+    let end = motor.position(LINUX_STEP, "gpiochip0/gpio2");
+    println!(
+        "X on one Linux MCU homed on another's endstop (relay at real-time priority: {}): {} steps past the press",
+        realtime.is_raised(),
+        at_press - halted
+    );
+    // Past it by the cable's delay and more.
+    let past = at_press - halted;
+    assert!(past >= 16, "{past} steps past the press");
+    // X50 is 4000 steps from the trigger, less those X made past it:
+    // within 1 ms of steps (4), what the switch's sampling (0.25 ms) and
+    // the two MCUs' clock syncs (tens of µs each, at times more) leave
+    // unknown of the trigger's time; far less than the steps past it.
+    let to_x50 = end - at_press;
+    assert!((to_x50 - 4000).abs() <= 4, "{to_x50} steps to X50");
 }

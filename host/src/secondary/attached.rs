@@ -91,8 +91,34 @@ pub struct SentSteps {
     /// Each step's clock on its MCU, ticks (for comparing with what its
     /// pins did).
     pub clocks: Vec<u64>,
+    /// Each step's direction (true: forward), as `clocks`.
+    directions: Vec<bool>,
     /// The direction of the next steps.
     forward: bool,
+    /// The MCU's position when it last halted (a homing's stop), steps.
+    halt: i64,
+    /// The steps sent since: `clocks[since..]`; the MCU may have dropped
+    /// some sent before.
+    since: usize,
+}
+
+impl SentSteps {
+    /// The stepper's position at MCU clock `clock` (ticks, after its last
+    /// halt), in steps: the halt's, moved by the steps sent since up to
+    /// that clock.
+    fn position_at(&self, clock: u64) -> i64 {
+        let (clocks, directions) = (&self.clocks[self.since..], &self.directions[self.since..]);
+        let made = clocks.partition_point(|&c| c <= clock);
+        let signs = directions[..made].iter().map(|&f| if f { 1 } else { -1 });
+        self.halt + signs.sum::<i64>()
+    }
+
+    /// The MCU halted at position `halt` (steps, as it reports it): what
+    /// it was sent so far but did not make is forgotten.
+    fn halted_at(&mut self, halt: i64) {
+        self.halt = halt;
+        self.since = self.clocks.len();
+    }
 }
 
 /// Every secondary of the printer.
@@ -104,6 +130,8 @@ pub struct Secondaries {
     sent: Vec<SentSteps>,
     /// Each stepper's oid, if on a secondary.
     stepper_oids: Vec<Option<u8>>,
+    /// Each stepper's direction pin is inverted (`!`).
+    dir_inverted: Vec<bool>,
     /// Each rail's endstop, if on a secondary.
     endstops: Vec<Option<RemoteEndstop>>,
     /// The homing running across MCUs, if one is.
@@ -118,6 +146,9 @@ pub struct Secondaries {
     failed_at: Option<Instant>,
     /// `emergency_stop` went to every secondary.
     stopped: bool,
+    /// The responses the last [`Self::service`] heard: the MCU's index
+    /// and the text.
+    responses: Vec<(usize, String)>,
     /// Each stepper's step pulse, s (for configuring them again).
     pulses: Vec<f64>,
 }
@@ -140,9 +171,9 @@ impl Secondaries {
 
     /// FIRMWARE_RESTART: every secondary is reset as its
     /// `restart_method` says, then connected and configured again (one
-    /// still configured is `Failed automated reset of MCU 'NAME'`).
-    /// What the steppers were sent is kept. On an error the printer stays
-    /// shut down with its message.
+    /// still configured is `Failed automated reset of MCU 'NAME'`); what
+    /// the steppers were sent counts from there, as their MCU positions
+    /// do. On an error the printer stays shut down with its message.
     pub fn restart(&mut self, machine: &Machine<'_>, now: &dyn Fn() -> f64) {
         let reset = self
             .attached
@@ -154,10 +185,8 @@ impl Secondaries {
         });
         match again {
             Ok(fresh) => {
-                let sent = std::mem::take(&mut self.sent);
                 let timeouts = self.homing_timeouts;
                 *self = fresh;
-                self.sent = sent;
                 self.homing_timeouts = timeouts;
             }
             Err(e) => {
@@ -186,6 +215,11 @@ impl Secondaries {
             routes: vec![None; machine.steppers.len()],
             sent: vec![SentSteps::default(); machine.steppers.len()],
             stepper_oids: vec![None; machine.steppers.len()],
+            dir_inverted: machine
+                .steppers
+                .iter()
+                .map(|s| pin_ref(s.dir_pin).inverted)
+                .collect(),
             endstops: vec![None; machine.steppers.len()],
             homing: None,
             homing_timeouts: 0,
@@ -194,6 +228,7 @@ impl Secondaries {
             failure: None,
             failed_at: None,
             stopped: false,
+            responses: Vec::new(),
             pulses,
         };
         for secondary in &machine.secondaries {
@@ -238,8 +273,7 @@ impl Secondaries {
             let oids = oids.get();
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
-                let invert = pin_ref(machine.steppers[i].dir_pin).inverted;
-                let encoder = StepCommandEncoder::new(dict, oid, invert)
+                let encoder = StepCommandEncoder::new(dict, oid, all.dir_inverted[i])
                     .map_err(|e| ConnectError::Dictionary(e.to_string()))?;
                 all.routes[i] = Some((all.attached.len(), encoder));
                 all.stepper_oids[i] = Some(oid);
@@ -312,6 +346,7 @@ impl Secondaries {
                 let mut step = i64::from(interval);
                 for _ in 0..count {
                     sent.clocks.push(at);
+                    sent.directions.push(sent.forward);
                     step += i64::from(add);
                     at = at.saturating_add_signed(step);
                 }
@@ -362,13 +397,49 @@ impl Secondaries {
         }
         if let Some(h) = &mut self.homing {
             let mut mcus = members(&mut self.attached, &h.members);
-            for (k, text) in responses {
-                if let Some(i) = h.members.iter().position(|&m| m == k) {
-                    let _ = h.homing.on_response(&mut mcus, i, &text, now, stop_main);
+            for (k, text) in &responses {
+                if let Some(i) = h.members.iter().position(|m| m == k) {
+                    let _ = h.homing.on_response(&mut mcus, i, text, now, stop_main);
                 }
             }
             let _ = h.homing.main_news(&mut mcus, now, stop_main);
         }
+        self.responses = responses;
+    }
+
+    /// How far stepper `stepper`, on a secondary, moved after host time
+    /// `at` (s, a homing's trigger) before it stopped, in steps (+1
+    /// forward): as klippy, its position asked of the MCU
+    /// (`stepper_get_position`) less its position at the trigger by the
+    /// steps sent. None if it is not on a secondary, or its MCU did not
+    /// answer within a second (`now`: host time, s).
+    pub fn moved_since(&mut self, stepper: usize, at: f64, now: &dyn Fn() -> f64) -> Option<i64> {
+        let (k, oid) = match (self.routes.get(stepper), self.stepper_oids.get(stepper)) {
+            (Some(Some((k, _))), Some(Some(oid))) => (*k, *oid),
+            _ => return None,
+        };
+        let a = self.attached.get_mut(k)?;
+        let trigger = a.mcu.connection().clock()?.clock_at(at);
+        let ask = format!("stepper_get_position oid={oid}");
+        a.mcu.connection().send_text(&ask, 0).ok()?;
+        let answer = format!("stepper_position oid={oid} pos=");
+        let deadline = now() + 1.0;
+        while now() < deadline && self.failure.is_none() {
+            self.service(now(), &mut |_| {});
+            let mut heard = self.responses.iter().filter(|(m, _)| *m == k);
+            let pos = heard.find_map(|(_, text)| text.strip_prefix(&answer)?.parse::<i64>().ok());
+            if let Some(pos) = pos {
+                // The MCU counts by its direction pin's level.
+                let inverted = self.dir_inverted.get(stepper).copied().unwrap_or(false);
+                let halt = if inverted { -pos } else { pos };
+                let sent = self.sent.get_mut(stepper)?;
+                let moved = halt - sent.position_at(trigger);
+                sent.halted_at(halt);
+                return Some(moved);
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        None
     }
 
     /// Starts a homing across MCUs at host time `start` (s) if stepper
