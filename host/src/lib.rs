@@ -601,7 +601,7 @@ fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, S
     let origin = options.clock_origin as f64 / freq;
     let mut mcu = VirtualMcu::new(machine.steppers.len(), options.clock_origin)
         .with_heaters(machine, freq)
-        .with_tmc(machine);
+        .with_tmc(machine, freq);
     if let Some(physics) = physics(machine, options) {
         mcu = mcu.with_physics(physics);
     }

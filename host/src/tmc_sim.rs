@@ -2,11 +2,49 @@
 //! (`onechip_planner::tmc::wire`), hold their registers for tests to read,
 //! answer reads as the chips do, and can lose power (registers back to
 //! zero, GSTAT's `reset` flag set, the UART interface counter at 0).
+//!
+//! A driver with a DIAG pin reports a stall there ([`StallDetect`]) when
+//! its motor is driven into the end of its axis while its registers have
+//! stall detection on, as the chips do: StallGuard4 (TMC2209) in
+//! stealthChop with SGTHRS above 0, StallGuard2 (TMC2130, TMC2240,
+//! TMC5160) in spreadCycle with the stall routed to the pin wired
+//! (`diag0_stall` / `diag1_stall`); both only while TSTEP lies between
+//! the thresholds (at most TCOOLTHRS). The stall threshold's finer
+//! effects (SGT, load) are not modelled: a blocked motor stalls.
 
 use onechip_app::tmc::{NoAnswer, Tmc, TmcLink};
 use onechip_planner::machine::Machine;
-use onechip_planner::tmc::config::Bus;
+use onechip_planner::tmc::config::{Bus, TSTEP_MAX};
 use onechip_planner::tmc::{DriverKind, wire};
+use std::cell::Cell;
+use std::rc::Rc;
+
+/// When a driver reports a stall on its DIAG pin, as its registers set it
+/// now.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StallDetect {
+    /// Stall detection reaches the DIAG pin (mode, routing, threshold).
+    pub on: bool,
+    /// It works while TSTEP lies in this range (inclusive), driver clocks
+    /// per 1/256 microstep.
+    pub tstep: (u32, u32),
+    /// TSTEP per second between two steps: the driver's clock over the
+    /// 1/256 microsteps of one step (fclk / 2^mres), 1/s.
+    pub tstep_per_s: f64,
+}
+
+impl StallDetect {
+    /// True if a blocked motor, its last steps `interval` s apart (`None`:
+    /// not stepped yet), has its stall reported. A motor that slow that
+    /// TSTEP overflows stands still: StallGuard measures nothing.
+    pub fn reports(&self, interval: Option<f64>) -> bool {
+        let Some(tstep) = interval.map(|t| t * self.tstep_per_s) else {
+            return false;
+        };
+        let (low, high) = self.tstep;
+        self.on && tstep < f64::from(TSTEP_MAX) && (f64::from(low)..=f64::from(high)).contains(&tstep)
+    }
+}
 
 /// One simulated driver.
 #[derive(Debug, Clone)]
@@ -29,6 +67,12 @@ pub struct SimDriver {
     pending: u32,
     /// Datagrams received (all kinds), for tests.
     pub datagrams: usize,
+    /// Its DIAG pin, if wired: the GCONF field routing a stall to it
+    /// (`None` on the TMC2209).
+    diag: Option<Option<&'static str>>,
+    /// When it reports a stall on DIAG, kept up to date with the
+    /// registers (shared with the endstop input reading DIAG).
+    stall: Rc<Cell<StallDetect>>,
 }
 
 const GSTAT: usize = 0x01;
@@ -57,6 +101,46 @@ impl SimDriver {
     /// tests).
     pub fn inject(&mut self, addr: u8, value: u32) {
         self.regs[usize::from(addr & 0x7f)] = value;
+        self.update_stall();
+    }
+
+    /// When it reports a stall on DIAG (shared, kept up to date).
+    pub fn stall_detect(&self) -> Rc<Cell<StallDetect>> {
+        Rc::clone(&self.stall)
+    }
+
+    /// Reads stall detection afresh from the registers.
+    fn update_stall(&mut self) {
+        let field = |name| self.field(name).unwrap_or(0);
+        let threshold = |name| u32::try_from(field(name)).unwrap_or(0);
+        let (tpwmthrs, tcoolthrs) = (threshold("tpwmthrs"), threshold("tcoolthrs"));
+        let (on, tstep) = match (self.kind, self.diag) {
+            // StallGuard4: in stealthChop (TSTEP at least TPWMTHRS).
+            (DriverKind::Tmc2209, Some(_)) => (
+                field("en_spreadcycle") == 0 && field("sgthrs") > 0,
+                (tpwmthrs, tcoolthrs),
+            ),
+            // StallGuard2: in spreadCycle (stealthChop off, or TSTEP
+            // below TPWMTHRS), above THIGH.
+            (_, Some(Some(route))) => {
+                let stealth = field("en_pwm_mode") != 0;
+                let top = if stealth {
+                    tcoolthrs.min(tpwmthrs.saturating_sub(1))
+                } else {
+                    tcoolthrs
+                };
+                let low = threshold("thigh").saturating_add(1);
+                (field(route) != 0, (low, top))
+            }
+            _ => (false, (0, 0)),
+        };
+        let freq = self.kind.clock_hz().unwrap_or(0.0);
+        let mres = field("mres").clamp(0, 8);
+        self.stall.set(StallDetect {
+            on,
+            tstep,
+            tstep_per_s: freq / f64::from(1u32 << mres),
+        });
     }
 
     /// Power lost and back: every register 0, GSTAT's reset flag set, the
@@ -66,6 +150,7 @@ impl SimDriver {
         self.regs[GSTAT] = 1;
         self.ifcnt = 0;
         self.pending = 0;
+        self.update_stall();
     }
 
     /// A write to `addr`: GSTAT flags are cleared by writing ones.
@@ -76,6 +161,7 @@ impl SimDriver {
         } else {
             self.regs[a] = value;
         }
+        self.update_stall();
     }
 
     /// A read of `addr`, as the chip answers it.
@@ -119,7 +205,7 @@ impl TmcSim {
     /// The drivers of `machine`'s TMC sections, on the ports the firmware
     /// numbers, all at power-on (registers 0, GSTAT reset).
     pub fn new(machine: &Machine<'_>) -> Self {
-        let ports = Tmc::new(&machine.tmc);
+        let ports = Tmc::new(machine);
         let drivers = machine
             .tmc
             .iter()
@@ -142,6 +228,8 @@ impl TmcSim {
                     ifcnt: 0,
                     pending: 0,
                     datagrams: 0,
+                    diag: d.diag.map(|(_, route)| route),
+                    stall: Rc::default(),
                 };
                 sim.power_cycle();
                 sim
@@ -233,6 +321,8 @@ mod tests {
                 ifcnt: 0,
                 pending: 0,
                 datagrams: 0,
+                diag: None,
+                stall: Rc::default(),
             }],
         };
         sim.uart(0, &wire::uart_write(2, 0x10, 0x0008_1010), &mut [])

@@ -343,6 +343,7 @@ impl<'a> Machine<'a> {
         let mut sensors = sensor_section::read_all(config)?;
         let accessories = Accessories::read(config, &heater_names, &stepper_names, &mut sensors)?;
         let tmc = tmc::config::read_all(config, step_distance)?;
+        check_virtual_endstops(config, &steppers, &tmc)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -571,6 +572,27 @@ fn read_extra_steppers<'c, 'a>(
         }
         let _ = steppers.push(stepper);
         let _ = rails.push(rail);
+    }
+    Ok(())
+}
+
+/// Refuses an endstop pin naming a TMC driver's virtual endstop
+/// (`tmc2209_stepper_x:virtual_endstop`) that no driver of `drivers` can
+/// give, with Klipper's message.
+fn check_virtual_endstops<'c, 'a: 'c>(
+    config: &'c Config<'a>,
+    steppers: &[Stepper<'a>],
+    drivers: &[tmc::config::TmcDriver<'a>],
+) -> Result<(), ConfigError<'c>> {
+    for stepper in steppers {
+        let Some(pin) = stepper.endstop_pin else {
+            continue;
+        };
+        if let Err(e) = tmc::sensorless::virtual_endstop(drivers, pin) {
+            let section = config.require(stepper.name)?;
+            let (message, name) = e.message();
+            return Err(section.pin_error("endstop_pin", message, name));
+        }
     }
     Ok(())
 }
