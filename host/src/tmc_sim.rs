@@ -67,6 +67,8 @@ pub struct SimDriver {
     pending: u32,
     /// Datagrams received (all kinds), for tests.
     pub datagrams: usize,
+    /// Every register write received, in order: (address, value).
+    pub written: Vec<(u8, u32)>,
     /// Its DIAG pin, if wired: the GCONF field routing a stall to it
     /// (`None` on the TMC2209).
     diag: Option<Option<&'static str>>,
@@ -156,6 +158,7 @@ impl SimDriver {
     /// A write to `addr`: GSTAT flags are cleared by writing ones.
     fn write(&mut self, addr: u8, value: u32) {
         let a = usize::from(addr & 0x7f);
+        self.written.push((addr & 0x7f, value));
         if a == GSTAT && self.kind != DriverKind::Tmc2660 {
             self.regs[a] &= !value;
         } else {
@@ -228,6 +231,7 @@ impl TmcSim {
                     ifcnt: 0,
                     pending: 0,
                     datagrams: 0,
+                    written: Vec::new(),
                     diag: d.diag.map(|(_, route)| route),
                     stall: Rc::default(),
                 };
@@ -321,6 +325,7 @@ mod tests {
                 ifcnt: 0,
                 pending: 0,
                 datagrams: 0,
+                written: Vec::new(),
                 diag: None,
                 stall: Rc::default(),
             }],
