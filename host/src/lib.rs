@@ -219,6 +219,9 @@ pub struct Summary {
     /// toolhead's real position when the steppers stopped (mm), print
     /// time (s).
     pub endstops: Vec<(usize, [f64; 3], f64)>,
+    /// The axes of those triggers that were a TMC driver's stall reported
+    /// on its DIAG pin (sensorless homing), in order.
+    pub stalls: Vec<usize>,
     /// Where the toolhead really is at the end, mm (when the power-on
     /// position is known, see [`Start`]).
     pub real_position: Option<[f64; 3]>,
@@ -720,6 +723,7 @@ pub(crate) fn with_session<const L: usize>(
         shutdown: None,
         mcu_freq: freq,
         endstops: Vec::new(),
+        stalls: Vec::new(),
         real_position: None,
         heaters: Vec::new(),
         fan_speed: None,
@@ -778,6 +782,7 @@ pub(crate) fn with_session<const L: usize>(
         .iter()
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
+    summary.stalls = mcu.stalls().to_vec();
     mcu.flush_steps().map_err(write_error)?;
     if let Some(secondaries) = mcu.secondaries() {
         summary.secondary_fault_at = secondaries.failed_at();

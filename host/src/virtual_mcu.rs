@@ -225,6 +225,9 @@ pub struct VirtualMcu {
     /// Where each endstop triggered: axis (a delta: tower), toolhead
     /// position, clock.
     triggers: Vec<(usize, [f64; 3], u64)>,
+    /// The axes of those triggers read on a TMC driver's DIAG pin (a
+    /// stall), in order.
+    stalls: Vec<usize>,
     /// The endstop slot last armed and the axis its triggers count for.
     watched: (usize, usize),
     /// The probe's control pin: each change's clock and pulse width (s).
@@ -261,6 +264,7 @@ impl VirtualMcu {
             pushed: false,
             rails: None,
             triggers: Vec::new(),
+            stalls: Vec::new(),
             watched: (0, 0),
             servo: Vec::new(),
             plan: None,
@@ -621,6 +625,12 @@ impl VirtualMcu {
         &self.triggers
     }
 
+    /// The axes of the triggers so far that were a TMC driver's stall
+    /// reported on its DIAG pin, in order.
+    pub fn stalls(&self) -> &[usize] {
+        &self.stalls
+    }
+
     /// The probe's control pin so far: each change's clock and pulse
     /// width (s; 0: signal off).
     pub fn probe_servo_log(&self) -> &[(u64, f64)] {
@@ -796,6 +806,9 @@ impl Mcu for VirtualMcu {
         }
         let (stepper, trigger) = self.engine.take_trigger()?;
         let axis = self.axis_of(stepper);
+        if self.engine.pins().nth(stepper).is_some_and(|p| p.diag.is_some()) {
+            self.stalls.push(axis);
+        }
         let real = self.real_position().unwrap_or_default();
         let clock = onechip_sched::clock::widen(trigger, self.now);
         self.triggers.push((axis, real, clock));

@@ -6,6 +6,10 @@
 //! driver reports a stall on DIAG only when its motor is driven into the
 //! end of the axis with stall detection on.
 
+use onechip_app::config_files::ConfigFiles;
+use onechip_app::pin_check::BOARD_RESERVED;
+use onechip_app::setup::PrinterSetup;
+use onechip_config::ConfigFile;
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, SimError, Start};
 use onechip_planner::tmc::config::TSTEP_MAX;
@@ -110,6 +114,7 @@ fn a_sovol_sv06_homes_x_and_y_on_the_stall_with_klippers_register_writes() {
     let triggers = p.triggers().to_vec();
     assert_eq!(triggers.len(), 1);
     assert_eq!(triggers[0].0, 0, "X");
+    assert_eq!(p.stalls(), [0], "X's trigger was the driver's stall on DIAG");
     let real = p.real_position().expect("physics");
     assert!(real[0].abs() < 0.05 && real[0] <= 0.0, "{real:?}");
     assert!((real[1] - 150.0).abs() < 1e-9, "{real:?}");
@@ -123,6 +128,7 @@ fn a_sovol_sv06_homes_x_and_y_on_the_stall_with_klippers_register_writes() {
     let triggers = p.triggers().to_vec();
     assert_eq!(triggers.len(), 2);
     assert_eq!(triggers[1].0, 1, "Y");
+    assert_eq!(p.stalls(), [0, 1]);
     let out = p.send("M114");
     assert!(out.starts_with("X:0.000 Y:0.000 "), "{out}");
     let real = p.real_position().expect("physics");
@@ -234,6 +240,7 @@ fn a_tmc5160_homes_on_its_diag1_pin_with_klippers_register_writes() {
     ];
     assert_eq!(homing, [one, one].concat());
     assert_eq!(p.triggers().len(), 2);
+    assert_eq!(p.stalls(), [0, 0]);
     let out = p.send("M114");
     assert!(out.starts_with("X:0.000 "), "{out}");
     let real = p.real_position().expect("physics");
@@ -315,4 +322,40 @@ fn a_virtual_endstop_the_driver_cannot_give_is_refused_as_klipper_words_it() {
         "{message}\n{}",
         cfg.lines().filter(|l| l.contains("PA0")).collect::<Vec<_>>().join("\n")
     );
+}
+
+/// The endstop input each rail's stepper is wired to, as a board wires
+/// them from `cfg` (with the pins the Octopus Pro keeps for itself if
+/// `board`).
+fn endstop_inputs(cfg: &str, board: bool) -> Vec<Option<String>> {
+    let mut files = ConfigFiles::new();
+    files
+        .push(ConfigFile {
+            name: "printer.cfg",
+            text: cfg,
+        })
+        .expect("one file");
+    let mut scratch = Box::new(std::mem::MaybeUninit::uninit());
+    let reserved = if board { BOARD_RESERVED } else { &[] };
+    let setup = PrinterSetup::load(&files, reserved, &mut scratch).expect("loads");
+    setup
+        .steppers()
+        .take(3)
+        .map(|s| s.endstop_pin.map(str::to_string))
+        .collect()
+}
+
+#[test]
+fn the_board_reads_the_diag_pin_as_the_rails_endstop_input() {
+    // The sv06: X and Y on their drivers' DIAG pins, Z on the probe.
+    let cfg = stock("printer-sovol-sv06-2022.cfg", &[]);
+    assert_eq!(
+        endstop_inputs(&cfg, false),
+        [Some("PA5".to_string()), Some("PA6".to_string()), None]
+    );
+    // The Octopus Pro with a TMC5160 on X: its DIAG1 pin as written
+    // (pulled up, inverted), on this board's pins.
+    let cfg = octopus_5160("tmc5160_stepper_x:virtual_endstop", Some("^!PG6"));
+    let inputs = endstop_inputs(&cfg, true);
+    assert_eq!(inputs[0].as_deref(), Some("^!PG6"));
 }
