@@ -307,9 +307,13 @@ fn diag_uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a
     let tmc = &machine.tmc;
     tmc.iter()
         .filter(|d| {
-            machine.steppers.iter().filter_map(|s| s.endstop_pin).any(|pin| {
-                sensorless::virtual_endstop(tmc, pin).is_ok_and(|v| v.is_some_and(|v| v == *d))
-            })
+            machine
+                .steppers
+                .iter()
+                .filter_map(|s| s.endstop_pin)
+                .any(|pin| {
+                    sensorless::virtual_endstop(tmc, pin).is_ok_and(|v| v.is_some_and(|v| v == *d))
+                })
         })
         .filter_map(|d| {
             d.diag.map(|(pin, field)| PinUse {

@@ -262,7 +262,9 @@ impl EngineLink {
     /// `i`).
     fn watched(&self, homing: &HomingMove) -> u32 {
         let mut slots = 0;
-        self.watches(homing, |slot, _| slots |= 1u32.checked_shl(slot as u32).unwrap_or(0));
+        self.watches(homing, |slot, _| {
+            slots |= 1u32.checked_shl(slot as u32).unwrap_or(0)
+        });
         slots
     }
 
@@ -945,7 +947,9 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             // the endstops are armed, as Klipper).
             tell_drivers(&mut self.drivers, self.mcu, link.pending, true);
             let mcu = &mut *self.mcu;
-            link.watches(homing, |slot, stops| mcu.watch_endstop(slot, endstop, stops));
+            link.watches(homing, |slot, stops| {
+                mcu.watch_endstop(slot, endstop, stops)
+            });
             link.watching = Some(start_clock);
         }
         let stop = |clock, untriggered| HomingStop {

@@ -118,7 +118,9 @@ impl<'a> Tmc<'a> {
                             .is_ok_and(|d| d.is_some_and(|d| d.section == config.section))
                     })
                 })
-                .fold(0, |bits, (i, _)| bits | 1u32.checked_shl(i as u32).unwrap_or(0));
+                .fold(0, |bits, (i, _)| {
+                    bits | 1u32.checked_shl(i as u32).unwrap_or(0)
+                });
             let port = match out.iter().find(|d| d.config.port() == config.port()) {
                 Some(d) => d.port,
                 None => out.iter().map(|d| d.port + 1).max().unwrap_or(0),

@@ -42,7 +42,9 @@ impl StallDetect {
             return false;
         };
         let (low, high) = self.tstep;
-        self.on && tstep < f64::from(TSTEP_MAX) && (f64::from(low)..=f64::from(high)).contains(&tstep)
+        self.on
+            && tstep < f64::from(TSTEP_MAX)
+            && (f64::from(low)..=f64::from(high)).contains(&tstep)
     }
 }
 

@@ -286,9 +286,16 @@ impl VirtualMcu {
     pub fn with_tmc(mut self, machine: &Machine<'_>, freq: f64) -> Self {
         self.tmc = TmcSim::new(machine);
         let rails = machine.motion_steppers();
-        for (stepper, pins) in machine.steppers.iter().zip(self.engine.pins_mut()).take(rails) {
+        for (stepper, pins) in machine
+            .steppers
+            .iter()
+            .zip(self.engine.pins_mut())
+            .take(rails)
+        {
             let driver = stepper.endstop_pin.and_then(|pin| {
-                sensorless::virtual_endstop(&machine.tmc, pin).ok().flatten()
+                sensorless::virtual_endstop(&machine.tmc, pin)
+                    .ok()
+                    .flatten()
             });
             if let Some(sim) = driver.and_then(|d| self.tmc.driver(d.stepper)) {
                 pins.diag = Some(Diag {
@@ -806,7 +813,12 @@ impl Mcu for VirtualMcu {
         }
         let (stepper, trigger) = self.engine.take_trigger()?;
         let axis = self.axis_of(stepper);
-        if self.engine.pins().nth(stepper).is_some_and(|p| p.diag.is_some()) {
+        if self
+            .engine
+            .pins()
+            .nth(stepper)
+            .is_some_and(|p| p.diag.is_some())
+        {
             self.stalls.push(axis);
         }
         let real = self.real_position().unwrap_or_default();

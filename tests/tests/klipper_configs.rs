@@ -162,7 +162,9 @@ fn sensorless_axes(machine: &Machine<'_>) -> Vec<usize> {
     (0..3)
         .filter(|&axis| {
             let pin = machine.steppers.get(axis).and_then(|s| s.endstop_pin);
-            pin.is_some_and(|pin| sensorless::virtual_endstop(&machine.tmc, pin).is_ok_and(|d| d.is_some()))
+            pin.is_some_and(|pin| {
+                sensorless::virtual_endstop(&machine.tmc, pin).is_ok_and(|d| d.is_some())
+            })
         })
         .collect()
 }
@@ -190,10 +192,18 @@ fn run(file: &Path, dir: &Path) -> RunResult {
         ..Options::default()
     };
     match onechip_host::run_with(dir, &options) {
-        Err(SimError::Config(message)) => {
-            (Outcome::Refused(message), Vec::new(), board_pins, Vec::new())
-        }
-        Err(other) => (Outcome::Refused(other.to_string()), Vec::new(), board_pins, Vec::new()),
+        Err(SimError::Config(message)) => (
+            Outcome::Refused(message),
+            Vec::new(),
+            board_pins,
+            Vec::new(),
+        ),
+        Err(other) => (
+            Outcome::Refused(other.to_string()),
+            Vec::new(),
+            board_pins,
+            Vec::new(),
+        ),
         Ok(summary) => {
             let unsupported = summary.unsupported.clone();
             let outcome = judge(&summary, end, &sensorless);
@@ -390,7 +400,10 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
             println!("{:<64} not on this board: {pins}", "");
         }
         if !row.stalls.is_empty() {
-            println!("{:<64} homed on a driver's stall: axes {:?}", "", row.stalls);
+            println!(
+                "{:<64} homed on a driver's stall: axes {:?}",
+                "", row.stalls
+            );
         }
         let name = &row.name;
         match &row.outcome {

@@ -21,7 +21,8 @@ fn corpus() -> PathBuf {
 
 /// A fresh SD folder named `name` holding `cfg` as printer.cfg.
 fn sd(name: &str, cfg: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-sensorless-{name}-{}", std::process::id()));
+    let dir =
+        std::env::temp_dir().join(format!("onechip-sensorless-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     std::fs::write(dir.join("printer.cfg"), cfg).expect("write");
     dir
@@ -109,12 +110,19 @@ fn a_sovol_sv06_homes_x_and_y_on_the_stall_with_klippers_register_writes() {
         ]
     );
     // Y's driver was not touched.
-    assert_eq!(writes_since(&mut p, "stepper_y", 0).0, init_of(&mut p, "stepper_y"));
+    assert_eq!(
+        writes_since(&mut p, "stepper_y", 0).0,
+        init_of(&mut p, "stepper_y")
+    );
     // The stall stopped X at its end: position_endstop 0, no retract.
     let triggers = p.triggers().to_vec();
     assert_eq!(triggers.len(), 1);
     assert_eq!(triggers[0].0, 0, "X");
-    assert_eq!(p.stalls(), [0], "X's trigger was the driver's stall on DIAG");
+    assert_eq!(
+        p.stalls(),
+        [0],
+        "X's trigger was the driver's stall on DIAG"
+    );
     let real = p.real_position().expect("physics");
     assert!(real[0].abs() < 0.05 && real[0] <= 0.0, "{real:?}");
     assert!((real[1] - 150.0).abs() < 1e-9, "{real:?}");
@@ -152,9 +160,31 @@ fn coolstep_threshold_kept_above_the_homing_speed_means_no_stall_as_in_klipper()
     let mut p = ConsolePrinter::new(&dir, &options()).expect("loads");
     let out = p.send("SET_TMC_FIELD STEPPER=stepper_x FIELD=tcoolthrs VALUE=1");
     assert!(!out.contains("!!"), "{out}");
+    let x = p.tmc_drivers().driver("stepper_x").expect("x");
+    let (gconf, seen) = (x.register_named("GCONF"), x.written.len());
     let out = p.send("G28 X");
-    assert!(out.contains("!! No trigger on x after full movement"), "{out}");
+    assert!(
+        out.contains("!! No trigger on x after full movement"),
+        "{out}"
+    );
     assert!(p.triggers().is_empty());
+    // Set up for StallGuard4 all the same (stealthChop), TCOOLTHRS kept.
+    let (tpwm, gc, tcool) = (
+        addr(&mut p, "stepper_x", "TPWMTHRS"),
+        addr(&mut p, "stepper_x", "GCONF"),
+        addr(&mut p, "stepper_x", "TCOOLTHRS"),
+    );
+    let (homing, _) = writes_since(&mut p, "stepper_x", seen);
+    assert_eq!(
+        homing,
+        [
+            (tpwm, 0),
+            (gc, gconf),
+            (tpwm, TSTEP_MAX),
+            (gc, gconf),
+            (tcool, 1)
+        ]
+    );
     // The registers are put back after the failed move as after any.
     let x = p.tmc_drivers().driver("stepper_x").expect("x");
     assert_eq!(x.register_named("TCOOLTHRS"), 1);
@@ -172,7 +202,10 @@ fn a_driver_that_never_stalls_ends_with_no_trigger_after_full_movement() {
     let dir = sd("never", &cfg);
     let mut p = ConsolePrinter::new(&dir, &options()).expect("loads");
     let out = p.send("G28 X");
-    assert!(out.contains("!! No trigger on x after full movement"), "{out}");
+    assert!(
+        out.contains("!! No trigger on x after full movement"),
+        "{out}"
+    );
     assert!(p.triggers().is_empty());
     // The homing move ran its whole length into the frame: 1.5 x the
     // travel (220 mm) from where the firmware assumed X was (at
@@ -205,7 +238,10 @@ fn octopus_5160(endstop: &str, diag: Option<&str>) -> String {
 
 #[test]
 fn a_tmc5160_homes_on_its_diag1_pin_with_klippers_register_writes() {
-    let dir = sd("5160", &octopus_5160("tmc5160_stepper_x:virtual_endstop", Some("^!PG6")));
+    let dir = sd(
+        "5160",
+        &octopus_5160("tmc5160_stepper_x:virtual_endstop", Some("^!PG6")),
+    );
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
     p.send("M400");
     let x = p.tmc_drivers().driver("stepper_x").expect("x");
@@ -302,7 +338,10 @@ fn a_virtual_endstop_the_driver_cannot_give_is_refused_as_klipper_words_it() {
     // unknown, as in Klipper.
     let cfg = stock(
         "printer-sovol-sv06-2022.cfg",
-        &[("[tmc2209 stepper_x]", "[tmc2208 stepper_x]"), ("uart_address: 3\ndriver_SGTHRS: 81\ndiag_pin: PA5\n", "")],
+        &[
+            ("[tmc2209 stepper_x]", "[tmc2208 stepper_x]"),
+            ("uart_address: 3\ndriver_SGTHRS: 81\ndiag_pin: PA5\n", ""),
+        ],
     );
     let message = refused("tmc2208", cfg);
     assert_eq!(
@@ -320,7 +359,10 @@ fn a_virtual_endstop_the_driver_cannot_give_is_refused_as_klipper_words_it() {
     assert!(
         message.contains("[tmc2209 stepper_x] diag_pin"),
         "{message}\n{}",
-        cfg.lines().filter(|l| l.contains("PA0")).collect::<Vec<_>>().join("\n")
+        cfg.lines()
+            .filter(|l| l.contains("PA0"))
+            .collect::<Vec<_>>()
+            .join("\n")
     );
 }
 

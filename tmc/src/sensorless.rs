@@ -183,16 +183,25 @@ pub fn begin(regs: &mut RegisterFile, diag_field: Option<&str>) -> (Writes, Save
 pub fn end(regs: &mut RegisterFile, diag_field: Option<&str>, saved: Saved) -> Writes {
     let mut writes: Writes = [None; 3];
     if stallguard4(regs) {
-        push(&mut writes, set(regs, "tpwmthrs", i64::from(saved.tpwmthrs)));
+        push(
+            &mut writes,
+            set(regs, "tpwmthrs", i64::from(saved.tpwmthrs)),
+        );
         let spreadcycle = i64::from(!saved.stealth);
         push(&mut writes, set(regs, "en_spreadcycle", spreadcycle));
     } else {
         if let Some(f) = diag_field {
             set(regs, f, 0);
         }
-        push(&mut writes, set(regs, "en_pwm_mode", i64::from(saved.stealth)));
+        push(
+            &mut writes,
+            set(regs, "en_pwm_mode", i64::from(saved.stealth)),
+        );
     }
-    push(&mut writes, set(regs, "tcoolthrs", i64::from(saved.tcoolthrs)));
+    push(
+        &mut writes,
+        set(regs, "tcoolthrs", i64::from(saved.tcoolthrs)),
+    );
     if regs.kind().field("thigh").is_some() {
         push(&mut writes, set(regs, "thigh", i64::from(saved.thigh)));
     }
@@ -233,7 +242,11 @@ mod tests {
     fn a_tmc2209_homes_in_stealthchop_with_tcoolthrs_set_and_gets_its_registers_back() {
         let mut r = regs(
             DriverKind::Tmc2209,
-            &[("en_spreadcycle", 1), ("tpwmthrs", 0xfffff), ("tcoolthrs", 0)],
+            &[
+                ("en_spreadcycle", 1),
+                ("tpwmthrs", 0xfffff),
+                ("tcoolthrs", 0),
+            ],
         );
         let before = r.clone();
         let (writes, saved) = begin(&mut r, None);
@@ -265,10 +278,7 @@ mod tests {
         let (writes, saved) = begin(&mut r, Some("diag1_stall"));
         // GCONF (en_pwm_mode bit 2 clear, diag1_stall bit 8), TCOOLTHRS
         // kept (not 0: not written), THIGH 0.
-        assert_eq!(
-            writes,
-            [Some((0x00, 1 << 8)), Some((0x15, 0)), None]
-        );
+        assert_eq!(writes, [Some((0x00, 1 << 8)), Some((0x15, 0)), None]);
         let back = end(&mut r, Some("diag1_stall"), saved);
         assert_eq!(
             back,
