@@ -304,18 +304,15 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
 /// The DIAG pins of the TMC drivers whose virtual endstop a rail homes on
 /// (Klipper claims a driver's DIAG pin only then).
 fn diag_uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 'm {
-    let tmc = &machine.tmc;
-    tmc.iter()
-        .filter(|d| {
+    (machine.tmc.iter().enumerate())
+        .filter(|&(k, _)| {
             machine
-                .steppers
+                .stall_homing
                 .iter()
-                .filter_map(|s| s.endstop_pin)
-                .any(|pin| {
-                    sensorless::virtual_endstop(tmc, pin).is_ok_and(|v| v.is_some_and(|v| v == *d))
-                })
+                .flatten()
+                .any(|&d| usize::from(d) == k)
         })
-        .filter_map(|d| {
+        .filter_map(|(_, d)| {
             d.diag.map(|(pin, field)| PinUse {
                 section: d.section,
                 option: sensorless::diag_option(field),

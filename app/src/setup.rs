@@ -12,7 +12,7 @@ use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
-use onechip_planner::tmc::sensorless;
+use onechip_planner::tmc::config::TmcDriver;
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
 /// quotes is gone once the machine is built).
@@ -131,7 +131,13 @@ impl<'a> PrinterSetup<'a> {
                 endstop_pin: s
                     .endstop_pin
                     .filter(|p| i < rails && !crate::probe::is_virtual_endstop(p))
-                    .map(|p| sensorless::endstop_input(&self.machine.tmc, p)),
+                    .map(|p| match self.machine.stall_driver(i) {
+                        Some(TmcDriver {
+                            diag: Some((diag, _)),
+                            ..
+                        }) => diag,
+                        _ => p,
+                    }),
                 step_pulse,
             })
     }

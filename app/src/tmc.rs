@@ -110,14 +110,9 @@ impl<'a> Tmc<'a> {
     pub fn new(machine: &Machine<'a>) -> Self {
         let drivers = &machine.tmc;
         let mut out: heapless::Vec<Driver<'a>, MAX_DRIVERS> = heapless::Vec::new();
-        for config in drivers {
-            let homes = (machine.steppers.iter().enumerate())
-                .filter(|(_, s)| {
-                    s.endstop_pin.is_some_and(|pin| {
-                        sensorless::virtual_endstop(drivers, pin)
-                            .is_ok_and(|d| d.is_some_and(|d| d.section == config.section))
-                    })
-                })
+        for (k, config) in drivers.iter().enumerate() {
+            let homes = (machine.stall_homing.iter().enumerate())
+                .filter(|&(_, &d)| d.is_some_and(|d| usize::from(d) == k))
                 .fold(0, |bits, (i, _)| {
                     bits | 1u32.checked_shl(i as u32).unwrap_or(0)
                 });

@@ -22,7 +22,6 @@ use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
 use onechip_planner::machine::Machine;
 use onechip_planner::move_sink::TrapqMove;
-use onechip_planner::tmc::sensorless;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::{Engine, Full};
 use onechip_sched::shutdown::Shutdown;
@@ -286,17 +285,8 @@ impl VirtualMcu {
     pub fn with_tmc(mut self, machine: &Machine<'_>, freq: f64) -> Self {
         self.tmc = TmcSim::new(machine);
         let rails = machine.motion_steppers();
-        for (stepper, pins) in machine
-            .steppers
-            .iter()
-            .zip(self.engine.pins_mut())
-            .take(rails)
-        {
-            let driver = stepper.endstop_pin.and_then(|pin| {
-                sensorless::virtual_endstop(&machine.tmc, pin)
-                    .ok()
-                    .flatten()
-            });
+        for (i, pins) in self.engine.pins_mut().enumerate().take(rails) {
+            let driver = machine.stall_driver(i);
             if let Some(sim) = driver.and_then(|d| self.tmc.driver(d.stepper)) {
                 pins.diag = Some(Diag {
                     detect: sim.stall_detect(),

@@ -32,7 +32,6 @@ use onechip_app::pin_check;
 use onechip_config::Config;
 use onechip_host::{Options, SimError, Start, Summary};
 use onechip_planner::machine::Machine;
-use onechip_planner::tmc::sensorless;
 use onechip_planner::toolhead::Travel;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -160,12 +159,7 @@ type RunResult = (Outcome, Vec<String>, Option<String>, Vec<usize>);
 /// endstop.
 fn sensorless_axes(machine: &Machine<'_>) -> Vec<usize> {
     (0..3)
-        .filter(|&axis| {
-            let pin = machine.steppers.get(axis).and_then(|s| s.endstop_pin);
-            pin.is_some_and(|pin| {
-                sensorless::virtual_endstop(&machine.tmc, pin).is_ok_and(|d| d.is_some())
-            })
-        })
+        .filter(|&axis| machine.stall_driver(axis).is_some())
         .collect()
 }
 

@@ -58,13 +58,14 @@ impl fmt::Display for VirtualPinError<'_> {
     }
 }
 
-/// The driver among `drivers` whose virtual endstop `pin` (an endstop pin
-/// as written) names: `None` if `pin` names no TMC driver's chip (an MCU
-/// pin, the probe's); an error, in Klipper's words, if it cannot be used.
-pub fn virtual_endstop<'d, 'a, 'p>(
-    drivers: &'d [TmcDriver<'a>],
+/// The driver among `drivers` (its index) whose virtual endstop `pin` (an
+/// endstop pin as written) names: `None` if `pin` names no TMC driver's
+/// chip (an MCU pin, the probe's); an error, in Klipper's words, if it
+/// cannot be used.
+pub fn virtual_endstop<'p>(
+    drivers: &[TmcDriver<'_>],
     pin: &'p str,
-) -> Result<Option<&'d TmcDriver<'a>>, VirtualPinError<'p>> {
+) -> Result<Option<u8>, VirtualPinError<'p>> {
     let written = pin.trim();
     let bare = written.trim_start_matches(['^', '~', '!', ' ']);
     let Some((chip, name)) = bare.split_once(':').map(|(c, n)| (c.trim(), n.trim())) else {
@@ -80,10 +81,9 @@ pub fn virtual_endstop<'d, 'a, 'p>(
     else {
         return Ok(None);
     };
-    let driver = drivers
-        .iter()
-        .filter(|d| has_virtual_pin(d.kind))
-        .find(|d| d.kind == kind && d.stepper.eq_ignore_ascii_case(stepper))
+    let (index, driver) = (drivers.iter().enumerate())
+        .filter(|(_, d)| has_virtual_pin(d.kind))
+        .find(|(_, d)| d.kind == kind && d.stepper.eq_ignore_ascii_case(stepper))
         .ok_or(VirtualPinError::UnknownChip(chip))?;
     if name != VIRTUAL_ENDSTOP {
         return Err(VirtualPinError::NotEndstop);
@@ -94,19 +94,7 @@ pub fn virtual_endstop<'d, 'a, 'p>(
     if driver.diag.is_none() {
         return Err(VirtualPinError::NoDiagPin);
     }
-    Ok(Some(driver))
-}
-
-/// The input an endstop pin is read on: the driver's DIAG pin (as
-/// written, with its `^`/`!`) for a usable virtual endstop, else `pin`.
-pub fn endstop_input<'a>(drivers: &[TmcDriver<'a>], pin: &'a str) -> &'a str {
-    match virtual_endstop(drivers, pin) {
-        Ok(Some(TmcDriver {
-            diag: Some((diag, _)),
-            ..
-        })) => diag,
-        _ => pin,
-    }
+    Ok(u8::try_from(index).ok())
 }
 
 /// True if drivers of `kind` have a virtual endstop (StallGuard and a
