@@ -795,8 +795,13 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         // The step sink writes busy lines between the replies `f` writes.
         let out = RefCell::new(out);
         let mut sink_out = SharedOut(&out);
+        // Only an MCU with wires to the drivers sets them up for homing
+        // (without, the drivers' code is left out of the build).
+        let wired = mcu.tmc_link().is_some();
         let mut steps = self.engine.steps(mcu, &mut sink_out);
-        steps.drivers = Some(&mut self.tmc);
+        if wired {
+            steps.drivers = Some(&mut self.tmc);
+        }
         let result = f(
             &mut self.printer,
             &mut Planning {
