@@ -314,23 +314,86 @@ impl TmcLink for TmcSim {
 mod tests {
     use super::*;
 
+    /// A driver of `kind` at power-on, UART address or chain position
+    /// `slot`, its DIAG pin routed by `diag` if wired.
+    fn driver(kind: DriverKind, slot: u8, diag: Option<Option<&'static str>>) -> SimDriver {
+        let mut d = SimDriver {
+            kind,
+            stepper: "stepper_x".into(),
+            port: 0,
+            slot,
+            chain_length: 1,
+            regs: [0; 128],
+            ifcnt: 0,
+            pending: 0,
+            datagrams: 0,
+            written: Vec::new(),
+            diag,
+            stall: Rc::default(),
+        };
+        d.power_cycle();
+        d
+    }
+
+    /// Sets field `name` of `d` as a register write would.
+    fn set(d: &mut SimDriver, name: &str, value: i64) {
+        let (reg, field) = d.kind.field_any(name).expect("field");
+        let new = field.set(d.register(reg.addr), value);
+        d.write(reg.addr, new);
+    }
+
+    #[test]
+    fn stallguard2_reports_in_spreadcycle_between_thigh_and_tcoolthrs() {
+        let mut d = driver(DriverKind::Tmc5160, 1, Some(Some("diag1_stall")));
+        // 16 microsteps: TSTEP = 12 MHz / 16 × the step interval.
+        set(&mut d, "mres", 4);
+        let at = |tstep: f64| Some(tstep * 16.0 / 12e6);
+        set(&mut d, "tcoolthrs", 1000);
+        set(&mut d, "thigh", 10);
+        // Not routed to the DIAG pin wired: nothing.
+        assert!(!d.stall_detect().get().reports(at(500.0)));
+        set(&mut d, "diag1_stall", 1);
+        let stall = d.stall_detect();
+        assert!(stall.get().reports(at(500.0)));
+        assert!(!stall.get().reports(at(2000.0)), "slower than TCOOLTHRS");
+        assert!(!stall.get().reports(at(5.0)), "faster than THIGH");
+        assert!(!stall.get().reports(None), "not stepped");
+        // stealthChop below TPWMTHRS' speed: StallGuard2 measures nothing.
+        set(&mut d, "en_pwm_mode", 1);
+        set(&mut d, "tpwmthrs", 100);
+        assert!(!stall.get().reports(at(500.0)));
+        assert!(stall.get().reports(at(50.0)), "spreadCycle above it");
+    }
+
+    #[test]
+    fn stallguard4_reports_in_stealthchop_with_a_threshold() {
+        let mut d = driver(DriverKind::Tmc2209, 0, Some(None));
+        set(&mut d, "mres", 4);
+        let at = |tstep: f64| Some(tstep * 16.0 / 12e6);
+        set(&mut d, "tcoolthrs", 0xfffff);
+        let stall = d.stall_detect();
+        // SGTHRS 0: never.
+        assert!(!stall.get().reports(at(500.0)));
+        set(&mut d, "sgthrs", 80);
+        assert!(stall.get().reports(at(500.0)));
+        // spreadCycle: no StallGuard4.
+        set(&mut d, "en_spreadcycle", 1);
+        assert!(!stall.get().reports(at(500.0)));
+        set(&mut d, "en_spreadcycle", 0);
+        // Above TPWMTHRS' speed the chopper leaves stealthChop.
+        set(&mut d, "tpwmthrs", 1000);
+        assert!(!stall.get().reports(at(500.0)));
+        // Without a DIAG pin nothing is reported.
+        let mut unwired = driver(DriverKind::Tmc2209, 0, None);
+        set(&mut unwired, "sgthrs", 80);
+        set(&mut unwired, "tcoolthrs", 0xfffff);
+        assert!(!unwired.stall_detect().get().reports(at(500.0)));
+    }
+
     #[test]
     fn a_uart_driver_counts_writes_and_answers_reads() {
         let mut sim = TmcSim {
-            drivers: vec![SimDriver {
-                kind: DriverKind::Tmc2209,
-                stepper: "stepper_x".into(),
-                port: 0,
-                slot: 2,
-                chain_length: 1,
-                regs: [0; 128],
-                ifcnt: 0,
-                pending: 0,
-                datagrams: 0,
-                written: Vec::new(),
-                diag: None,
-                stall: Rc::default(),
-            }],
+            drivers: vec![driver(DriverKind::Tmc2209, 2, None)],
         };
         sim.uart(0, &wire::uart_write(2, 0x10, 0x0008_1010), &mut [])
             .expect("write");
