@@ -339,6 +339,10 @@ fn a_virtual_endstop_the_driver_cannot_give_is_refused_as_klipper_words_it() {
     let cfg = stock(
         "printer-sovol-sv06-2022.cfg",
         &[
+            (
+                "tmc2209_stepper_x:virtual_endstop",
+                "tmc2208_stepper_x:virtual_endstop",
+            ),
             ("[tmc2209 stepper_x]", "[tmc2208 stepper_x]"),
             ("uart_address: 3\ndriver_SGTHRS: 81\ndiag_pin: PA5\n", ""),
         ],
@@ -347,7 +351,7 @@ fn a_virtual_endstop_the_driver_cannot_give_is_refused_as_klipper_words_it() {
     assert_eq!(
         message,
         "printer.cfg:29: option 'endstop_pin' in section 'stepper_x': \
-         Unknown pin chip name 'tmc2209_stepper_x'"
+         Unknown pin chip name 'tmc2208_stepper_x'"
     );
     // The DIAG pin is checked as the section's diag_pin: here it is also
     // the fan's pin.

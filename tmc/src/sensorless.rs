@@ -99,7 +99,7 @@ pub fn virtual_endstop<'p>(
 
 /// True if drivers of `kind` have a virtual endstop (StallGuard and a
 /// DIAG output).
-pub fn has_virtual_pin(kind: DriverKind) -> bool {
+fn has_virtual_pin(kind: DriverKind) -> bool {
     !matches!(kind, DriverKind::Tmc2208 | DriverKind::Tmc2660)
 }
 
@@ -118,7 +118,7 @@ pub fn diag_option(field: Option<&str>) -> &'static str {
 pub struct Saved {
     /// stealthChop was on (`en_pwm_mode` set, or `en_spreadcycle` clear).
     stealth: bool,
-    /// TPWMTHRS, TSTEP units.
+    /// TPWMTHRS, TSTEP units (driver clocks per 1/256 microstep).
     tpwmthrs: u32,
     /// TCOOLTHRS, TSTEP units.
     tcoolthrs: u32,
