@@ -311,7 +311,7 @@ impl fmt::Display for Summary {
         for (axis, real, time) in &self.endstops {
             writeln!(
                 f,
-                "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}",
+                "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}{}",
                 match self.kinematics {
                     Kinematics::Delta => ["a", "b", "c"],
                     _ => ["x", "y", "z"],
@@ -320,7 +320,13 @@ impl fmt::Display for Summary {
                 .unwrap_or(&"?"),
                 real[0],
                 real[1],
-                real[2]
+                real[2],
+                // A rail's input is a DIAG pin for all its triggers or none.
+                if self.stalls.contains(axis) {
+                    " (the driver's stall, on its DIAG pin)"
+                } else {
+                    ""
+                }
             )?;
         }
         for h in &self.heaters {
