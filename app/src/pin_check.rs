@@ -5,7 +5,9 @@
 //!
 //! Pins are compared without their modifiers (`!` inverted, `^` pull-up,
 //! `~` pull-down) and ignoring case; `PF13` and `mcu:PF13` are the same
-//! pin, `probe:z_virtual_endstop` is on another chip. As in Klipper, two
+//! pin, `probe:z_virtual_endstop` is on another chip (and so is a TMC
+//! driver's `tmc2209_stepper_x:virtual_endstop`, whose DIAG pin is checked
+//! as its section's `diag_pin`). As in Klipper, two
 //! options may share a pin only when
 //! - both are steppers' `enable_pin` (one driver enable line for several
 //!   drivers), or
@@ -20,6 +22,7 @@ use onechip_planner::board_pins::{BoardPins, ReservedPin};
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::SensorInput;
 use onechip_planner::spi_temperature::SpiBusPins;
+use onechip_planner::tmc::sensorless;
 
 /// The board's hardware SPI bus for SPI sensors (Klipper's name for SPI1
 /// on PA5, PA6 and PA7 on the STM32H7).
@@ -289,12 +292,33 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
             pin,
         });
     steppers
+        .chain(diag_uses(machine))
         .chain(heaters)
         .chain(sensors)
         .chain(spi)
         .chain(fan)
         .chain(crate::probe::pin_uses(machine))
         .chain(accessories)
+}
+
+/// The DIAG pins of the TMC drivers whose virtual endstop a rail homes on
+/// (Klipper claims a driver's DIAG pin only then).
+fn diag_uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 'm {
+    (machine.tmc.iter().enumerate())
+        .filter(|&(k, _)| {
+            machine
+                .stall_homing
+                .iter()
+                .flatten()
+                .any(|&d| usize::from(d) == k)
+        })
+        .filter_map(|(_, d)| {
+            d.diag.map(|(pin, field)| PinUse {
+                section: d.section,
+                option: sensorless::diag_option(field),
+                pin,
+            })
+        })
 }
 
 /// True if Klipper lets `a` and `b` name one pin: steppers' enable pins,

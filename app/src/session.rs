@@ -14,7 +14,7 @@ use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
 use crate::line::command_word;
 use crate::printer::{LineError, Printer};
 use crate::text::{ErrorText, error_text};
-use crate::tmc::{Tmc, TmcLink};
+use crate::tmc::{HomingDrivers, Tmc, TmcLink};
 use core::cell::RefCell;
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
@@ -253,7 +253,39 @@ impl EngineLink {
             mcu,
             link: self,
             out,
+            drivers: None,
         }
+    }
+
+    /// The engine slots (bit `i`: stepper `i`) whose endstops `homing`
+    /// watches, and for each the steppers its trigger stops; `watch` is
+    /// called for each.
+    fn watches(&self, homing: &HomingMove, mut watch: impl FnMut(usize, u32)) {
+        if homing.towers {
+            for (k, _) in self.endstops.iter().enumerate().filter(|e| *e.1) {
+                watch(k, 1 << k);
+            }
+            return;
+        }
+        let slot = self.endstop_slot(homing.axis, homing.probe);
+        let own = match self.own_endstops.get(homing.axis) {
+            Some(&own) if slot == homing.axis => own,
+            _ => 0,
+        };
+        watch(slot, self.rails & !own);
+        for k in (0..32).filter(|k| own & (1 << k) != 0) {
+            watch(k, 1 << k);
+        }
+    }
+
+    /// The engine slots whose endstops `homing` watches (bit `i`: slot
+    /// `i`).
+    fn watched(&self, homing: &HomingMove) -> u32 {
+        let mut slots = 0;
+        self.watches(homing, |slot, _| {
+            slots |= 1u32.checked_shl(slot as u32).unwrap_or(0)
+        });
+        slots
     }
 
     /// A line starts at clock `now`: it reports busy from [`BUSY_TIME`]
@@ -262,7 +294,6 @@ impl EngineLink {
         self.busy_at = now + (BUSY_TIME * self.freq) as u64;
     }
 
-    /// Writes the busy line to `out` if it is due at clock `now`.
     /// The engine slot whose endstop input axis `axis` homes on.
     fn endstop_slot(&self, axis: usize, probe: bool) -> usize {
         match self.probe_slot {
@@ -271,6 +302,7 @@ impl EngineLink {
         }
     }
 
+    /// Writes the busy line to `out` if it is due at clock `now`.
     fn keepalive(&mut self, now: u64, out: &mut dyn Write) {
         if now >= self.busy_at {
             let _ = writeln!(out, "{BUSY_LINE}");
@@ -410,7 +442,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             addr_of_mut!((*p).priming_since).write(None);
             let sensors = &machine.accessories.filament_sensors;
             addr_of_mut!((*p).filament).write(FilamentSensors::new(sensors, start as f64 / freq));
-            addr_of_mut!((*p).tmc).write(Tmc::new(&machine.tmc));
+            addr_of_mut!((*p).tmc).write(Tmc::new(machine));
             slot.assume_init_mut()
         }
     }
@@ -503,6 +535,12 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
                 .execute(&line, planning, out)
                 .map_err(|e| error_text(&SessionError::Command(e)))
         });
+        // A driver that could not be set up for a homing move on its stall
+        // fails the line, as in Klipper.
+        let result = match self.tmc.take_homing_failure() {
+            Some(failure) => result.and(Err(failure)),
+            None => result,
+        };
         if was_idle && !self.printer.is_idle() && !self.printer.is_flowing() {
             // The first move since idle: the priming timer starts.
             self.priming_since = Some(mcu.now());
@@ -777,7 +815,13 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         // The step sink writes busy lines between the replies `f` writes.
         let out = RefCell::new(out);
         let mut sink_out = SharedOut(&out);
+        // Only an MCU with wires to the drivers sets them up for homing
+        // (without, the drivers' code is left out of the build).
+        let wired = mcu.tmc_link().is_some();
         let mut steps = self.engine.steps(mcu, &mut sink_out);
+        if wired {
+            steps.drivers = Some(&mut self.tmc);
+        }
         let result = f(
             &mut self.printer,
             &mut Planning {
@@ -869,6 +913,26 @@ struct EngineSteps<'m, M> {
     link: &'m mut EngineLink,
     /// Where busy lines go.
     out: &'m mut dyn Write,
+    /// The TMC drivers, told of homing moves (sensorless homing).
+    drivers: Option<&'m mut dyn HomingDrivers>,
+}
+
+/// Tells `drivers` (through `mcu`'s wires to them) that a homing move
+/// watching the endstops of engine slots `slots` begins (`begin`) or
+/// ends.
+fn tell_drivers(
+    drivers: &mut Option<&mut dyn HomingDrivers>,
+    mcu: &mut impl Mcu,
+    slots: u32,
+    begin: bool,
+) {
+    if let (Some(drivers), Some(tmc)) = (drivers.as_deref_mut(), mcu.tmc_link()) {
+        if begin {
+            drivers.homing_move_begin(tmc, slots);
+        } else {
+            drivers.homing_move_end(tmc, slots);
+        }
+    }
 }
 
 impl<M: Mcu> StepSink for EngineSteps<'_, M> {
@@ -908,22 +972,16 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 homing.speed,
                 link.finest_step,
             );
-            link.pending = 0;
             link.last_trigger = None;
             link.overshoot = [0; 3];
-            if homing.towers {
-                for (k, _) in link.endstops.iter().enumerate().filter(|e| *e.1) {
-                    self.mcu.watch_endstop(k, endstop, 1 << k);
-                    link.pending |= 1 << k;
-                }
-            } else {
-                self.mcu.watch_endstop(slot, endstop, link.rails & !own);
-                link.pending = 1 << slot;
-                for k in (0..32).filter(|k| own & (1 << k) != 0) {
-                    self.mcu.watch_endstop(k, endstop, 1 << k);
-                    link.pending |= 1 << k;
-                }
-            }
+            link.pending = link.watched(homing);
+            // Drivers homing on their stall detect it from now on (before
+            // the endstops are armed, as Klipper).
+            tell_drivers(&mut self.drivers, self.mcu, link.pending, true);
+            let mcu = &mut *self.mcu;
+            link.watches(homing, |slot, stops| {
+                mcu.watch_endstop(slot, endstop, stops)
+            });
             link.watching = Some(start_clock);
         }
         let stop = |clock, untriggered, moved: [i64; 3]| {
@@ -964,6 +1022,7 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
                 link.pending &= !(1u32.checked_shl(slot as u32).unwrap_or(0));
                 if link.pending == 0 {
                     link.watching = None;
+                    tell_drivers(&mut self.drivers, self.mcu, link.watched(homing), false);
                     let moved = link.overshoot;
                     return Some(stop(link.last_trigger.unwrap_or(clock), None, moved));
                 }
@@ -981,6 +1040,7 @@ impl<M: Mcu> StepSink for EngineSteps<'_, M> {
             // The whole move ran with an endstop untriggered.
             self.mcu.stop_watching();
             link.watching = None;
+            tell_drivers(&mut self.drivers, self.mcu, link.watched(homing), false);
             // (After a shutdown the shutdown is the error.)
             let untriggered = (link.endstops_modelled && link.pending != 0 && !shutdown)
                 .then(|| link.pending.trailing_zeros() as usize);

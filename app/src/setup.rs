@@ -12,6 +12,7 @@ use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::tmc::config::TmcDriver;
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
 /// quotes is gone once the machine is built).
@@ -35,7 +36,9 @@ pub struct StepperWiring<'a> {
     pub dir_pin: &'a str,
     /// Driver enable pin as written, if any.
     pub enable_pin: Option<&'a str>,
-    /// The endstop pin of a motion stepper (X, Y, Z rail), if any.
+    /// The endstop input of a motion stepper (X, Y, Z rail), if any: its
+    /// endstop pin, or the DIAG pin of the TMC driver whose virtual
+    /// endstop it homes on.
     pub endstop_pin: Option<&'a str>,
     /// Step pulse length, s (`step_pulse_duration`, or Klipper's default
     /// for the stepper's driver).
@@ -123,10 +126,18 @@ impl<'a> PrinterSetup<'a> {
                 step_pin: s.step_pin,
                 dir_pin: s.dir_pin,
                 enable_pin: s.enable_pin,
-                // A rail homing on the probe reads the probe's slot.
+                // A rail homing on the probe reads the probe's slot; one
+                // homing on a TMC driver's virtual endstop, its DIAG pin.
                 endstop_pin: s
                     .endstop_pin
-                    .filter(|p| i < rails && !crate::probe::is_virtual_endstop(p)),
+                    .filter(|p| i < rails && !crate::probe::is_virtual_endstop(p))
+                    .map(|p| match self.machine.stall_driver(i) {
+                        Some(TmcDriver {
+                            diag: Some((diag, _)),
+                            ..
+                        }) => diag,
+                        _ => p,
+                    }),
                 step_pulse,
             })
     }

@@ -2,7 +2,10 @@
 //! register written at start, the drivers checked once a second (a reset
 //! or power loss is seen in GSTAT's `reset` flag, or a TMC2660's zero
 //! current scale, and the registers are written again), and the G-code
-//! commands SET_TMC_CURRENT, SET_TMC_FIELD, DUMP_TMC and INIT_TMC.
+//! commands SET_TMC_CURRENT, SET_TMC_FIELD, DUMP_TMC and INIT_TMC. A rail
+//! homing on a driver's virtual endstop (sensorless homing) gets Klipper's
+//! register changes around each homing move
+//! (`onechip_planner::tmc::sensorless`).
 //!
 //! The bytes go through a [`TmcLink`] that the board or the simulator
 //! provides; the datagrams are `onechip_planner::tmc::wire`'s.
@@ -17,8 +20,10 @@ use crate::text::{ErrorText, cut_text};
 use core::fmt::{self, Write};
 use onechip_config::decimal::{self, Fixed};
 use onechip_planner::gcode::{Command, Extended, Line};
+use onechip_planner::machine::Machine;
 use onechip_planner::tmc::config::{Bus, MAX_DRIVERS, TmcDriver};
 use onechip_planner::tmc::registers::{RegDef, TMC2660_READRSP};
+use onechip_planner::tmc::sensorless::{self, Saved};
 use onechip_planner::tmc::{DriverKind, RegisterFile, wire};
 
 /// The bus did not answer (no reply, or a reply that failed its check).
@@ -56,6 +61,11 @@ struct Driver<'a> {
     req_hold: Option<f64>,
     /// The TMC2660's run current, A.
     current_2660: f64,
+    /// The engine slots (bit `i`: stepper `i`) whose endstop is this
+    /// driver's virtual endstop.
+    homes: u32,
+    /// During a homing move on its virtual endstop: what to restore.
+    homing: Option<Saved>,
 }
 
 /// Every TMC driver of the printer.
@@ -65,6 +75,9 @@ pub struct Tmc<'a> {
     /// When the next check is due, s of MCU time (`None`: registers not
     /// written yet).
     next_check: Option<f64>,
+    /// The first register write of a homing move's setup that failed, not
+    /// yet reported.
+    homing_failure: Option<Failure<'a>>,
 }
 
 /// A driver's failure, as Klipper words it.
@@ -72,6 +85,12 @@ pub struct Tmc<'a> {
 enum Failure<'a> {
     Read(&'a str, &'static str, bool),
     Write(&'a str, &'static str, bool),
+}
+
+impl From<Failure<'_>> for ErrorText {
+    fn from(failure: Failure<'_>) -> Self {
+        cut_text(&failure)
+    }
 }
 
 impl fmt::Display for Failure<'_> {
@@ -86,11 +105,17 @@ impl fmt::Display for Failure<'_> {
 }
 
 impl<'a> Tmc<'a> {
-    /// The drivers of `drivers` (a machine's), their ports numbered in
-    /// order of first use.
-    pub fn new(drivers: &[TmcDriver<'a>]) -> Self {
+    /// The drivers of `machine`, their ports numbered in order of first
+    /// use, each knowing which steppers home on its virtual endstop.
+    pub fn new(machine: &Machine<'a>) -> Self {
+        let drivers = &machine.tmc;
         let mut out: heapless::Vec<Driver<'a>, MAX_DRIVERS> = heapless::Vec::new();
-        for config in drivers {
+        for (k, config) in drivers.iter().enumerate() {
+            let homes = (machine.stall_homing.iter().enumerate())
+                .filter(|&(_, &d)| d.is_some_and(|d| usize::from(d) == k))
+                .fold(0, |bits, (i, _)| {
+                    bits | 1u32.checked_shl(i as u32).unwrap_or(0)
+                });
             let port = match out.iter().find(|d| d.config.port() == config.port()) {
                 Some(d) => d.port,
                 None => out.iter().map(|d| d.port + 1).max().unwrap_or(0),
@@ -101,12 +126,46 @@ impl<'a> Tmc<'a> {
                 ifcnt: None,
                 req_hold: config.hold_current,
                 current_2660: config.run_current,
+                homes,
+                homing: None,
             });
         }
         Self {
             drivers: out,
             next_check: None,
+            homing_failure: None,
         }
+    }
+
+    /// [`HomingDrivers`]' begin (`begin`) or end of a homing move.
+    fn homing_move(&mut self, link: &mut dyn TmcLink, slots: u32, begin: bool) {
+        for i in 0..self.drivers.len() {
+            let d = &mut self.drivers[i];
+            if d.homes & slots == 0 || d.homing.is_some() == begin {
+                continue;
+            }
+            let field = d.config.diag.and_then(|(_, field)| field);
+            let regs = &mut d.config.regs;
+            let writes = match d.homing.take() {
+                Some(saved) => sensorless::end(regs, field, saved),
+                None => {
+                    let (writes, saved) = sensorless::begin(regs, field);
+                    d.homing = Some(saved);
+                    writes
+                }
+            };
+            for (addr, value) in writes.into_iter().flatten() {
+                if let Err(failure) = self.write(link, i, addr, value) {
+                    self.homing_failure.get_or_insert(failure);
+                }
+            }
+        }
+    }
+
+    /// The first register write around a homing move that failed since
+    /// last asked, as Klipper words it.
+    pub fn take_homing_failure(&mut self) -> Option<ErrorText> {
+        self.homing_failure.take().map(ErrorText::from)
     }
 
     /// True if there is no driver.
@@ -243,7 +302,7 @@ impl<'a> Tmc<'a> {
         i: usize,
         addr: u8,
         value: u32,
-    ) -> Result<(), ErrorText> {
+    ) -> Result<(), Failure<'a>> {
         let d = &self.drivers[i];
         let (port, kind) = (d.port, d.config.kind);
         let reg_name = kind.register_at_any(addr).map_or("?", |r| r.name);
@@ -263,11 +322,11 @@ impl<'a> Tmc<'a> {
                         return Ok(());
                     }
                 }
-                Err(cut_text(&failed))
+                Err(failed)
             }
             Bus::Spi { .. } if kind == DriverKind::Tmc2660 => {
                 let mut d = wire::spi_2660(addr, value);
-                link.spi(port, &mut d).map_err(|_| cut_text(&failed))
+                link.spi(port, &mut d).map_err(|_| failed)
             }
             Bus::Spi {
                 chain_position,
@@ -290,7 +349,7 @@ impl<'a> Tmc<'a> {
                         return Ok(());
                     }
                 }
-                Err(cut_text(&failed))
+                Err(failed)
             }
         }
     }
@@ -466,7 +525,7 @@ impl<'a> Tmc<'a> {
             .regs
             .set_in(reg, field, value)
             .map_err(|_| cut_text(&"too many registers set"))?;
-        self.write(link, i, addr, new)
+        Ok(self.write(link, i, addr, new)?)
     }
 
     /// DUMP_TMC [REGISTER=]: written registers as last written, readable
@@ -515,6 +574,30 @@ impl<'a> Tmc<'a> {
             }
         }
         Ok(())
+    }
+}
+
+/// The drivers' side of homing moves (Klipper's `homing_move_begin` and
+/// `homing_move_end` events), as the step side calls it.
+pub trait HomingDrivers {
+    /// A homing move starts that watches the endstops of engine slots
+    /// `slots` (bit `i`: stepper `i`): each driver whose virtual endstop
+    /// is among them gets Klipper's setup for sensorless homing (stall
+    /// detection on, reported on its DIAG pin). A failed write is kept for
+    /// [`Tmc::take_homing_failure`].
+    fn homing_move_begin(&mut self, link: &mut dyn TmcLink, slots: u32);
+    /// That homing move ended (triggered or not): the registers changed
+    /// by [`Self::homing_move_begin`] are put back.
+    fn homing_move_end(&mut self, link: &mut dyn TmcLink, slots: u32);
+}
+
+impl HomingDrivers for Tmc<'_> {
+    fn homing_move_begin(&mut self, link: &mut dyn TmcLink, slots: u32) {
+        self.homing_move(link, slots, true);
+    }
+
+    fn homing_move_end(&mut self, link: &mut dyn TmcLink, slots: u32) {
+        self.homing_move(link, slots, false);
     }
 }
 

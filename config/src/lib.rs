@@ -106,6 +106,19 @@ pub enum ConfigErrorKind<'a> {
         /// Why.
         reason: &'static str,
     },
+    /// A pin option refused as Klipper refuses it, in its words
+    /// (`Unknown pin chip name 'tmc2209_stepper_x'`: `message` then the
+    /// quoted `name`, if any).
+    BadPin {
+        /// The section.
+        section: &'a str,
+        /// The option.
+        option: &'a str,
+        /// Klipper's message.
+        message: &'static str,
+        /// The name it quotes, if any.
+        name: Option<&'a str>,
+    },
     /// An option nobody reads (a typo, or a feature not supported).
     UnknownOption {
         /// The section.
@@ -147,6 +160,18 @@ impl fmt::Display for ConfigError<'_> {
                 reason,
             } => {
                 write!(f, "option '{option}' in section '{section}' {reason}")
+            }
+            ConfigErrorKind::BadPin {
+                section,
+                option,
+                message,
+                name,
+            } => {
+                write!(f, "option '{option}' in section '{section}': {message}")?;
+                match name {
+                    Some(name) => write!(f, " '{name}'"),
+                    None => Ok(()),
+                }
             }
             ConfigErrorKind::UnknownOption { section, option } => {
                 write!(f, "option '{option}' is not valid in section '{section}'")
@@ -528,6 +553,26 @@ impl<'c, 'a> Section<'c, 'a> {
                 section: self.name,
                 option,
                 reason,
+            },
+        )
+    }
+
+    /// A pin `option` refused with Klipper's `message` (quoting `name`, if
+    /// any), at the option's line.
+    pub fn pin_error(
+        &self,
+        option: &'c str,
+        message: &'static str,
+        name: Option<&'c str>,
+    ) -> ConfigError<'c> {
+        let at = self.find(option).map(|(_, l)| l);
+        self.error(
+            at,
+            ConfigErrorKind::BadPin {
+                section: self.name,
+                option,
+                message,
+                name,
             },
         )
     }

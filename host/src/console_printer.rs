@@ -181,6 +181,12 @@ impl ConsolePrinter {
         self.mcu.triggers()
     }
 
+    /// The axes of the triggers so far that were a TMC driver's stall
+    /// reported on its DIAG pin (sensorless homing), in order.
+    pub fn stalls(&self) -> &[usize] {
+        self.mcu.stalls()
+    }
+
     /// The toolhead's real position now, mm.
     pub fn real_position(&self) -> Option<[f64; 3]> {
         self.mcu.real_position()

@@ -219,6 +219,9 @@ pub struct Summary {
     /// toolhead's real position when the steppers stopped (mm), print
     /// time (s).
     pub endstops: Vec<(usize, [f64; 3], f64)>,
+    /// The axes of those triggers that were a TMC driver's stall reported
+    /// on its DIAG pin (sensorless homing), in order.
+    pub stalls: Vec<usize>,
     /// Where the toolhead really is at the end, mm (when the power-on
     /// position is known, see [`Start`]).
     pub real_position: Option<[f64; 3]>,
@@ -308,7 +311,7 @@ impl fmt::Display for Summary {
         for (axis, real, time) in &self.endstops {
             writeln!(
                 f,
-                "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}",
+                "endstop:      {} triggered at {time:.3} s, toolhead really at X:{:.4} Y:{:.4} Z:{:.4}{}",
                 match self.kinematics {
                     Kinematics::Delta => ["a", "b", "c"],
                     _ => ["x", "y", "z"],
@@ -317,7 +320,13 @@ impl fmt::Display for Summary {
                 .unwrap_or(&"?"),
                 real[0],
                 real[1],
-                real[2]
+                real[2],
+                // A rail's input is a DIAG pin for all its triggers or none.
+                if self.stalls.contains(axis) {
+                    " (the driver's stall, on its DIAG pin)"
+                } else {
+                    ""
+                }
             )?;
         }
         for h in &self.heaters {
@@ -601,7 +610,7 @@ fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, S
     let origin = options.clock_origin as f64 / freq;
     let mut mcu = VirtualMcu::new(machine.steppers.len(), options.clock_origin)
         .with_heaters(machine, freq)
-        .with_tmc(machine);
+        .with_tmc(machine, freq);
     if let Some(physics) = physics(machine, options) {
         mcu = mcu.with_physics(physics);
     }
@@ -720,6 +729,7 @@ pub(crate) fn with_session<const L: usize>(
         shutdown: None,
         mcu_freq: freq,
         endstops: Vec::new(),
+        stalls: Vec::new(),
         real_position: None,
         heaters: Vec::new(),
         fan_speed: None,
@@ -778,6 +788,7 @@ pub(crate) fn with_session<const L: usize>(
         .iter()
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
+    summary.stalls = mcu.stalls().to_vec();
     mcu.flush_steps().map_err(write_error)?;
     if let Some(secondaries) = mcu.secondaries() {
         summary.secondary_fault_at = secondaries.failed_at();

@@ -15,7 +15,7 @@ use crate::plot::Window;
 use crate::secondary::attached::Secondaries;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
-use crate::tmc_sim::TmcSim;
+use crate::tmc_sim::{StallDetect, TmcSim};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand, Wait};
 use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
@@ -139,6 +139,36 @@ struct Recorder {
     rail: Option<(usize, Rc<Rails>)>,
     /// This slot's endstop input is the probe's, which sees the rails.
     probe: Option<Rc<Rails>>,
+    /// This slot's endstop input is a TMC driver's DIAG pin.
+    diag: Option<Diag>,
+}
+
+/// A DIAG pin as an endstop input: the driver reports a stall while its
+/// motor is driven into the end of its axis (where the rail's endstop
+/// switch would be) with stall detection on.
+#[derive(Debug)]
+struct Diag {
+    /// When the driver reports a stall, as its registers say.
+    detect: Rc<Cell<StallDetect>>,
+    /// The MCU clock, Hz.
+    freq: f64,
+    /// The clock of the motor's last step and the interval before it,
+    /// ticks.
+    last: Option<(u64, Option<u64>)>,
+}
+
+impl Diag {
+    /// True while the DIAG output is active at clock `now`, the motor
+    /// being blocked or not.
+    fn active(&self, now: u64, blocked: bool) -> bool {
+        // The driver measures the time between the last two steps; a
+        // motor not stepped for longer is slower (standing still: none).
+        let interval = self.last.and_then(|(at, before)| {
+            let ticks = before?.max(now.saturating_sub(at));
+            Some(ticks as f64 / self.freq)
+        });
+        blocked && self.detect.get().reports(interval)
+    }
 }
 
 impl StepPins for Recorder {
@@ -148,6 +178,10 @@ impl StepPins for Recorder {
 
     fn step(&mut self) {
         self.log.record(self.clock, self.dir);
+        if let Some(diag) = &mut self.diag {
+            let before = diag.last.map(|(at, _)| self.clock.saturating_sub(at));
+            diag.last = Some((self.clock, before));
+        }
         if let Some((k, rails)) = &self.rail {
             let mut steps = rails.steps.get();
             steps[*k] = self.log.position;
@@ -159,9 +193,14 @@ impl StepPins for Recorder {
         if let Some(rails) = &self.probe {
             return rails.probe_pressed(self.clock);
         }
-        self.rail
+        let at_end = self
+            .rail
             .as_ref()
-            .is_some_and(|(k, rails)| rails.pressed(*k))
+            .is_some_and(|(k, rails)| rails.pressed(*k));
+        match &self.diag {
+            Some(diag) => diag.active(self.clock, at_end),
+            None => at_end,
+        }
     }
 }
 
@@ -185,6 +224,9 @@ pub struct VirtualMcu {
     /// Where each endstop triggered: axis (a delta: tower), toolhead
     /// position, clock.
     triggers: Vec<(usize, [f64; 3], u64)>,
+    /// The axes of those triggers read on a TMC driver's DIAG pin (a
+    /// stall), in order.
+    stalls: Vec<usize>,
     /// The endstop slot last armed and the axis its triggers count for.
     watched: (usize, usize),
     /// The probe's control pin: each change's clock and pulse width (s).
@@ -223,6 +265,7 @@ impl VirtualMcu {
             pushed: false,
             rails: None,
             triggers: Vec::new(),
+            stalls: Vec::new(),
             watched: (0, 0),
             servo: Vec::new(),
             plan: None,
@@ -239,9 +282,22 @@ impl VirtualMcu {
         mcu
     }
 
-    /// The same MCU with `machine`'s TMC drivers, simulated.
-    pub fn with_tmc(mut self, machine: &Machine<'_>) -> Self {
+    /// The same MCU with `machine`'s TMC drivers, simulated, on a clock of
+    /// `freq` Hz: a rail homing on a driver's virtual endstop reads its
+    /// DIAG pin.
+    pub fn with_tmc(mut self, machine: &Machine<'_>, freq: f64) -> Self {
         self.tmc = TmcSim::new(machine);
+        let rails = machine.motion_steppers();
+        for (i, pins) in self.engine.pins_mut().enumerate().take(rails) {
+            let driver = machine.stall_driver(i);
+            if let Some(sim) = driver.and_then(|d| self.tmc.driver(d.stepper)) {
+                pins.diag = Some(Diag {
+                    detect: sim.stall_detect(),
+                    freq,
+                    last: None,
+                });
+            }
+        }
         self
     }
 
@@ -576,6 +632,12 @@ impl VirtualMcu {
         &self.triggers
     }
 
+    /// The axes of the triggers so far that were a TMC driver's stall
+    /// reported on its DIAG pin, in order.
+    pub fn stalls(&self) -> &[usize] {
+        &self.stalls
+    }
+
     /// The probe's control pin so far: each change's clock and pulse
     /// width (s; 0: signal off).
     pub fn probe_servo_log(&self) -> &[(u64, f64)] {
@@ -752,6 +814,14 @@ impl Mcu for VirtualMcu {
         }
         let (stepper, trigger) = self.engine.take_trigger()?;
         let axis = self.axis_of(stepper);
+        if self
+            .engine
+            .pins()
+            .nth(stepper)
+            .is_some_and(|p| p.diag.is_some())
+        {
+            self.stalls.push(axis);
+        }
         let real = self.real_position().unwrap_or_default();
         let clock = onechip_sched::clock::widen(trigger, self.now);
         self.triggers.push((axis, real, clock));

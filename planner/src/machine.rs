@@ -112,6 +112,10 @@ pub struct Machine<'a> {
     pub accessories: Accessories<'a>,
     /// The TMC drivers configured over UART or SPI (`[tmc2209 stepper_x]`).
     pub tmc: heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>,
+    /// For each stepper, the driver (index into [`Self::tmc`]) whose
+    /// virtual endstop its endstop pin names
+    /// (`tmc2209_stepper_x:virtual_endstop`: sensorless homing), if any.
+    pub stall_homing: [Option<u8>; MAX_STEPPERS],
     /// Sections present that onechip does not support yet.
     pub unsupported: heapless::Vec<&'a str, MAX_REPORTED>,
 }
@@ -343,6 +347,7 @@ impl<'a> Machine<'a> {
         let mut sensors = sensor_section::read_all(config)?;
         let accessories = Accessories::read(config, &heater_names, &stepper_names, &mut sensors)?;
         let tmc = tmc::config::read_all(config, step_distance)?;
+        let stall_homing = virtual_endstops(config, &steppers, &tmc)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -379,9 +384,17 @@ impl<'a> Machine<'a> {
             g28,
             accessories,
             tmc,
+            stall_homing,
             sensors,
             unsupported,
         }))
+    }
+
+    /// The TMC driver whose virtual endstop stepper `i` homes on
+    /// (sensorless homing), if any.
+    pub fn stall_driver(&self, i: usize) -> Option<&TmcDriver<'a>> {
+        let k = (*self.stall_homing.get(i)?)?;
+        self.tmc.get(usize::from(k))
     }
 
     /// True if the extruder may extrude before any temperature is known:
@@ -573,6 +586,33 @@ fn read_extra_steppers<'c, 'a>(
         let _ = rails.push(rail);
     }
     Ok(())
+}
+
+/// For each of `steppers`, the driver of `drivers` (its index) whose
+/// virtual endstop its endstop pin names
+/// (`tmc2209_stepper_x:virtual_endstop`); an endstop pin naming one no
+/// driver can give is refused with Klipper's message.
+#[inline(never)]
+fn virtual_endstops<'c, 'a: 'c>(
+    config: &'c Config<'a>,
+    steppers: &[Stepper<'a>],
+    drivers: &[tmc::config::TmcDriver<'a>],
+) -> Result<[Option<u8>; MAX_STEPPERS], ConfigError<'c>> {
+    let mut found = [None; MAX_STEPPERS];
+    for (slot, stepper) in found.iter_mut().zip(steppers) {
+        let Some(pin) = stepper.endstop_pin else {
+            continue;
+        };
+        match tmc::sensorless::virtual_endstop(drivers, pin) {
+            Ok(driver) => *slot = driver,
+            Err(e) => {
+                let section = config.require(stepper.name)?;
+                let (message, name) = e.message();
+                return Err(section.pin_error("endstop_pin", message, name));
+            }
+        }
+    }
+    Ok(found)
 }
 
 /// For a rail homing on `probe:z_virtual_endstop`: the probe's z_offset

@@ -22,6 +22,11 @@
 //! is found, a run panics, a refusal does not name file, line and option,
 //! a file that loads reports no reason for not homing, or fewer files load
 //! (home and move) than [`MIN_LOADED`] ([`MIN_HOMED_AND_MOVED`]).
+//!
+//! A rail whose endstop is a TMC driver's virtual endstop
+//! (`tmc2209_stepper_x:virtual_endstop`) must home on the driver's stall
+//! reported on its DIAG pin (sensorless homing), not on a switch; at least
+//! [`MIN_SENSORLESS`] files do.
 
 use onechip_app::pin_check;
 use onechip_config::Config;
@@ -70,6 +75,12 @@ const NOW_SUPPORTED: [&str; 10] = [
 /// the MCU's range check shuts down with Klipper's "ADC out of range", as
 /// Klipper would in a room that cool).
 const MIN_HOMED_AND_MOVED: usize = 140;
+
+/// Files homing some rail on a TMC driver's stall (sensorless homing):
+/// generic-prusa-buddy, printer-eryone-er20-2021, printer-hiprecy-leo-2019
+/// (TMC2130), printer-prusa-mini-plus-2020 and printer-sovol-sv06-2022,
+/// their X and Y.
+const MIN_SENSORLESS: usize = 5;
 
 /// Distance of the Z move from the Z endstop, mm.
 const Z_MOVE: f64 = 5.0;
@@ -140,8 +151,17 @@ fn job(machine: &Machine<'_>) -> (String, [f64; 3], [f64; 3]) {
 }
 
 /// What one file did: its outcome, the sections reported unsupported,
-/// and, if its pins do not fit the simulated board, why.
-type RunResult = (Outcome, Vec<String>, Option<String>);
+/// if its pins do not fit the simulated board, why, and the axes that
+/// homed on a TMC driver's stall.
+type RunResult = (Outcome, Vec<String>, Option<String>, Vec<usize>);
+
+/// The axes of `machine` whose rail homes on a TMC driver's virtual
+/// endstop.
+fn sensorless_axes(machine: &Machine<'_>) -> Vec<usize> {
+    (0..3)
+        .filter(|&axis| machine.stall_driver(axis).is_some())
+        .collect()
+}
 
 /// Runs `file` as printer.cfg in the SD folder `dir`.
 fn run(file: &Path, dir: &Path) -> RunResult {
@@ -158,6 +178,7 @@ fn run(file: &Path, dir: &Path) -> RunResult {
         .as_ref()
         .and_then(|m| pin_check::check(m, pin_check::BOARD_RESERVED).err())
         .map(|conflict| conflict.to_string());
+    let sensorless = machine.as_ref().map(sensorless_axes).unwrap_or_default();
     std::fs::write(dir.join("job.gcode"), gcode).expect("write job");
     let options = Options {
         start: Start::At(start),
@@ -165,17 +186,29 @@ fn run(file: &Path, dir: &Path) -> RunResult {
         ..Options::default()
     };
     match onechip_host::run_with(dir, &options) {
-        Err(SimError::Config(message)) => (Outcome::Refused(message), Vec::new(), board_pins),
-        Err(other) => (Outcome::Refused(other.to_string()), Vec::new(), board_pins),
+        Err(SimError::Config(message)) => (
+            Outcome::Refused(message),
+            Vec::new(),
+            board_pins,
+            Vec::new(),
+        ),
+        Err(other) => (
+            Outcome::Refused(other.to_string()),
+            Vec::new(),
+            board_pins,
+            Vec::new(),
+        ),
         Ok(summary) => {
             let unsupported = summary.unsupported.clone();
-            (judge(&summary, end), unsupported, board_pins)
+            let outcome = judge(&summary, end, &sensorless);
+            (outcome, unsupported, board_pins, summary.stalls)
         }
     }
 }
 
-/// Whether a run that loaded homed and ended where the job says.
-fn judge(s: &Summary, end: [f64; 3]) -> Outcome {
+/// Whether a run that loaded homed and ended where the job says, the
+/// `sensorless` axes on a TMC driver's stall.
+fn judge(s: &Summary, end: [f64; 3], sensorless: &[usize]) -> Outcome {
     if let Some((line, error)) = s.errors.first() {
         return Outcome::LoadedOnly(format!("job line {line}: {error}"));
     }
@@ -193,6 +226,11 @@ fn judge(s: &Summary, end: [f64; 3]) -> Outcome {
     let homed: Vec<usize> = s.endstops.iter().map(|e| e.0).collect();
     if (0..3).any(|axis| !homed.contains(&axis)) {
         return Outcome::LoadedOnly(format!("endstops triggered on axes {homed:?} only"));
+    }
+    if let Some(axis) = sensorless.iter().find(|a| !s.stalls.contains(a)) {
+        return Outcome::LoadedOnly(format!(
+            "axis {axis} homes on a TMC virtual endstop but no stall triggered it"
+        ));
     }
     // Homing found the endstops where printer.cfg puts them: the
     // toolhead really is where the firmware thinks (within a step).
@@ -280,6 +318,8 @@ struct Row {
     unsupported: Vec<String>,
     /// Why its pins do not fit the simulated board, if they do not.
     board_pins: Option<String>,
+    /// The axes that homed on a TMC driver's stall.
+    stalls: Vec<usize>,
 }
 
 #[test]
@@ -303,14 +343,14 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
         .enumerate()
         .map(|(i, file)| {
             let dir = root.join(i.to_string());
-            let (outcome, unsupported, board_pins) = std::panic::catch_unwind(|| run(file, &dir))
-                .unwrap_or_else(|panic| {
+            let (outcome, unsupported, board_pins, stalls) =
+                std::panic::catch_unwind(|| run(file, &dir)).unwrap_or_else(|panic| {
                     let text = panic
                         .downcast_ref::<String>()
                         .cloned()
                         .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                         .unwrap_or_default();
-                    (Outcome::Panicked(text), Vec::new(), None)
+                    (Outcome::Panicked(text), Vec::new(), None, Vec::new())
                 });
             Row {
                 name: file
@@ -321,6 +361,7 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
                 outcome,
                 unsupported,
                 board_pins,
+                stalls,
             }
         })
         .collect();
@@ -351,6 +392,12 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
         }
         if let Some(pins) = &row.board_pins {
             println!("{:<64} not on this board: {pins}", "");
+        }
+        if !row.stalls.is_empty() {
+            println!(
+                "{:<64} homed on a driver's stall: axes {:?}",
+                "", row.stalls
+            );
         }
         let name = &row.name;
         match &row.outcome {
@@ -392,6 +439,11 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
         rows.len(),
         rows.len() - loaded
     );
+    let sensorless = rows
+        .iter()
+        .filter(|r| r.outcome == Outcome::HomedAndMoved && !r.stalls.is_empty())
+        .count();
+    println!("{sensorless} of them home some rail on a TMC driver's stall (sensorless)");
     let mut grouped: Vec<_> = groups.into_iter().collect();
     grouped.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
     for (reason, count) in &grouped {
@@ -429,5 +481,9 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
     assert!(
         homed >= MIN_HOMED_AND_MOVED,
         "{homed} home and move, expected at least {MIN_HOMED_AND_MOVED}"
+    );
+    assert!(
+        sensorless >= MIN_SENSORLESS,
+        "{sensorless} home on a driver's stall, expected at least {MIN_SENSORLESS}"
     );
 }

@@ -50,6 +50,8 @@ pub struct TmcDriver<'a> {
     pub kind: DriverKind,
     /// The stepper it drives (`stepper_x`), as the section names it.
     pub stepper: &'a str,
+    /// Its section's name as written (`tmc2209 stepper_x`).
+    pub section: &'a str,
     /// How it is wired.
     pub bus: Bus<'a>,
     /// `diag_pin` / `diag0_pin` / `diag1_pin`, if set (sensorless homing),
@@ -262,6 +264,7 @@ pub fn read<'c, 'a>(
     let mut driver = TmcDriver {
         kind,
         stepper: stepper_name,
+        section: section.name_in_file(),
         bus,
         diag,
         scale: current.scale,

@@ -9,6 +9,8 @@
 //!   globalscaler, current_range);
 //! - [`config`]: a section to a [`config::TmcDriver`] with every register
 //!   value computed as Klipper computes it;
+//! - [`sensorless`]: a rail homing on a driver's virtual endstop (its
+//!   DIAG pin) and the register changes around such a homing move;
 //! - [`wire`]: the UART and SPI datagrams, shared by the firmware and the
 //!   simulated drivers.
 //!
@@ -20,6 +22,7 @@
 pub mod config;
 pub mod current;
 pub mod registers;
+pub mod sensorless;
 pub mod wire;
 
 use registers::{FieldDef, RegDef};
