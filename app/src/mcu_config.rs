@@ -84,10 +84,10 @@ enum Object {
 }
 
 /// Calls `f` with each object in klippy's config order: the rails, then
-/// the heaters, the extruder's stepper right after the extruder's heater
+/// the heaters, the extruder's steppers right after the extruder's heater
 /// (or after the heaters if it has none).
 fn in_config_order(machine: &Machine<'_>, mut f: impl FnMut(Object)) {
-    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
+    let rails = machine.motion_steppers();
     let extruder = rails..machine.steppers.len();
     (0..rails).for_each(|i| f(Object::Stepper(i)));
     let mut extruder_done = false;
