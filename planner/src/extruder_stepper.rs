@@ -146,9 +146,9 @@ pub fn read_all<'c, 'a>(
         };
         let name = section
             .name_in_file()
-            .split_whitespace()
-            .last()
-            .unwrap_or_default();
+            .get(SECTION_PREFIX.len()..)
+            .unwrap_or_default()
+            .trim();
         let synced = match section.get("extruder")?.trim() {
             "" => false,
             EXTRUDER if has_extruder => true,
@@ -341,4 +341,123 @@ fn sync_motion<'a, 'l>(
         stepper,
         sync: stepper.synced,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use crate::machine::Machine;
+    use std::string::{String, ToString};
+
+    /// A cartesian printer with an extruder and `extra` sections.
+    fn machine(extra: &str) -> Result<Machine<'static>, String> {
+        let text = std::format!(
+            "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
+            nozzle_diameter: 0.4\nfilament_diameter: 1.75\npressure_advance: 0.05\n{extra}"
+        );
+        // Leaked: the machine borrows the text (a test only).
+        let text: &'static str = std::boxed::Box::leak(text.into_boxed_str());
+        let config = std::boxed::Box::leak(std::boxed::Box::new(
+            onechip_config::Config::parse("printer.cfg", text).map_err(|e| e.to_string())?,
+        ));
+        Machine::from_config(config).map_err(|e| e.to_string())
+    }
+
+    /// An `[extruder_stepper NAME]` section with `options`.
+    fn section(name: &str, options: &str) -> String {
+        std::format!(
+            "[extruder_stepper {name}]\nstep_pin: PG4\ndir_pin: PC1\nmicrosteps: 16\n\
+             rotation_distance: 8\ngear_ratio: 3:1\n{options}\n"
+        )
+    }
+
+    #[test]
+    fn extruder_steppers_follow_the_extruders_stepper_with_klippers_defaults() {
+        let extra = section("e1", "extruder: extruder")
+            + &section("belt", "extruder:\npressure_advance: 0.1")
+                .replace("PG4", "PE2")
+                .replace("PC1", "PE3");
+        let m = machine(&extra).expect("machine");
+        assert!(m.unsupported.is_empty(), "{:?}", m.unsupported);
+        let names: std::vec::Vec<_> = m.steppers.iter().map(|s| s.name).collect();
+        assert_eq!(
+            names,
+            [
+                "stepper_x",
+                "stepper_y",
+                "stepper_z",
+                "extruder",
+                "extruder_stepper e1",
+                "extruder_stepper belt"
+            ]
+        );
+        let [extruder, e1, belt] = [3, 4, 5].map(|i| *m.extruder_stepper(i).expect("follows"));
+        assert_eq!((extruder.name, extruder.synced), ("extruder", true));
+        assert_eq!((e1.name, e1.synced, e1.stepper), ("e1", true, 4));
+        assert_eq!((belt.name, belt.synced), ("belt", false));
+        // Klipper's defaults: no advance, 40 ms smoothing.
+        assert_eq!((e1.pressure_advance, e1.smooth_time), (0.0, 0.040));
+        assert_eq!(extruder.pressure_advance, 0.05);
+        // gear_ratio counts in the steps per turn.
+        assert_eq!(e1.steps_per_rotation, 200.0 * 16.0 * 3.0);
+        let motion = e1.motion();
+        assert_eq!(motion.step_dist, m.steppers[4].step_dist);
+        assert!(!motion.inverted);
+        assert!(m.extruder_stepper(2).is_none());
+        // The scan window: the extruder's (e1 has no advance; belt's is
+        // not followed).
+        assert_eq!(m.scan_delay(), 0.020);
+    }
+
+    #[test]
+    fn bad_extruder_stepper_sections_are_refused() {
+        let cases = [
+            (
+                section("e1", "extruder: extruder1"),
+                "is not a valid extruder",
+            ),
+            (
+                section("e1", ""),
+                "'extruder' in section 'extruder_stepper e1' must be",
+            ),
+            (
+                section("extruder", "extruder: extruder"),
+                "names an extruder stepper twice",
+            ),
+            (
+                section("e1", "extruder:\npressure_advance: -0.1"),
+                "'pressure_advance'",
+            ),
+            (
+                section("e1", "extruder:\nposition_max: 10"),
+                "'position_max' is not valid",
+            ),
+        ];
+        for (extra, want) in cases {
+            let e = machine(&extra).expect_err(&extra);
+            assert!(e.contains(want), "{extra}: {e}");
+            assert!(e.starts_with("printer.cfg:"), "{e}");
+        }
+        // Every stepper slot taken: the fifth extruder stepper is one too
+        // many.
+        let pins = ["PA1", "PA2", "PA3", "PA4", "PA5"];
+        let extra: String = pins
+            .iter()
+            .enumerate()
+            .map(|(k, pin)| {
+                section(&std::format!("e{k}"), "extruder:")
+                    .replace("PG4", pin)
+                    .replace("PC1", &std::format!("PB{k}"))
+            })
+            .collect();
+        let e = machine(&extra).expect_err("too many");
+        assert!(e.contains("too many steppers"), "{e}");
+    }
 }

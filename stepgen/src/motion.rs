@@ -210,21 +210,17 @@ impl<const Q: usize> Channel<Q> {
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }
             },
-            Follows::Extruder(pa) if pa.half_smooth_time == 0.0 => {
-                // Without pressure advance the filament follows its own
-                // queue's segments: coordinate 0 (signed velocities,
-                // direction +1).
-                let position = |i: usize| along_segment(&segs[i], [1.0, 0.0, 0.0]);
-                solver.generate_until(segs, *margins, until, position, &mut emit);
-            }
-            Follows::Extruder(pa) => {
+            Follows::Extruder(pa) if pa.half_smooth_time != 0.0 => {
                 let pa = *pa;
                 let position = |i: usize| move |t: f64| extruder::position(segs, i, t, &pa);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
-            // Nothing moves it: time passes without steps.
-            Follows::Nothing => {
-                let position = |_: usize| |_: f64| 0.0;
+            // Without pressure advance the filament follows its own
+            // queue's segments: coordinate 0 (signed velocities, direction
+            // +1). Following nothing, there are no segments: time passes
+            // without steps.
+            Follows::Extruder(_) | Follows::Nothing => {
+                let position = |i: usize| along_segment(&segs[i], [1.0, 0.0, 0.0]);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
         }
