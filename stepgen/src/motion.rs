@@ -140,9 +140,10 @@ struct Channel<const Q: usize> {
     compressor: Compressor<Q>,
     /// mm per step.
     step_dist: f64,
-    /// Steps go the other way than the solver's (an extruder stepper's
-    /// negative rotation distance).
-    inverted: bool,
+    /// The stepper's position per mm of its queue's coordinate 0: 1, or
+    /// -1 for an extruder stepper turning the other way (a negative
+    /// rotation distance).
+    direction: f64,
     /// Print time at the compressor's clock 0, s (0 on the main MCU; a
     /// secondary MCU's clock runs from elsewhere).
     time_offset: f64,
@@ -172,14 +173,12 @@ impl<const Q: usize> Channel<Q> {
             margins,
             compressor,
             time_offset,
-            inverted,
+            direction,
             ..
         } = self;
-        let (offset, inverted) = (*time_offset, *inverted);
+        let (offset, direction) = (*time_offset, *direction);
         let mut out = |cmd, clock| sink.command(index, cmd, clock);
-        let mut emit = |s: crate::solver::Step| {
-            compressor.append(s.time - offset, s.dir != inverted, &mut out);
-        };
+        let mut emit = |s: crate::solver::Step| compressor.append(s.time - offset, s.dir, &mut out);
         match follows {
             Follows::Toolhead(kin) => match kin.linear_weights() {
                 Some(w) if !shaper.is_active() => {
@@ -212,15 +211,16 @@ impl<const Q: usize> Channel<Q> {
             },
             Follows::Extruder(pa) if pa.half_smooth_time != 0.0 => {
                 let pa = *pa;
-                let position = |i: usize| move |t: f64| extruder::position(segs, i, t, &pa);
+                let position =
+                    |i: usize| move |t: f64| direction * extruder::position(segs, i, t, &pa);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
             // Without pressure advance the filament follows its own
-            // queue's segments: coordinate 0 (signed velocities, direction
-            // +1). Following nothing, there are no segments: time passes
-            // without steps.
+            // queue's segments: coordinate 0 (signed velocities), in the
+            // stepper's direction. Following nothing, there are no
+            // segments: time passes without steps.
             Follows::Extruder(_) | Follows::Nothing => {
-                let position = |i: usize| along_segment(&segs[i], [1.0, 0.0, 0.0]);
+                let position = |i: usize| along_segment(&segs[i], [direction, 0.0, 0.0]);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
         }
@@ -346,7 +346,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 margins,
                 compressor: Compressor::new(max_error, freq),
                 step_dist: stepper.step_dist,
-                inverted: false,
+                direction: 1.0,
                 time_offset: 0.0,
             });
         }
@@ -538,10 +538,14 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         ch.follows = Follows::extruder(motion);
         ch.margins = ch.follows.margins();
         ch.step_dist = motion.step_dist;
-        ch.inverted = motion.inverted;
         ch.solver.set_step_dist(motion.step_dist);
+        let direction = if motion.inverted { -1.0 } else { 1.0 };
+        if direction != ch.direction {
+            ch.direction = direction;
+            ch.solver.mirror();
+        }
         if let Some(e) = position {
-            ch.solver.set_position([e, 0.0, 0.0]);
+            ch.solver.set_position([direction * e, 0.0, 0.0]);
             if ch.solver.generated_until() < through {
                 ch.solver.restart(through);
             }

@@ -153,6 +153,31 @@ fn an_extruder_stepper_has_its_own_pressure_advance_and_rotation_distance() {
 }
 
 #[test]
+fn a_rotation_distance_set_mid_print_changes_the_moves_after_it() {
+    // Without pressure advance, so that each move's steps are its own.
+    let dir = sd(
+        "mid",
+        "extruder: extruder\nrotation_distance: 32",
+        "SET_PRESSURE_ADVANCE ADVANCE=0\nG28\nM83\nG1 X60 Y60 F6000\nG1 X100 Y60 E4 F3000\n\
+         SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER=e1 DISTANCE=-32\n\
+         G1 X100 Y100 E3\nG1 E-1 F1800\n\
+         SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER=e1 DISTANCE=16\nG1 X60 Y100 E2 F3000\nM400\n",
+    );
+    let (s, out) = run(&dir);
+    let (extruder, e1) = (steps(&out, "extruder"), steps(&out, E1));
+    assert_eq!(position(&s, "extruder"), 800);
+    // The first move as the extruder, the next two reversed, the last at
+    // twice the steps.
+    assert_eq!(position(&s, E1), 400 - 300 + 100 + 400);
+    assert_same_steps(&e1[..400], &extruder[..400], s.mcu_freq, "e1 before");
+    let reversed: Vec<_> = extruder[400..800].iter().map(|&(t, d)| (t, !d)).collect();
+    assert_same_steps(&e1[400..800], &reversed, s.mcu_freq, "e1 reversed");
+    assert_eq!(e1.len(), 800 + 400);
+    assert!(e1[800..].iter().all(|&(t, d)| d && t > extruder[799].0));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn an_unsynced_extruder_stepper_stands_still_until_synced_mid_print() {
     // Without pressure advance, so that each move's steps are its own.
     let dir = sd(
