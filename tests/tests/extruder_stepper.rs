@@ -206,6 +206,56 @@ fn an_unsynced_extruder_stepper_stands_still_until_synced_mid_print() {
 }
 
 #[test]
+fn the_geeetech_301s_extruder_steppers_follow_the_extruder_once_synced() {
+    // Klipper's stock config for the Geeetech A30 / 301 (three filaments
+    // into one nozzle: `[extruder_stepper e1]` and `e2` synced to
+    // nothing), extruding cold; the G-code syncs one, then the other.
+    let dir = std::env::temp_dir().join(format!("onechip-estep-301-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let stock = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/klipper-configs/printer-geeetech-301-2019.cfg");
+    let text = std::fs::read_to_string(stock).expect("stock config");
+    std::fs::write(
+        dir.join("printer.cfg"),
+        text + "\n[extruder]\nmin_extrude_temp: 0\n",
+    )
+    .expect("write cfg");
+    std::fs::write(
+        dir.join("job.gcode"),
+        "G28\nG1 Z150 F6000\nM83\nG1 X10 E1 F1200\n\
+         SYNC_EXTRUDER_MOTION EXTRUDER=e1 MOTION_QUEUE=extruder\nG1 Y10 E1\n\
+         SYNC_EXTRUDER_MOTION EXTRUDER=e1 MOTION_QUEUE=\n\
+         SYNC_EXTRUDER_MOTION EXTRUDER=e2 MOTION_QUEUE=extruder\nG1 X-10 E2\nM400\n",
+    )
+    .expect("gcode");
+    let s = onechip_host::run_with(
+        &dir,
+        &Options {
+            start: Start::At([0.0, 0.0, 150.0]),
+            board_pins: false,
+            ..Options::default()
+        },
+    )
+    .expect("runs");
+    assert_eq!(
+        (s.errors.as_slice(), s.shutdown.as_ref()),
+        (&[][..], None),
+        "{s}"
+    );
+    assert!(
+        s.unsupported
+            .iter()
+            .all(|u| !u.starts_with("extruder_stepper"))
+    );
+    // 0.01 mm of filament per step on each.
+    assert_eq!(position(&s, "extruder"), 400);
+    assert_eq!(position(&s, "extruder_stepper e1"), 100);
+    assert_eq!(position(&s, "extruder_stepper e2"), 200);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn the_commands_reply_and_refuse_as_klipper() {
     let dir = sd(
         "console",
