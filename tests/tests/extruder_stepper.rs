@@ -383,3 +383,60 @@ fn bad_extruder_stepper_sections_are_refused_naming_file_line_and_option() {
         std::fs::remove_dir_all(&dir).ok();
     }
 }
+
+#[test]
+fn a_secondary_mcu_gets_an_extruder_steppers_config_where_klippy_creates_it() {
+    // Klipper's cartesian golden machine with an extruder stepper whose
+    // enable line is the extruder's: klippy creates it with the other
+    // extra sections, before the toolhead's rails and extruder, so its
+    // stepper takes object id 0 and its config comes first; the shared
+    // enable pin is configured once, with the first stepper.
+    use onechip_app::heaters::McuSetup;
+    use onechip_app::mcu_config::{MAIN, write_config};
+    let text = onechip_golden::config("cartesian.cfg")
+        + "\n[extruder_stepper e1]\nextruder: extruder\nstep_pin: PE2\ndir_pin: PE3\n\
+           enable_pin: !PA0\nmicrosteps: 16\nrotation_distance: 33.5\n";
+    let config = onechip_config::Config::parse("printer.cfg", &text).expect("config");
+    let machine = onechip_planner::machine::Machine::from_config(&config).expect("machine");
+    let freq = 180e6;
+    let setup = McuSetup::new(
+        &machine,
+        freq,
+        4095,
+        onechip_host::thermal_plant::mcu_sensor(),
+        0,
+    );
+    let mut lines = Vec::new();
+    let oids = write_config(&machine, &setup, MAIN, &|_| 360, &mut |l| {
+        lines.push(l.to_string())
+    });
+    // 16 objects as klippy's golden session, and e1's stepper.
+    assert_eq!(oids.count, 17);
+    assert_eq!(oids.steppers[4], Some(0));
+    assert_eq!(
+        oids.steppers[0],
+        Some(3),
+        "stepper_x after its endstop and trsync"
+    );
+    assert_eq!(oids.steppers[3], Some(10), "the extruder's last");
+    assert_eq!(oids.enables[4], oids.enables[3]);
+    assert_eq!(
+        &lines[1..3],
+        [
+            "config_stepper oid=0 step_pin=PE2 dir_pin=PE3 invert_step=0 step_pulse_ticks=360",
+            "config_digital_out oid=11 pin=PA0 value=1 default_value=1 max_duration=0",
+        ]
+    );
+    assert!(
+        lines[3].starts_with("config_endstop oid=1 pin=PG6"),
+        "{lines:?}"
+    );
+    // The extruder's stepper keeps its place after its heater, sharing
+    // e1's enable output.
+    let extruder = lines
+        .iter()
+        .position(|l| l.contains("step_pin=PG4"))
+        .expect("the extruder's stepper");
+    assert!(lines[extruder - 1].starts_with("set_digital_out_pwm_cycle"));
+    assert!(!lines[extruder + 1..].iter().any(|l| l.contains("pin=PA0")));
+}
