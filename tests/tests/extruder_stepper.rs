@@ -256,6 +256,34 @@ fn the_geeetech_301s_extruder_steppers_follow_the_extruder_once_synced() {
 }
 
 #[test]
+fn an_extruder_steppers_tmc_driver_is_configured_and_answers_to_its_short_name() {
+    // As Klipper: `[tmc2209 extruder_stepper e1]`, STEPPER=e1 in G-code.
+    let dir = sd(
+        "tmc",
+        "extruder: extruder\nrotation_distance: 32\n\n\
+         [tmc2209 extruder_stepper e1]\nuart_pin: PC7\nrun_current: 0.8",
+        "",
+    );
+    let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("printer");
+    p.send("G4 P10");
+    // Written over its UART at start: IHOLD_IRUN as configured (0.8 A:
+    // 25), the simulated driver holding what the session wrote.
+    let written: Vec<(u8, u32)> = (p.tmc().registers(E1).expect("driver").iter()).collect();
+    let sim = p.tmc_drivers().driver(E1).expect("simulated");
+    assert_eq!(sim.field("irun"), Some(25));
+    assert!(written.iter().all(|&(addr, v)| sim.register(addr) == v));
+    assert_eq!(
+        p.send("SET_TMC_CURRENT STEPPER=e1 CURRENT=0.5"),
+        "// Run Current: 0.49A Hold Current: 0.49A\nok\n"
+    );
+    assert_eq!(
+        p.send("SET_TMC_CURRENT STEPPER=extruder_stepper CURRENT=0.5"),
+        "!! The value 'extruder_stepper' is not valid for STEPPER\nok\n"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn the_commands_reply_and_refuse_as_klipper() {
     let dir = sd(
         "console",
