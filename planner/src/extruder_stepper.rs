@@ -221,21 +221,23 @@ struct Change<'a> {
 }
 
 /// The entry `EXTRUDER=` names, as Klipper's mux commands find it
-/// (names compared as written); without the parameter, the
-/// `[extruder]`'s if `default_extruder`.
-fn named<'l>(
-    steppers: &[ExtruderStepper<'_>],
+/// (names compared as written): its index and a copy; without the
+/// parameter, the `[extruder]`'s if `default_extruder` (the bool: the
+/// parameter was given).
+fn named<'a, 'l>(
+    steppers: &[ExtruderStepper<'a>],
     e: &Extended<'l>,
     default_extruder: bool,
-) -> Result<usize, CommandError<'l>> {
+) -> Result<(usize, ExtruderStepper<'a>, bool), CommandError<'l>> {
     let wanted = match e.get("EXTRUDER")? {
         Some(name) => Some(name),
         None if default_extruder => None,
         None => return Err(crate::gcode::GcodeError::Missing("EXTRUDER").into()),
     };
-    steppers
-        .iter()
-        .position(|s| s.name == wanted.unwrap_or(EXTRUDER))
+    let name = wanted.unwrap_or(EXTRUDER);
+    (steppers.iter().enumerate())
+        .find(|(_, s)| s.name == name)
+        .map(|(index, s)| (index, *s, wanted.is_some()))
         .ok_or(CommandError::NotValidFor {
             key: "EXTRUDER",
             value: wanted,
@@ -250,9 +252,8 @@ fn set_pressure_advance<'a, 'l>(
     e: &Extended<'l>,
     out: &mut impl Write,
 ) -> Result<Option<Change<'a>>, CommandError<'l>> {
-    let index = named(steppers, e, true)?;
-    let mut stepper = steppers[index];
-    if e.get("EXTRUDER")?.is_none() && !stepper.synced {
+    let (index, mut stepper, given) = named(steppers, e, true)?;
+    if !given && !stepper.synced {
         return Err(CommandError::Refused(
             "Unable to infer active extruder stepper",
         ));
@@ -292,8 +293,7 @@ fn set_rotation_distance<'a, 'l>(
     e: &Extended<'l>,
     out: &mut impl Write,
 ) -> Result<Option<Change<'a>>, CommandError<'l>> {
-    let index = named(steppers, e, false)?;
-    let mut stepper = steppers[index];
+    let (index, mut stepper, _) = named(steppers, e, false)?;
     let distance = e.float("DISTANCE")?;
     if distance == Some(0.0) {
         return Err(CommandError::Refused("Rotation distance can not be zero"));
@@ -321,8 +321,7 @@ fn sync_motion<'a, 'l>(
     e: &Extended<'l>,
     out: &mut impl Write,
 ) -> Result<Option<Change<'a>>, CommandError<'l>> {
-    let index = named(steppers, e, false)?;
-    let mut stepper = steppers[index];
+    let (index, mut stepper, _) = named(steppers, e, false)?;
     let queue = e
         .get("MOTION_QUEUE")?
         .ok_or(crate::gcode::GcodeError::Missing("MOTION_QUEUE"))?;
