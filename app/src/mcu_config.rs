@@ -4,17 +4,23 @@
 //! configure it, and its `finalize_config` CRC is klippy's.
 //!
 //! Object ids: endstops (with their trsync) and steppers take theirs when
-//! created, rails first, then the extruder's stepper; enable pins, heater
-//! sensors and heater outputs take theirs when their config is written.
-//! Config order: each rail's endstop, trsync, stepper and enable pin; the
-//! extruder's heater (sensor, output) before its stepper and enable pin;
-//! then the other heaters.
+//! created: the `[extruder_stepper]`s' (klippy loads them with the other
+//! extra sections, before the toolhead), the rails, then the extruder's
+//! stepper; enable pins, heater sensors and heater outputs take theirs
+//! when their config is written. Config order: each `[extruder_stepper]`'s
+//! stepper and enable pin, each rail's endstop, trsync, stepper and enable
+//! pin; the extruder's heater (sensor, output) before its stepper and
+//! enable pin; then the other heaters. (Checked against klippy for
+//! the golden configs, which have neither a `[heater_bed]` nor an
+//! `[extruder_stepper]`: the order of those two follows from when klippy
+//! creates them, not from a recorded session.)
 //!
 //! A pin belongs to the MCU its prefix names (`ext:PA4`, `!ext:PA4`);
 //! without one, or with `mcu:`, to the main MCU.
 
 use crate::heaters::McuSetup;
 use core::fmt::{self, Write};
+use onechip_planner::extruder_stepper::EXTRUDER;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_sched::outputs::OutputKind;
 
@@ -83,23 +89,51 @@ enum Object {
     Heater(usize),
 }
 
-/// Calls `f` with each object in klippy's config order: the rails, then
-/// the heaters, the extruder's stepper right after the extruder's heater
-/// (or after the heaters if it has none).
+/// The `[extruder_stepper]`s' steppers (by `machine.steppers` index), in
+/// printer.cfg's order: klippy creates them with the other extra
+/// sections, before the toolhead's rails and extruder.
+fn extra_extruder_steppers<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = usize> + 'm {
+    (machine.extruder_steppers.iter())
+        .filter(|e| e.name != EXTRUDER)
+        .map(|e| e.stepper)
+}
+
+/// The machine's steppers in the order klippy creates them (and gives
+/// their endstops and steppers object ids): the `[extruder_stepper]`s,
+/// the rails, the extruder's.
+fn in_creation_order<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = usize> + 'm {
+    let motion = machine.motion_steppers();
+    let extruder = (machine.extruder_steppers.iter())
+        .filter(|e| e.name == EXTRUDER)
+        .map(|e| e.stepper);
+    extra_extruder_steppers(machine)
+        .chain(0..motion)
+        .chain(extruder)
+}
+
+/// Calls `f` with each object in klippy's config order: the
+/// `[extruder_stepper]`s, the rails, then the heaters, the extruder's
+/// stepper right after the extruder's heater (or after the heaters if it
+/// has none).
 fn in_config_order(machine: &Machine<'_>, mut f: impl FnMut(Object)) {
-    let rails = machine.steppers.len() - usize::from(machine.extruder.is_some());
-    let extruder = rails..machine.steppers.len();
-    (0..rails).for_each(|i| f(Object::Stepper(i)));
+    extra_extruder_steppers(machine).for_each(|i| f(Object::Stepper(i)));
+    (0..machine.motion_steppers()).for_each(|i| f(Object::Stepper(i)));
+    let extruder = machine
+        .extruder_steppers
+        .iter()
+        .find(|e| e.name == EXTRUDER);
     let mut extruder_done = false;
     for (h, heater) in machine.heaters.iter().enumerate() {
         f(Object::Heater(h));
-        if heater.name == "extruder" {
-            extruder.clone().for_each(|i| f(Object::Stepper(i)));
+        if heater.name == EXTRUDER {
+            if let Some(e) = extruder {
+                f(Object::Stepper(e.stepper));
+            }
             extruder_done = true;
         }
     }
-    if !extruder_done {
-        extruder.for_each(|i| f(Object::Stepper(i)));
+    if let Some(e) = extruder.filter(|_| !extruder_done) {
+        f(Object::Stepper(e.stepper));
     }
 }
 
@@ -115,9 +149,13 @@ pub fn write_config(
 ) -> Oids {
     let oids = assign(machine, setup, mcu);
     let mut line = Line::new();
+    let mut enables = heapless::Vec::new();
     line.emit(out, format_args!("allocate_oids count={}", oids.count));
     in_config_order(machine, |object| match object {
-        Object::Stepper(i) => write_stepper(machine, &oids, i, pulse_ticks(i), &mut line, out),
+        Object::Stepper(i) => {
+            let ticks = pulse_ticks(i);
+            write_stepper(machine, &oids, i, ticks, &mut enables, &mut line, out);
+        }
         Object::Heater(h) => write_heater(machine, setup, &oids, h, &mut line, out),
     });
     oids
@@ -169,7 +207,8 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
     };
     let on_mcu = |pin: Option<&str>| pin.is_some_and(|p| pin_ref(p).mcu == mcu);
     // Created with their objects.
-    for (i, stepper) in machine.steppers.iter().enumerate() {
+    for i in in_creation_order(machine) {
+        let stepper = &machine.steppers[i];
         if on_mcu(stepper.endstop_pin) {
             oids.endstops[i] = Some((take(), take()));
         }
@@ -182,10 +221,11 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
         Object::Stepper(i) => {
             let stepper = &machine.steppers[i];
             if oids.steppers[i].is_some() && on_mcu(stepper.enable_pin) {
-                // Steppers sharing an enable pin share its output.
-                let shared = (0..i)
-                    .filter(|&j| machine.steppers[j].enable_pin == stepper.enable_pin)
-                    .find_map(|j| oids.enables[j]);
+                // Steppers sharing an enable pin share its output (the
+                // first one's, given out already).
+                let shared = (machine.steppers.iter().zip(oids.enables))
+                    .filter(|(other, _)| other.enable_pin == stepper.enable_pin)
+                    .find_map(|(_, oid)| oid);
                 oids.enables[i] = Some(shared.unwrap_or_else(&mut take));
             }
         }
@@ -202,12 +242,13 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
 }
 
 /// Writes stepper `i`'s endstop, trsync, stepper and enable pin, those on
-/// this MCU.
+/// this MCU; `enables`: the enable outputs written so far.
 fn write_stepper(
     machine: &Machine<'_>,
     oids: &Oids,
     i: usize,
     pulse_ticks: u32,
+    enables: &mut heapless::Vec<u8, MAX_STEPPERS>,
     line: &mut Line,
     out: &mut dyn FnMut(&str),
 ) {
@@ -237,8 +278,11 @@ fn write_stepper(
             u8::from(step.inverted)
         ),
     );
-    let first_user = (0..i).all(|j| oids.enables[j] != oids.enables[i]);
-    if let (Some(enable), Some(pin), true) = (oids.enables[i], stepper.enable_pin, first_user) {
+    // A shared enable output is configured with its first stepper.
+    if let (Some(enable), Some(pin)) = (oids.enables[i], stepper.enable_pin)
+        && !enables.contains(&enable)
+        && enables.push(enable).is_ok()
+    {
         let pin = pin_ref(pin);
         let off = u8::from(pin.inverted);
         line.emit(

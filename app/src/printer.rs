@@ -13,6 +13,7 @@ use crate::outputs::{AccessoryCommand, AccessoryError, AccessoryNames};
 use core::fmt::{self, Write};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
+use onechip_planner::extruder_stepper::{self, ExtruderStepper, MAX_EXTRUDER_STEPPERS};
 use onechip_planner::gcode::{self, Command, Line};
 use onechip_planner::gcode_move::{CommandError, GcodeMove};
 use onechip_planner::machine::Machine;
@@ -86,6 +87,8 @@ pub struct Printer<'a, const N: usize> {
     accessories: AccessoryNames<'a>,
     /// The stepper drivers are enabled (moves since start or M84/M18).
     motors: bool,
+    /// The steppers following the extruder, as G-code has set them.
+    extruder_steppers: heapless::Vec<ExtruderStepper<'a>, MAX_EXTRUDER_STEPPERS>,
 }
 
 impl<'a, const N: usize> Printer<'a, N> {
@@ -126,6 +129,7 @@ impl<'a, const N: usize> Printer<'a, N> {
             addr_of_mut!((*p).thermal).write(heapless::Deque::new());
             addr_of_mut!((*p).accessories).write(AccessoryNames::new(&machine.accessories));
             addr_of_mut!((*p).motors).write(false);
+            addr_of_mut!((*p).extruder_steppers).write(machine.extruder_steppers.clone());
             slot.assume_init_mut()
         }
     }
@@ -185,6 +189,17 @@ impl<'a, const N: usize> Printer<'a, N> {
             .map_err(LineError::Accessory)?
         {
             self.push_thermal(ThermalCommand::Accessory(command));
+            return Ok(());
+        }
+        if let Command::Extended(e) = &line.command
+            && extruder_stepper::command(
+                &mut self.extruder_steppers,
+                e,
+                &mut self.toolhead,
+                sink,
+                out,
+            )?
+        {
             return Ok(());
         }
         self.gcode.execute(line, &mut self.toolhead, sink, out)?;

@@ -22,8 +22,8 @@ use core::ptr::addr_of_mut;
 use onechip_config::decimal::Fixed;
 use onechip_planner::gcode;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::move_sink::{ExtruderStepperMotion, MoveSink, TrapqMove};
 use onechip_planner::move_sink::{HomingEnd, HomingMove};
-use onechip_planner::move_sink::{MoveSink, TrapqMove};
 use onechip_sched::clock::widen;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
@@ -892,8 +892,13 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
         self.motion.sink(self.steps).set_position(pos);
     }
 
-    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
-        (self.motion.sink(self.steps)).set_pressure_advance(advance, smooth_time);
+    fn extruder_stepper(
+        &mut self,
+        stepper: usize,
+        motion: &ExtruderStepperMotion,
+        position: Option<f64>,
+    ) {
+        (self.motion.sink(self.steps)).extruder_stepper(stepper, motion, position);
     }
 
     fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {

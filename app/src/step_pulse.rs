@@ -9,6 +9,8 @@
 //! standalone mode). The same duration is the least time between a step
 //! pulse and a direction change.
 
+use onechip_planner::tmc::DriverKind;
+
 /// The pulse without a `[tmcXXXX]` section: 2 µs.
 pub const DEFAULT: f64 = 0.000_002;
 /// The pulse of a TMC driver in UART or SPI mode: 100 ns.
@@ -17,12 +19,6 @@ pub const TMC_DEFAULT: f64 = 0.000_000_100;
 /// is 0; [`Machine::from_config`](onechip_planner::machine::Machine::from_config)
 /// refuses longer).
 pub const MAX: f64 = onechip_planner::machine::MAX_STEP_PULSE_DURATION;
-
-/// Klipper's TMC driver sections (`[tmc2209 stepper_x]`), each configured
-/// over UART or SPI.
-pub const TMC_DRIVERS: [&str; 6] = [
-    "tmc2130", "tmc2208", "tmc2209", "tmc2240", "tmc2660", "tmc5160",
-];
 
 /// The step pulse of a stepper, s: `config_value` (its
 /// `step_pulse_duration`) if set, else [`TMC_DEFAULT`] if a TMC driver in
@@ -40,14 +36,9 @@ pub fn step_pulse_duration(config_value: Option<f64>, has_tmc_uart_or_spi: bool)
 /// driver's section for the stepper named `stepper` (`tmc2209 stepper_x`
 /// for `stepper_x`).
 pub fn has_tmc_driver<'a>(sections: impl IntoIterator<Item = &'a str>, stepper: &str) -> bool {
-    sections.into_iter().any(|section| {
-        let mut words = section.split_whitespace();
-        matches!(
-            (words.next(), words.next(), words.next()),
-            (Some(driver), Some(name), None)
-                if TMC_DRIVERS.contains(&driver) && name == stepper
-        )
-    })
+    sections
+        .into_iter()
+        .any(|section| DriverKind::of_section(section).is_some_and(|(_, name)| name == stepper))
 }
 
 /// `seconds` in ticks of a `freq` Hz clock, rounded up (a pulse is never
@@ -103,11 +94,18 @@ mod tests {
         assert!(!has_tmc_driver(["tmcfoo stepper_x"], "stepper_x"));
         assert!(!has_tmc_driver(["tmc2209"], "stepper_x"));
         assert!(!has_tmc_driver(["tmc2209 stepper_x extra"], "stepper_x"));
+        // An extruder stepper's driver.
+        let e1 = "extruder_stepper e1";
+        assert!(has_tmc_driver(["tmc2209 extruder_stepper e1"], e1));
+        assert!(!has_tmc_driver(["tmc2209 e1"], e1));
     }
 
     #[test]
     fn every_klipper_tmc_driver_counts() {
-        for driver in TMC_DRIVERS {
+        let drivers = [
+            "tmc2130", "tmc2208", "tmc2209", "tmc2240", "tmc2660", "tmc5160",
+        ];
+        for driver in drivers {
             let section = [driver, " stepper_y"].concat();
             assert!(has_tmc_driver([section.as_str()], "stepper_y"), "{driver}");
         }

@@ -306,7 +306,7 @@ impl<'a> Tmc<'a> {
         let d = &self.drivers[i];
         let (port, kind) = (d.port, d.config.kind);
         let reg_name = kind.register_at_any(addr).map_or("?", |r| r.name);
-        let failed = Failure::Write(d.config.stepper, reg_name, kind.is_uart());
+        let failed = Failure::Write(d.config.name(), reg_name, kind.is_uart());
         match d.config.bus {
             Bus::Uart { address, .. } => {
                 let ifcnt_addr = kind.register_any("IFCNT").map_or(0x02, |r| r.addr);
@@ -361,7 +361,7 @@ impl<'a> Tmc<'a> {
         let Some(reg) = kind.register_any(name) else {
             return Err(cut_text(&format_args!("Unknown register name '{name}'")));
         };
-        let failed = Failure::Read(d.config.stepper, reg.name, kind.is_uart());
+        let failed = Failure::Read(d.config.name(), reg.name, kind.is_uart());
         let value = match d.config.bus {
             Bus::Uart { address, .. } => {
                 (0..TRIES).find_map(|_| uart_read(link, port, address, reg.addr).ok())
@@ -430,7 +430,7 @@ impl<'a> Tmc<'a> {
             .ok_or_else(|| cut_text(&format_args!("Error on '{}': missing STEPPER", e.name)))?;
         self.drivers
             .iter()
-            .position(|d| d.config.stepper == name)
+            .position(|d| d.config.name() == name)
             .ok_or_else(|| cut_text(&format_args!("The value '{name}' is not valid for STEPPER")))
     }
 

@@ -30,6 +30,18 @@ pub enum CommandError<'a> {
     },
     /// A command this firmware does not implement yet.
     NotSupported(&'static str),
+    /// A mux command's key names nothing it serves (Klipper's "The value
+    /// 'x' is not valid for KEY"; None: the key was not given).
+    NotValidFor {
+        /// The key (`EXTRUDER`).
+        key: &'static str,
+        /// Its value, if given.
+        value: Option<&'a str>,
+    },
+    /// SYNC_EXTRUDER_MOTION's MOTION_QUEUE names no extruder.
+    NotAnExtruder(&'a str),
+    /// A refusal in Klipper's words.
+    Refused(&'static str),
 }
 
 impl<'a> From<GcodeError<'a>> for CommandError<'a> {
@@ -62,6 +74,13 @@ impl fmt::Display for CommandError<'_> {
             Self::Move(e) => write!(f, "{e}"),
             Self::Invalid { param, rule } => write!(f, "{} {rule}", Escaped(param)),
             Self::NotSupported(what) => write!(f, "{what} is not supported by onechip yet"),
+            Self::NotValidFor { key, value } => write!(
+                f,
+                "The value '{}' is not valid for {key}",
+                Escaped(value.unwrap_or("None"))
+            ),
+            Self::NotAnExtruder(name) => write!(f, "'{}' is not a valid extruder.", Escaped(name)),
+            Self::Refused(message) => f.write_str(message),
         }
     }
 }
@@ -105,48 +124,6 @@ fn positive<'a>(param: &'a str, value: Option<f64>) -> Result<Option<f64>, Comma
         }),
         other => Ok(other),
     }
-}
-
-/// SET_PRESSURE_ADVANCE [EXTRUDER=extruder] [ADVANCE=] [SMOOTH_TIME=], as
-/// Klipper: the values not given stay, the new ones take effect after the
-/// moves queued so far, and both are reported.
-fn set_pressure_advance<'a, const N: usize>(
-    e: &Extended<'a>,
-    toolhead: &mut Toolhead<N>,
-    sink: &mut impl MoveSink,
-    out: &mut impl Write,
-) -> Result<(), CommandError<'a>> {
-    if let Some(extruder) = e.get("EXTRUDER")?
-        && extruder != "extruder"
-    {
-        return Err(CommandError::Invalid {
-            param: "EXTRUDER",
-            rule: "names no extruder",
-        });
-    }
-    let (advance, smooth_time) = toolhead.pressure_advance();
-    let advance = e.float("ADVANCE")?.unwrap_or(advance);
-    let smooth_time = e.float("SMOOTH_TIME")?.unwrap_or(smooth_time);
-    if advance < 0.0 {
-        return Err(CommandError::Invalid {
-            param: "ADVANCE",
-            rule: "must not be negative",
-        });
-    }
-    if !(0.0..=0.200).contains(&smooth_time) {
-        return Err(CommandError::Invalid {
-            param: "SMOOTH_TIME",
-            rule: "must be between 0 and 0.2",
-        });
-    }
-    toolhead.set_pressure_advance(advance, smooth_time, sink);
-    let _ = writeln!(
-        out,
-        "// pressure_advance: {}\n// pressure_advance_smooth_time: {}",
-        Fixed(advance, 6),
-        Fixed(smooth_time, 6)
-    );
-    Ok(())
 }
 
 impl GcodeMove {
@@ -396,8 +373,6 @@ impl GcodeMove {
             Ok(())
         } else if name.eq_ignore_ascii_case("SET_GCODE_OFFSET") {
             self.set_gcode_offset(e, toolhead, sink)
-        } else if name.eq_ignore_ascii_case("SET_PRESSURE_ADVANCE") && toolhead.extruder.is_some() {
-            set_pressure_advance(e, toolhead, sink, out)
         } else {
             let _ = writeln!(
                 out,

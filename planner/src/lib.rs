@@ -14,6 +14,7 @@ pub mod accessories;
 pub mod adc_temperature;
 pub mod bltouch;
 pub mod board_pins;
+pub mod extruder_stepper;
 pub mod fan_sections;
 pub mod filament_sensor;
 pub mod gcode;

@@ -2,6 +2,7 @@
 //! and the extruder, read and checked the way Klipper reads them.
 
 use crate::accessories::{self, Accessories};
+use crate::extruder_stepper::{self, ExtruderStepper, MAX_EXTRUDER_STEPPERS};
 use crate::kinematics::{StepperKinematics, calc_position, delta_tower};
 use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
@@ -76,13 +77,13 @@ pub struct Machine<'a> {
     pub travel: Travel,
     /// The extruder's limits, if it has one.
     pub extruder: Option<ExtruderLimits>,
-    /// pressure_advance, s.
-    pub pressure_advance: f64,
-    /// pressure_advance_smooth_time, s.
-    pub pressure_advance_smooth_time: f64,
+    /// The steppers following the extruder's motion queue: the
+    /// `[extruder]`'s first, if configured, then each
+    /// `[extruder_stepper NAME]` in printer.cfg's order.
+    pub extruder_steppers: heapless::Vec<ExtruderStepper<'a>, MAX_EXTRUDER_STEPPERS>,
     /// The steppers: the rails (or towers) in order, then each rail's
     /// extra steppers (`[stepper_z1]`, …; see [`Self::extra_rails`]),
-    /// then the extruder.
+    /// then the extruder, then the `[extruder_stepper]`s.
     pub steppers: heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
     /// The rail (0 = X) of each extra stepper, in order: stepper `3 + i`
     /// moves with rail `extra_rails[i]`.
@@ -177,9 +178,15 @@ impl<'a> Machine<'a> {
     }
 
     /// How stepper `i` follows the toolhead (an extra stepper as its
-    /// rail's); None for the extruder.
+    /// rail's); None for the extruder's steppers.
     pub fn kinematics_of(&self, i: usize) -> Option<StepperKinematics> {
         self.rail_of(i).map(|rail| self.stepper_kinematics[rail])
+    }
+
+    /// The extruder stepper that is stepper `i`, if it is one (the
+    /// `[extruder]`'s or an `[extruder_stepper]`).
+    pub fn extruder_stepper(&self, i: usize) -> Option<&ExtruderStepper<'a>> {
+        self.extruder_steppers.iter().find(|e| e.stepper == i)
     }
 
     /// Reads the machine from `config`; every option of the sections it
@@ -283,26 +290,25 @@ impl<'a> Machine<'a> {
             (Travel::Cartesian(travel), kin)
         };
 
-        let (mut extruder, mut pressure_advance, mut smooth_time) = (None, 0.0, 0.040);
+        let mut extruder = None;
+        let mut extruder_steppers = heapless::Vec::new();
         let mut heaters = heapless::Vec::new();
         if let Some(section) = config.section("extruder") {
             extruder = Some(read_extruder(&section, &limits)?);
-            pressure_advance =
-                section.get_float("pressure_advance", Some(0.0), Bounds::NON_NEGATIVE)?;
-            smooth_time = section.get_float(
-                "pressure_advance_smooth_time",
-                Some(0.040),
-                Bounds {
-                    above: Some(0.0),
-                    maxval: Some(0.200),
-                    ..Bounds::NONE
-                },
-            )?;
+            let _ =
+                extruder_steppers.push(extruder_stepper::read_extruder(&section, steppers.len())?);
             if section.get_opt("heater_pin").is_some() {
                 let _ = heaters.push(thermal::read_heater(config, &section)?);
             }
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
+        extruder_stepper::read_all(
+            config,
+            extruder.is_some(),
+            |section| read_stepper(section, StepperKind::Extruder),
+            &mut steppers,
+            &mut extruder_steppers,
+        )?;
         let input_shaper = match config.section("input_shaper") {
             Some(section) => shaper_config::read(&section)?,
             None => InputShaperConfig::default(),
@@ -352,6 +358,7 @@ impl<'a> Machine<'a> {
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
                 && (kinematics == Kinematics::Delta || extra_stepper_rail(name).is_none())
+                && !extruder_stepper::is_section(name)
                 && !accessories::is_section(name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
@@ -371,8 +378,7 @@ impl<'a> Machine<'a> {
             travel,
             extra_rails,
             extruder,
-            pressure_advance,
-            pressure_advance_smooth_time: smooth_time,
+            extruder_steppers,
             steppers,
             stepper_kinematics,
             input_shaper,
@@ -412,11 +418,7 @@ impl<'a> Machine<'a> {
     /// (pressure advance smooths over half its smoothing time each way;
     /// an input shaper's impulses look ahead and behind).
     pub fn scan_delay(&self) -> f64 {
-        let pa = if self.pressure_advance > 0.0 {
-            self.pressure_advance_smooth_time * 0.5
-        } else {
-            0.0
-        };
+        let pa = extruder_stepper::scan_window(&self.extruder_steppers);
         self.shaper_scan_delay().max(pa)
     }
 
@@ -433,14 +435,8 @@ impl<'a> Machine<'a> {
     pub fn toolhead<const N: usize>(&self) -> Toolhead<N> {
         let mut toolhead =
             Toolhead::new(self.limits, self.travel, self.extruder, self.scan_delay());
-        self.note_pressure_advance(&mut toolhead);
+        toolhead.note_other_scan(self.shaper_scan_delay());
         toolhead
-    }
-
-    /// Tells `toolhead` the configured pressure advance.
-    fn note_pressure_advance<const N: usize>(&self, toolhead: &mut Toolhead<N>) {
-        let pa = (self.pressure_advance, self.pressure_advance_smooth_time);
-        toolhead.note_pressure_advance(pa, self.shaper_scan_delay());
     }
 
     /// [`Self::toolhead`] built in place in `slot`; returns it.
@@ -455,7 +451,7 @@ impl<'a> Machine<'a> {
             self.extruder,
             self.scan_delay(),
         );
-        self.note_pressure_advance(toolhead);
+        toolhead.note_other_scan(self.shaper_scan_delay());
         toolhead
     }
 }
@@ -478,6 +474,13 @@ enum StepperKind {
 /// `parse_step_distance`: rotation_distance over full_steps_per_rotation
 /// times microsteps times gear_ratio).
 pub fn step_distance<'c>(section: &Section<'c, '_>) -> Result<f64, ConfigError<'c>> {
+    let (rotation_distance, steps_per_rotation) = rotation(section)?;
+    Ok(rotation_distance / steps_per_rotation)
+}
+
+/// A stepper section's rotation_distance (mm per turn) and microsteps
+/// per turn (full_steps_per_rotation × microsteps × gear_ratio).
+pub fn rotation<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError<'c>> {
     let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
@@ -496,7 +499,10 @@ pub fn step_distance<'c>(section: &Section<'c, '_>) -> Result<f64, ConfigError<'
         ))?,
         None => 1.0,
     };
-    Ok(rotation_distance / (full_steps as f64 * microsteps as f64 * gear_ratio))
+    Ok((
+        rotation_distance,
+        full_steps as f64 * microsteps as f64 * gear_ratio,
+    ))
 }
 
 fn read_stepper<'c, 'a>(

@@ -25,6 +25,23 @@ pub struct TrapqMove {
     pub accel: f64,
 }
 
+/// How one of the extruder's steppers follows the extruder's motion
+/// queue.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExtruderStepperMotion {
+    /// It follows the queue (false: it stands still).
+    pub synced: bool,
+    /// Pressure advance, s.
+    pub pressure_advance: f64,
+    /// Pressure advance's smoothing time, s.
+    pub smooth_time: f64,
+    /// Filament per step, mm.
+    pub step_dist: f64,
+    /// It steps the other way than configured (a negative rotation
+    /// distance).
+    pub inverted: bool,
+}
+
 /// Receives planned moves.
 pub trait MoveSink {
     /// A toolhead (XYZ) move.
@@ -38,12 +55,19 @@ pub trait MoveSink {
     fn set_position(&mut self, pos: [f64; 3]) {
         let _ = pos;
     }
-    /// SET_PRESSURE_ADVANCE, after every move so far has been handed
-    /// over: the extruder's moves from now on follow pressure advance
-    /// `advance` (s) smoothed over `smooth_time` (s). Sinks that make no
-    /// steps ignore it.
-    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
-        let _ = (advance, smooth_time);
+    /// After every move so far has been handed over: extruder stepper
+    /// `stepper` (the machine's index) follows `motion` from now on
+    /// (SET_PRESSURE_ADVANCE, SET_EXTRUDER_ROTATION_DISTANCE,
+    /// SYNC_EXTRUDER_MOTION); with `position`, it takes that extruder
+    /// position (mm) as where it stands, without stepping. Sinks that
+    /// make no steps ignore it.
+    fn extruder_stepper(
+        &mut self,
+        stepper: usize,
+        motion: &ExtruderStepperMotion,
+        position: Option<f64>,
+    ) {
+        let _ = (stepper, motion, position);
     }
     /// The probe's control pin (a BLTouch's servo signal) takes
     /// `pulse_width` s pulses (0: signal off) from print time `print_time`

@@ -12,7 +12,7 @@
 //! dwell adds its time, M400 only flushes the lookahead.
 
 use crate::lookahead::LookAhead;
-use crate::move_sink::{MoveSink, TrapqMove};
+use crate::move_sink::{ExtruderStepperMotion, MoveSink, TrapqMove};
 use crate::planned_move::{E, Limits, Move};
 use core::fmt;
 use onechip_config::decimal::Fixed;
@@ -558,10 +558,8 @@ pub struct Toolhead<const N: usize> {
     /// Step-generation scan window (the later of SDS_CHECK_TIME and the
     /// machine's pressure advance / input shaper windows), s.
     kin_flush_delay: f64,
-    /// The extruder's pressure advance (s) and smoothing time (s), as
-    /// SET_PRESSURE_ADVANCE reports and changes them, and the scan window
-    /// of everything else (the input shaper's), s.
-    pressure_advance: (f64, f64),
+    /// The scan window of everything but the extruder steppers (the
+    /// input shaper's), s.
     other_scan: f64,
     /// The last move released: its start print time (s) and the move
     /// (where a probing move was at its trigger).
@@ -614,7 +612,6 @@ impl<const N: usize> Toolhead<N> {
             addr_of_mut!((*p).need_step_gen_time).write(0.0);
             addr_of_mut!((*p).last_step_gen_time).write(0.0);
             addr_of_mut!((*p).kin_flush_delay).write(scan_delay.max(SDS_CHECK_TIME));
-            addr_of_mut!((*p).pressure_advance).write((0.0, 0.0));
             addr_of_mut!((*p).other_scan).write(scan_delay);
             addr_of_mut!((*p).last_released).write(None);
             slot.assume_init_mut()
@@ -857,36 +854,31 @@ impl<const N: usize> Toolhead<N> {
         }))
     }
 
-    /// The extruder's pressure advance and smoothing time, s.
-    pub fn pressure_advance(&self) -> (f64, f64) {
-        self.pressure_advance
+    /// The scan window of everything but the extruder steppers (the input
+    /// shaper's), s.
+    pub fn note_other_scan(&mut self, other_scan: f64) {
+        self.other_scan = other_scan;
     }
 
-    /// The configured pressure advance and smoothing time (s), and the
-    /// scan window of everything else (the input shaper's), s.
-    pub fn note_pressure_advance(&mut self, pressure_advance: (f64, f64), other_scan: f64) {
-        (self.pressure_advance, self.other_scan) = (pressure_advance, other_scan);
-    }
-
-    /// Takes pressure advance `advance` (s) smoothed over `smooth_time`
-    /// (s) from after the moves so far (Klipper's SET_PRESSURE_ADVANCE):
-    /// step generation is flushed, the sink told, and the scan window
-    /// follows the new smoothing.
-    pub fn set_pressure_advance(
+    /// Extruder stepper `stepper` (the machine's index) follows `motion`
+    /// from after the moves so far (Klipper's SET_PRESSURE_ADVANCE,
+    /// SET_EXTRUDER_ROTATION_DISTANCE, SYNC_EXTRUDER_MOTION): step
+    /// generation is flushed and the sink told; `sync`: the stepper takes
+    /// the extruder's position as its own. `extruder_scan` is the
+    /// extruder steppers' scan window now (s), which the scan window
+    /// follows.
+    pub fn set_extruder_stepper(
         &mut self,
-        advance: f64,
-        smooth_time: f64,
+        stepper: usize,
+        motion: &ExtruderStepperMotion,
+        sync: bool,
+        extruder_scan: f64,
         sink: &mut impl MoveSink,
     ) {
         self.flush_step_generation(sink);
-        sink.set_pressure_advance(advance, smooth_time);
-        self.pressure_advance = (advance, smooth_time);
-        let pa_scan = if advance > 0.0 {
-            0.5 * smooth_time
-        } else {
-            0.0
-        };
-        self.kin_flush_delay = self.other_scan.max(pa_scan).max(SDS_CHECK_TIME);
+        let position = sync.then_some(self.commanded_pos[E]);
+        sink.extruder_stepper(stepper, motion, position);
+        self.kin_flush_delay = self.other_scan.max(extruder_scan).max(SDS_CHECK_TIME);
     }
 
     pub(crate) fn flush_step_generation(&mut self, sink: &mut impl MoveSink) {

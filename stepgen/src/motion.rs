@@ -17,8 +17,8 @@ use crate::trapq::Trapq;
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_planner::kinematics::calc_position;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::move_sink::{ExtruderStepperMotion, MoveSink, TrapqMove};
 use onechip_planner::move_sink::{HomingEnd, HomingMove};
-use onechip_planner::move_sink::{MoveSink, TrapqMove};
 
 /// How far behind generation steps are sent, s: a command may cover up to
 /// this much of the steps generated after the time it is sent for, as
@@ -91,18 +91,44 @@ enum Follows {
     Toolhead(StepperKinematics),
     /// The extruder's queue, with pressure advance.
     Extruder(PressureAdvance),
+    /// Nothing: an extruder stepper synced to no extruder stands still.
+    Nothing,
 }
 
 impl Follows {
-    /// The queue this follows, of the toolhead's and the extruder's.
+    /// The segments this follows, of the toolhead's and the extruder's
+    /// queues (none for [`Self::Nothing`]).
     fn queue<'q, const N: usize>(
         &self,
         toolhead: &'q Trapq<N>,
         extruder: &'q Trapq<N>,
-    ) -> &'q Trapq<N> {
+    ) -> &'q [Segment] {
         match self {
-            Self::Toolhead(..) => toolhead,
-            Self::Extruder(_) => extruder,
+            Self::Toolhead(..) => toolhead.segments(),
+            Self::Extruder(_) => extruder.segments(),
+            Self::Nothing => &[],
+        }
+    }
+
+    /// How an extruder stepper follows the extruder's queue with `motion`.
+    fn extruder(motion: &ExtruderStepperMotion) -> Self {
+        if motion.synced {
+            Self::Extruder(PressureAdvance::new(
+                motion.pressure_advance,
+                motion.smooth_time,
+            ))
+        } else {
+            Self::Nothing
+        }
+    }
+
+    /// How far before and after a time its steps may lie from the motion
+    /// then (pressure advance's smoothing; an input shaper's are the
+    /// channel's own).
+    fn margins(&self) -> Margins {
+        match self {
+            Self::Extruder(pa) => Margins::both(pa.half_smooth_time),
+            _ => Margins::default(),
         }
     }
 }
@@ -117,6 +143,10 @@ struct Channel<const Q: usize> {
     compressor: Compressor<Q>,
     /// mm per step.
     step_dist: f64,
+    /// The stepper's position per mm of its queue's coordinate 0: 1, or
+    /// -1 for an extruder stepper turning the other way (a negative
+    /// rotation distance).
+    direction: f64,
     /// Print time at the compressor's clock 0, s (0 on the main MCU; a
     /// secondary MCU's clock runs from elsewhere).
     time_offset: f64,
@@ -146,9 +176,10 @@ impl<const Q: usize> Channel<Q> {
             margins,
             compressor,
             time_offset,
+            direction,
             ..
         } = self;
-        let offset = *time_offset;
+        let (offset, direction) = (*time_offset, *direction);
         let mut out = |cmd, clock| sink.command(index, cmd, clock);
         let mut emit = |s: crate::solver::Step| compressor.append(s.time - offset, s.dir, &mut out);
         match follows {
@@ -181,16 +212,18 @@ impl<const Q: usize> Channel<Q> {
                     solver.generate_until(segs, *margins, until, position, &mut emit);
                 }
             },
-            Follows::Extruder(pa) if pa.half_smooth_time == 0.0 => {
-                // Without pressure advance the filament follows its own
-                // queue's segments: coordinate 0 (signed velocities,
-                // direction +1).
-                let position = |i: usize| along_segment(&segs[i], [1.0, 0.0, 0.0]);
+            Follows::Extruder(pa) if pa.half_smooth_time != 0.0 => {
+                let pa = *pa;
+                let position =
+                    |i: usize| move |t: f64| direction * extruder::position(segs, i, t, &pa);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
-            Follows::Extruder(pa) => {
-                let pa = *pa;
-                let position = |i: usize| move |t: f64| extruder::position(segs, i, t, &pa);
+            // Without pressure advance the filament follows its own
+            // queue's segments: coordinate 0 (signed velocities), in the
+            // stepper's direction. Following nothing, there are no
+            // segments: time passes without steps.
+            Follows::Extruder(_) | Follows::Nothing => {
+                let position = |i: usize| along_segment(&segs[i], [direction, 0.0, 0.0]);
                 solver.generate_until(segs, *margins, until, position, &mut emit);
             }
         }
@@ -297,23 +330,16 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                     (kin, Follows::Toolhead(kin), shaper, margins)
                 }
                 None => {
-                    let pa = PressureAdvance::new(
-                        machine.pressure_advance,
-                        machine.pressure_advance_smooth_time,
-                    );
-                    let margins = Margins::both(pa.half_smooth_time);
+                    let follows = machine
+                        .extruder_stepper(i)
+                        .map_or(Follows::Nothing, |e| Follows::extruder(&e.motion()));
                     let kin = StepperKinematics::Axis(0);
-                    (
-                        kin,
-                        Follows::Extruder(pa),
-                        StepperShaper::default(),
-                        margins,
-                    )
+                    (kin, follows, StepperShaper::default(), follows.margins())
                 }
             };
             let start = match follows {
                 Follows::Toolhead(..) => pos,
-                Follows::Extruder(_) => [0.0; 3],
+                _ => [0.0; 3],
             };
             // Machine holds at most MAX_STEPPERS steppers.
             let _ = self.channels.push(Channel {
@@ -323,6 +349,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
                 margins,
                 compressor: Compressor::new(max_error, freq),
                 step_dist: stepper.step_dist,
+                direction: 1.0,
                 time_offset: 0.0,
             });
         }
@@ -380,7 +407,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     /// look-ahead allows within `limit`.
     fn generate_slice(&mut self, upto: f64, limit: f64, sink: &mut impl StepSink) {
         for (i, ch) in self.channels.iter_mut().enumerate() {
-            let segs = ch.follows.queue(&self.toolhead, &self.extruder).segments();
+            let segs = ch.follows.queue(&self.toolhead, &self.extruder);
             let to = window_floor(upto.min(limit - ch.margins.before));
             ch.generate(i, segs, to, sink);
         }
@@ -455,14 +482,15 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
 
     /// Drops the queued segments every stepper has passed.
     fn retire(&mut self) {
-        let passed = |toolhead: bool| {
+        let passed = |follows: fn(&Follows) -> bool| {
             self.channels
                 .iter()
-                .filter(|ch| matches!(ch.follows, Follows::Toolhead(..)) == toolhead)
+                .filter(|ch| follows(&ch.follows))
                 .map(|ch| ch.solver.generated_until() - ch.look_back())
                 .fold(f64::INFINITY, f64::min)
         };
-        let (toolhead, extruder) = (passed(true), passed(false));
+        let toolhead = passed(|f| matches!(f, Follows::Toolhead(..)));
+        let extruder = passed(|f| matches!(f, Follows::Extruder(_)));
         self.toolhead.retire(toolhead);
         self.extruder.retire(extruder);
     }
@@ -490,15 +518,39 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
         self.error
     }
 
-    /// Generates every queued step, then the extruder's next moves follow
-    /// pressure advance `advance` (s) smoothed over `smooth_time` (s).
-    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64, sink: &mut impl StepSink) {
+    /// Generates every queued step, then extruder stepper `stepper`
+    /// follows `motion`; with `position`, from that extruder position
+    /// (mm) as where it stands.
+    fn set_extruder_stepper(
+        &mut self,
+        stepper: usize,
+        motion: &ExtruderStepperMotion,
+        position: Option<f64>,
+        sink: &mut impl StepSink,
+    ) {
         self.generate_through(sink);
-        let pa = PressureAdvance::new(advance, smooth_time);
-        for ch in &mut self.channels {
-            if let Follows::Extruder(_) = ch.follows {
-                ch.follows = Follows::Extruder(pa);
-                ch.margins = Margins::both(pa.half_smooth_time);
+        // Steps of every stepper are made through here: a stepper synced
+        // now follows the queue from here on.
+        let through = self.generated_until();
+        let Some(ch) = self.channels.get_mut(stepper) else {
+            return;
+        };
+        if let Follows::Toolhead(..) = ch.follows {
+            return;
+        }
+        ch.follows = Follows::extruder(motion);
+        ch.margins = ch.follows.margins();
+        ch.step_dist = motion.step_dist;
+        ch.solver.set_step_dist(motion.step_dist);
+        let direction = if motion.inverted { -1.0 } else { 1.0 };
+        if direction != ch.direction {
+            ch.direction = direction;
+            ch.solver.mirror();
+        }
+        if let Some(e) = position {
+            ch.solver.set_position([direction * e, 0.0, 0.0]);
+            if ch.solver.generated_until() < through {
+                ch.solver.restart(through);
             }
         }
     }
@@ -611,7 +663,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
             };
             match ch.follows {
                 Follows::Toolhead(..) => ch.compressor.reset(own, &mut out),
-                Follows::Extruder(_) => ch.compressor.flush(&mut out),
+                _ => ch.compressor.flush(&mut out),
             }
             ch.solver.restart(at);
         }
@@ -621,7 +673,7 @@ impl<const N: usize, const Q: usize> Motion<N, Q> {
     fn generate_through(&mut self, sink: &mut impl StepSink) {
         let end = self.motion_end();
         for (i, ch) in self.channels.iter_mut().enumerate() {
-            let segs = ch.follows.queue(&self.toolhead, &self.extruder).segments();
+            let segs = ch.follows.queue(&self.toolhead, &self.extruder);
             ch.generate(i, segs, end + ch.margins.after, sink);
         }
         self.retire();
@@ -663,9 +715,13 @@ impl<const N: usize, const Q: usize, S: StepSink> MoveSink for MotionSink<'_, N,
         self.motion.set_position(pos, self.steps);
     }
 
-    fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
-        self.motion
-            .set_pressure_advance(advance, smooth_time, self.steps);
+    fn extruder_stepper(
+        &mut self,
+        stepper: usize,
+        motion: &ExtruderStepperMotion,
+        position: Option<f64>,
+    ) {
+        (self.motion).set_extruder_stepper(stepper, motion, position, self.steps);
     }
 
     fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {

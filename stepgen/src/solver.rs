@@ -255,6 +255,19 @@ impl StepSolver {
         self.commanded_pos = self.kin.position(pos);
     }
 
+    /// Steps `step_dist` mm from now on, from where the stepper stands
+    /// (SET_EXTRUDER_ROTATION_DISTANCE).
+    pub fn set_step_dist(&mut self, step_dist: f64) {
+        self.half_step = 0.5 * step_dist;
+    }
+
+    /// The stepper's position is counted the other way from now on (its
+    /// direction reversed): the same steps follow, mirrored.
+    pub fn mirror(&mut self) {
+        self.commanded_pos = -self.commanded_pos;
+        self.dir = self.dir.map(|forward| !forward);
+    }
+
     /// Steps resume from print time `at` s (the motion was cut short
     /// there; nothing after it was generated or will be).
     pub fn restart(&mut self, at: f64) {

@@ -287,11 +287,11 @@ fn check_from(case: &str, with_extruder: bool, events: &[Event], origin_ticks: u
         };
         steppers.push((s.name, steps));
     }
-    if with_extruder && let Some(e) = machine.steppers.get(3) {
-        let pa = PressureAdvance::new(
-            machine.pressure_advance,
-            machine.pressure_advance_smooth_time,
-        );
+    if with_extruder
+        && let Some(e) = machine.steppers.get(3)
+        && let Some(config) = machine.extruder_stepper(3)
+    {
+        let pa = PressureAdvance::new(config.pressure_advance, config.smooth_time);
         let mut filled = Vec::new();
         fill_gaps(&extruder_segs, pa.half_smooth_time, |s| filled.push(s));
         let runs = [Run {

@@ -52,7 +52,7 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// generic-mightyboard and printer-flashforge-creator-pro-2018).
 const MIN_LOADED: usize = 141;
 /// Section kinds supported now, which no file may list as unsupported.
-const NOW_SUPPORTED: [&str; 10] = [
+const NOW_SUPPORTED: [&str; 11] = [
     "heater_fan",
     "controller_fan",
     "fan_generic",
@@ -63,6 +63,7 @@ const NOW_SUPPORTED: [&str; 10] = [
     "temperature_sensor",
     "stepper_z1",
     "temperature_fan",
+    "extruder_stepper",
 ];
 /// Files that must load, home and move (111 before the sensors, 114 after,
 /// less the three above; 129 once Z homes on the probe, with

@@ -849,9 +849,11 @@ fn x_on_one_stock_mcu_homed_on_anothers_endstop_counts_the_steps_it_made_after_t
     let past = at_press - halted;
     assert!(past >= 16, "{past} steps past the press");
     // X50 is 4000 steps from the trigger, less those X made past it:
-    // within 1 ms of steps (4), what the switch's sampling (0.25 ms) and
-    // the two MCUs' clock syncs (tens of µs each, at times more) leave
-    // unknown of the trigger's time; far less than the steps past it.
+    // within 1.5 ms of steps (6), what the switch's sampling (0.25 ms)
+    // and the two MCUs' clock syncs (tens of µs each, up to some 0.5 ms
+    // on a loaded machine) leave unknown of the trigger's time; far less
+    // than the steps past it.
     let to_x50 = end - at_press;
-    assert!((to_x50 - 4000).abs() <= 4, "{to_x50} steps to X50");
+    println!("X50 is {to_x50} steps from where X was at the press");
+    assert!((to_x50 - 4000).abs() <= 6, "{to_x50} steps to X50");
 }

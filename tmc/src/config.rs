@@ -43,6 +43,19 @@ pub enum Bus<'a> {
     },
 }
 
+impl<'a> TmcDriver<'a> {
+    /// Its name in G-code (`STEPPER=`) and in Klipper's bus messages: the
+    /// last word of its stepper's section name (`e1` for
+    /// `extruder_stepper e1`).
+    pub fn name(&self) -> &'a str {
+        let stepper = self.stepper;
+        stepper
+            .rsplit(char::is_whitespace)
+            .next()
+            .unwrap_or(stepper)
+    }
+}
+
 /// One driver as its section configures it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TmcDriver<'a> {

@@ -58,11 +58,14 @@ pub const DRIVERS: [(&str, DriverKind); 6] = [
 ];
 
 impl DriverKind {
-    /// The driver type and stepper of a section name (`tmc2209 stepper_x`).
+    /// The driver type and stepper of a section name (`tmc2209 stepper_x`,
+    /// `tmc2209 extruder_stepper e1`: a stepper section's name of one
+    /// word, or an extruder stepper's).
     pub fn of_section(section: &str) -> Option<(Self, &str)> {
-        let mut words = section.split_whitespace();
-        let (prefix, stepper) = (words.next()?, words.next()?);
-        if words.next().is_some() {
+        let (prefix, stepper) = section.trim().split_once(char::is_whitespace)?;
+        let stepper = stepper.trim_start();
+        let words = stepper.split_whitespace().count();
+        if !(words == 1 || words == 2 && stepper.starts_with("extruder_stepper ")) {
             return None;
         }
         let kind = DRIVERS.iter().find(|(p, _)| *p == prefix)?.1;
