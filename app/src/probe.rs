@@ -238,6 +238,7 @@ impl<'a, const N: usize> Printer<'a, N> {
                     probe,
                     state,
                     now: *now,
+                    out: &mut *out,
                 };
                 self.toolhead.home_safe_z(cfg, named, sink, &mut hooks)
             }
@@ -251,6 +252,7 @@ impl<'a, const N: usize> Printer<'a, N> {
                     probe,
                     state,
                     now: *now,
+                    out: &mut *out,
                 };
                 self.toolhead.home_with(&axes, sink, &mut hooks)
             }
@@ -422,8 +424,8 @@ impl<'a, const N: usize> Printer<'a, N> {
             }
             Ok(())
         })();
-        th.end_multi_probe(probe, state, now, sink);
-        taken.map_err(CommandError::Move)?;
+        let raised = th.end_multi_probe(probe, state, now, sink, out);
+        taken.and(raised).map_err(CommandError::Move)?;
         let (max, min) = zs.iter().fold((f64::MIN, f64::MAX), |(hi, lo), p| {
             (hi.max(p[2]), lo.min(p[2]))
         });

@@ -909,6 +909,39 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
         let clock = (print_time.max(0.0) * self.steps.link.freq) as u64;
         self.steps.mcu.probe_servo(clock, pulse_width);
     }
+
+    fn probe_reads(&mut self, from: f64, until: f64, triggered: bool) -> (bool, f64) {
+        // Every step of the moves before goes to the MCU, which then runs
+        // past them.
+        self.motion.settle(&mut *self.steps);
+        let steps = &mut *self.steps;
+        // Without switches (klippy's batch mode) every check passes.
+        let Some(slot) = steps
+            .link
+            .probe_slot
+            .filter(|_| steps.link.endstops_modelled)
+        else {
+            return (true, from);
+        };
+        let freq = steps.link.freq;
+        let clock = |t: f64| (t.max(0.0) * freq) as u64;
+        let (from, until) = (clock(from), clock(until));
+        loop {
+            let now = steps.mcu.now();
+            let ended = now as f64 / freq;
+            if steps.mcu.shutdown_reason().is_some() {
+                return (false, ended);
+            }
+            if now >= from && steps.mcu.endstop_triggered(slot) == triggered {
+                return (true, ended);
+            }
+            if now >= until {
+                return (false, ended);
+            }
+            steps.link.keepalive(now, steps.out);
+            steps.mcu.wait(if now < from { from } else { until });
+        }
+    }
 }
 
 /// Step commands into the MCU role's engine, waiting (asleep) while a

@@ -95,6 +95,8 @@ pub struct Options {
     /// slopes along X and Y (mm, mm/mm): the probe triggers where it
     /// touches it.
     pub bed: [f64; 3],
+    /// What is wrong with the simulated BLTouch, if anything.
+    pub bltouch_fault: Option<probe_physics::BltouchFault>,
     /// printer.cfg's pins are checked against those the board uses itself
     /// (USB, SD card, crystal, SWD), as on the board; off for a config
     /// written for another board (Klipper's stock `generic-*` configs),
@@ -129,6 +131,7 @@ impl Default for Options {
             dead_endstop: None,
             racked: 0.0,
             bed: [0.0; 3],
+            bltouch_fault: None,
             console: false,
             board_pins: true,
         }
@@ -936,7 +939,12 @@ fn physics(machine: &Machine<'_>, options: &Options) -> Option<Physics> {
             let at = delta.map(|d| kinematics[k].position(d.home));
             at.filter(|_| options.dead_endstop != Some(k))
         }),
-        probe: probe_physics::for_machine(machine, options.bed, options.mcu_freq),
+        probe: probe_physics::for_machine(
+            machine,
+            options.bed,
+            options.bltouch_fault,
+            options.mcu_freq,
+        ),
         extras: (3..machine.motion_steppers())
             .filter_map(|slot| {
                 let rail = machine.rail_of(slot)?;

@@ -18,6 +18,19 @@ pub struct ProbePhysics {
     /// the bed only once the pin is down; with the pin up it reads open,
     /// or triggered in touch mode (its self-test).
     pub bltouch: Option<u64>,
+    /// What is wrong with the BLTouch, if anything.
+    pub fault: Option<BltouchFault>,
+}
+
+/// A faulty BLTouch, for tests of Klipper's checks of its sensor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BltouchFault {
+    /// A clone whose sensor does not read triggered in touch mode with
+    /// the pin up (Klipper's `pin_up_touch_mode_reports_triggered: False`).
+    NoTouchModeReport,
+    /// The sensor reads triggered whatever the pin does (a pin stuck
+    /// down, an alarm that a reset does not clear).
+    StuckTriggered,
 }
 
 impl ProbePhysics {
@@ -35,6 +48,9 @@ impl ProbePhysics {
         let Some(move_ticks) = self.bltouch else {
             return touching;
         };
+        if self.fault == Some(BltouchFault::StuckTriggered) {
+            return true;
+        }
         // The pin: down since a clock, or up; touch mode since the last
         // pin command.
         let (mut down_since, mut touch) = (None, false);
@@ -48,16 +64,17 @@ impl ProbePhysics {
         }
         match down_since {
             Some(at) => now >= at + move_ticks && touching,
-            None => touch,
+            None => touch && self.fault != Some(BltouchFault::NoTouchModeReport),
         }
     }
 }
 
-/// The probe of `machine` over the bed `bed`, with its engine slot, on a
-/// clock of `freq` Hz.
+/// The probe of `machine` over the bed `bed` (a BLTouch with `fault`, if
+/// any), with its engine slot, on a clock of `freq` Hz.
 pub fn for_machine(
     machine: &Machine<'_>,
     bed: [f64; 3],
+    fault: Option<BltouchFault>,
     freq: f64,
 ) -> Option<(usize, ProbePhysics)> {
     let probe = machine.probe.as_ref()?;
@@ -70,6 +87,7 @@ pub fn for_machine(
             bltouch: probe
                 .bltouch
                 .map(|b| (b.pin_move_time * freq).ceil() as u64),
+            fault,
         },
     ))
 }

@@ -877,10 +877,12 @@ impl Mcu for VirtualMcu {
     }
 
     fn endstop_triggered(&mut self, stepper: usize) -> bool {
-        self.engine
-            .pins_mut()
-            .nth(stepper)
-            .is_some_and(|pins| pins.endstop_triggered())
+        // Read now, not when the engine last ran.
+        let now = self.now;
+        self.engine.pins_mut().nth(stepper).is_some_and(|pins| {
+            pins.clock = now;
+            pins.endstop_triggered()
+        })
     }
 
     fn probe_servo(&mut self, clock: u64, pulse_width: f64) {

@@ -17,6 +17,22 @@ pub const MIN_CMD_TIME: f64 = 5.0 * SIGNAL_PERIOD;
 /// Time between two tests of the sensor (pin up, touch mode: it must read
 /// triggered), s.
 pub const TEST_TIME: f64 = 5.0 * 60.0;
+/// How long a reset is held before the pin is raised again, s.
+const RETRY_RESET_TIME: f64 = 1.0;
+/// After a command's action, how long the sensor is given to read as it
+/// should, s (Klipper's check of the sensor state).
+const VERIFY_WINDOW: f64 = 0.100;
+/// Tries to raise the pin before [`NOT_RAISED`].
+const RAISE_TRIES: usize = 3;
+/// Klipper's error when the sensor does not read triggered in touch mode
+/// with the pin up (a clone that cannot: `pin_up_touch_mode_reports_triggered:
+/// False`).
+pub const NOT_VERIFIED: &str = "BLTouch failed to verify sensor state";
+/// Klipper's error when the sensor still reads triggered after the pin
+/// was raised [`RAISE_TRIES`] times.
+pub const NOT_RAISED: &str = "BLTouch failed to raise probe";
+/// Klipper's note before it resets the BLTouch and raises the pin again.
+const RAISE_RETRY: &str = "// Failed to verify BLTouch probe is raised; retrying.";
 
 /// A BLTouch command (Klipper's names, `BLTOUCH_DEBUG COMMAND=`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -196,14 +212,31 @@ impl Bltouch {
         self.send(Command::PinUp, cfg.pin_move_time, sink);
     }
 
-    /// Before a probing move: the sensor test if due, then the pin down
+    /// True if the sensor reads `triggered` within [`VERIFY_WINDOW`] of
+    /// the last command's action end, the moves before all run; commands
+    /// then start after the MCU's time at the check's end.
+    fn verify<const N: usize>(
+        &mut self,
+        triggered: bool,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> bool {
+        toolhead.flush_step_generation(sink);
+        let from = self.action_end_time;
+        let (read, ended) = sink.probe_reads(from, from + VERIFY_WINDOW, triggered);
+        self.sync_mcu(ended);
+        read
+    }
+
+    /// Before a probing move: the sensor test if due (pin up, touch mode:
+    /// it must read triggered, else [`NOT_VERIFIED`]), then the pin down
     /// (and touch mode); the toolhead waits for it.
     pub fn lower<const N: usize>(
         &mut self,
         cfg: &BltouchConfig<'_>,
         toolhead: &mut Toolhead<N>,
         sink: &mut impl MoveSink,
-    ) {
+    ) -> Result<(), &'static str> {
         if cfg.pin_up_touch_mode_reports_triggered {
             let print_time = toolhead.last_move_time(sink);
             if print_time < self.next_test_time {
@@ -212,7 +245,11 @@ impl Bltouch {
                 self.sync_print_time(toolhead, sink);
                 self.send(Command::PinUp, cfg.pin_move_time, sink);
                 self.send(Command::TouchMode, MIN_CMD_TIME, sink);
+                let verified = self.verify(true, toolhead, sink);
                 self.sync_print_time(toolhead, sink);
+                if !verified {
+                    return Err(NOT_VERIFIED);
+                }
                 self.next_test_time = print_time + TEST_TIME;
             }
         }
@@ -222,20 +259,39 @@ impl Bltouch {
             self.send(Command::TouchMode, MIN_CMD_TIME, sink);
         }
         self.sync_print_time(toolhead, sink);
+        Ok(())
     }
 
     /// After a probing move: the pin up, from the MCU's time now (the
     /// later of `now` and where the toolhead stopped); the toolhead waits
-    /// for it.
+    /// for it. With `pin_up_reports_not_triggered` the sensor must then
+    /// read open: if not, a reset and the pin up again, noted on `out`, at
+    /// most [`RAISE_TRIES`] times in all, then [`NOT_RAISED`].
     pub fn raise<const N: usize>(
         &mut self,
         cfg: &BltouchConfig<'_>,
         now: f64,
         toolhead: &mut Toolhead<N>,
         sink: &mut impl MoveSink,
-    ) {
+        out: &mut dyn core::fmt::Write,
+    ) -> Result<(), &'static str> {
         self.raise_signal(cfg, now.max(toolhead.print_time()), sink);
+        if cfg.pin_up_reports_not_triggered {
+            for tried in 1..=RAISE_TRIES {
+                if self.verify(false, toolhead, sink) {
+                    break;
+                }
+                if tried == RAISE_TRIES {
+                    self.sync_print_time(toolhead, sink);
+                    return Err(NOT_RAISED);
+                }
+                let _ = writeln!(out, "{RAISE_RETRY}");
+                self.send(Command::Reset, RETRY_RESET_TIME, sink);
+                self.send(Command::PinUp, cfg.pin_move_time, sink);
+            }
+        }
         self.sync_print_time(toolhead, sink);
+        Ok(())
     }
 
     /// BLTOUCH_DEBUG: `cmd` for pin_move_time, the toolhead waiting for it.

@@ -28,16 +28,31 @@ pub trait HomingHooks<const N: usize> {
     /// Before the homing moves of an axis homing on the probe.
     fn rails_begin(&mut self) {}
     /// After them.
-    fn rails_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+    fn rails_end(
+        &mut self,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
         let _ = (toolhead, sink);
+        Ok(())
     }
     /// Before a homing move whose endstop is the probe's.
-    fn move_begin(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+    fn move_begin(
+        &mut self,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
         let _ = (toolhead, sink);
+        Ok(())
     }
     /// After it.
-    fn move_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+    fn move_end(
+        &mut self,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
         let _ = (toolhead, sink);
+        Ok(())
     }
 }
 
@@ -128,10 +143,12 @@ impl<const N: usize> Toolhead<N> {
                 hooks.rails_begin();
             }
             let homed = self.home_axis(axis, &info, sink, hooks);
-            if info.probe {
-                hooks.rails_end(self, sink);
-            }
+            let stowed = match info.probe {
+                true => hooks.rails_end(self, sink),
+                false => Ok(()),
+            };
             homed?;
+            stowed?;
         }
         Ok(())
     }
@@ -274,7 +291,7 @@ impl<const N: usize> Toolhead<N> {
         hooks: &mut impl HomingHooks<N>,
     ) -> Result<HomingEnd, MoveError> {
         if hi.probe {
-            hooks.move_begin(self, sink);
+            hooks.move_begin(self, sink)?;
         }
         self.flush_step_generation(sink);
         let start_time = self.last_move_time(sink);
@@ -306,7 +323,7 @@ impl<const N: usize> Toolhead<N> {
         let halt = end.position;
         self.set_position([halt[0], halt[1], halt[2], target[E]], sink);
         if hi.probe {
-            hooks.move_end(self, sink);
+            hooks.move_end(self, sink)?;
         }
         Ok(end)
     }

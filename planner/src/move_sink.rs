@@ -75,6 +75,15 @@ pub trait MoveSink {
     fn probe_pin(&mut self, print_time: f64, pulse_width: f64) {
         let _ = (print_time, pulse_width);
     }
+    /// Whether the probe's input reads `triggered` (pressed, or open if
+    /// false) at some time from print time `from` to `until` (s), as
+    /// Klipper's BLTouch checks its sensor with a short homing on it, and
+    /// the MCU's print time when the check ended (s): the step side waits
+    /// for it. Sinks without a probe input say it does, at `from`.
+    fn probe_reads(&mut self, from: f64, until: f64, triggered: bool) -> (bool, f64) {
+        let _ = (until, triggered);
+        (true, from)
+    }
     /// A homing move has been handed over entirely: the sink runs it with
     /// the endstop armed and returns where and when the steppers stopped.
     /// Sinks without endstops let the move complete: at the target, at

@@ -280,6 +280,8 @@ pub struct ProbeHooks<'p, 'c> {
     pub state: &'p mut ProbeState,
     /// The MCU's print time when the command started, s.
     pub now: f64,
+    /// Where notes go (a BLTouch raised again).
+    pub out: &'p mut dyn core::fmt::Write,
 }
 
 impl<const N: usize> HomingHooks<N> for ProbeHooks<'_, '_> {
@@ -287,26 +289,41 @@ impl<const N: usize> HomingHooks<N> for ProbeHooks<'_, '_> {
         self.state.begin_multi();
     }
 
-    fn rails_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
-        toolhead.end_multi_probe(self.probe, self.state, self.now, sink);
+    fn rails_end(
+        &mut self,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
+        toolhead.end_multi_probe(self.probe, self.state, self.now, sink, self.out)
     }
 
-    fn move_begin(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+    fn move_begin(
+        &mut self,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
         let state = &mut *self.state;
         if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &self.probe.bltouch)
             && !state.down
         {
-            blt.lower(cfg, toolhead, sink);
+            blt.lower(cfg, toolhead, sink)
+                .map_err(|reason| error(reason, toolhead.position()))?;
             state.down = state.multi && !cfg.stow_on_each_sample;
         }
+        Ok(())
     }
 
-    fn move_end(&mut self, toolhead: &mut Toolhead<N>, sink: &mut impl MoveSink) {
+    fn move_end(
+        &mut self,
+        toolhead: &mut Toolhead<N>,
+        sink: &mut impl MoveSink,
+    ) -> Result<(), MoveError> {
         let state = &mut *self.state;
-        if let (Some(blt), Some(cfg)) = (&mut state.bltouch, &self.probe.bltouch)
-            && !state.down
-        {
-            blt.raise(cfg, self.now, toolhead, sink);
+        match (&mut state.bltouch, &self.probe.bltouch) {
+            (Some(blt), Some(cfg)) if !state.down => blt
+                .raise(cfg, self.now, toolhead, sink, self.out)
+                .map_err(|reason| error(reason, toolhead.position())),
+            _ => Ok(()),
         }
     }
 }
@@ -350,7 +367,12 @@ impl<const N: usize> Toolhead<N> {
             range: (min, max),
             probe: true,
         };
-        let mut hooks = ProbeHooks { probe, state, now };
+        let mut hooks = ProbeHooks {
+            probe,
+            state,
+            now,
+            out,
+        };
         let end = self.homing_move(Rails::Axis(2), &info, target, speed, sink, &mut hooks)?;
         if end.comms_timeout {
             return Err(error(COMMS_TIMEOUT, self.position()));
@@ -420,27 +442,32 @@ impl<const N: usize> Toolhead<N> {
             }
             Ok(())
         })();
-        self.end_multi_probe(probe, state, now, sink);
+        let raised = self.end_multi_probe(probe, state, now, sink, out);
         result?;
+        raised?;
         Ok(match sampling.result {
             SamplesResult::Median => median(&samples),
             SamplesResult::Average => mean(&samples),
         })
     }
 
-    /// Ends a multi-sample command: a BLTouch kept down goes up.
+    /// Ends a multi-sample command: a BLTouch kept down goes up (see
+    /// [`Bltouch::raise`]; notes to `out`).
     pub fn end_multi_probe(
         &mut self,
         probe: &ProbeConfig<'_>,
         state: &mut ProbeState,
         now: f64,
         sink: &mut impl MoveSink,
-    ) {
-        if let (Some(blt), Some(cfg), true) = (&mut state.bltouch, &probe.bltouch, state.down) {
-            blt.raise(cfg, now, self, sink);
-        }
+        out: &mut dyn core::fmt::Write,
+    ) -> Result<(), MoveError> {
+        let raised = match (&mut state.bltouch, &probe.bltouch, state.down) {
+            (Some(blt), Some(cfg), true) => blt.raise(cfg, now, self, sink, out),
+            _ => Ok(()),
+        };
         state.multi = false;
         state.down = false;
+        raised.map_err(|reason| error(reason, self.position()))
     }
 }
 

@@ -9,7 +9,9 @@
 //! home as Klipper.
 
 use onechip_host::console_printer::ConsolePrinter;
+use onechip_host::probe_physics::BltouchFault;
 use onechip_host::{Options, Start};
+use onechip_planner::bltouch::Command;
 use std::path::PathBuf;
 
 /// Z mm per step of the shipped printer.
@@ -57,6 +59,21 @@ fn shipped_with(
     sections: &str,
     plane: [f64; 3],
 ) -> ConsolePrinter {
+    let options = Options {
+        start: Start::At([100.0, 120.0, 40.0]),
+        bed: plane,
+        ..Options::default()
+    };
+    shipped_with_options(name, replace, sections, options)
+}
+
+/// [`shipped_with`], run as `options` say.
+fn shipped_with_options(
+    name: &str,
+    replace: (&str, &str),
+    sections: &str,
+    options: Options,
+) -> ConsolePrinter {
     let dir = std::env::temp_dir().join(format!("onechip-probe-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let shipped =
@@ -66,11 +83,6 @@ fn shipped_with(
     let cfg = cfg.replace(replace.0, replace.1);
     let cfg = format!("{cfg}\n{sections}\n");
     std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
-    let options = Options {
-        start: Start::At([100.0, 120.0, 40.0]),
-        bed: plane,
-        ..Options::default()
-    };
     ConsolePrinter::new(&dir, &options).expect("loads")
 }
 
@@ -417,4 +429,80 @@ fn a_probe_beside_a_z_endstop_probes_on_its_own_input() {
     // M119 reads Z's switch, QUERY_PROBE the probe.
     assert_eq!(p.send("M119"), "x:open y:open z:open\nok\n");
     assert!(p.send("QUERY_PROBE").starts_with("// probe: TRIGGERED"));
+}
+
+/// A printer homing Z on a BLTouch (with `extra` more of its options)
+/// whose simulated sensor has `fault`.
+fn bltouch_printer(name: &str, extra: &str, fault: Option<BltouchFault>) -> ConsolePrinter {
+    let [x, y, z] = OFFSETS;
+    let section = format!(
+        "[bltouch]\nsensor_pin: ^PG10\ncontrol_pin: PB6\nx_offset: {x}\ny_offset: {y}\n\
+         z_offset: {z}\n{extra}\n{}",
+        safe_z_home("")
+    );
+    let z_on_probe = (
+        "endstop_pin: PG10\nposition_endstop: 0.5\n",
+        "endstop_pin: probe:z_virtual_endstop\nposition_min: -2\n",
+    );
+    let options = Options {
+        start: Start::At([100.0, 120.0, 40.0]),
+        bed: BED,
+        bltouch_fault: fault,
+        ..Options::default()
+    };
+    shipped_with_options(name, z_on_probe, &section, options)
+}
+
+#[test]
+fn a_bltouch_clone_that_cannot_report_touch_mode_fails_klippers_sensor_test() {
+    let mut p = bltouch_printer("clone", "", Some(BltouchFault::NoTouchModeReport));
+    let r = p.send("G28");
+    assert!(
+        r.contains("!! BLTouch failed to verify sensor state\n"),
+        "{r}"
+    );
+    // Nothing was probed: the pin never went down.
+    let down = Command::PinDown.pulse_width();
+    assert!(!p.probe_servo_log().iter().any(|e| e.1 == down));
+    // Klipper's advice for such clones: no sensor test, and it homes.
+    let mut p = bltouch_printer(
+        "clone-untested",
+        "pin_up_touch_mode_reports_triggered: False",
+        Some(BltouchFault::NoTouchModeReport),
+    );
+    let r = p.send("G28");
+    assert!(!r.contains("!!"), "{r}");
+}
+
+#[test]
+fn a_bltouch_whose_sensor_stays_triggered_fails_to_raise_after_klippers_three_tries() {
+    let mut p = bltouch_printer("stuck", "", Some(BltouchFault::StuckTriggered));
+    let r = p.send("G28");
+    let retry = "// Failed to verify BLTouch probe is raised; retrying.\n";
+    assert_eq!(r.matches(retry).count(), 2, "{r}");
+    assert!(r.contains("!! BLTouch failed to raise probe\n"), "{r}");
+    // Each retry: a reset for 1 s (its signal held 0.9 s: whole periods
+    // past the 0.1 s minimum), then the pin up again.
+    let reset = Command::Reset.pulse_width();
+    let log: Vec<(f64, f64)> = p
+        .probe_servo_log()
+        .iter()
+        .map(|&(c, w)| (c as f64 / FREQ, w))
+        .collect();
+    let resets: Vec<usize> = (0..log.len()).filter(|&i| log[i].1 == reset).collect();
+    assert_eq!(resets.len(), 2, "{log:?}");
+    for &i in &resets {
+        let (held, next) = (log[i + 1].0 - log[i].0, log[i + 2]);
+        assert!((held - 0.9).abs() < 1e-6, "{log:?}");
+        assert!((next.0 - log[i].0 - 1.0).abs() < 1e-6, "{log:?}");
+        assert_eq!(next.1, Command::PinUp.pulse_width(), "{log:?}");
+    }
+    // Unchecked when the BLTouch cannot report it (Klipper's option).
+    let mut p = bltouch_printer(
+        "stuck-unchecked",
+        "pin_up_reports_not_triggered: False",
+        Some(BltouchFault::StuckTriggered),
+    );
+    let r = p.send("G28");
+    assert!(!r.contains("!!"), "{r}");
 }
