@@ -351,15 +351,8 @@ mod tests {
     /// A cartesian printer with an extruder and `extra` sections.
     fn machine(extra: &str) -> Result<Machine<'static>, String> {
         let text = std::format!(
-            "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
-            nozzle_diameter: 0.4\nfilament_diameter: 1.75\npressure_advance: 0.05\n{extra}"
+            concat!(cartesian_printer!(), "pressure_advance: 0.05\n{extra}"),
+            extra = extra
         );
         // Leaked: the machine borrows the text (a test only).
         let text: &'static str = std::boxed::Box::leak(text.into_boxed_str());

@@ -528,16 +528,11 @@ mod tests {
     /// A cartesian printer with a heated extruder (Klipper's extruder
     /// defaults: min_extrude_temp 170 °C, max_extrude_only_distance 50
     /// mm, max_extrude_cross_section 4 × nozzle² = 0.64 mm²).
-    const CFG: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
-        position_endstop: 0\nposition_max: 200\n\
-        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-        position_endstop: 0\nposition_max: 200\n\
-        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-        position_endstop: 0\nposition_max: 200\n\
-        [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
-        nozzle_diameter: 0.4\nfilament_diameter: 1.75\nheater_pin: PA0\nsensor_pin: PF4\n\
-        sensor_type: EPCOS 100K B57560G104F\ncontrol: watermark\nmin_temp: 0\nmax_temp: 250\n";
+    const CFG: &str = concat!(
+        cartesian_printer!(),
+        "heater_pin: PA0\nsensor_pin: PF4\n\
+        sensor_type: EPCOS 100K B57560G104F\ncontrol: watermark\nmin_temp: 0\nmax_temp: 250\n"
+    );
 
     /// Counts the moves planned.
     #[derive(Default)]

@@ -10,6 +10,25 @@
 //! without allocation.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+/// Test fixture: printer.cfg text for a cartesian printer (300 mm/s,
+/// 3000 mm/s², three 200 mm rails) and the start of its `[extruder]` (pins,
+/// rotation_distance 33.5, 0.4 mm nozzle, 1.75 mm filament); tests add the
+/// rest after it (`concat!` or `format!`).
+#[cfg(test)]
+macro_rules! cartesian_printer {
+    () => {
+        "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
+        nozzle_diameter: 0.4\nfilament_diameter: 1.75\n"
+    };
+}
+
 pub mod accessories;
 pub mod adc_temperature;
 pub mod bltouch;

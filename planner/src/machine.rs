@@ -931,18 +931,14 @@ mod tests {
     /// A cartesian printer with a heated extruder and bed, and `extra`.
     fn with_heaters(extra: &str) -> Result<Machine<'static>, std::string::String> {
         let text = std::format!(
-            "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
-            nozzle_diameter: 0.4\nfilament_diameter: 1.75\nheater_pin: PA0\nsensor_pin: PF4\n\
+            concat!(
+                cartesian_printer!(),
+                "heater_pin: PA0\nsensor_pin: PF4\n\
             sensor_type: EPCOS 100K B57560G104F\ncontrol: watermark\nmin_temp: 0\nmax_temp: 250\n\
             [heater_bed]\nheater_pin: PA1\nsensor_pin: PF3\nsensor_type: Generic 3950\n\
             control: watermark\nmin_temp: 0\nmax_temp: 130\n{extra}"
+            ),
+            extra = extra
         );
         // Leaked: the machine borrows the text (a test only).
         let text: &'static str = std::boxed::Box::leak(text.into_boxed_str());

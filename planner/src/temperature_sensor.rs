@@ -209,16 +209,13 @@ mod tests {
     /// with `extra` sections; or the config error, as text.
     fn extruder_sensor(sensor: &str, extra: &str) -> Result<TemperatureSensor, String> {
         let text = std::format!(
-            "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [extruder]\nstep_pin: PF9\ndir_pin: PF10\nmicrosteps: 16\nrotation_distance: 33.5\n\
-            nozzle_diameter: 0.4\nfilament_diameter: 1.75\nheater_pin: PA0\nsensor_pin: PF4\n\
+            concat!(
+                cartesian_printer!(),
+                "heater_pin: PA0\nsensor_pin: PF4\n\
             control: watermark\nmin_temp: 0\nmax_temp: 300\n{sensor}\n{extra}"
+            ),
+            extra = extra,
+            sensor = sensor
         );
         let config = Config::parse("printer.cfg", &text).map_err(|e| e.to_string())?;
         let machine = Machine::from_config(&config).map_err(|e| e.to_string())?;
