@@ -20,6 +20,7 @@ use crate::session::{Mcu, Session, profile::MAX_LINE};
 use crate::text::ErrorText;
 use core::fmt::{self, Write};
 use onechip_config::decimal;
+use onechip_sched::shutdown::Shutdown;
 
 /// What the firmware can do, as M115's `Cap:` lines tell hosts.
 const CAPABILITIES: &[(&str, bool)] = &[
@@ -380,7 +381,7 @@ impl Console {
             }
         } else if is("M112") {
             // Reported with the line's answer, as every shutdown.
-            mcu.emergency_stop();
+            mcu.shutdown(Shutdown::EmergencyStop);
             Ok(())
         } else if is("FIRMWARE_RESTART") || is("M999") && mcu.shutdown_reason().is_some() {
             // M999 as Marlin's: a restart after a shutdown, else nothing.

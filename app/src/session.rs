@@ -126,9 +126,10 @@ pub trait Mcu {
     fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
         let _ = (clock, pulse_width);
     }
-    /// M112: every stepper stops and every heater goes off at once, and
-    /// the MCU role stays shut down ([`Shutdown::EmergencyStop`]).
-    fn emergency_stop(&mut self);
+    /// Shuts down for `reason` (M112: [`Shutdown::EmergencyStop`]): every
+    /// stepper stops and every heater goes off at once, and the MCU role
+    /// stays shut down.
+    fn shutdown(&mut self, reason: Shutdown);
     /// True if the extruder is hot enough to extrude
     /// ([`crate::heaters::Heaters::can_extrude`]).
     fn can_extrude(&mut self) -> bool;
@@ -722,7 +723,9 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         if let Some(link) = mcu.tmc_link()
             && let Err(e) = self.tmc.poll(link, now, out)
         {
+            // As Klipper's periodic check: the printer shuts down.
             let _ = writeln!(out, "!! {e}");
+            mcu.shutdown(Shutdown::TmcError);
         }
     }
 

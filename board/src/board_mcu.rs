@@ -21,12 +21,12 @@ pub struct BoardMcu {
         heapless::Vec<crate::step_pins::InPin, { onechip_app::filament::MAX_FILAMENT_SENSORS }>,
 }
 
-/// M112: every stepper stops and every heater and fan output goes off at
-/// once. Called by thread code, and by the USB receive path the moment an
-/// `M112` arrives (both below the stepper and heater interrupts, whose
-/// state they reach with those interrupts masked).
-pub fn emergency_stop() {
-    let reason = Shutdown::EmergencyStop;
+/// Every stepper stops and every heater and fan output goes off at once,
+/// for `reason` (M112: [`Shutdown::EmergencyStop`]). Called by thread
+/// code, and by the USB receive path the moment an `M112` arrives (both
+/// below the stepper and heater interrupts, whose state they reach with
+/// those interrupts masked).
+pub fn shutdown(reason: Shutdown) {
     step_timer::stop(reason);
     heater_io::shutdown(reason);
 }
@@ -81,8 +81,8 @@ impl Mcu for BoardMcu {
         step_timer::endstop_triggered(stepper)
     }
 
-    fn emergency_stop(&mut self) {
-        emergency_stop();
+    fn shutdown(&mut self, reason: Shutdown) {
+        shutdown(reason);
     }
 
     fn probe_servo(&mut self, clock: u64, pulse_width: f64) {

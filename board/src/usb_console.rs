@@ -18,6 +18,7 @@ use embassy_usb::{Builder, UsbDevice};
 use onechip_app::emergency::EmergencyParser;
 use onechip_app::line::{LineAssembler, LineEvent};
 use onechip_app::session::profile::MAX_LINE;
+use onechip_sched::shutdown::Shutdown;
 use static_cell::StaticCell;
 
 bind_interrupts!(struct Irqs {
@@ -148,7 +149,7 @@ pub async fn reader(mut rx: Receiver<'static, UsbDriver>) -> ! {
             for &byte in &packet[..n] {
                 if emergency.push(byte) {
                     // Now, not when the line's turn comes.
-                    crate::board_mcu::emergency_stop();
+                    crate::board_mcu::shutdown(Shutdown::EmergencyStop);
                 }
                 let incoming = match lines.push(byte) {
                     Some(LineEvent::Complete(bytes)) => Incoming {

@@ -19,6 +19,7 @@ use onechip_app::session::{Mcu, profile};
 use onechip_app::text::ErrorText;
 use onechip_planner::machine::Machine;
 use onechip_sched::outputs::{Drive, OutputKind};
+use onechip_sched::shutdown::Shutdown;
 use std::path::Path;
 
 /// The board's thread code wakes at least this often, s.
@@ -83,7 +84,7 @@ impl ConsolePrinter {
         let mut out = String::new();
         for &byte in bytes {
             if self.emergency.push(byte) {
-                self.mcu.emergency_stop();
+                Mcu::shutdown(&mut self.mcu, Shutdown::EmergencyStop);
             }
             if let Some(event) = self.lines.push(byte) {
                 // Writing to a String never fails.

@@ -563,7 +563,7 @@ impl VirtualMcu {
             .as_ref()
             .is_some_and(|flag| flag.swap(false, Ordering::Relaxed))
         {
-            Mcu::emergency_stop(self);
+            Mcu::shutdown(self, Shutdown::EmergencyStop);
         }
     }
 
@@ -873,7 +873,7 @@ impl Mcu for VirtualMcu {
     }
 
     fn shutdown_reason(&mut self) -> Option<Shutdown> {
-        self.shutdown()
+        VirtualMcu::shutdown(self)
     }
 
     fn endstop_triggered(&mut self, stepper: usize) -> bool {
@@ -892,8 +892,8 @@ impl Mcu for VirtualMcu {
         }
     }
 
-    fn emergency_stop(&mut self) {
-        self.stop_all(Shutdown::EmergencyStop);
+    fn shutdown(&mut self, reason: Shutdown) {
+        self.stop_all(reason);
         self.service_secondaries();
     }
 

@@ -39,6 +39,7 @@ use onechip_app::pin_check;
 use onechip_app::session::{BoardSession, profile};
 use onechip_app::setup::{Config, PrinterSetup};
 use onechip_app::text::{ErrorText, error_text};
+use onechip_sched::shutdown::Shutdown;
 use static_cell::{ConstStaticCell, StaticCell};
 
 /// Bytes of config text (printer.cfg with its name), as the board.
@@ -187,7 +188,7 @@ fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
 /// Steppers and heaters off, the reason on QEMU's standard output, and
 /// QEMU told to exit with a failure.
 fn fail(args: core::fmt::Arguments<'_>) -> ! {
-    mcu::emergency_stop();
+    mcu::shutdown(Shutdown::EmergencyStop);
     if let Ok(mut out) = cortex_m_semihosting::hio::hstdout() {
         let _ = core::fmt::Write::write_fmt(&mut HostWriter(&mut out), args);
     }

@@ -14,10 +14,11 @@ use onechip_sched::step_command::StepCommand;
 /// This machine's MCU role.
 pub struct QemuMcu;
 
-/// M112: every stepper stops and every heater and fan output goes off.
-pub fn emergency_stop() {
-    step_timer::stop(Shutdown::EmergencyStop);
-    heater_io::shutdown(Shutdown::EmergencyStop);
+/// Every stepper stops and every heater and fan output goes off, for
+/// `reason` (M112: [`Shutdown::EmergencyStop`]).
+pub fn shutdown(reason: Shutdown) {
+    step_timer::stop(reason);
+    heater_io::shutdown(reason);
 }
 
 impl Mcu for QemuMcu {
@@ -70,8 +71,8 @@ impl Mcu for QemuMcu {
         step_timer::endstop_triggered(stepper)
     }
 
-    fn emergency_stop(&mut self) {
-        emergency_stop();
+    fn shutdown(&mut self, reason: Shutdown) {
+        shutdown(reason);
     }
 
     fn can_extrude(&mut self) -> bool {

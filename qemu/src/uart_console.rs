@@ -15,6 +15,7 @@ use crate::probe::{self, Context};
 use onechip_app::emergency::EmergencyParser;
 use onechip_app::line::{LineAssembler, LineEvent};
 use onechip_app::session::profile::MAX_LINE;
+use onechip_sched::shutdown::Shutdown;
 
 /// CMSDK APB UART registers (byte offsets) and bits.
 mod reg {
@@ -123,7 +124,7 @@ pub extern "C" fn uart0_rx() {
             }
             let byte = read(UART0 + reg::DATA) as u8;
             if rx.emergency.push(byte) {
-                crate::mcu::emergency_stop();
+                crate::mcu::shutdown(Shutdown::EmergencyStop);
             }
             let incoming = match rx.lines.push(byte) {
                 Some(LineEvent::Complete(bytes)) => Incoming {

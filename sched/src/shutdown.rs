@@ -29,6 +29,10 @@ pub enum Shutdown {
     PwmExpired,
     /// The host asked for an emergency stop (M112).
     EmergencyStop,
+    /// A TMC driver reported an error flag (overtemperature, a short,
+    /// undervoltage) or stopped answering, as Klipper's periodic driver
+    /// check shuts down; the console said which driver and which flags.
+    TmcError,
     /// A heater did not heat at the rate its `[verify_heater]` checks
     /// expect (in Klipper a host-side check; here the MCU role runs it).
     NotHeating(Heater),
@@ -95,6 +99,7 @@ impl Shutdown {
             Self::DigitalOutExpired => "Missed scheduling of next digital out event",
             Self::PwmExpired => "Missed scheduling of next hard pwm event",
             Self::EmergencyStop => "Shutdown due to M112 command",
+            Self::TmcError => "TMC driver error (see the message above)",
             Self::NotHeating(Heater::Extruder) => "Heater extruder not heating at expected rate",
             Self::NotHeating(Heater::Bed) => "Heater heater_bed not heating at expected rate",
         }

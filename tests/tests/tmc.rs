@@ -408,7 +408,7 @@ fn registers_are_written_at_start_and_again_after_a_driver_reset() {
 }
 
 #[test]
-fn a_driver_error_is_reported_as_klipper_words_it() {
+fn a_driver_error_is_reported_as_klipper_words_it_and_shuts_the_printer_down() {
     let dir = sd_with_drivers();
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
     p.send("G28");
@@ -423,6 +423,13 @@ fn a_driver_error_is_reported_as_klipper_words_it() {
         out.contains("!! TMC 'stepper_z' reports error: DRV_STATUS: 00000002 ot=1(OvertempError!)"),
         "{out}"
     );
+    // As in Klipper, the printer shuts down: nothing moves or heats.
+    let refused = p.send("G1 X10");
+    assert!(
+        refused.contains("TMC driver error (see the message above)"),
+        "{refused}"
+    );
+    assert!(p.heaters_on().iter().all(|on| !on));
 }
 
 #[test]
