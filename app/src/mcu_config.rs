@@ -205,7 +205,10 @@ fn write_output(
     }
     if k >= first_static(machine) {
         let on = u8::from(!pin.inverted);
-        line.emit(out, format_args!("set_digital_out pin={} value={on}", pin.pin));
+        line.emit(
+            out,
+            format_args!("set_digital_out pin={} value={on}", pin.pin),
+        );
         return;
     }
     let Some(oid) = oids.outputs.get(k).copied().flatten() else {
@@ -319,7 +322,10 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             }
         }
         Object::Output(k) => {
-            let on_this = setup.outputs.get(k).is_some_and(|(pin, _)| on_mcu(Some(pin)));
+            let on_this = setup
+                .outputs
+                .get(k)
+                .is_some_and(|(pin, _)| on_mcu(Some(pin)));
             if on_this && k < statics {
                 oids.outputs[k] = Some(take());
             }

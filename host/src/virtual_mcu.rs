@@ -482,12 +482,13 @@ impl VirtualMcu {
     /// Sends the output updates the heaters' io queued since last time to
     /// the secondaries, for the outputs on them.
     fn forward_outputs(&mut self) {
+        let now = self.host_time();
         let (Some((_, plant)), Some(s)) = (&mut self.thermal, &mut self.secondaries) else {
             return;
         };
         for (index, clock, value) in plant.queued.iter_mut().flat_map(|q| q.drain(..)) {
             let clock = onechip_sched::clock::widen(clock, self.now);
-            s.queue_output(index, clock, value);
+            s.queue_output(index, clock, value, now);
         }
     }
 

@@ -47,6 +47,11 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
 const START_LEAD: f64 = 0.200;
 /// How long before its stepper's first step an enable pin goes active, s.
 const ENABLE_LEAD: f64 = 0.001;
+/// How far ahead of now an output update on a secondary must be when it
+/// is queued, s: the MCU role's io may queue one for now (klippy's are
+/// at least PIN_MIN_TIME ahead, or at the end of the queued moves), but
+/// it must reach the MCU before its clock.
+const OUTPUT_LEAD: f64 = 0.050;
 
 /// A fan's, output pin's or enable pin's output on a secondary, driven as
 /// klippy's `MCU_digital_out` and `MCU_pwm` drive theirs: one update at
@@ -66,6 +71,11 @@ struct RemoteOutput {
     last_clock: u64,
     /// Updates not sent yet: clock, level (0..1 of full scale).
     pending: VecDeque<(u64, f64)>,
+    /// How late (s) the updates queued while the last one was still to
+    /// come are sent, so that they keep their spacing (a fan's kick).
+    delay: f64,
+    /// Host time of the last update queued (its delay included), s.
+    last_at: f64,
 }
 
 impl RemoteOutput {
@@ -336,8 +346,9 @@ impl Secondaries {
         let io = McuSetup::new(machine, freq, 0, mcu_sensor(), 0);
         all.outputs = vec![None; io.outputs.len()];
         for secondary in &machine.secondaries {
-            let hard = (io.outputs.iter().skip(machine.heaters.len()))
-                .find(|(pin, c)| pin_ref(pin).mcu == secondary.name && c.kind == OutputKind::HardPwm);
+            let hard = (io.outputs.iter().skip(machine.heaters.len())).find(|(pin, c)| {
+                pin_ref(pin).mcu == secondary.name && c.kind == OutputKind::HardPwm
+            });
             if let Some((pin, _)) = hard {
                 let (file, line) = secondary.serial_at;
                 return Err(ConnectError::Mcu {
@@ -457,6 +468,8 @@ impl Secondaries {
                 inverted: pin_ref(pin).inverted,
                 last_clock: 0,
                 pending: VecDeque::new(),
+                delay: 0.0,
+                last_at: 0.0,
             };
             let full = full_scale(config.kind);
             if cycle_ticks > 0 {
@@ -471,7 +484,8 @@ impl Secondaries {
             else {
                 continue;
             };
-            let shared = (self.enables.iter()).position(|e| e.output.mcu == k && e.output.oid == oid);
+            let shared =
+                (self.enables.iter()).position(|e| e.output.mcu == k && e.output.oid == oid);
             let e = shared.unwrap_or_else(|| {
                 self.enables.push(RemoteEnable {
                     output: RemoteOutput {
@@ -481,6 +495,8 @@ impl Secondaries {
                         inverted: pin_ref(pin).inverted,
                         last_clock: 0,
                         pending: VecDeque::new(),
+                        delay: 0.0,
+                        last_at: 0.0,
                     },
                     count: 0,
                 });
@@ -491,17 +507,26 @@ impl Secondaries {
     }
 
     /// The MCU role's io queued `value` for output `index` at main clock
-    /// `clock` (ticks, 64-bit): if the output is on a secondary, the
-    /// update goes there at that time on its clock.
-    pub fn queue_output(&mut self, index: usize, clock: u64, value: u32) {
+    /// `clock` (ticks, 64-bit) at host time `now` (s): if the output is on
+    /// a secondary, the update goes there at that time on its clock, or
+    /// [`OUTPUT_LEAD`] from now if that is later (and the updates after it
+    /// as late, while it is still to come).
+    pub fn queue_output(&mut self, index: usize, clock: u64, value: u32, now: f64) {
         let Some(Some((output, full))) = self.outputs.get_mut(index) else {
             return;
         };
         let Some(sync) = self.attached[output.mcu].mcu.connection().clock() else {
             return;
         };
-        let at = sync.clock_at(clock as f64 / self.freq);
-        output.queue(at, level(value, *full));
+        let wanted = clock as f64 / self.freq;
+        let late = (now + OUTPUT_LEAD - wanted).max(0.0);
+        output.delay = if output.last_at > now {
+            late.max(output.delay)
+        } else {
+            late
+        };
+        output.last_at = wanted + output.delay;
+        output.queue(sync.clock_at(output.last_at), level(value, *full));
     }
 
     /// Stepper `stepper` steps from its MCU's clock `clock` (ticks) on:
