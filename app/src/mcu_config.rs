@@ -408,6 +408,52 @@ impl Line {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::heaters::tests::typical_mcu;
+    use onechip_config::Config;
+
+    #[test]
+    fn fans_and_pins_on_a_secondary_are_configured_as_klippys_pwm_and_digital_outs() {
+        let text = "[mcu ext]\nserial: /dev/null\n\
+            [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\n\
+            rotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_z]\nstep_pin: ext:PB0\ndir_pin: ext:PB1\nenable_pin: !ext:PA1\n\
+            microsteps: 16\nrotation_distance: 8\nposition_endstop: 0\nposition_max: 200\n\
+            [fan]\npin: ext:PC0\n\
+            [fan_generic aux]\npin: PA8\n\
+            [heater_fan hot]\npin: !ext:PC1\nheater:\n\
+            [output_pin light]\npin: ext:PC2\nvalue: 1\nshutdown_value: 1\nmaximum_mcu_duration: 2\n\
+            [static_digital_output leds]\npins: ext:PC3, !ext:PC4\n";
+        let config = Config::parse("printer.cfg", text).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let setup = McuSetup::new(&machine, 16e6, 1023, typical_mcu(), 0);
+        let mut lines: heapless::Vec<heapless::String<128>, 16> = heapless::Vec::new();
+        let oids = write_config(&machine, &setup, "ext", &|_| 32, &mut |l| {
+            let _ = lines.push(heapless::String::try_from(l).expect("short"));
+        });
+        // The stepper's oid is given at creation; the outputs' (and the
+        // enable pin's) as their config is written: the fans and pins
+        // first (klippy loads them before the toolhead).
+        let expected = [
+            "allocate_oids count=5",
+            "config_digital_out oid=1 pin=PC0 value=0 default_value=0 max_duration=0",
+            "set_digital_out_pwm_cycle oid=1 cycle_ticks=160000",
+            "config_digital_out oid=2 pin=PC1 value=1 default_value=0 max_duration=0",
+            "set_digital_out_pwm_cycle oid=2 cycle_ticks=160000",
+            "config_digital_out oid=3 pin=PC2 value=1 default_value=1 max_duration=32000000",
+            "set_digital_out pin=PC3 value=1",
+            "set_digital_out pin=PC4 value=0",
+            "config_stepper oid=0 step_pin=PB0 dir_pin=PB1 invert_step=0 step_pulse_ticks=32",
+            "config_digital_out oid=4 pin=PA1 value=1 default_value=1 max_duration=0",
+        ];
+        let lines: heapless::Vec<&str, 16> = lines.iter().map(|l| l.as_str()).collect();
+        assert_eq!(lines[..], expected);
+        // Io order: no heaters, the part fan, the named fans, the pin.
+        assert_eq!(oids.outputs[..4], [Some(1), None, Some(2), Some(3)]);
+        assert_eq!(oids.enables[2], Some(4));
+    }
 
     #[test]
     fn pins_name_their_mcu_after_the_modifiers() {

@@ -26,6 +26,9 @@ const AUX: &str = "gpiochip0/gpio21";
 const LIGHT: &str = "gpiochip0/gpio22";
 /// A `[heater_fan]`'s (for the extruder, whose heater is the main MCU's).
 const HOTEND_FAN: &str = "gpiochip0/gpio23";
+/// The output pin's maximum_mcu_duration, s: the MCU shuts down if its
+/// value is not sent again within it.
+const AUX_MAX_DURATION: f64 = 0.5;
 /// The part fan's cycle_time, s (Klipper's default).
 const FAN_CYCLE: f64 = 0.010;
 
@@ -39,7 +42,7 @@ fn printer_with_outputs_on_the_peer(sd: &Path, serial: &Path) {
     let moved = text.replace("[fan]\npin: PA8", &format!("[fan]\npin: ext:{FAN}"));
     assert!(moved.contains("pin: ext:gpiochip0/gpio20"), "[fan] moved");
     let extra = format!(
-        "\n[output_pin aux]\npin: ext:{AUX}\n\
+        "\n[output_pin aux]\npin: ext:{AUX}\nmaximum_mcu_duration: {AUX_MAX_DURATION}\n\
          \n[static_digital_output light]\npins: ext:{LIGHT}\n\
          \n[heater_fan hotend]\npin: ext:{HOTEND_FAN}\nheater: extruder\n"
     );
@@ -120,11 +123,12 @@ fn the_part_fan_on_a_linux_mcu_makes_software_pwm_from_m106_and_pins_follow_set_
     let last = levels.last().copied().unwrap_or((0.0, true));
     assert!(!last.1, "fan on after M107: {last:?}");
     let off_at = last.0;
-    // SET_PIN: on, then off.
+    // SET_PIN: on for three times its maximum_mcu_duration (its value
+    // sent again in time), then off.
     for (value, high) in [(1, true), (0, false)] {
         let replies = p.send(&format!("SET_PIN PIN=aux VALUE={value}"));
         assert!(!replies.contains("!!"), "{replies}");
-        p.run_for(0.4);
+        p.run_for(3.0 * AUX_MAX_DURATION);
         assert_eq!(
             peer.levels(AUX).last().map(|l| l.1),
             Some(high),
@@ -132,6 +136,8 @@ fn the_part_fan_on_a_linux_mcu_makes_software_pwm_from_m106_and_pins_follow_set_
         );
     }
     assert_eq!(peer.levels(AUX).iter().filter(|l| l.1).count(), 1);
+    let replies = p.send("M105");
+    assert!(!replies.contains("!!"), "{replies}");
     // Nothing moved the fan since M107.
     assert_eq!(peer.levels(FAN).last().map(|l| l.0), Some(off_at));
 }
