@@ -22,7 +22,9 @@
 //! `MCU_digital_out`: `config_digital_out` with the start and shutdown
 //! levels (inverted for a `!` pin, as klippy inverts on the host) and
 //! max_duration, `set_digital_out_pwm_cycle` for software PWM; a static
-//! pin is `set_digital_out` and has no object id.
+//! pin is `set_digital_out` and has no object id. A hardware PWM output
+//! (klippy's `config_pwm_out`, scaled by the MCU's PWM_MAX) is not
+//! configured yet: the host refuses it.
 //!
 //! A pin belongs to the MCU its prefix names (`ext:PA4`, `!ext:PA4`);
 //! without one, or with `mcu:`, to the main MCU.
@@ -322,10 +324,10 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             }
         }
         Object::Output(k) => {
-            let on_this = setup
-                .outputs
-                .get(k)
-                .is_some_and(|(pin, _)| on_mcu(Some(pin)));
+            // Hardware PWM is not configured on a secondary (refused).
+            let on_this = setup.outputs.get(k).is_some_and(|(pin, config)| {
+                on_mcu(Some(pin)) && config.kind != OutputKind::HardPwm
+            });
             if on_this && k < statics {
                 oids.outputs[k] = Some(take());
             }

@@ -205,3 +205,27 @@ fn a_heater_fan_and_an_enable_pin_on_a_linux_mcu_follow_their_heater_and_stepper
     assert_eq!(peer.levels(HOTEND_FAN).last().map(|l| l.1), Some(true));
     assert_eq!(peer.levels(pins.enable).last().map(|l| l.1), Some(true));
 }
+
+#[test]
+fn hardware_pwm_on_a_secondary_is_refused_naming_the_pin() {
+    let sd = std::env::temp_dir().join(format!("onechip-hard-pwm-{}", std::process::id()));
+    let serial = sd.join("no-such-mcu");
+    printer_with_outputs_on_the_peer(&sd, &serial);
+    let cfg = sd.join("printer.cfg");
+    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
+    let hard = text.replace(
+        &format!("[fan]\npin: ext:{FAN}"),
+        &format!("[fan]\npin: ext:{FAN}\nhardware_pwm: True"),
+    );
+    std::fs::write(&cfg, hard).expect("printer.cfg");
+    let refused = ConsolePrinter::new(&sd, &Options::default()).err();
+    let _ = std::fs::remove_dir_all(&sd);
+    let message = refused.map(|e| e.to_string()).unwrap_or_default();
+    assert!(
+        message.contains("option 'serial' in section 'mcu ext'")
+            && message.contains(&format!(
+                "pin 'ext:{FAN}': hardware_pwm on a secondary MCU is not supported yet"
+            )),
+        "{message}"
+    );
+}

@@ -354,7 +354,7 @@ impl Secondaries {
                 return Err(ConnectError::Mcu {
                     mcu: secondary.name.to_string(),
                     at: (file.to_string(), line),
-                    error: Box::new(ConnectError::Reset(format!(
+                    error: Box::new(ConnectError::Unsupported(format!(
                         "pin '{pin}': hardware_pwm on a secondary MCU is not supported yet"
                     ))),
                 });
