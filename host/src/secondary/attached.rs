@@ -79,6 +79,22 @@ struct RemoteOutput {
 }
 
 impl RemoteOutput {
+    /// Output `oid` on MCU `mcu` (index into `attached`), software PWM of
+    /// `cycle_ticks` (0: steady), active low if `inverted`; nothing sent
+    /// yet.
+    fn new(mcu: usize, oid: u8, cycle_ticks: u32, inverted: bool) -> Self {
+        Self {
+            mcu,
+            oid,
+            cycle_ticks,
+            inverted,
+            last_clock: 0,
+            pending: VecDeque::new(),
+            delay: 0.0,
+            last_at: 0.0,
+        }
+    }
+
     /// The update to `level` (0..1) at `clock` as the MCU takes it: on
     /// ticks of its cycle, or on/off.
     fn command(&self, clock: u64, level: f64) -> String {
@@ -461,16 +477,7 @@ impl Secondaries {
                 OutputKind::Digital { cycle_ticks } => cycle_ticks,
                 OutputKind::HardPwm => 0,
             };
-            let mut output = RemoteOutput {
-                mcu: k,
-                oid,
-                cycle_ticks,
-                inverted: pin_ref(pin).inverted,
-                last_clock: 0,
-                pending: VecDeque::new(),
-                delay: 0.0,
-                last_at: 0.0,
-            };
+            let mut output = RemoteOutput::new(k, oid, cycle_ticks, pin_ref(pin).inverted);
             let full = full_scale(config.kind);
             if cycle_ticks > 0 {
                 output.pending.push_back((start, level(config.value, full)));
@@ -488,16 +495,7 @@ impl Secondaries {
                 (self.enables.iter()).position(|e| e.output.mcu == k && e.output.oid == oid);
             let e = shared.unwrap_or_else(|| {
                 self.enables.push(RemoteEnable {
-                    output: RemoteOutput {
-                        mcu: k,
-                        oid,
-                        cycle_ticks: 0,
-                        inverted: pin_ref(pin).inverted,
-                        last_clock: 0,
-                        pending: VecDeque::new(),
-                        delay: 0.0,
-                        last_at: 0.0,
-                    },
+                    output: RemoteOutput::new(k, oid, 0, pin_ref(pin).inverted),
                     count: 0,
                 });
                 self.enables.len() - 1
@@ -569,7 +567,9 @@ impl Secondaries {
     }
 
     /// Sends each output's next update once the one before it has taken
-    /// effect on its MCU (host time `now`, s); after a shutdown none.
+    /// effect on its MCU (host time `now`, s), at least [`OUTPUT_LEAD`]
+    /// ahead of the MCU's clock (one that waited for an update at the
+    /// same clock would come too late); after a shutdown none.
     fn send_outputs(&mut self, now: f64) {
         let stopped = self.stopped || self.failure.is_some();
         let outputs = (self.outputs.iter_mut().flatten()).map(|(o, _)| o);
@@ -579,13 +579,16 @@ impl Secondaries {
                 continue;
             }
             let conn = self.attached[output.mcu].mcu.connection();
-            let Some(mcu_now) = conn.clock().map(|s| s.clock_at(now)) else {
+            let Some(sync) = conn.clock() else {
                 continue;
             };
+            let mcu_now = sync.clock_at(now);
+            let soonest = sync.clock_at(now + OUTPUT_LEAD);
             while mcu_now >= output.last_clock
                 && let Some(&(clock, level)) = output.pending.front()
                 && conn.queued() + 1 < OUTBOX
             {
+                let clock = clock.max(soonest);
                 let _ = conn.send_text(&output.command(clock, level), 0);
                 output.last_clock = clock;
                 output.pending.pop_front();
