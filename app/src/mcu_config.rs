@@ -6,19 +6,30 @@
 //! Object ids: endstops (with their trsync) and steppers take theirs when
 //! created: the `[extruder_stepper]`s' (klippy loads them with the other
 //! extra sections, before the toolhead), the rails, then the extruder's
-//! stepper; enable pins, heater sensors and heater outputs take theirs
-//! when their config is written. Config order: each `[extruder_stepper]`'s
-//! stepper and enable pin, each rail's endstop, trsync, stepper and enable
-//! pin; the extruder's heater (sensor, output) before its stepper and
-//! enable pin; then the other heaters. (Checked against klippy for
-//! the golden configs, which have neither a `[heater_bed]` nor an
-//! `[extruder_stepper]`: the order of those two follows from when klippy
-//! creates them, not from a recorded session.)
+//! stepper; enable pins, heater sensors and heater, fan and pin outputs
+//! take theirs when their config is written. Config order: each
+//! `[extruder_stepper]`'s stepper and enable pin; the part fan, the named
+//! fans, the `[output_pin]`s and the `[static_digital_output]` pins (extra
+//! sections, which klippy loads before the toolhead); each rail's endstop,
+//! trsync, stepper and enable pin; the extruder's heater (sensor, output)
+//! before its stepper and enable pin; then the other heaters. (Checked
+//! against klippy for the golden configs, which have no `[heater_bed]`,
+//! `[extruder_stepper]`, fan or pin: the order of those follows from when
+//! klippy creates them, not from a recorded session; among the extra
+//! sections klippy follows printer.cfg's order, here the order above.)
+//!
+//! Fans and pins are configured as klippy's `MCU_pwm` and
+//! `MCU_digital_out`: `config_digital_out` with the start and shutdown
+//! levels (inverted for a `!` pin, as klippy inverts on the host) and
+//! max_duration, `set_digital_out_pwm_cycle` for software PWM; a static
+//! pin is `set_digital_out` and has no object id. A hardware PWM output
+//! (klippy's `config_pwm_out`, scaled by the MCU's PWM_MAX) is not
+//! configured yet: the host refuses it.
 //!
 //! A pin belongs to the MCU its prefix names (`ext:PA4`, `!ext:PA4`);
 //! without one, or with `mcu:`, to the main MCU.
 
-use crate::heaters::McuSetup;
+use crate::heaters::{McuSetup, OUTPUTS, full_scale};
 use core::fmt::{self, Write};
 use onechip_planner::extruder_stepper::EXTRUDER;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
@@ -76,6 +87,9 @@ pub struct Oids {
     pub enables: [Option<u8>; MAX_STEPPERS],
     /// Each heater's sensor and output (by `machine.heaters` index).
     pub heaters: [Option<(u8, u8)>; 2],
+    /// Each fan's or pin's output, by its index in [`McuSetup::outputs`]
+    /// (the MCU role's io order; heaters and static pins have none).
+    pub outputs: [Option<u8>; OUTPUTS],
     /// Object ids in all (`allocate_oids count`).
     pub count: u8,
 }
@@ -87,6 +101,9 @@ enum Object {
     Stepper(usize),
     /// Heater `h` of the machine (its sensor and output).
     Heater(usize),
+    /// Output `k` of [`McuSetup::outputs`]: the part fan, a named fan, an
+    /// output pin or a static pin.
+    Output(usize),
 }
 
 /// The `[extruder_stepper]`s' steppers (by `machine.steppers` index), in
@@ -112,11 +129,13 @@ fn in_creation_order<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = usize
 }
 
 /// Calls `f` with each object in klippy's config order: the
-/// `[extruder_stepper]`s, the rails, then the heaters, the extruder's
-/// stepper right after the extruder's heater (or after the heaters if it
-/// has none).
-fn in_config_order(machine: &Machine<'_>, mut f: impl FnMut(Object)) {
+/// `[extruder_stepper]`s, the fans and pins (`outputs`: how many
+/// [`McuSetup::outputs`] there are), the rails, then the heaters, the
+/// extruder's stepper right after the extruder's heater (or after the
+/// heaters if it has none).
+fn in_config_order(machine: &Machine<'_>, outputs: usize, mut f: impl FnMut(Object)) {
     extra_extruder_steppers(machine).for_each(|i| f(Object::Stepper(i)));
+    (machine.heaters.len()..outputs).for_each(|k| f(Object::Output(k)));
     (0..machine.motion_steppers()).for_each(|i| f(Object::Stepper(i)));
     let extruder = machine
         .extruder_steppers
@@ -151,14 +170,81 @@ pub fn write_config(
     let mut line = Line::new();
     let mut enables = heapless::Vec::new();
     line.emit(out, format_args!("allocate_oids count={}", oids.count));
-    in_config_order(machine, |object| match object {
+    in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
             let ticks = pulse_ticks(i);
             write_stepper(machine, &oids, i, ticks, &mut enables, &mut line, out);
         }
         Object::Heater(h) => write_heater(machine, setup, &oids, h, &mut line, out),
+        Object::Output(k) => write_output(machine, setup, mcu, &oids, k, &mut line, out),
     });
     oids
+}
+
+/// The first of [`McuSetup::outputs`] that is a static pin: they come
+/// last.
+fn first_static(machine: &Machine<'_>) -> usize {
+    let a = &machine.accessories;
+    machine.heaters.len() + usize::from(machine.fan.is_some()) + a.fans.len() + a.output_pins.len()
+}
+
+/// Writes fan or pin output `k` of `setup`, if on MCU `mcu`.
+fn write_output(
+    machine: &Machine<'_>,
+    setup: &McuSetup<'_>,
+    mcu: &str,
+    oids: &Oids,
+    k: usize,
+    line: &mut Line,
+    out: &mut dyn FnMut(&str),
+) {
+    let Some(&(written, config)) = setup.outputs.get(k) else {
+        return;
+    };
+    let pin = pin_ref(written);
+    if pin.mcu != mcu {
+        return;
+    }
+    if k >= first_static(machine) {
+        let on = u8::from(!pin.inverted);
+        line.emit(
+            out,
+            format_args!("set_digital_out pin={} value={on}", pin.pin),
+        );
+        return;
+    }
+    let Some(oid) = oids.outputs.get(k).copied().flatten() else {
+        return;
+    };
+    // Levels as fractions of full scale, inverted for a `!` pin.
+    let full = full_scale(config.kind);
+    let level = |value: u32| {
+        let f = if full == 0 {
+            f64::from(u8::from(value != 0))
+        } else {
+            f64::from(value) / f64::from(full)
+        };
+        if pin.inverted { 1.0 - f } else { f }
+    };
+    let (start, shutdown) = (level(config.value), level(config.default));
+    line.emit(
+        out,
+        format_args!(
+            "config_digital_out oid={oid} pin={} value={} default_value={} max_duration={}",
+            pin.pin,
+            u8::from(start >= 1.0),
+            u8::from(shutdown >= 0.5),
+            config.max_duration
+        ),
+    );
+    if let OutputKind::Digital { cycle_ticks } = config.kind
+        && cycle_ticks > 0
+    {
+        line.emit(
+            out,
+            format_args!("set_digital_out_pwm_cycle oid={oid} cycle_ticks={cycle_ticks}"),
+        );
+    }
 }
 
 /// Writes heater `h`'s sensor and output, if on this MCU.
@@ -217,7 +303,8 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
         }
     }
     // Given out as the config is written.
-    in_config_order(machine, |object| match object {
+    let statics = first_static(machine);
+    in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
             let stepper = &machine.steppers[i];
             if oids.steppers[i].is_some() && on_mcu(stepper.enable_pin) {
@@ -234,6 +321,15 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
                 && setup.outputs.get(h).is_some()
             {
                 oids.heaters[h] = Some((take(), take()));
+            }
+        }
+        Object::Output(k) => {
+            // Hardware PWM is not configured on a secondary (refused).
+            let on_this = setup.outputs.get(k).is_some_and(|(pin, config)| {
+                on_mcu(Some(pin)) && config.kind != OutputKind::HardPwm
+            });
+            if on_this && k < statics {
+                oids.outputs[k] = Some(take());
             }
         }
     });
@@ -314,6 +410,52 @@ impl Line {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::heaters::tests::typical_mcu;
+    use onechip_config::Config;
+
+    #[test]
+    fn fans_and_pins_on_a_secondary_are_configured_as_klippys_pwm_and_digital_outs() {
+        let text = "[mcu ext]\nserial: /dev/null\n\
+            [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\n\
+            rotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_z]\nstep_pin: ext:PB0\ndir_pin: ext:PB1\nenable_pin: !ext:PA1\n\
+            microsteps: 16\nrotation_distance: 8\nposition_endstop: 0\nposition_max: 200\n\
+            [fan]\npin: ext:PC0\n\
+            [fan_generic aux]\npin: PA8\n\
+            [heater_fan hot]\npin: !ext:PC1\nheater:\n\
+            [output_pin light]\npin: ext:PC2\nvalue: 1\nshutdown_value: 1\nmaximum_mcu_duration: 2\n\
+            [static_digital_output leds]\npins: ext:PC3, !ext:PC4\n";
+        let config = Config::parse("printer.cfg", text).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let setup = McuSetup::new(&machine, 16e6, 1023, typical_mcu(), 0);
+        let mut lines: heapless::Vec<heapless::String<128>, 16> = heapless::Vec::new();
+        let oids = write_config(&machine, &setup, "ext", &|_| 32, &mut |l| {
+            let _ = lines.push(heapless::String::try_from(l).expect("short"));
+        });
+        // The stepper's oid is given at creation; the outputs' (and the
+        // enable pin's) as their config is written: the fans and pins
+        // first (klippy loads them before the toolhead).
+        let expected = [
+            "allocate_oids count=5",
+            "config_digital_out oid=1 pin=PC0 value=0 default_value=0 max_duration=0",
+            "set_digital_out_pwm_cycle oid=1 cycle_ticks=160000",
+            "config_digital_out oid=2 pin=PC1 value=1 default_value=0 max_duration=0",
+            "set_digital_out_pwm_cycle oid=2 cycle_ticks=160000",
+            "config_digital_out oid=3 pin=PC2 value=1 default_value=1 max_duration=32000000",
+            "set_digital_out pin=PC3 value=1",
+            "set_digital_out pin=PC4 value=0",
+            "config_stepper oid=0 step_pin=PB0 dir_pin=PB1 invert_step=0 step_pulse_ticks=32",
+            "config_digital_out oid=4 pin=PA1 value=1 default_value=1 max_duration=0",
+        ];
+        let lines: heapless::Vec<&str, 16> = lines.iter().map(|l| l.as_str()).collect();
+        assert_eq!(lines[..], expected);
+        // Io order: no heaters, the part fan, the named fans, the pin.
+        assert_eq!(oids.outputs[..4], [Some(1), None, Some(2), Some(3)]);
+        assert_eq!(oids.enables[2], Some(4));
+    }
 
     #[test]
     fn pins_name_their_mcu_after_the_modifiers() {

@@ -346,8 +346,6 @@ pub struct AccessoryNames<'a> {
     fans: heapless::Vec<&'a str, MAX_FANS>,
     cooling: heapless::Vec<CoolingName<'a>, MAX_COOLING>,
     pins: heapless::Vec<PinName<'a>, MAX_OUTPUT_PINS>,
-    /// Any controller fan: motors on/off matter.
-    controller_fans: bool,
 }
 
 impl<'a> AccessoryNames<'a> {
@@ -371,16 +369,7 @@ impl<'a> AccessoryNames<'a> {
                     cycle_time: p.cycle_time,
                 })
                 .collect(),
-            controller_fans: accessories
-                .fans
-                .iter()
-                .any(|f| matches!(f.role, FanRole::Controller { .. })),
         }
-    }
-
-    /// True if controller fans follow the motors.
-    pub fn watches_motors(&self) -> bool {
-        self.controller_fans
     }
 
     /// The command `line` gives, if it is SET_FAN_SPEED, SET_PIN or

@@ -208,7 +208,8 @@ impl<'a, const N: usize> Printer<'a, N> {
     }
 
     /// Klipper enables the stepper drivers with a move and disables them
-    /// with M84/M18: controller fans follow.
+    /// with M84/M18: controller fans follow, and so do the enable pins on
+    /// secondary MCUs.
     fn note_motors(&mut self, line: &Line<'_>) {
         let Command::Traditional(t) = line.command else {
             return;
@@ -218,7 +219,9 @@ impl<'a, const N: usize> Printer<'a, N> {
             (b'M', 18 | 84) => false,
             _ => return,
         };
-        if on != self.motors && self.accessories.watches_motors() {
+        // A motor off always goes out: drivers may have been enabled by
+        // moves that were no G-code moves (probing, homing overrides).
+        if on != self.motors || !on {
             self.motors = on;
             self.push_thermal(ThermalCommand::Accessory(AccessoryCommand::Motors(on)));
         }

@@ -137,6 +137,9 @@ pub struct Plant {
     pub spi_fault: Option<(u64, usize, u32)>,
     /// Every register write to an SPI chip: its input and the bytes.
     pub spi_writes: Vec<(usize, Vec<u8>)>,
+    /// If kept, the output updates queued since last taken: output,
+    /// clock, value (for the outputs on secondary MCUs).
+    pub queued: Option<Vec<(usize, u32, u32)>>,
 }
 
 impl Plant {
@@ -191,6 +194,7 @@ impl Plant {
             open_sensor: None,
             spi_fault: None,
             spi_writes: Vec::new(),
+            queued: None,
         }
     }
 
@@ -296,6 +300,12 @@ impl Peripherals for Plant {
         if let Some(lump) = self.lumps.get_mut(index) {
             lump.advance(now, freq);
             lump.power = power;
+        }
+    }
+
+    fn queued(&mut self, index: usize, clock: u32, value: u32) {
+        if let Some(queued) = &mut self.queued {
+            queued.push((index, clock, value));
         }
     }
 

@@ -17,6 +17,7 @@ use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::{StallDetect, TmcSim};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand, Wait};
+use onechip_app::outputs::AccessoryCommand;
 use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
@@ -207,6 +208,9 @@ impl StepPins for Recorder {
 /// Longest stretch of virtual time between two services of the secondary
 /// MCUs' links, s.
 const SECONDARY_SERVICE: f64 = 0.001;
+/// How long after a motor off's command its enable pins go inactive, s
+/// (klippy's DISABLE_STALL_TIME).
+const DISABLE_STALL_TIME: f64 = 0.100;
 
 /// The virtual MCU.
 pub struct VirtualMcu {
@@ -317,6 +321,9 @@ impl VirtualMcu {
     fn start_heaters(&mut self, machine: &Machine<'_>, freq: f64) {
         let mut plant = Plant::new(machine, freq);
         plant.now = self.now;
+        if self.secondaries.is_some() {
+            plant.queued = Some(Vec::new());
+        }
         let first = self.now + (FIRST_REPORT * freq) as u64;
         let heaters = Heaters::new(
             machine,
@@ -359,6 +366,12 @@ impl VirtualMcu {
 
     /// Carries out a heater or fan command now.
     pub fn thermal_command(&mut self, command: ThermalCommand) {
+        if command == ThermalCommand::Accessory(AccessoryCommand::Motors(false)) {
+            let at = self.host_time() + DISABLE_STALL_TIME;
+            if let Some(s) = &mut self.secondaries {
+                s.motors_off(at);
+            }
+        }
         let now = self.now;
         if let Some((heaters, plant)) = &mut self.thermal {
             plant.now = now;
@@ -367,6 +380,7 @@ impl VirtualMcu {
             }
             self.update_io_wake();
         }
+        self.forward_outputs();
     }
 
     /// Filament switch sensor `sensor`'s switch reads filament `present`
@@ -460,6 +474,22 @@ impl VirtualMcu {
     /// now on (virtual time must be paced: they run in real time).
     pub fn attach(&mut self, secondaries: Secondaries) {
         self.secondaries = Some(secondaries);
+        if let Some((_, plant)) = &mut self.thermal {
+            plant.queued = Some(Vec::new());
+        }
+    }
+
+    /// Sends the output updates the heaters' io queued since last time to
+    /// the secondaries, for the outputs on them.
+    fn forward_outputs(&mut self) {
+        let now = self.host_time();
+        let (Some((_, plant)), Some(s)) = (&mut self.thermal, &mut self.secondaries) else {
+            return;
+        };
+        for (index, clock, value) in plant.queued.iter_mut().flat_map(|q| q.drain(..)) {
+            let clock = onechip_sched::clock::widen(clock, self.now);
+            s.queue_output(index, clock, value, now);
+        }
     }
 
     /// The secondary MCUs, if any.
@@ -609,6 +639,7 @@ impl VirtualMcu {
             self.wake = None;
         }
         self.update_io_wake();
+        self.forward_outputs();
     }
 
     /// Why the MCU shut down, if it did.

@@ -33,6 +33,13 @@ pub trait Peripherals {
         let _ = index;
         data.fill(0);
     }
+    /// Output `index` took an update: `value` (on ticks, or duty) from
+    /// `clock` on. Hardware that drives some outputs elsewhere (on a
+    /// secondary MCU) sends it on from here; the rest need not implement
+    /// it.
+    fn queued(&mut self, index: usize, clock: u32, value: u32) {
+        let _ = (index, clock, value);
+    }
 }
 
 /// An input: an ADC channel, or an SPI temperature chip.
@@ -159,6 +166,10 @@ impl<const O: usize, const A: usize> Io<O, A> {
             Err(QueueError::Late) => {
                 self.shutdown(Shutdown::TimerTooClose, hw);
                 Err(QueueError::Late)
+            }
+            Ok(()) => {
+                hw.queued(index, clock, value);
+                Ok(())
             }
             other => other,
         }

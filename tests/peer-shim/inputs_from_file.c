@@ -2,7 +2,9 @@
 // as it is) with inputs a test can change while the MCU runs: every
 // input read returns the first byte of the file FAKEGPIO_IN_FILE as a
 // digit ('0' or '1'), or FAKEGPIO_IN's value as before if that variable
-// is not set. Build: cc -shared -fPIC -O2 -I <peers>/linux -o X.so
+// is not set. An output line's level when it is requested (its default
+// value, which the shim does not log) is logged too, as a write, so that
+// a pin set up on or off shows in the log. Build: cc -shared -fPIC -O2 -I <peers>/linux -o X.so
 // inputs_from_file.c -ldl
 #define ioctl fakegpio_ioctl
 #include "fakegpio.c"
@@ -17,6 +19,16 @@ int ioctl(int fd, unsigned long req, ...)
     va_start(ap, req);
     void *arg = va_arg(ap, void *);
     va_end(ap);
+    if (req == GPIO_GET_LINEHANDLE_IOCTL && fd >= 0 && fd < MAXFD
+        && fd_kind[fd] == 1) {
+        struct gpiohandle_request *r = arg;
+        int ret = fakegpio_ioctl(fd, req, arg);
+        if (ret == 0 && (r->flags & GPIOHANDLE_REQUEST_OUTPUT)) {
+            struct gpiohandle_data d = { .values = { r->default_values[0] } };
+            fakegpio_ioctl(r->fd, GPIOHANDLE_SET_LINE_VALUES_IOCTL, &d);
+        }
+        return ret;
+    }
     if (req == GPIOHANDLE_GET_LINE_VALUES_IOCTL && fd >= 0 && fd < MAXFD
         && fd_kind[fd] == 2) {
         if (input_fd == -1) {

@@ -173,7 +173,8 @@ impl Peer {
 
     /// A Linux MCU whose inputs the test sets while it runs
     /// ([`Self::set_inputs`]; they read 0 at first), through the project's
-    /// wrapper of the peer's GPIO shim (`tests/peer-shim`, built with `cc`).
+    /// wrapper of the peer's GPIO shim (`tests/peer-shim`, built with `cc`),
+    /// which also logs each output's level when it is set up.
     ///
     /// # Panics
     ///
@@ -331,6 +332,17 @@ impl Peer {
         let _ = self.child.wait();
     }
 
+    /// Every change of `pin`'s level in the pin log (its first write
+    /// counts as one): the time (s, as [`Self::rising_edges`]) and the new
+    /// level.
+    pub fn levels(&self, pin: &str) -> Vec<(f64, bool)> {
+        let text = std::fs::read_to_string(&self.pin_log).unwrap_or_default();
+        changes(&text)
+            .filter(|c| c.name == pin && c.edge)
+            .map(|c| (c.time, c.high))
+            .collect()
+    }
+
     /// The rising edges in the pin log for `pin`: their times in seconds
     /// (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16 MHz).
     pub fn rising_edges(&self, pin: &str) -> Vec<f64> {
@@ -404,6 +416,8 @@ struct Change<'t> {
     high: bool,
     /// Low (or unknown) before, high now.
     rising: bool,
+    /// Another level (or unknown) before.
+    edge: bool,
 }
 
 /// The pin log's lines as changes (a write of the level a pin already
@@ -427,6 +441,7 @@ fn changes(text: &str) -> impl Iterator<Item = Change<'_>> {
                 name,
                 high,
                 rising: high && was != Some(true),
+                edge: was != Some(high),
             })
         })
 }

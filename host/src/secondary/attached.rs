@@ -6,24 +6,34 @@
 //! them): each secondary gets one more trsync for it (`config_trsync`
 //! after klippy's config), its steppers are tied to it, and an endstop on
 //! it is armed there.
+//!
+//! Fans, output pins and stepper enable pins on a secondary are driven
+//! there as klippy drives them ([`RemoteOutput`]): the MCU role's io runs
+//! the fans and pins as for the main MCU, and each update it queues for an
+//! output on a secondary goes out as `queue_digital_out` on that MCU's
+//! clock (its level inverted on the host for a `!` pin, as klippy does);
+//! an enable pin goes active with its stepper's first step and inactive
+//! at M84/M18. A shutdown is the MCU's own: `emergency_stop` puts every
+//! output at its configured shutdown value.
 
 use super::homing::Homing;
 use super::{ConnectError, Heard, Secondary, Start};
 use crate::thermal_plant::mcu_sensor;
-use onechip_app::heaters::McuSetup;
+use onechip_app::heaters::{McuSetup, full_scale};
 use onechip_app::mcu_config::{Oids, pin_ref, write_config};
 use onechip_app::step_pulse::pulse_ticks;
 use onechip_planner::machine::Machine;
 use onechip_planner::mcu_section::RestartMethod;
 use onechip_protocol::transport::LinkStats;
 use onechip_sched::engine::Full;
+use onechip_sched::outputs::OutputKind;
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 use onechip_secondary_mcu::connection::OUTBOX;
 use onechip_secondary_mcu::step_commands::StepCommandEncoder;
 use std::cell::Cell;
 use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, VecDeque};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -32,6 +42,90 @@ use std::time::{Duration, Instant};
 const CALIBRATE_PERIOD: f64 = 1.0;
 /// How long a secondary may take to connect.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
+/// How far ahead of now a software PWM output's start value is queued
+/// after the config phase, s (klippy's 0.2 s for its init command).
+const START_LEAD: f64 = 0.200;
+/// How long before its stepper's first step an enable pin goes active, s.
+const ENABLE_LEAD: f64 = 0.001;
+/// How far ahead of now an output update on a secondary must be when it
+/// is queued, s: the MCU role's io may queue one for now (klippy's are
+/// at least PIN_MIN_TIME ahead, or at the end of the queued moves), but
+/// it must reach the MCU before its clock.
+const OUTPUT_LEAD: f64 = 0.050;
+
+/// A fan's, output pin's or enable pin's output on a secondary, driven as
+/// klippy's `MCU_digital_out` and `MCU_pwm` drive theirs: one update at
+/// a time on the MCU (each output has one slot of its move queue), the
+/// next one sent once the MCU's clock has reached the one before.
+#[derive(Debug, Clone)]
+struct RemoteOutput {
+    /// Its MCU (index into `attached`).
+    mcu: usize,
+    /// Its oid there.
+    oid: u8,
+    /// Software PWM cycle on that MCU, ticks (0: steady on/off).
+    cycle_ticks: u32,
+    /// Active low (`!`): klippy inverts the level on the host.
+    inverted: bool,
+    /// The clock (that MCU's, 64-bit) of the last update sent.
+    last_clock: u64,
+    /// Updates not sent yet: clock, level (0..1 of full scale).
+    pending: VecDeque<(u64, f64)>,
+    /// How late (s) the updates queued while the last one was still to
+    /// come are sent, so that they keep their spacing (a fan's kick).
+    delay: f64,
+    /// Host time of the last update queued (its delay included), s.
+    last_at: f64,
+}
+
+impl RemoteOutput {
+    /// Output `oid` on MCU `mcu` (index into `attached`), software PWM of
+    /// `cycle_ticks` (0: steady), active low if `inverted`; nothing sent
+    /// yet.
+    fn new(mcu: usize, oid: u8, cycle_ticks: u32, inverted: bool) -> Self {
+        Self {
+            mcu,
+            oid,
+            cycle_ticks,
+            inverted,
+            last_clock: 0,
+            pending: VecDeque::new(),
+            delay: 0.0,
+            last_at: 0.0,
+        }
+    }
+
+    /// The update to `level` (0..1) at `clock` as the MCU takes it: on
+    /// ticks of its cycle, or on/off.
+    fn command(&self, clock: u64, level: f64) -> String {
+        let level = if self.inverted { 1.0 - level } else { level };
+        let on_ticks = match self.cycle_ticks {
+            0 => u32::from(level != 0.0),
+            cycle => (level.clamp(0.0, 1.0) * f64::from(cycle) + 0.5) as u32,
+        };
+        format!(
+            "queue_digital_out oid={} clock={} on_ticks={on_ticks}",
+            self.oid,
+            clock & 0xffff_ffff
+        )
+    }
+
+    /// Queues `level` at `clock`, never before an update queued earlier.
+    fn queue(&mut self, clock: u64, level: f64) {
+        let after = self.pending.back().map_or(self.last_clock, |p| p.0);
+        self.pending.push_back((clock.max(after), level));
+    }
+}
+
+/// A stepper's enable pin on a secondary: shared by the steppers that
+/// name the same pin, active while any of them is (klippy's enable
+/// count).
+#[derive(Debug, Clone)]
+struct RemoteEnable {
+    output: RemoteOutput,
+    /// Steppers enabled on it.
+    count: usize,
+}
 
 /// The secondaries among `attached` whose indices are `members` (a
 /// homing's), in order.
@@ -42,6 +136,25 @@ fn members<'a>(attached: &'a mut [Attached], members: &[usize]) -> Vec<&'a mut S
         .filter(|(k, _)| members.contains(k))
         .map(|(_, a)| &mut a.mcu)
         .collect()
+}
+
+/// An io output's `value` as a level, 0..1 of its `full` scale (0: a
+/// steady output, off or on).
+fn level(value: u32, full: u32) -> f64 {
+    match full {
+        0 => f64::from(u8::from(value != 0)),
+        full => f64::from(value) / f64::from(full),
+    }
+}
+
+/// The move queue slots an MCU with objects `oids` keeps for its outputs:
+/// one for each enable pin, heater, fan and pin output.
+fn reserved_slots(oids: &Oids) -> usize {
+    let mut enables: Vec<u8> = oids.enables.iter().flatten().copied().collect();
+    enables.sort_unstable();
+    enables.dedup();
+    let heaters = oids.heaters.iter().flatten().count();
+    enables.len() + heaters + oids.outputs.iter().flatten().count()
 }
 
 /// One connected secondary and its move queue.
@@ -56,6 +169,9 @@ struct Attached {
     trsync: u8,
     /// How it is reset (its `restart_method`).
     restart: RestartMethod,
+    /// Move queue slots kept for its outputs, one each (klippy's
+    /// `request_move_queue_slot`).
+    reserved: usize,
 }
 
 /// A rail's endstop on a secondary.
@@ -151,6 +267,14 @@ pub struct Secondaries {
     responses: Vec<(usize, String)>,
     /// Each stepper's step pulse, s (for configuring them again).
     pulses: Vec<f64>,
+    /// The MCU role's io outputs (by index) that are on a secondary, and
+    /// each one's full scale in the io (0: steady on/off).
+    outputs: Vec<Option<(RemoteOutput, u32)>>,
+    /// The enable pins on secondaries.
+    enables: Vec<RemoteEnable>,
+    /// Each stepper's enable pin (index into `enables`), if on a
+    /// secondary, and whether the stepper is enabled.
+    stepper_enables: Vec<Option<(usize, bool)>>,
 }
 
 impl Secondaries {
@@ -230,7 +354,28 @@ impl Secondaries {
             stopped: false,
             responses: Vec::new(),
             pulses,
+            outputs: Vec::new(),
+            enables: Vec::new(),
+            stepper_enables: vec![None; machine.steppers.len()],
         };
+        // The io's outputs, at the main clock.
+        let io = McuSetup::new(machine, freq, 0, mcu_sensor(), 0);
+        all.outputs = vec![None; io.outputs.len()];
+        for secondary in &machine.secondaries {
+            let hard = (io.outputs.iter().skip(machine.heaters.len())).find(|(pin, c)| {
+                pin_ref(pin).mcu == secondary.name && c.kind == OutputKind::HardPwm
+            });
+            if let Some((pin, _)) = hard {
+                let (file, line) = secondary.serial_at;
+                return Err(ConnectError::Mcu {
+                    mcu: secondary.name.to_string(),
+                    at: (file.to_string(), line),
+                    error: Box::new(ConnectError::Unsupported(format!(
+                        "pin '{pin}': hardware_pwm on a secondary MCU is not supported yet"
+                    ))),
+                });
+            }
+        }
         for secondary in &machine.secondaries {
             let name: &'static str = Box::leak(secondary.name.to_string().into_boxed_str());
             // The config depends on the MCU's clock (step pulses in its
@@ -261,7 +406,7 @@ impl Secondaries {
                     Secondary::connect_as(name, path, &lines, now, CONNECT_TIMEOUT, start)
                 }
             };
-            let mcu = mcu.map_err(|e| {
+            let mut mcu = mcu.map_err(|e| {
                 let (file, line) = secondary.serial_at;
                 ConnectError::Mcu {
                     mcu: name.to_string(),
@@ -271,6 +416,10 @@ impl Secondaries {
             })?;
             let dict = mcu.dictionary();
             let oids = oids.get();
+            let k = all.attached.len();
+            let sync = mcu.connection().clock().copied();
+            let start = sync.map_or(0, |s| s.clock_at(now() + START_LEAD));
+            all.add_outputs(machine, &io, &oids, k, mcu.clock_freq(), start);
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
                 let encoder = StepCommandEncoder::new(dict, oid, all.dir_inverted[i])
@@ -297,9 +446,154 @@ impl Secondaries {
                 slots: BinaryHeap::new(),
                 trsync: oids.count,
                 restart: secondary.restart_method,
+                reserved: reserved_slots(&oids),
             });
         }
         Ok(all)
+    }
+
+    /// Takes the fan, pin and enable outputs of MCU `k` (index into
+    /// `attached`, clock `mcu_freq` Hz), whose object ids are `oids`; `io`
+    /// is the MCU role's io at the main clock. A software PWM output gets
+    /// its start value at clock `start` (that MCU's), as klippy's init
+    /// command.
+    fn add_outputs(
+        &mut self,
+        machine: &Machine<'_>,
+        io: &McuSetup<'_>,
+        oids: &Oids,
+        k: usize,
+        mcu_freq: f64,
+        start: u64,
+    ) {
+        let there = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
+        for (index, oid) in oids.outputs.iter().enumerate() {
+            let (Some(oid), Some((pin, config)), Some((_, here))) =
+                (*oid, io.outputs.get(index), there.outputs.get(index))
+            else {
+                continue;
+            };
+            let cycle_ticks = match here.kind {
+                OutputKind::Digital { cycle_ticks } => cycle_ticks,
+                OutputKind::HardPwm => 0,
+            };
+            let mut output = RemoteOutput::new(k, oid, cycle_ticks, pin_ref(pin).inverted);
+            let full = full_scale(config.kind);
+            if cycle_ticks > 0 {
+                output.pending.push_back((start, level(config.value, full)));
+            }
+            if let Some(slot) = self.outputs.get_mut(index) {
+                *slot = Some((output, full));
+            }
+        }
+        for (i, oid) in oids.enables.iter().enumerate() {
+            let (Some(oid), Some(pin)) = (*oid, machine.steppers.get(i).and_then(|s| s.enable_pin))
+            else {
+                continue;
+            };
+            let shared =
+                (self.enables.iter()).position(|e| e.output.mcu == k && e.output.oid == oid);
+            let e = shared.unwrap_or_else(|| {
+                self.enables.push(RemoteEnable {
+                    output: RemoteOutput::new(k, oid, 0, pin_ref(pin).inverted),
+                    count: 0,
+                });
+                self.enables.len() - 1
+            });
+            self.stepper_enables[i] = Some((e, false));
+        }
+    }
+
+    /// The MCU role's io queued `value` for output `index` at main clock
+    /// `clock` (ticks, 64-bit) at host time `now` (s): if the output is on
+    /// a secondary, the update goes there at that time on its clock, or
+    /// [`OUTPUT_LEAD`] from now if that is later (and the updates after it
+    /// as late, while it is still to come).
+    pub fn queue_output(&mut self, index: usize, clock: u64, value: u32, now: f64) {
+        let Some(Some((output, full))) = self.outputs.get_mut(index) else {
+            return;
+        };
+        let Some(sync) = self.attached[output.mcu].mcu.connection().clock() else {
+            return;
+        };
+        let wanted = clock as f64 / self.freq;
+        let late = (now + OUTPUT_LEAD - wanted).max(0.0);
+        output.delay = if output.last_at > now {
+            late.max(output.delay)
+        } else {
+            late
+        };
+        output.last_at = wanted + output.delay;
+        output.queue(sync.clock_at(output.last_at), level(value, *full));
+    }
+
+    /// Stepper `stepper` steps from its MCU's clock `clock` (ticks) on:
+    /// its enable pin on a secondary goes active just before, if it was
+    /// not (klippy enables a stepper with its first move).
+    fn enable(&mut self, stepper: usize, clock: u64) {
+        let Some(Some((e, enabled))) = self.stepper_enables.get_mut(stepper) else {
+            return;
+        };
+        if std::mem::replace(enabled, true) {
+            return;
+        }
+        let Some(enable) = self.enables.get_mut(*e) else {
+            return;
+        };
+        enable.count += 1;
+        if enable.count == 1 {
+            let lead = (ENABLE_LEAD * self.attached[enable.output.mcu].mcu.clock_freq()) as u64;
+            enable.output.queue(clock.saturating_sub(lead), 1.0);
+        }
+    }
+
+    /// M84/M18 (or the idle timeout's): every enable pin on a secondary
+    /// goes inactive at host time `at` (s), as klippy's motor off.
+    pub fn motors_off(&mut self, at: f64) {
+        for (e, enabled) in self.stepper_enables.iter_mut().flatten() {
+            *enabled = false;
+            let Some(enable) = self.enables.get_mut(*e) else {
+                continue;
+            };
+            if enable.count == 0 {
+                continue;
+            }
+            enable.count = 0;
+            let conn = self.attached[enable.output.mcu].mcu.connection();
+            if let Some(sync) = conn.clock() {
+                enable.output.queue(sync.clock_at(at), 0.0);
+            }
+        }
+    }
+
+    /// Sends each output's next update once the one before it has taken
+    /// effect on its MCU (host time `now`, s), at least [`OUTPUT_LEAD`]
+    /// ahead of the MCU's clock (one that waited for an update at the
+    /// same clock would come too late); after a shutdown none.
+    fn send_outputs(&mut self, now: f64) {
+        let stopped = self.stopped || self.failure.is_some();
+        let outputs = (self.outputs.iter_mut().flatten()).map(|(o, _)| o);
+        for output in outputs.chain(self.enables.iter_mut().map(|e| &mut e.output)) {
+            if stopped {
+                output.pending.clear();
+                continue;
+            }
+            let conn = self.attached[output.mcu].mcu.connection();
+            let Some(sync) = conn.clock() else {
+                continue;
+            };
+            let mcu_now = sync.clock_at(now);
+            let soonest = sync.clock_at(now + OUTPUT_LEAD);
+            while mcu_now >= output.last_clock
+                && let Some(&(clock, level)) = output.pending.front()
+                && conn.queued() + 1 < OUTBOX
+            {
+                let clock = clock.max(soonest);
+                let _ = conn.send_text(&output.command(clock, level), 0);
+                output.last_clock = clock;
+                output.pending.pop_front();
+            }
+        }
     }
 
     /// True if stepper `stepper` is on a secondary.
@@ -338,7 +632,8 @@ impl Secondaries {
                 count,
                 add,
             } => {
-                if attached.slots.len() >= usize::from(attached.mcu.move_count) {
+                let room = usize::from(attached.mcu.move_count).saturating_sub(attached.reserved);
+                if attached.slots.len() >= room {
                     min_clock = attached.slots.pop().map_or(0, |Reverse(c)| c);
                 }
                 // Step k comes at clock + k × interval + k(k+1)/2 × add.
@@ -359,6 +654,9 @@ impl Secondaries {
             StepCommand::ResetClock(_) => {}
         }
         let _ = attached.mcu.connection().send(&bytes[..len], min_clock);
+        if matches!(cmd, StepCommand::Steps { .. }) {
+            self.enable(stepper, clock);
+        }
         Ok(())
     }
 
@@ -395,6 +693,7 @@ impl Secondaries {
                 self.failed_at = Some(Instant::now());
             }
         }
+        self.send_outputs(now);
         if let Some(h) = &mut self.homing {
             let mut mcus = members(&mut self.attached, &h.members);
             for (k, text) in &responses {

@@ -48,6 +48,8 @@ pub enum ConnectError {
     },
     /// The reset asked for could not be carried out (`restart_method`).
     Reset(String),
+    /// printer.cfg asks for something not supported on a secondary yet.
+    Unsupported(String),
     /// A secondary could not be brought up.
     Mcu {
         /// Its name (`[mcu NAME]`).
@@ -66,7 +68,7 @@ impl fmt::Display for ConnectError {
             Self::Timeout(phase) => write!(f, "Timeout during {phase}"),
             Self::Dictionary(e) => write!(f, "invalid data dictionary: {e}"),
             Self::Failed { mcu, why } => why.write(mcu, f),
-            Self::Reset(why) => f.write_str(why),
+            Self::Reset(why) | Self::Unsupported(why) => f.write_str(why),
             Self::Mcu { mcu, at, error } => write!(
                 f,
                 "{}:{}: option 'serial' in section 'mcu {mcu}': {error}",
