@@ -400,6 +400,21 @@ pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
 pub type BoardSession<'a> =
     Session<'a, { profile::LOOKAHEAD }, { profile::MOTION_QUEUE }, { profile::COMPRESS_QUEUE }>;
 
+impl<'a> BoardSession<'a> {
+    /// [`Session::init_in`] with the board's queue sizes, compiled here
+    /// (for size, as this crate) rather than in the firmware crate that
+    /// calls it: it runs once at start-up.
+    pub fn init_board_in<'s>(
+        slot: &'s mut MaybeUninit<Self>,
+        machine: &Machine<'a>,
+        freq: f64,
+        max_error: f64,
+        start: u64,
+    ) -> &'s mut Self {
+        Self::init_in(slot, machine, freq, max_error, start)
+    }
+}
+
 impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// A session for `machine` on a step clock of `freq` Hz, steps within
     /// `max_error` s, print time starting at clock `start` (ticks).

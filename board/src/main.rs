@@ -226,7 +226,7 @@ fn load_printer(
             .map_err(|e| error_text(&format_args!("[{}] {e}", sensor.section)))?;
         let _ = mcu.filament.push(input);
     }
-    let session = BoardSession::init_in(
+    let session = BoardSession::init_board_in(
         LoadArea::session(area),
         setup.machine(),
         step_timer::TIMER_HZ,
