@@ -148,7 +148,7 @@ fn serve(
         if let Some(incoming) = usb_console::try_line() {
             let event = incoming.event();
             let _ = console.line(
-                session.as_deref_mut(),
+                session.as_deref_mut().map(BoardSession::console),
                 &no_printer,
                 &event,
                 &mut card,
@@ -160,7 +160,12 @@ fn serve(
             }
             continue;
         }
-        let _ = console.poll(session.as_deref_mut(), &mut card, &mut mcu, &mut out);
+        let _ = console.poll(
+            session.as_deref_mut().map(BoardSession::console),
+            &mut card,
+            &mut mcu,
+            &mut out,
+        );
         if !console.is_printing() {
             mcu.wait(u64::MAX);
         }
