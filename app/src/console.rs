@@ -8,7 +8,7 @@
 //! The console answers what concerns the console itself (M110, M115,
 //! M105, auto-reports with M155 and M27 S, M117/M118/M73), the SD card
 //! ([`crate::sd_print`]), M112 and restarts; every other command runs in
-//! the [`Session`]. While a file prints from the card, [`Console::poll`]
+//! the [`Session`](crate::session::Session). While a file prints from the card, [`Console::poll`]
 //! runs its lines one at a time between console lines.
 
 use crate::card::Card;
@@ -16,7 +16,7 @@ use crate::filament::FilamentEvent;
 use crate::line::{LineEvent, command_word};
 use crate::line_protocol::{Checked, LineNumbers, write_refusal};
 use crate::sd_print::{SdError, SdPrint};
-use crate::session::{Mcu, Session, profile::MAX_LINE};
+use crate::session::{ConsoleSession, Mcu, profile::MAX_LINE};
 use crate::text::ErrorText;
 use core::fmt::{self, Write};
 use onechip_config::decimal;
@@ -122,9 +122,9 @@ impl Console {
     /// Answers one console event: through `session`, or without a printer
     /// (no valid printer.cfg) with `no_printer` as the error of every
     /// command that needs one.
-    pub fn line<const L: usize, const N: usize, const Q: usize>(
+    pub fn line(
         &mut self,
-        session: Option<&mut Session<'_, L, N, Q>>,
+        session: Option<&mut dyn ConsoleSession<'_>>,
         no_printer: &ErrorText,
         event: &LineEvent<'_>,
         card: &mut impl Card,
@@ -163,11 +163,11 @@ impl Console {
     }
 
     /// To call whenever woken without a console line: the session's timers
-    /// ([`Session::idle`], every [`IDLE_PERIOD`] at most), the auto-reports
+    /// ([`Session::idle`](crate::session::Session::idle), every [`IDLE_PERIOD`] at most), the auto-reports
     /// that are due, and the next line of a file printing from the card.
-    pub fn poll<const L: usize, const N: usize, const Q: usize>(
+    pub fn poll(
         &mut self,
-        mut session: Option<&mut Session<'_, L, N, Q>>,
+        mut session: Option<&mut dyn ConsoleSession<'_>>,
         card: &mut impl Card,
         mcu: &mut impl Mcu,
         out: &mut impl Write,
@@ -239,10 +239,10 @@ impl Console {
     /// the print pauses (a print from the card as PAUSE does; a host's
     /// print is told `action:paused`), then the event's G-code runs, each
     /// line as a file line would.
-    fn filament<const L: usize, const N: usize, const Q: usize>(
+    fn filament(
         &mut self,
         event: FilamentEvent<'_>,
-        session: &mut Session<'_, L, N, Q>,
+        session: &mut dyn ConsoleSession<'_>,
         card: &mut impl Card,
         mcu: &mut impl Mcu,
         out: &mut impl Write,
@@ -299,11 +299,11 @@ impl Console {
 
     /// Runs one command; returns true if it wrote its own `ok`.
     #[allow(clippy::too_many_arguments)]
-    fn command<const L: usize, const N: usize, const Q: usize>(
+    fn command(
         &mut self,
         text: &str,
         from: Source,
-        session: Option<&mut Session<'_, L, N, Q>>,
+        session: Option<&mut dyn ConsoleSession<'_>>,
         no_printer: &ErrorText,
         card: &mut impl Card,
         mcu: &mut impl Mcu,

@@ -1,5 +1,5 @@
 //! The printer as both builds run it: one session takes console and file
-//! lines, plans them ([`Printer`]), generates their steps ([`Motion`]) and
+//! lines, plans them ([`Printer`]), generates their steps ([`ProfileMotion`]) and
 //! hands them to the MCU role, runs homing moves against its endstops,
 //! carries out heater and fan commands and waits for heaters.
 //!
@@ -29,7 +29,8 @@ use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
-use onechip_stepgen::motion::{HomingStop, Motion, StepSink};
+use onechip_stepgen::motion::{HomingStop, StepSink};
+use onechip_stepgen::profile::ProfileMotion;
 
 /// The board's profile: queue sizes, step clock, step accuracy and line
 /// length, shared by the firmware and (by default) the host build.
@@ -38,11 +39,7 @@ pub mod profile {
     /// window of 1 ms segments, so long runs of tiny moves are released
     /// lazily (about 117 KB of RAM).
     pub const LOOKAHEAD: usize = 384;
-    /// Motion queue (trapq) length, in segments.
-    pub const MOTION_QUEUE: usize = 128;
-    /// Step buffer of each stepper's compressor: it holds half as many
-    /// steps, 6 bytes each (3 KiB); longer commands grow past it.
-    pub const COMPRESS_QUEUE: usize = 512;
+    pub use onechip_stepgen::profile::{COMPRESS_QUEUE, MOTION_QUEUE};
     /// The step timer's clock (TIM5 on the STM32H723: APB1 timers at
     /// twice the 130 MHz bus clock), Hz.
     pub const STEP_CLOCK_HZ: f64 = 260_000_000.0;
@@ -113,7 +110,7 @@ pub trait Mcu {
     /// or a temperature outside a range.
     fn thermal_waiting(&mut self, wait: Wait) -> bool;
     /// Writes the temperature report (`T:… /… B:… /…`), no line end.
-    fn report_temperatures(&mut self, out: &mut impl Write) -> fmt::Result;
+    fn report_temperatures(&mut self, out: &mut dyn Write) -> fmt::Result;
     /// Why the MCU role shut down, if it did.
     fn shutdown_reason(&mut self) -> Option<Shutdown>;
     /// True while stepper `stepper`'s endstop reads pressed (M119; the
@@ -249,7 +246,11 @@ impl EngineLink {
     }
 
     /// The engine's step sink, through `mcu`; busy lines go to `out`.
-    fn steps<'m, M>(&'m mut self, mcu: &'m mut M, out: &'m mut dyn Write) -> EngineSteps<'m, M> {
+    fn steps<'m, M: ?Sized>(
+        &'m mut self,
+        mcu: &'m mut M,
+        out: &'m mut dyn Write,
+    ) -> EngineSteps<'m, M> {
         EngineSteps {
             mcu,
             link: self,
@@ -376,11 +377,11 @@ impl fmt::Display for SessionError<'_> {
 /// One printer: G-code lines in, steps and heater commands to the MCU
 /// role, replies out. `L` moves of lookahead, motion queues of `N`
 /// segments, compressors of `Q` steps.
-pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
+pub struct Session<'a, const L: usize> {
     /// Step accuracy, ticks.
     max_error: f64,
     printer: Printer<'a, L>,
-    motion: Motion<N, Q>,
+    motion: ProfileMotion,
     engine: EngineLink,
     timing: Timing,
     planned: Planned,
@@ -398,10 +399,161 @@ pub struct Session<'a, const L: usize, const N: usize, const Q: usize> {
 }
 
 /// The session with the board's queue sizes.
-pub type BoardSession<'a> =
-    Session<'a, { profile::LOOKAHEAD }, { profile::MOTION_QUEUE }, { profile::COMPRESS_QUEUE }>;
+pub type BoardSession<'a> = Session<'a, { profile::LOOKAHEAD }>;
 
-impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
+/// The session as the console drives it, the MCU role and the replies
+/// behind `dyn`: the console's code is one for every session, and a
+/// session's is compiled where its type becomes this trait object (the
+/// board's in this crate, for size: [`BoardSession::console`]).
+pub trait ConsoleSession<'a> {
+    /// [`Session::run`].
+    fn run(&mut self, text: &str, mcu: &mut dyn Mcu, out: &mut dyn Write) -> Result<(), ErrorText>;
+    /// [`Session::idle`].
+    fn idle(&mut self, mcu: &mut dyn Mcu, out: &mut dyn Write);
+    /// [`Session::filament_event`].
+    fn filament_event(&mut self, mcu: &mut dyn Mcu, printing: bool) -> Option<FilamentEvent<'a>>;
+}
+
+impl<'a, const L: usize> ConsoleSession<'a> for Session<'a, L> {
+    fn run(
+        &mut self,
+        text: &str,
+        mcu: &mut dyn Mcu,
+        mut out: &mut dyn Write,
+    ) -> Result<(), ErrorText> {
+        Session::run(self, text, mcu, &mut out)
+    }
+
+    fn idle(&mut self, mcu: &mut dyn Mcu, mut out: &mut dyn Write) {
+        Session::idle(self, mcu, &mut out);
+    }
+
+    fn filament_event(&mut self, mcu: &mut dyn Mcu, printing: bool) -> Option<FilamentEvent<'a>> {
+        Session::filament_event(self, mcu, printing)
+    }
+}
+
+/// A session whose MCU role has no wires to the TMC drivers, as the
+/// board's so far ([`Mcu::tmc_link`] is None): known without asking the
+/// MCU, so the drivers' register code is left out of its build.
+#[repr(transparent)]
+pub struct Unwired<S>(S);
+
+// Not inlined into the caller, which may be compiled for speed.
+impl<'a, const L: usize> ConsoleSession<'a> for Unwired<Session<'a, L>> {
+    #[inline(never)]
+    fn run(
+        &mut self,
+        text: &str,
+        mcu: &mut dyn Mcu,
+        mut out: &mut dyn Write,
+    ) -> Result<(), ErrorText> {
+        self.0.run(text, &mut NoDriverWires(mcu), &mut out)
+    }
+
+    #[inline(never)]
+    fn idle(&mut self, mcu: &mut dyn Mcu, mut out: &mut dyn Write) {
+        self.0.idle(&mut NoDriverWires(mcu), &mut out);
+    }
+
+    #[inline(never)]
+    fn filament_event(&mut self, mcu: &mut dyn Mcu, printing: bool) -> Option<FilamentEvent<'a>> {
+        self.0.filament_event(&mut NoDriverWires(mcu), printing)
+    }
+}
+
+/// An MCU role as [`Unwired`] drives it: everything but the TMC link
+/// (none) is the MCU's.
+struct NoDriverWires<'m>(&'m mut dyn Mcu);
+
+impl Mcu for NoDriverWires<'_> {
+    fn now(&mut self) -> u64 {
+        self.0.now()
+    }
+    fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
+        self.0.push(stepper, cmd, clock)
+    }
+    fn wait(&mut self, until: u64) {
+        self.0.wait(until);
+    }
+    fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
+        self.0.watch_endstop(stepper, endstop, stops);
+    }
+    fn stop_watching(&mut self) {
+        self.0.stop_watching();
+    }
+    fn take_trigger(&mut self) -> Option<(usize, u32)> {
+        self.0.take_trigger()
+    }
+    fn stop_steppers(&mut self, stops: u32) {
+        self.0.stop_steppers(stops);
+    }
+    fn homing_comms_timeout(&mut self) -> bool {
+        self.0.homing_comms_timeout()
+    }
+    fn moved_since(&mut self, stepper: usize, clock: u64) -> i64 {
+        self.0.moved_since(stepper, clock)
+    }
+    fn thermal(&mut self, command: ThermalCommand) {
+        self.0.thermal(command);
+    }
+    fn thermal_waiting(&mut self, wait: Wait) -> bool {
+        self.0.thermal_waiting(wait)
+    }
+    fn report_temperatures(&mut self, out: &mut dyn Write) -> fmt::Result {
+        self.0.report_temperatures(out)
+    }
+    fn shutdown_reason(&mut self) -> Option<Shutdown> {
+        self.0.shutdown_reason()
+    }
+    fn endstop_triggered(&mut self, stepper: usize) -> bool {
+        self.0.endstop_triggered(stepper)
+    }
+    fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
+        self.0.probe_servo(clock, pulse_width);
+    }
+    fn emergency_stop(&mut self) {
+        self.0.emergency_stop();
+    }
+    fn can_extrude(&mut self) -> bool {
+        self.0.can_extrude()
+    }
+    fn filament_present(&mut self, sensor: usize) -> bool {
+        self.0.filament_present(sensor)
+    }
+    fn stepper_clocks(&mut self, print_time: f64, set: &mut dyn FnMut(usize, f64, f64)) {
+        self.0.stepper_clocks(print_time, set);
+    }
+    fn planned(&mut self, m: &TrapqMove, extruder: bool) {
+        self.0.planned(m, extruder);
+    }
+}
+
+impl<'a> BoardSession<'a> {
+    /// The session for the console of an MCU role without wires to the
+    /// TMC drivers ([`Unwired`]; the board's, QEMU's), its code compiled
+    /// here (for size, as this crate) rather than in the firmware crate
+    /// that calls it.
+    pub fn console(&mut self) -> &mut dyn ConsoleSession<'a> {
+        // SAFETY: `Unwired` is a transparent wrapper: the same layout.
+        unsafe { &mut *(self as *mut Self).cast::<Unwired<Self>>() }
+    }
+
+    /// [`Session::init_in`] with the board's queue sizes, compiled here
+    /// (for size, as this crate) rather than in the firmware crate that
+    /// calls it: it runs once at start-up.
+    pub fn init_board_in<'s>(
+        slot: &'s mut MaybeUninit<Self>,
+        machine: &Machine<'a>,
+        freq: f64,
+        max_error: f64,
+        start: u64,
+    ) -> &'s mut Self {
+        Self::init_in(slot, machine, freq, max_error, start)
+    }
+}
+
+impl<'a, const L: usize> Session<'a, L> {
     /// A session for `machine` on a step clock of `freq` Hz, steps within
     /// `max_error` s, print time starting at clock `start` (ticks).
     pub fn new(machine: &Machine<'a>, freq: f64, max_error: f64, start: u64) -> Self {
@@ -427,7 +579,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         unsafe {
             let printer = &mut *addr_of_mut!((*p).printer).cast::<MaybeUninit<Printer<'a, L>>>();
             Printer::init_in(printer, machine).set_time_origin(start as f64 / freq);
-            Motion::<N, Q>::init_in(
+            ProfileMotion::init_in(
                 &mut *addr_of_mut!((*p).motion).cast(),
                 machine,
                 freq,
@@ -482,7 +634,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     pub fn run(
         &mut self,
         text: &str,
-        mcu: &mut impl Mcu,
+        mcu: &mut (impl Mcu + ?Sized),
         out: &mut impl Write,
     ) -> Result<(), ErrorText> {
         if let Some(reason) = mcu.shutdown_reason() {
@@ -561,7 +713,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
 
     /// M119, QUERY_ENDSTOPS: each axis' endstop as Klipper reports it
     /// (`x:open y:open z:TRIGGERED`).
-    fn query_endstops(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+    fn query_endstops(&mut self, mcu: &mut (impl Mcu + ?Sized), out: &mut impl Write) {
         let mut sep = "";
         let names = if self.engine.towers {
             ["a", "b", "c"]
@@ -593,9 +745,9 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     }
 
     /// M400: waits until every queued step has run.
-    fn wait_moves_done(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+    fn wait_moves_done(&mut self, mcu: &mut (impl Mcu + ?Sized), out: &mut impl Write) {
         let mut steps = self.engine.steps(mcu, out);
-        self.motion.settle(&mut steps);
+        self.motion.settle_into(&mut steps);
         let end = (self.printer.print_time().max(0.0) * self.engine.freq) as u64;
         loop {
             let now = mcu.now();
@@ -608,7 +760,11 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     }
 
     /// Carries out the heater and fan commands of the line just run.
-    fn thermal(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) -> Result<(), ErrorText> {
+    fn thermal(
+        &mut self,
+        mcu: &mut (impl Mcu + ?Sized),
+        out: &mut impl Write,
+    ) -> Result<(), ErrorText> {
         while let Some(command) = self.printer.take_thermal() {
             match command {
                 ThermalCommand::Report => {
@@ -637,7 +793,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// Waits until `wait` is over (or the MCU shut down), once every
     /// queued move has run, reporting temperatures every second as
     /// Klipper does; the next move starts after the wait.
-    fn wait_for<M: Mcu>(
+    fn wait_for<M: Mcu + ?Sized>(
         &mut self,
         wait: Wait,
         mcu: &mut M,
@@ -649,7 +805,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
         }
         let freq = self.engine.freq;
         let clock = |t: f64| (t.max(0.0) * freq) as u64;
-        self.motion.settle(&mut self.engine.steps(mcu, out));
+        self.motion.settle_into(&mut self.engine.steps(mcu, out));
         let start = mcu.now();
         let report_every = clock(HEAT_REPORT_TIME);
         let deadline = start + clock(MAX_HEAT_WAIT);
@@ -679,7 +835,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// of them; the flush timer flushes the lookahead when the moves sent
     /// are about to run out; once nothing is queued every step goes out;
     /// and the idle timeout runs.
-    pub fn idle(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+    pub fn idle(&mut self, mcu: &mut (impl Mcu + ?Sized), out: &mut impl Write) {
         if self.timing != Timing::RealTime {
             return;
         }
@@ -708,14 +864,14 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             // queued goes out, so it runs to its end (klippy's background
             // flush).
             self.motion
-                .settle(&mut self.engine.steps(mcu, &mut Discard));
+                .settle_into(&mut self.engine.steps(mcu, &mut Discard));
         }
         self.idle_timeout(mcu, out);
         self.tmc_poll(mcu, out);
     }
 
     /// The TMC drivers' start-up writes and periodic check.
-    fn tmc_poll(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+    fn tmc_poll(&mut self, mcu: &mut (impl Mcu + ?Sized), out: &mut impl Write) {
         if self.tmc.is_empty() {
             return;
         }
@@ -739,7 +895,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// a change causes, for the console to act on (pause, G-code).
     pub fn filament_event(
         &mut self,
-        mcu: &mut impl Mcu,
+        mcu: &mut (impl Mcu + ?Sized),
         printing: bool,
     ) -> Option<FilamentEvent<'a>> {
         if self.filament.is_empty() {
@@ -754,7 +910,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// Klipper's priming timeout, now: the moves queued since the toolhead
     /// was idle are planned and released (for replaying klippy's batch
     /// mode, which decides it from its own speed).
-    pub fn prime(&mut self, mcu: &mut impl Mcu) {
+    pub fn prime(&mut self, mcu: &mut (impl Mcu + ?Sized)) {
         self.with_planning(mcu, &mut Discard, |printer, planning, _| {
             printer.priming_timeout(planning)
         });
@@ -763,7 +919,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
     /// In real time, until moves flow, their print time starts from the
     /// MCU's clock now (as klippy fixes it when it releases the first
     /// moves, not when they are queued).
-    fn anchor(&mut self, mcu: &mut impl Mcu) {
+    fn anchor(&mut self, mcu: &mut (impl Mcu + ?Sized)) {
         if self.timing == Timing::RealTime && !self.printer.is_flowing() {
             let now = mcu.now() as f64 / self.engine.freq;
             self.printer.set_time_origin(now);
@@ -772,7 +928,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
 
     /// Klipper's idle timeout: once nothing has moved for its timeout, its
     /// G-code runs (by default: heaters off, motors off).
-    fn idle_timeout(&mut self, mcu: &mut impl Mcu, out: &mut impl Write) {
+    fn idle_timeout(&mut self, mcu: &mut (impl Mcu + ?Sized), out: &mut impl Write) {
         let now = mcu.now() as f64 / self.engine.freq;
         let toolhead = ToolheadState {
             print_time: self.printer.print_time(),
@@ -794,22 +950,22 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
 
     /// The end of the input: every queued move is planned and its steps
     /// sent (after klippy's 0.5 s dwell).
-    pub fn finish(&mut self, mcu: &mut impl Mcu) {
+    pub fn finish(&mut self, mcu: &mut (impl Mcu + ?Sized)) {
         self.with_planning(mcu, &mut Discard, |printer, planning, _| {
             printer.finish(planning)
         });
         self.motion
-            .finish(&mut self.engine.steps(mcu, &mut Discard));
+            .finish_into(&mut self.engine.steps(mcu, &mut Discard));
     }
 
     /// Runs `f` on the printer with the planning sink and `out`, then
     /// generates steps as far as the plan is final (busy lines to `out`
     /// while waiting); returns what `f` returned.
-    fn with_planning<M: Mcu, W: Write, R>(
+    fn with_planning<M: Mcu + ?Sized, W: Write, R>(
         &mut self,
         mcu: &mut M,
         out: &mut W,
-        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M, N, Q>, &mut SharedOut<'_, W>) -> R,
+        f: impl FnOnce(&mut Printer<'a, L>, &mut Planning<'_, '_, M>, &mut SharedOut<'_, W>) -> R,
     ) -> R {
         let motion = &mut self.motion;
         mcu.stepper_clocks(self.printer.print_time(), &mut |i, offset, freq| {
@@ -834,7 +990,7 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
             },
             &mut SharedOut(&out),
         );
-        self.motion.generate(f64::INFINITY, &mut steps);
+        self.motion.generate_into(f64::INFINITY, &mut steps);
         if self.timing == Timing::RealTime {
             // Klippy in real time restarts after what it generated; its
             // batch mode, which the golden runs replay, generates later.
@@ -871,28 +1027,28 @@ impl<'a, const L: usize, const N: usize, const Q: usize> Session<'a, L, N, Q> {
 }
 
 /// The planner's sink: moves into step generation, counted.
-struct Planning<'p, 'm, M, const N: usize, const Q: usize> {
-    motion: &'p mut Motion<N, Q>,
+struct Planning<'p, 'm, M: ?Sized> {
+    motion: &'p mut ProfileMotion,
     steps: &'p mut EngineSteps<'m, M>,
     planned: &'p mut Planned,
 }
 
-impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N, Q> {
+impl<M: Mcu + ?Sized> MoveSink for Planning<'_, '_, M> {
     fn toolhead(&mut self, m: &TrapqMove) {
         self.planned.toolhead_moves += 1;
         self.planned.peak_velocity = self.planned.peak_velocity.max(m.cruise_v);
         self.steps.mcu.planned(m, false);
-        self.motion.sink(self.steps).toolhead(m);
+        self.motion.moves(self.steps).toolhead(m);
     }
 
     fn extruder(&mut self, m: &TrapqMove) {
         self.planned.extruder_moves += 1;
         self.steps.mcu.planned(m, true);
-        self.motion.sink(self.steps).extruder(m);
+        self.motion.moves(self.steps).extruder(m);
     }
 
     fn set_position(&mut self, pos: [f64; 3]) {
-        self.motion.sink(self.steps).set_position(pos);
+        self.motion.moves(self.steps).set_position(pos);
     }
 
     fn extruder_stepper(
@@ -901,11 +1057,11 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
         motion: &ExtruderStepperMotion,
         position: Option<f64>,
     ) {
-        (self.motion.sink(self.steps)).extruder_stepper(stepper, motion, position);
+        (self.motion.moves(self.steps)).extruder_stepper(stepper, motion, position);
     }
 
     fn homing_move_end(&mut self, homing: &HomingMove) -> HomingEnd {
-        self.motion.sink(self.steps).homing_move_end(homing)
+        self.motion.moves(self.steps).homing_move_end(homing)
     }
 
     fn probe_pin(&mut self, print_time: f64, pulse_width: f64) {
@@ -949,7 +1105,7 @@ impl<M: Mcu, const N: usize, const Q: usize> MoveSink for Planning<'_, '_, M, N,
 
 /// Step commands into the MCU role's engine, waiting (asleep) while a
 /// stepper's outbox is full; homing moves run against the endstops.
-struct EngineSteps<'m, M> {
+struct EngineSteps<'m, M: ?Sized> {
     mcu: &'m mut M,
     link: &'m mut EngineLink,
     /// Where busy lines go.
@@ -963,7 +1119,7 @@ struct EngineSteps<'m, M> {
 /// ends.
 fn tell_drivers(
     drivers: &mut Option<&mut dyn HomingDrivers>,
-    mcu: &mut impl Mcu,
+    mcu: &mut (impl Mcu + ?Sized),
     slots: u32,
     begin: bool,
 ) {
@@ -976,7 +1132,7 @@ fn tell_drivers(
     }
 }
 
-impl<M: Mcu> StepSink for EngineSteps<'_, M> {
+impl<M: Mcu + ?Sized> StepSink for EngineSteps<'_, M> {
     fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
         while self.mcu.push(index, cmd, clock).is_err() {
             if self.mcu.shutdown_reason().is_some() {

@@ -29,6 +29,7 @@ mod step_timer;
 mod tcm;
 mod usb_console;
 
+use core::mem::{ManuallyDrop, MaybeUninit};
 use defmt_rtt as _;
 use embassy_executor::{Executor, InterruptExecutor, SendSpawner, Spawner};
 use embassy_stm32::interrupt;
@@ -147,7 +148,7 @@ fn serve(
         if let Some(incoming) = usb_console::try_line() {
             let event = incoming.event();
             let _ = console.line(
-                session.as_deref_mut(),
+                session.as_deref_mut().map(BoardSession::console),
                 &no_printer,
                 &event,
                 &mut card,
@@ -159,7 +160,12 @@ fn serve(
             }
             continue;
         }
-        let _ = console.poll(session.as_deref_mut(), &mut card, &mut mcu, &mut out);
+        let _ = console.poll(
+            session.as_deref_mut().map(BoardSession::console),
+            &mut card,
+            &mut mcu,
+            &mut out,
+        );
         if !console.is_printing() {
             mcu.wait(u64::MAX);
         }
@@ -187,18 +193,17 @@ fn load_printer(
     thermistors: octopus_pro_v1_1::ThermistorPins,
 ) -> Result<(&'static mut BoardSession<'static>, board_mcu::BoardMcu), ErrorText> {
     static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
-    static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
-    // Where printer.cfg is indexed while the machine is read from it.
-    static SCRATCH: StaticCell<Config<'static>> = StaticCell::new();
+    static AREA: StaticCell<LoadArea> = StaticCell::new();
     // The printer read from it (several KB: kept out of the stack).
     static SETUP: StaticCell<PrinterSetup<'static>> = StaticCell::new();
+    let area = AREA.uninit();
     let files = card.as_mut().map_err(|e| e.clone())?;
     let texts = config_files::load(files, TEXT.take()).map_err(|e| error_text(&e))?;
     let setup = PrinterSetup::load_in(
         SETUP.uninit(),
         &texts,
         pin_check::BOARD_RESERVED,
-        SCRATCH.uninit(),
+        LoadArea::scratch(area),
     )
     .map_err(|e| error_text(&e))?;
     for section in setup.unsupported() {
@@ -226,14 +231,38 @@ fn load_printer(
             .map_err(|e| error_text(&format_args!("[{}] {e}", sensor.section)))?;
         let _ = mcu.filament.push(input);
     }
-    let session = BoardSession::init_in(
-        SESSION.uninit(),
+    let session = BoardSession::init_board_in(
+        LoadArea::session(area),
         setup.machine(),
         step_timer::TIMER_HZ,
         profile::MAX_STEP_ERROR,
         step_timer::now64(),
     );
     Ok((session, mcu))
+}
+
+/// The memory printer.cfg is indexed in while the machine is read from it
+/// (the scratch, 30 KB), then the session's (156 KB): the machine keeps
+/// nothing of the index, which is dead before the session is built, so
+/// they share it.
+union LoadArea {
+    _scratch: ManuallyDrop<Config<'static>>,
+    _session: ManuallyDrop<BoardSession<'static>>,
+}
+
+impl LoadArea {
+    /// The area as the config's index, for as long as `area` is lent.
+    fn scratch(area: &mut MaybeUninit<Self>) -> &mut MaybeUninit<Config<'static>> {
+        // SAFETY: a member of the union: at its start, no larger than it,
+        // and a `MaybeUninit` asks nothing of the bytes there.
+        unsafe { &mut *area.as_mut_ptr().cast() }
+    }
+
+    /// The area as the session's slot, once the index is no longer lent.
+    fn session(area: &mut MaybeUninit<Self>) -> &mut MaybeUninit<BoardSession<'static>> {
+        // SAFETY: as in `scratch`.
+        unsafe { &mut *area.as_mut_ptr().cast() }
+    }
 }
 
 /// Configures every stepper's step, direction and enable pins (drivers

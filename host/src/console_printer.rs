@@ -89,7 +89,7 @@ impl ConsolePrinter {
             if let Some(event) = self.lines.push(byte) {
                 // Writing to a String never fails.
                 let _ = self.console.line(
-                    Some(&mut self.session),
+                    Some(&mut *self.session),
                     &ErrorText::new(),
                     &event,
                     &mut self.card,
@@ -115,7 +115,7 @@ impl ConsolePrinter {
         let mut out = String::new();
         while self.mcu.now() < end && self.mcu.shutdown().is_none() {
             let _ = self.console.poll(
-                Some(&mut self.session),
+                Some(&mut *self.session),
                 &mut self.card,
                 &mut self.mcu,
                 &mut out,

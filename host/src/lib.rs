@@ -45,8 +45,7 @@ const USB_PACKET: usize = 64;
 
 /// The session as the host build runs it: the board's queues, with a
 /// lookahead of `L` moves (by default the board's).
-pub type HostSession<'a, const L: usize = { profile::LOOKAHEAD }> =
-    Session<'a, L, { profile::MOTION_QUEUE }, { profile::COMPRESS_QUEUE }>;
+pub type HostSession<'a, const L: usize = { profile::LOOKAHEAD }> = Session<'a, L>;
 
 /// A lookahead as deep as klippy's needs to be for the golden cases: klippy
 /// queues moves for 2 s of their minimum time before its first flush, more

@@ -896,9 +896,9 @@ impl Mcu for VirtualMcu {
         self.thermal.as_ref().is_some_and(|(h, _)| h.waiting(wait))
     }
 
-    fn report_temperatures(&mut self, out: &mut impl std::fmt::Write) -> std::fmt::Result {
+    fn report_temperatures(&mut self, mut out: &mut dyn std::fmt::Write) -> std::fmt::Result {
         match &self.thermal {
-            Some((heaters, _)) => heaters.report(out),
+            Some((heaters, _)) => heaters.report(&mut out),
             None => Ok(()),
         }
     }

@@ -75,7 +75,7 @@ fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
         if let Some(incoming) = uart_console::try_line() {
             let event = incoming.event();
             let _ = console.line(
-                session.as_deref_mut(),
+                session.as_deref_mut().map(BoardSession::console),
                 &no_printer,
                 &event,
                 &mut card,
@@ -87,7 +87,12 @@ fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
             }
             continue;
         }
-        let _ = console.poll(session.as_deref_mut(), &mut card, &mut mcu, &mut out);
+        let _ = console.poll(
+            session.as_deref_mut().map(BoardSession::console),
+            &mut card,
+            &mut mcu,
+            &mut out,
+        );
         if !console.is_printing() {
             onechip_app::session::Mcu::wait(&mut mcu, u64::MAX);
         }

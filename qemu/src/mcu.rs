@@ -58,8 +58,8 @@ impl Mcu for QemuMcu {
         heater_io::waiting(wait)
     }
 
-    fn report_temperatures(&mut self, out: &mut impl core::fmt::Write) -> core::fmt::Result {
-        heater_io::report(out);
+    fn report_temperatures(&mut self, mut out: &mut dyn core::fmt::Write) -> core::fmt::Result {
+        heater_io::report(&mut out);
         Ok(())
     }
 

@@ -538,7 +538,9 @@ impl<P: StepPins, const S: usize, const M: usize, const O: usize> Engine<P, S, M
     /// to it; their
     /// queued and held commands are dropped, and those that come until
     /// each one's step clock is reset. No fault; a watched endstop stays
-    /// armed ([`Self::stop_watching`] disarms it).
+    /// armed ([`Self::stop_watching`] disarms it). In ITCM: the
+    /// interrupt's endstop check calls it when thread code does too.
+    #[cfg_attr(feature = "itcm", unsafe(link_section = ".itcm_text"))]
     pub fn stop_steppers(&mut self, stops: u32) {
         for i in (0..S).filter(|i| stops & (1 << i) != 0) {
             self.stop_stepper(i);

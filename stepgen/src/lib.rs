@@ -5,6 +5,8 @@
 //! Available now:
 //! - [`motion`]: the whole pipeline for a machine: planned moves in, each
 //!   stepper's commands out, with back-pressure;
+//! - [`profile`]: the pipeline at the firmware's queue sizes, not generic
+//!   (compiled here, whoever drives it);
 //! - [`trapq`]: the bounded motion queue the planner fills and step
 //!   generation reads, pruned as generation passes;
 //! - [`segment`]: planned moves split into constant-acceleration segments,
@@ -21,6 +23,7 @@
 pub mod compress;
 pub mod extruder;
 pub mod motion;
+pub mod profile;
 pub mod segment;
 pub mod shaper;
 pub mod solver;

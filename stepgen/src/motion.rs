@@ -64,6 +64,22 @@ pub trait StepSink {
     }
 }
 
+/// A sink behind a reference (`&mut dyn StepSink` included) is one.
+impl<S: StepSink + ?Sized> StepSink for &mut S {
+    fn command(&mut self, index: usize, cmd: StepCommand, clock: u64) {
+        (**self).command(index, cmd, clock);
+    }
+
+    fn home(
+        &mut self,
+        homing: &HomingMove,
+        start_clock: u64,
+        until_clock: u64,
+    ) -> Option<HomingStop> {
+        (**self).home(homing, start_clock, until_clock)
+    }
+}
+
 /// How a homing move's steppers stopped at their endstops.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct HomingStop {
