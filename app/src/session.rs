@@ -512,8 +512,8 @@ impl Mcu for NoDriverWires<'_> {
     fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
         self.0.probe_servo(clock, pulse_width);
     }
-    fn emergency_stop(&mut self) {
-        self.0.emergency_stop();
+    fn shutdown(&mut self, reason: Shutdown) {
+        self.0.shutdown(reason);
     }
     fn can_extrude(&mut self) -> bool {
         self.0.can_extrude()
