@@ -280,6 +280,18 @@ impl EngineLink {
         }
     }
 
+    /// The steppers the trigger of engine slot `slot` stops while
+    /// `homing` runs (bit `i`: stepper `i`; none for a slot not watched).
+    fn stops_of(&self, homing: &HomingMove, slot: usize) -> u32 {
+        let mut stops = 0;
+        self.watches(homing, |s, of| {
+            if s == slot {
+                stops = of;
+            }
+        });
+        stops
+    }
+
     /// The engine slots whose endstops `homing` watches (bit `i`: slot
     /// `i`).
     fn watched(&self, homing: &HomingMove) -> u32 {
@@ -1156,12 +1168,6 @@ impl<M: Mcu + ?Sized> StepSink for EngineSteps<'_, M> {
         until_clock: u64,
     ) -> Option<HomingStop> {
         let link = &mut *self.link;
-        let slot = link.endstop_slot(homing.axis, homing.probe);
-        // The rail's extra steppers with endstops of their own.
-        let own = match link.own_endstops.get(homing.axis) {
-            Some(&own) if slot == homing.axis && !homing.towers => own,
-            _ => 0,
-        };
         if link.watching != Some(start_clock) {
             let endstop = Endstop::for_homing(
                 start_clock as u32,
@@ -1207,11 +1213,7 @@ impl<M: Mcu + ?Sized> StepSink for EngineSteps<'_, M> {
                 // How far the motion steppers this trigger stopped went
                 // past it (on another MCU than the endstop's, until the
                 // trigger reached theirs), as klippy's halt positions.
-                let stopped = match 1u32.checked_shl(slot as u32) {
-                    Some(bit) if homing.towers => bit,
-                    Some(bit) if own & bit != 0 => 0,
-                    _ => link.rails,
-                };
+                let stopped = link.stops_of(homing, slot);
                 for k in (0..3).filter(|k| stopped & (1 << k) != 0) {
                     link.overshoot[k] = self.mcu.moved_since(k, clock);
                 }

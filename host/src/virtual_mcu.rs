@@ -347,9 +347,10 @@ impl VirtualMcu {
         if self.thermal.is_some() {
             self.start_heaters(machine, freq);
         }
-        if let (Some(secondaries), Some(pace)) = (&mut self.secondaries, &self.pace) {
-            let (pace, freq) = (pace.clone(), secondaries.freq());
-            secondaries.restart(machine, &move || pace.clock_now() as f64 / freq);
+        if let Some(now) = self.host_clock()
+            && let Some(secondaries) = &mut self.secondaries
+        {
+            secondaries.restart(machine, &now);
             // Time went on while they were brought back.
             self.run_to_wall_clock();
         }
@@ -504,6 +505,14 @@ impl VirtualMcu {
         self.secondaries
             .as_ref()
             .map_or(0.0, |s| clock as f64 / s.freq())
+    }
+
+    /// [`Self::host_time`] as a clock the secondaries read while they
+    /// wait on their links (the wall clock's); None without secondaries
+    /// or a pace.
+    fn host_clock(&self) -> Option<impl Fn() -> f64 + 'static> {
+        let (pace, freq) = (self.pace.clone()?, self.secondaries.as_ref()?.freq());
+        Some(move || pace.clock_now() as f64 / freq)
     }
 
     /// Runs the secondaries' links; a fault on either side stops both:
@@ -860,14 +869,12 @@ impl Mcu for VirtualMcu {
     }
 
     fn moved_since(&mut self, stepper: usize, clock: u64) -> i64 {
-        if let (Some(s), Some(pace)) = (&mut self.secondaries, &self.pace)
+        if let Some(now) = self.host_clock()
+            && let Some(s) = &mut self.secondaries
             && s.routes(stepper)
         {
-            let (pace, freq) = (pace.clone(), s.freq());
-            let now = move || pace.clock_now() as f64 / freq;
-            return s
-                .moved_since(stepper, clock as f64 / freq, &now)
-                .unwrap_or(0);
+            let at = clock as f64 / s.freq();
+            return s.moved_since(stepper, at, &now).unwrap_or(0);
         }
         self.logs()
             .nth(stepper)
