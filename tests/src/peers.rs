@@ -63,15 +63,46 @@ pub const fn extruder_pins(firmware: Firmware) -> StepperPins {
     }
 }
 
-/// An SD folder `dir`: the shipped printer with its extruder on the
-/// secondary MCU `ext` (`firmware`, at `serial`, reset by
-/// `restart_method`) on [`extruder_pins`], cold extrusion allowed, and
-/// `gcode` as its one G-code file.
+/// An SD folder `dir`: the shipped printer.cfg with each of `edits` made
+/// (every place of its first text replaced by its second), the secondary
+/// MCUs `mcus` (name, serial device, `restart_method`) added, and `gcode`
+/// as its one G-code file.
 ///
 /// # Panics
 ///
-/// If the shipped printer.cfg changed so that its extruder cannot be
-/// moved, or the folder cannot be written.
+/// If the shipped printer.cfg no longer has an edit's text, or the folder
+/// cannot be written.
+pub fn shipped_printer(
+    dir: &Path,
+    edits: &[(&str, &str)],
+    mcus: &[(&str, &Path, &str)],
+    gcode: &str,
+) {
+    let shipped = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
+    let mut cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
+    for (from, to) in edits {
+        assert!(
+            cfg.contains(from),
+            "the shipped printer.cfg changed: {from:?}"
+        );
+        cfg = cfg.replace(from, to);
+    }
+    for (name, serial, restart_method) in mcus {
+        let section = format!(
+            "[mcu {name}]\nserial: {}\nrestart_method: {restart_method}\n\n[printer]",
+            serial.display()
+        );
+        cfg = cfg.replace("[printer]", &section);
+    }
+    std::fs::create_dir_all(dir).expect("sd folder");
+    std::fs::write(dir.join("printer.cfg"), cfg).expect("printer.cfg");
+    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+}
+
+/// [`shipped_printer`] with its extruder on the secondary MCU `ext`
+/// (`firmware`, at `serial`, reset by `restart_method`) on
+/// [`extruder_pins`], cold extrusion allowed.
 pub fn printer_with_extruder_on(
     firmware: Firmware,
     dir: &Path,
@@ -79,30 +110,17 @@ pub fn printer_with_extruder_on(
     restart_method: &str,
     gcode: &str,
 ) {
-    let shipped = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
-    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
     let pins = extruder_pins(firmware);
-    let moved = cfg
-        .replace(
-            "[extruder]\nstep_pin: PF9\ndir_pin: PF10\nenable_pin: !PG2\n",
-            &format!(
-                "[extruder]\nstep_pin: ext:{}\ndir_pin: ext:{}\nenable_pin: !ext:{}\n\
-                 min_extrude_temp: 0\n",
-                pins.step, pins.dir, pins.enable
-            ),
-        )
-        .replace(
-            "[printer]",
-            &format!(
-                "[mcu ext]\nserial: {}\nrestart_method: {restart_method}\n\n[printer]",
-                serial.display()
-            ),
-        );
-    assert!(moved.contains("step_pin: ext:"), "extruder section moved");
-    std::fs::create_dir_all(dir).expect("sd folder");
-    std::fs::write(dir.join("printer.cfg"), moved).expect("printer.cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+    let extruder = format!(
+        "[extruder]\nstep_pin: ext:{}\ndir_pin: ext:{}\nenable_pin: !ext:{}\n\
+         min_extrude_temp: 0\n",
+        pins.step, pins.dir, pins.enable
+    );
+    let edits = [(
+        "[extruder]\nstep_pin: PF9\ndir_pin: PF10\nenable_pin: !PG2\n",
+        extruder.as_str(),
+    )];
+    shipped_printer(dir, &edits, &[("ext", serial, restart_method)], gcode);
 }
 
 /// How a peer's inputs read.

@@ -17,7 +17,7 @@ use onechip_sched::endstop::Endstop;
 use onechip_sched::step_command::StepCommand;
 use onechip_secondary_mcu::trsync::{REPORT_FRACTION, TIMEOUT, reason};
 use onechip_tests::noisy_link::NoisyLink;
-use onechip_tests::peers::{Firmware, Peer, RealtimeGuard};
+use onechip_tests::peers::{Firmware, Peer, RealtimeGuard, shipped_printer};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
@@ -564,27 +564,15 @@ fn report_and_check_clock_sync(samples: &[SyncSamples; 2]) {
 /// MCU at `serial` (Linux MCU pins; its inputs read 1, so the endstop is
 /// pressed whenever it is sampled), running `gcode`.
 fn x_on_secondary(dir: &std::path::Path, serial: &std::path::Path, gcode: &str) {
-    let shipped = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
-    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
-    let cfg = cfg
-        .replace(
+    let edits = [
+        (
             "[stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nenable_pin: !PF14\n",
             "[stepper_x]\nstep_pin: ext:gpiochip0/gpio1\ndir_pin: ext:gpiochip0/gpio2\n\
              enable_pin: !ext:gpiochip0/gpio3\n",
-        )
-        .replace("endstop_pin: PG6\n", "endstop_pin: ext:gpiochip0/gpio5\n")
-        .replace(
-            "[printer]",
-            &format!(
-                "[mcu ext]\nserial: {}\nrestart_method: command\n\n[printer]",
-                serial.display()
-            ),
-        );
-    assert!(cfg.contains("endstop_pin: ext:"), "stepper_x section moved");
-    std::fs::create_dir_all(dir).expect("sd folder");
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("printer.cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+        ),
+        ("endstop_pin: PG6\n", "endstop_pin: ext:gpiochip0/gpio5\n"),
+    ];
+    shipped_printer(dir, &edits, &[("ext", serial, "command")], gcode);
 }
 
 #[test]
@@ -694,46 +682,32 @@ fn long_x_homing(
     endstop: &str,
     speed: u32,
 ) {
-    let shipped = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
-    let cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
-    let mut cfg = cfg.replace(
+    let axis = format!(
+        "endstop_pin: {endstop}\nposition_endstop: 0\nposition_max: 2000\n\
+         homing_speed: {speed}\nhoming_retract_dist: 0\n"
+    );
+    let stepper = stepper_on.map(|mcu| {
+        format!(
+            "[stepper_x]\nstep_pin: {mcu}:gpiochip0/gpio1\ndir_pin: {mcu}:gpiochip0/gpio2\n\
+             enable_pin: !{mcu}:gpiochip0/gpio3\n"
+        )
+    });
+    let mut edits = vec![(
         "endstop_pin: PG6\nposition_endstop: 0\nposition_max: 235\nhoming_speed: 50\n",
-        &format!(
-            "endstop_pin: {endstop}\nposition_endstop: 0\nposition_max: 2000\n\
-             homing_speed: {speed}\nhoming_retract_dist: 0\n"
-        ),
-    );
-    if let Some(mcu) = stepper_on {
-        cfg = cfg.replace(
+        axis.as_str(),
+    )];
+    if let Some(stepper) = &stepper {
+        edits.push((
             "[stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nenable_pin: !PF14\n",
-            &format!(
-                "[stepper_x]\nstep_pin: {mcu}:gpiochip0/gpio1\ndir_pin: {mcu}:gpiochip0/gpio2\n\
-                 enable_pin: !{mcu}:gpiochip0/gpio3\n"
-            ),
-        );
+            stepper.as_str(),
+        ));
     }
-    for (name, path) in mcus {
-        cfg = cfg.replace(
-            "[printer]",
-            &format!(
-                "[mcu {name}]\nserial: {}\nrestart_method: command\n\n[printer]",
-                path.display()
-            ),
-        );
-    }
-    assert!(
-        cfg.contains("homing_retract_dist: 0"),
-        "stepper_x section moved"
-    );
-    assert_eq!(stepper_on.is_some(), cfg.contains("step_pin: ext:"));
-    std::fs::create_dir_all(sd).expect("sd folder");
-    std::fs::write(sd.join("printer.cfg"), cfg).expect("printer.cfg");
-    std::fs::write(sd.join("job.gcode"), "G28 X\nG1 X50 F6000\nM400\n").expect("gcode");
+    let mcus: Vec<(&str, &Path, &str)> = mcus.iter().map(|&(n, p)| (n, p, "command")).collect();
+    shipped_printer(sd, &edits, &mcus, "G28 X\nG1 X50 F6000\nM400\n");
 }
 
 /// Runs the SD folder `sd` with `options`, pressing `switch`'s inputs 5 s
-/// in (connected in about 1.5 s, the homing move then runs 15 s):
+/// in (connected in about 1.5 s, the homing move then runs 15 s or more):
 /// returns the run and when the press came (the switch's pin-log clock).
 /// A run a communication timeout cut short (the relay late on a loaded
 /// machine) is tried again, as a user would.
