@@ -75,6 +75,8 @@ pub struct Tmc<'a> {
     /// When the next check is due, s of MCU time (`None`: registers not
     /// written yet).
     next_check: Option<f64>,
+    /// The driver the next check looks at.
+    next_driver: usize,
     /// The first register write of a homing move's setup that failed, not
     /// yet reported.
     homing_failure: Option<Failure<'a>>,
@@ -133,6 +135,7 @@ impl<'a> Tmc<'a> {
         Self {
             drivers: out,
             next_check: None,
+            next_driver: 0,
             homing_failure: None,
         }
     }
@@ -193,7 +196,9 @@ impl<'a> Tmc<'a> {
     /// At start (the first call) every register of every driver is
     /// written; then, every [`CHECK_PERIOD`] of MCU time `now` (s), each
     /// driver is checked and a driver that was reset is written again
-    /// (reported on `out`). A driver that cannot be reached is an error.
+    /// (reported on `out`), one driver per call (a call on the board's
+    /// UART waits for its exchanges: two reads, about 9 ms, so thread code
+    /// is held no longer). A driver that cannot be reached is an error.
     pub fn poll(
         &mut self,
         link: &mut dyn TmcLink,
@@ -211,9 +216,9 @@ impl<'a> Tmc<'a> {
             Some(due) if now >= due => {
                 // A driver that fails is reported once; checks stop.
                 self.next_check = Some(f64::INFINITY);
-                for i in 0..self.drivers.len() {
+                let i = self.next_driver;
+                if let Some(name) = self.drivers.get(i).map(|d| d.config.stepper) {
                     if self.was_reset(link, i)? {
-                        let name = self.drivers[i].config.stepper;
                         let _ = writeln!(
                             out,
                             "// TMC '{name}' was reset (power loss?): registers written again"
@@ -223,7 +228,14 @@ impl<'a> Tmc<'a> {
                     }
                     self.check_errors(link, i)?;
                 }
-                self.next_check = Some(now + CHECK_PERIOD);
+                self.next_driver = (i + 1) % self.drivers.len().max(1);
+                // The next driver at the next call; after the last, the
+                // next round a period later.
+                self.next_check = Some(if self.next_driver == 0 {
+                    now + CHECK_PERIOD
+                } else {
+                    due
+                });
             }
             Some(_) => {}
         }
@@ -309,16 +321,25 @@ impl<'a> Tmc<'a> {
         let failed = Failure::Write(d.config.name(), reg_name, kind.is_uart());
         match d.config.bus {
             Bus::Uart { address, .. } => {
-                let ifcnt_addr = kind.register_any("IFCNT").map_or(0x02, |r| r.addr);
+                let ifcnt = kind.register_any("IFCNT").map_or(0x02, |r| r.addr);
+                let name = d.config.name();
+                // IFCNT read as any register is: tried again, and an
+                // error of its own if it never answers.
+                let read_ifcnt = |link: &mut dyn TmcLink| {
+                    (0..TRIES)
+                        .find_map(|_| uart_read(link, port, address, ifcnt).ok())
+                        .map(|v| v as u8)
+                        .ok_or(Failure::Read(name, "IFCNT", true))
+                };
                 for _ in 0..TRIES {
                     let before = match self.drivers[i].ifcnt {
                         Some(n) => n,
-                        None => uart_read(link, port, address, ifcnt_addr).map_or(0, |v| v as u8),
+                        None => read_ifcnt(link)?,
                     };
                     let _ = link.uart(port, &wire::uart_write(address, addr, value), &mut []);
-                    let after = uart_read(link, port, address, ifcnt_addr).map(|v| v as u8);
+                    let after = read_ifcnt(link);
                     self.drivers[i].ifcnt = after.ok();
-                    if after == Ok(before.wrapping_add(1)) {
+                    if after? == before.wrapping_add(1) {
                         return Ok(());
                     }
                 }

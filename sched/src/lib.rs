@@ -15,6 +15,8 @@
 //!   and fault checks;
 //! - [`io`]: outputs and ADC inputs run from a timer, behind the
 //!   [`io::Peripherals`] hardware trait;
+//! - [`tmc_uart`]: the TMC2208/TMC2209 single-wire UART, bit-banged from
+//!   a timer;
 //! - [`shutdown`]: why everything stopped, in Klipper's words;
 //! - [`step_command`]: the step command, as step generation produces it
 //!   and the engine executes it.
@@ -30,3 +32,4 @@ pub mod shutdown;
 pub mod step_command;
 pub mod stepper;
 pub mod thermocouple;
+pub mod tmc_uart;
