@@ -445,110 +445,15 @@ impl<'a, const L: usize> ConsoleSession<'a> for Session<'a, L> {
     }
 }
 
-/// A session whose MCU role has no wires to the TMC drivers, as the
-/// board's so far ([`Mcu::tmc_link`] is None): known without asking the
-/// MCU, so the drivers' register code is left out of its build.
-#[repr(transparent)]
-pub struct Unwired<S>(S);
-
-// Not inlined into the caller, which may be compiled for speed.
-impl<'a, const L: usize> ConsoleSession<'a> for Unwired<Session<'a, L>> {
-    #[inline(never)]
-    fn run(
-        &mut self,
-        text: &str,
-        mcu: &mut dyn Mcu,
-        mut out: &mut dyn Write,
-    ) -> Result<(), ErrorText> {
-        self.0.run(text, &mut NoDriverWires(mcu), &mut out)
-    }
-
-    #[inline(never)]
-    fn idle(&mut self, mcu: &mut dyn Mcu, mut out: &mut dyn Write) {
-        self.0.idle(&mut NoDriverWires(mcu), &mut out);
-    }
-
-    #[inline(never)]
-    fn filament_event(&mut self, mcu: &mut dyn Mcu, printing: bool) -> Option<FilamentEvent<'a>> {
-        self.0.filament_event(&mut NoDriverWires(mcu), printing)
-    }
-}
-
-/// An MCU role as [`Unwired`] drives it: everything but the TMC link
-/// (none) is the MCU's.
-struct NoDriverWires<'m>(&'m mut dyn Mcu);
-
-impl Mcu for NoDriverWires<'_> {
-    fn now(&mut self) -> u64 {
-        self.0.now()
-    }
-    fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
-        self.0.push(stepper, cmd, clock)
-    }
-    fn wait(&mut self, until: u64) {
-        self.0.wait(until);
-    }
-    fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
-        self.0.watch_endstop(stepper, endstop, stops);
-    }
-    fn stop_watching(&mut self) {
-        self.0.stop_watching();
-    }
-    fn take_trigger(&mut self) -> Option<(usize, u32)> {
-        self.0.take_trigger()
-    }
-    fn stop_steppers(&mut self, stops: u32) {
-        self.0.stop_steppers(stops);
-    }
-    fn homing_comms_timeout(&mut self) -> bool {
-        self.0.homing_comms_timeout()
-    }
-    fn moved_since(&mut self, stepper: usize, clock: u64) -> i64 {
-        self.0.moved_since(stepper, clock)
-    }
-    fn thermal(&mut self, command: ThermalCommand) {
-        self.0.thermal(command);
-    }
-    fn thermal_waiting(&mut self, wait: Wait) -> bool {
-        self.0.thermal_waiting(wait)
-    }
-    fn report_temperatures(&mut self, out: &mut dyn Write) -> fmt::Result {
-        self.0.report_temperatures(out)
-    }
-    fn shutdown_reason(&mut self) -> Option<Shutdown> {
-        self.0.shutdown_reason()
-    }
-    fn endstop_triggered(&mut self, stepper: usize) -> bool {
-        self.0.endstop_triggered(stepper)
-    }
-    fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
-        self.0.probe_servo(clock, pulse_width);
-    }
-    fn shutdown(&mut self, reason: Shutdown) {
-        self.0.shutdown(reason);
-    }
-    fn can_extrude(&mut self) -> bool {
-        self.0.can_extrude()
-    }
-    fn filament_present(&mut self, sensor: usize) -> bool {
-        self.0.filament_present(sensor)
-    }
-    fn stepper_clocks(&mut self, print_time: f64, set: &mut dyn FnMut(usize, f64, f64)) {
-        self.0.stepper_clocks(print_time, set);
-    }
-    fn planned(&mut self, m: &TrapqMove, extruder: bool) {
-        self.0.planned(m, extruder);
-    }
-}
-
 impl<'a> BoardSession<'a> {
-    /// The session for the console of an MCU role without wires to the
-    /// TMC drivers ([`Unwired`]; the board's, QEMU's), its code compiled
-    /// here (for size, as this crate) rather than in the firmware crate
-    /// that calls it.
+    /// The session for the console (the board's, QEMU's), its code
+    /// compiled here (for size, as this crate) rather than in the
+    /// firmware crate that calls it.
+    // Not inlined: the coercion, and with it the session's code, stays
+    // in this crate.
+    #[inline(never)]
     pub fn console(&mut self) -> &mut dyn ConsoleSession<'a> {
-        // SAFETY: `Unwired` is a transparent wrapper: the same layout.
-        unsafe { &mut *(self as *mut Self).cast::<Unwired<Self>>() }
+        self
     }
 
     /// [`Session::init_in`] with the board's queue sizes, compiled here

@@ -42,6 +42,19 @@ pub trait TmcLink {
     fn spi(&mut self, port: u8, data: &mut [u8]) -> Result<(), NoAnswer>;
 }
 
+/// The port number of each of `drivers`, in order: a port is one wire
+/// (a UART pin, an SPI chip select), numbered in order of first use; the
+/// board wires port `n` to the `n`-th distinct wire.
+pub fn port_numbers<'d>(drivers: &'d [TmcDriver<'_>]) -> impl Iterator<Item = u8> + 'd {
+    let first_of_port = |k: usize| drivers[..k].iter().all(|e| e.port() != drivers[k].port());
+    (0..drivers.len()).map(move |k| {
+        let first = (0..=k)
+            .find(|&i| drivers[i].port() == drivers[k].port())
+            .unwrap_or(k);
+        (0..first).filter(|&i| first_of_port(i)).count() as u8
+    })
+}
+
 /// How often the drivers are checked, s (Klipper's period).
 pub const CHECK_PERIOD: f64 = 1.0;
 /// Tries of one register access before it is an error (Klipper's).
@@ -112,16 +125,12 @@ impl<'a> Tmc<'a> {
     pub fn new(machine: &Machine<'a>) -> Self {
         let drivers = &machine.tmc;
         let mut out: heapless::Vec<Driver<'a>, MAX_DRIVERS> = heapless::Vec::new();
-        for (k, config) in drivers.iter().enumerate() {
+        for ((k, config), port) in drivers.iter().enumerate().zip(port_numbers(drivers)) {
             let homes = (machine.stall_homing.iter().enumerate())
                 .filter(|&(_, &d)| d.is_some_and(|d| usize::from(d) == k))
                 .fold(0, |bits, (i, _)| {
                     bits | 1u32.checked_shl(i as u32).unwrap_or(0)
                 });
-            let port = match out.iter().find(|d| d.config.port() == config.port()) {
-                Some(d) => d.port,
-                None => out.iter().map(|d| d.port + 1).max().unwrap_or(0),
-            };
             let _ = out.push(Driver {
                 config: config.clone(),
                 port,
@@ -671,17 +680,20 @@ fn number(
         .ok_or_else(|| cut_text(&format_args!("Error on '{name}': unable to parse {text}")))?;
     if let Some(m) = min.filter(|&m| v < m) {
         return Err(cut_text(&format_args!(
-            "Error on '{name}': {key} must have minimum of {m:?}"
+            "Error on '{name}': {key} must have minimum of {}",
+            decimal::Shortest(m)
         )));
     }
     if let Some(a) = above.filter(|&a| v <= a) {
         return Err(cut_text(&format_args!(
-            "Error on '{name}': {key} must be above {a:?}"
+            "Error on '{name}': {key} must be above {}",
+            decimal::Shortest(a)
         )));
     }
     if v > max {
         return Err(cut_text(&format_args!(
-            "Error on '{name}': {key} must have maximum of {max:?}"
+            "Error on '{name}': {key} must have maximum of {}",
+            decimal::Shortest(max)
         )));
     }
     Ok(Some(v))

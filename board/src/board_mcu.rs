@@ -1,24 +1,30 @@
 //! The MCU role as the session sees it on this board: the stepper engine
 //! in TIM5's interrupt and the heaters in TIM2's. Thread code reaches them
-//! through [`crate::step_timer`] and [`crate::heater_io`], and waits by
+//! through [`onechip_board_rt::step_timer`] and [`onechip_board_rt::heater_io`], and waits by
 //! sleeping until the next interrupt (`wfe`): the steppers' interrupt runs
 //! at every step, the heaters' at least every 10 ms, the I/O executor's
 //! tick every 10 ms, so a wait never spins and never oversleeps long.
 
-use crate::{heater_io, step_timer};
 use onechip_app::heaters::{ThermalCommand, Wait};
 use onechip_app::session::Mcu;
+use onechip_board_rt::{heater_io, step_timer};
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 
-/// The board's MCU role, with the filament switch sensors' inputs.
+/// The board's MCU role, with the filament switch sensors' inputs and
+/// the wires to the TMC drivers.
 #[derive(Default)]
 pub struct BoardMcu {
     /// Each filament switch sensor's switch_pin (active: filament).
-    pub filament:
-        heapless::Vec<crate::step_pins::InPin, { onechip_app::filament::MAX_FILAMENT_SENSORS }>,
+    pub filament: heapless::Vec<
+        onechip_board_rt::step_pins::InPin,
+        { onechip_app::filament::MAX_FILAMENT_SENSORS },
+    >,
+    /// The TMC drivers' UART pins and SPI chip selects, if there are
+    /// drivers.
+    pub tmc: Option<onechip_board_rt::tmc_link::BoardTmc>,
 }
 
 /// Every stepper stops and every heater and fan output goes off at once,
@@ -86,7 +92,7 @@ impl Mcu for BoardMcu {
     }
 
     fn probe_servo(&mut self, clock: u64, pulse_width: f64) {
-        crate::probe_servo::set(clock, pulse_width);
+        onechip_board_rt::probe_servo::set(clock, pulse_width);
     }
 
     fn can_extrude(&mut self) -> bool {
@@ -95,5 +101,11 @@ impl Mcu for BoardMcu {
 
     fn filament_present(&mut self, sensor: usize) -> bool {
         self.filament.get(sensor).is_none_or(|pin| pin.is_active())
+    }
+
+    fn tmc_link(&mut self) -> Option<&mut dyn onechip_app::tmc::TmcLink> {
+        self.tmc
+            .as_mut()
+            .map(|t| t as &mut dyn onechip_app::tmc::TmcLink)
     }
 }

@@ -19,7 +19,7 @@
 //!   running (DMA1/2, MDMA, BDMA, SDMMC1/2's IDMA, USB, Ethernet, DMA2D)
 //!   reset, the peripheral clocks Klipper turns off turned off, the
 //!   stepper interrupt's code and data loaded into the TCMs
-//!   ([`crate::tcm`]), the clock tree back to its reset state (HSI, every
+//!   ([`onechip_board_rt::tcm`]), the clock tree back to its reset state (HSI, every
 //!   PLL off, kernel clock muxes at reset), because PLL registers are
 //!   write-protected while the PLL runs and embassy-stm32 0.6's
 //!   `rcc::init` switches the core to HSI but reprograms PLL1 without
@@ -100,10 +100,10 @@ global_asm!(
 /// state before `embassy_stm32::init` configures them, and turns the
 /// caches on. Call first thing in `main`; the proof that the TCMs are
 /// loaded starts the stepper interrupt.
-pub fn take_control() -> crate::tcm::Loaded {
+pub fn take_control() -> onechip_board_rt::tcm::Loaded {
     caches_off();
     stop_bus_masters();
-    let loaded = crate::tcm::load();
+    let loaded = onechip_board_rt::tcm::load();
     reset_clock_tree();
     crate::cache::enable(&loaded);
     loaded

@@ -15,7 +15,7 @@
 //! - USB OTG_HS: embassy's driver moves packets through the core's FIFO
 //!   registers (its internal DMA stays off), so USB needs nothing.
 //!
-//! TCM (the stepper interrupt's code and data, [`crate::tcm`]) is never
+//! TCM (the stepper interrupt's code and data, [`onechip_board_rt::tcm`]) is never
 //! cached. Once loaded, the ITCM is made read-only (MPU region 1): a
 //! stray write there (a pointer near null) faults, and the fault handler
 //! turns everything off, instead of corrupting the stepper interrupt.
@@ -91,7 +91,7 @@ const _: () = assert!(
 /// invalidates and enables the I-cache and the D-cache. Call once at
 /// boot, with the D-cache off, no DMA running and the ITCM loaded (which
 /// the proof `_tcm` shows; [`crate::boot::take_control`]).
-pub fn enable(_tcm: &crate::tcm::Loaded) {
+pub fn enable(_tcm: &onechip_board_rt::tcm::Loaded) {
     onechip_caches_enable();
 }
 

@@ -14,19 +14,8 @@
 mod board_mcu;
 mod boot;
 mod cache;
-mod clocks;
-mod gpio;
-mod handler_cell;
-mod heater_io;
 mod octopus_pro_v1_1;
-mod priority;
-mod probe_servo;
-mod safety;
 mod sd_card;
-mod spi_sensors;
-mod step_pins;
-mod step_timer;
-mod tcm;
 mod usb_console;
 
 use core::mem::{ManuallyDrop, MaybeUninit};
@@ -43,6 +32,10 @@ use onechip_app::sdcard::SdFiles;
 use onechip_app::session::{BoardSession, Mcu, profile};
 use onechip_app::setup::{Config, PrinterSetup};
 use onechip_app::text::{ErrorText, error_text};
+use onechip_board_rt::{
+    clocks, heater_io, priority, probe_servo, safety, spi_sensors, step_pins, step_timer, tcm,
+    tmc_link,
+};
 use static_cell::{ConstStaticCell, StaticCell};
 
 const _: () = assert!(
@@ -188,6 +181,9 @@ const RESTART_DELAY: f64 = 0.05;
 
 /// Reads printer.cfg and its includes from the SD card, configures the
 /// pins it names and builds the session (in place, in a static).
+// Not inlined: its locals (the engine, the heaters, before they move
+// into their statics) stay out of the caller's frame.
+#[inline(never)]
 fn load_printer(
     card: &mut Result<BoardCard, ErrorText>,
     thermistors: octopus_pro_v1_1::ThermistorPins,
@@ -222,7 +218,10 @@ fn load_printer(
             .map_err(|e| error_text(&format_args!("[bltouch] {e}")))?;
         probe_servo::install(pin);
     }
-    let mut mcu = board_mcu::BoardMcu::default();
+    let mut mcu = board_mcu::BoardMcu {
+        tmc: tmc_link::BoardTmc::install(setup)?,
+        ..Default::default()
+    };
     for sensor in &setup.machine().accessories.filament_sensors {
         let pin = setup
             .resolve_pin(sensor.switch_pin)
@@ -268,6 +267,9 @@ impl LoadArea {
 /// Configures every stepper's step, direction and enable pins (drivers
 /// enabled, off again on a fault) and its endstop input, and hands them to
 /// the stepper engine; a pin that is not a GPIO of this board is an error.
+// Not inlined: its locals (the engine, the heaters, before they move
+// into their statics) stay out of the caller's frame.
+#[inline(never)]
 fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
@@ -301,6 +303,9 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
 /// Configures the heaters' and fan's output pins and the thermistors'
 /// ADC channels, and hands them with the heater control to TIM2's
 /// interrupt; a pin that is not usable is an error.
+// Not inlined: its locals (the engine, the heaters, before they move
+// into their statics) stay out of the caller's frame.
+#[inline(never)]
 fn install_heaters(
     setup: &mut PrinterSetup<'_>,
     mut thermistors: octopus_pro_v1_1::ThermistorPins,
@@ -331,7 +336,8 @@ fn install_heaters(
     let buses = onechip_app::heaters::input_buses(machine);
     for ((pin, _), bus) in mcu_setup.inputs.iter().zip(buses) {
         let input = if let Some(bus) = bus {
-            heater_io::AdcInput::Spi(spi_device(setup, &bus)?)
+            let owner = format_args!("SPI sensor on {}", bus.cs_pin);
+            heater_io::AdcInput::Spi(spi_sensors::SpiDevice::configured(setup, &bus, &owner)?)
         } else if *pin == onechip_app::heaters::MCU_TEMPERATURE_PIN {
             heater_io::AdcInput::Temperature
         } else {
@@ -358,27 +364,6 @@ fn install_heaters(
     );
     heater_io::install(heaters, hw);
     Ok(())
-}
-
-/// The SPI temperature chip on `bus`: its chip select and (software
-/// bus) clock and data pins resolved through `[board_pins]`.
-fn spi_device(
-    setup: &PrinterSetup<'_>,
-    bus: &onechip_app::heaters::SpiBus<'_>,
-) -> Result<spi_sensors::SpiDevice, ErrorText> {
-    use onechip_app::heaters::SpiBusPins;
-    let fail =
-        |e: &dyn core::fmt::Display| error_text(&format_args!("SPI sensor on {}: {e}", bus.cs_pin));
-    let pin = |written| setup.resolve_pin(written).map_err(|e| fail(&e));
-    let cs = pin(bus.cs_pin)?;
-    let software = match bus.pins {
-        SpiBusPins::Software { sclk, mosi, miso } => Some([pin(sclk)?, pin(mosi)?, pin(miso)?]),
-        SpiBusPins::Hardware(_) => None,
-    };
-    let names = software
-        .as_ref()
-        .map(|[a, b, c]| [a.as_str(), b.as_str(), c.as_str()]);
-    spi_sensors::SpiDevice::new(bus, &cs, names).map_err(|e| fail(&e))
 }
 
 /// Wakes thread code at least every 10 ms (its priming timeout and

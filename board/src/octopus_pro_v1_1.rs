@@ -1,7 +1,7 @@
 //! Pin map and fixed resources of the BigTreeTech Octopus Pro v1.1 with the
 //! STM32H723ZE (the only board supported so far; one such file per board).
 //!
-//! Facts of the board: 25 MHz crystal; BTT's SD-card bootloader in the first
+//! Facts of the board: 25 MHz crystal (`onechip_board_rt::clocks::HSE`); BTT's SD-card bootloader in the first
 //! 128 KiB of flash (application at 0x0802_0000, see `memory.x`); USB-C on the
 //! MCU's OTG_HS controller with its internal full-speed PHY (PA11/PA12); the
 //! micro-SD slot on SDMMC1 in 4-bit mode (PC8..PC12, PD2).
@@ -15,10 +15,6 @@ use embassy_stm32::adc::{AdcChannel, AnyAdcChannel};
 use embassy_stm32::peripherals::{
     ADC3, PA11, PA12, PC8, PC9, PC10, PC11, PC12, PD2, PF3, PF4, PF5, PF6, PF7, SDMMC1, USB_OTG_HS,
 };
-use embassy_stm32::time::Hertz;
-
-/// Frequency of the board's crystal (HSE).
-pub const HSE: Hertz = Hertz(25_000_000);
 
 /// The USB-C connector.
 pub struct UsbPins {

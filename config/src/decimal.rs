@@ -13,6 +13,9 @@
 //! - [`Fixed`] prints C's `%.Nf` exactly: the binary value's exact decimal
 //!   expansion, rounded half to even at N places (as Python's `%.3f` and
 //!   Rust's `{:.3}` print it).
+//! - [`Shortest`] prints the fewest decimals (at least one) that read back
+//!   as the same value: Python's `repr` of a float for the numbers a
+//!   printer's limits are (magnitudes 1e-4 to 1e9).
 
 use core::fmt;
 
@@ -161,6 +164,28 @@ const POW10: [f64; 23] = [
 /// Most significant digits kept.
 const MAX_DIGITS: u32 = 19;
 
+/// `value` printed with the fewest decimals, at least one and at most
+/// [`MAX_PLACES`], that [`parse`] reads back as `value` (Python's `repr`
+/// of a float within the magnitudes it prints without an exponent:
+/// `Shortest(0.1)` is `0.1`, `Shortest(2.0)` is `2.0`).
+#[derive(Debug, Clone, Copy)]
+pub struct Shortest(pub f64);
+
+impl fmt::Display for Shortest {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut text: heapless::String<64> = heapless::String::new();
+        for places in 1..MAX_PLACES {
+            text.clear();
+            if fmt::write(&mut text, format_args!("{}", Fixed(self.0, places))).is_ok()
+                && parse(&text) == Some(self.0)
+            {
+                return f.write_str(&text);
+            }
+        }
+        write!(f, "{}", Fixed(self.0, MAX_PLACES))
+    }
+}
+
 /// Reads `text` as Python's `float()` does (without surrounding spaces or
 /// `_` separators); None if it is not a number. See the module comment for
 /// how exact it is.
@@ -307,6 +332,22 @@ fn times_power_of_two(mut value: f64, mut binary: i32) -> f64 {
 mod tests {
     extern crate std;
     use super::*;
+
+    #[test]
+    fn shortest_prints_as_pythons_repr() {
+        use std::string::ToString;
+        for (value, repr) in [
+            (0.0, "0.0"),
+            (2.0, "2.0"),
+            (0.1, "0.1"),
+            (-1.5, "-1.5"),
+            (0.0001, "0.0001"),
+            (1.0 / 3.0, "0.333333333"),
+            (2.1e9, "2100000000.0"),
+        ] {
+            assert_eq!(Shortest(value).to_string(), repr);
+        }
+    }
     use std::format;
     use std::string::String;
 

@@ -16,6 +16,10 @@ pub const STEPPER: Priority = Priority::P0;
 pub const HEATERS: Priority = Priority::P1;
 /// A BLTouch's servo signal (TIM23): its pulse edges.
 pub const PROBE_SERVO: Priority = Priority::P2;
+/// The TMC drivers' UART (TIM24): its bit edges and samples. Held off
+/// by the stepper's and heaters' interrupts, which its exchanges measure
+/// (an exchange held off too long is tried again).
+pub const TMC_UART: Priority = Priority::P2;
 /// embassy-time's timer (TIM4): wakes async tasks.
 pub const TIME_DRIVER: Priority = Priority::P2;
 /// USB, SDMMC and DMA.

@@ -15,6 +15,8 @@ use crate::step_pins::{InPin, OutPin};
 use embassy_stm32::pac;
 use onechip_app::heaters::{SpiBus, SpiBusPins};
 use onechip_app::pins::BadPin;
+use onechip_app::setup::PrinterSetup;
+use onechip_app::text::{ErrorText, error_text};
 
 use crate::clocks::SPI1_KERNEL_HZ;
 
@@ -144,6 +146,27 @@ impl SpiDevice {
             (SpiBusPins::Software { sclk, .. }, None) => return Err(SpiError::Pin(BadPin(sclk))),
         };
         Ok(Self { cs, bus })
+    }
+
+    /// The chip on `bus` (a temperature chip, a TMC driver; `owner` in
+    /// errors) of `setup`: its chip select and (software bus) clock and
+    /// data pins resolved through `[board_pins]`.
+    pub fn configured(
+        setup: &PrinterSetup<'_>,
+        bus: &SpiBus<'_>,
+        owner: &dyn core::fmt::Display,
+    ) -> Result<Self, ErrorText> {
+        let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("{owner}: {e}"));
+        let pin = |written| setup.resolve_pin(written).map_err(|e| fail(&e));
+        let cs = pin(bus.cs_pin)?;
+        let software = match bus.pins {
+            SpiBusPins::Software { sclk, mosi, miso } => Some([pin(sclk)?, pin(mosi)?, pin(miso)?]),
+            SpiBusPins::Hardware(_) => None,
+        };
+        let names = software
+            .as_ref()
+            .map(|[a, b, c]| [a.as_str(), b.as_str(), c.as_str()]);
+        Self::new(bus, &cs, names).map_err(|e| fail(&e))
     }
 
     /// One transfer, chip selected throughout: `data` out, replies in.

@@ -71,6 +71,12 @@ pub const fn mask_of(owner: Priority) -> u8 {
     owner as u8
 }
 
+impl<T, const MASK: u8> Default for HandlerCell<T, MASK> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl<T, const MASK: u8> HandlerCell<T, MASK> {
     /// Empty until [`Self::install`].
     pub const fn new() -> Self {
@@ -123,29 +129,29 @@ impl<T, const MASK: u8> HandlerCell<T, MASK> {
             caller_below(MASK),
             "HandlerCell locked from above its owner's priority"
         );
-        if MASK == 0 {
-            critical_section::with(|_| {
-                // SAFETY: interrupts are masked, so the owner is not
-                // running and cannot start; this is the only reference
-                // (invariant above).
-                f(unsafe { &mut *self.slot.get() })
-            })
-        } else {
-            let before = cortex_m::register::basepri::read();
-            // Raises the mask only (never lowers one already stricter).
-            cortex_m::register::basepri_max::write(MASK);
-            compiler_fence(Ordering::SeqCst);
-            // SAFETY: BASEPRI masks the owner's priority, the caller runs
-            // at or below it (checked above), so the owner is not running
-            // and cannot start; this is the only reference (invariant
-            // above).
-            let result = f(unsafe { &mut *self.slot.get() });
-            compiler_fence(Ordering::SeqCst);
-            // SAFETY: restores the mask this function found.
-            unsafe { cortex_m::register::basepri::write(before) };
-            result
-        }
+        // SAFETY: the owner's priority is masked and the caller runs at
+        // or below it (checked above), so the owner is not running and
+        // cannot start; this is the only reference (invariant above).
+        masked(MASK, || f(unsafe { &mut *self.slot.get() }))
     }
+}
+
+/// Runs `f` with the interrupts at priority `mask` (as BASEPRI writes it)
+/// and below held off, those above still running; `mask` 0 holds off
+/// every interrupt (BASEPRI cannot mask priority 0). Keep `f` short.
+pub fn masked<R>(mask: u8, f: impl FnOnce() -> R) -> R {
+    if mask == 0 {
+        return critical_section::with(|_| f());
+    }
+    let before = cortex_m::register::basepri::read();
+    // Raises the mask only (never lowers one already stricter).
+    cortex_m::register::basepri_max::write(mask);
+    compiler_fence(Ordering::SeqCst);
+    let result = f();
+    compiler_fence(Ordering::SeqCst);
+    // SAFETY: restores the mask this function found.
+    unsafe { cortex_m::register::basepri::write(before) };
+    result
 }
 
 /// True if the code running now cannot be preempted by a handler at

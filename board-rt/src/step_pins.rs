@@ -141,7 +141,7 @@ impl InPin {
 
 /// The port and pin number (0..=15) of the GPIO named `name`, with its
 /// modifiers.
-fn gpio_pin(name: &str) -> Result<(pac::gpio::Gpio, usize, PinName), BadPin<'_>> {
+pub fn gpio_pin(name: &str) -> Result<(pac::gpio::Gpio, usize, PinName), BadPin<'_>> {
     let pin = onechip_app::pins::parse(name)?;
     let port = crate::gpio::port(pin.port).ok_or(BadPin(name))?;
     let number = usize::from(pin.number);

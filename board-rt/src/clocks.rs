@@ -44,11 +44,14 @@ const ADC3_PRESC_DIV: u32 = 1;
 /// (`MAX_ADC_CLK_FREQ`).
 const ADC3_MAX_HZ: u32 = 50_000_000;
 
+/// Frequency of the Octopus Pro's crystal (HSE).
+pub const HSE: embassy_stm32::time::Hertz = embassy_stm32::time::Hertz(25_000_000);
+
 /// The clock tree `embassy_stm32::init` sets up.
 pub const RCC: rcc::Config = {
     let mut rcc = rcc::Config::new();
     rcc.hse = Some(Hse {
-        freq: crate::octopus_pro_v1_1::HSE,
+        freq: HSE,
         mode: HseMode::Oscillator,
     });
     rcc.hsi48 = Some(Hsi48Config {
