@@ -2,7 +2,7 @@
 //! the heaters by the dual timer's, the console's line queue by the
 //! UART's): the handler uses it without a lock, other code only while
 //! that handler is masked. The same rule as the board's `HandlerCell`
-//! (board/src/handler_cell.rs), written for this machine's priorities
+//! (board-rt/src/handler_cell.rs), written for this machine's priorities
 //! (plain NVIC bytes, no embassy).
 
 use core::cell::UnsafeCell;

@@ -1,5 +1,5 @@
 //! `tcm`: the stepper interrupt runs from the tightly-coupled memories
-//! and the caches are set up at boot (board/src/tcm.rs, cache.rs), checked
+//! and the caches are set up at boot (board-rt/src/tcm.rs, board/src/cache.rs), checked
 //! on the image, as nothing else can show it without the board:
 //!
 //! - every function the stepper interrupt's handler reaches over direct
