@@ -206,7 +206,7 @@ impl<'a> Tmc<'a> {
     /// written; then, every [`CHECK_PERIOD`] of MCU time `now` (s), each
     /// driver is checked and a driver that was reset is written again
     /// (reported on `out`), one driver per call (a call on the board's
-    /// UART waits for its exchanges: two reads, about 9 ms, so thread code
+    /// UART waits for its exchanges: two reads, about 7 ms, so thread code
     /// is held no longer). A driver that cannot be reached is an error.
     pub fn poll(
         &mut self,

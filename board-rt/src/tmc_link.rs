@@ -8,7 +8,8 @@
 //!   again). On the Octopus Pro each driver socket has its own pin (PC4,
 //!   PD11, PC6, PC7, PF2, PE4, PE1, PD3 in Klipper's board config), so
 //!   TIM24 serves one exchange at a time. Thread code sleeps (`wfe`) until
-//!   the exchange is over: a register write takes 1.8 ms, a read about 4.
+//!   the exchange is over: a register write takes 2.0 ms (80 bits), a read
+//!   about 3.3 ms (40 bits out, the driver's 8-bit pause, 84 bits sampled).
 //! - SPI (TMC2130, TMC2240, TMC2660, TMC5160; `cs_pin`, `spi_bus: spi1`
 //!   or a software bus): [`crate::spi_sensors::SpiDevice`], as the
 //!   temperature chips use; a transfer holds the heaters' interrupt off,
@@ -43,8 +44,9 @@ const _: () = assert!(
 /// The first event of an exchange, ticks after it is armed (20 µs).
 const LEAD: u32 = BIT_TICKS * 4 / 5;
 /// Time allowed beyond an exchange's longest before thread code gives
-/// up on it, stepper clock ticks (1 ms).
-const GRACE: u64 = 260_000;
+/// up on it, TIM24 ticks (1 ms; an exchange is at most about 6 ms, far
+/// below the counter's 16.5 s wrap).
+const GRACE: u32 = 260_000;
 
 /// A driver's single-wire UART: its receive pin, and its transmit pin if
 /// that is another.
@@ -162,14 +164,21 @@ fn exchange(line: UartLine, tx: &[u8], rx: &mut [u8]) -> Result<(), NoAnswer> {
         return Err(NoAnswer);
     }
     DONE.store(false, Ordering::Release);
-    let longest = u64::from(SoftUart::longest_bits(tx.len(), rx.len())) * u64::from(BIT_TICKS);
-    let deadline = crate::step_timer::now64() + longest + u64::from(LEAD) + GRACE;
+    let longest = SoftUart::longest_bits(tx.len(), rx.len()) * BIT_TICKS;
+    let limit = LEAD + longest + GRACE;
     let tim = pac::TIM24;
-    tim.ccr(0).write_value(tim.cnt().read().wrapping_add(LEAD));
+    let start = tim.cnt().read();
+    let first = start.wrapping_add(LEAD);
+    tim.ccr(0).write_value(first);
     tim.sr().write_value(Default::default());
     tim.dier().write(|w| w.set_ccie(0, true));
+    // Held off past the first event while arming: run it now (it fails
+    // as late, and the exchange is tried again).
+    if onechip_sched::clock::is_before(first, tim.cnt().read()) {
+        tim.egr().write(|w| w.set_ccg(0, true));
+    }
     while !DONE.load(Ordering::Acquire) {
-        if crate::step_timer::now64() > deadline {
+        if tim.cnt().read().wrapping_sub(start) > limit {
             tim.dier().write(|w| w.set_ccie(0, false));
             EXCHANGE.with(|x| {
                 x.uart.abort();
