@@ -266,14 +266,7 @@ pub fn install(heaters: Heaters, hw: BoardPeripherals) {
     }
     IO.install(Io { heaters, hw });
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
-    let tim = pac::TIM2;
-    tim.psc().write_value(0);
-    tim.arr().write_value(u32::MAX);
-    tim.egr().write(|w| w.set_ug(true));
-    tim.sr().write_value(Default::default());
-    tim.ccr(0).write_value(MIN_AHEAD);
-    tim.dier().write(|w| w.set_ccie(0, true));
-    tim.cr1().modify(|w| w.set_cen(true));
+    crate::timer32::start(pac::TIM2, Some(MIN_AHEAD));
     interrupt::TIM2.set_priority(crate::priority::HEATERS);
     // SAFETY: the handler below touches TIM2 and the io, as the io's
     // `HandlerCell` allows.
@@ -336,17 +329,6 @@ fn TIM2() {
         io.heaters.shutdown(reason, &mut io.hw);
     }
     // Arm the compare for the next wake, on TIM2's own count.
-    let now = step_timer::now();
-    let ahead = io.heaters.next_wake().map_or(IDLE_WAKE, |wake| {
-        let ahead = wake.wrapping_sub(now) as i32;
-        (ahead.max(0) as u32).clamp(MIN_AHEAD, IDLE_WAKE)
-    });
-    let tim = pac::TIM2;
-    let at = tim.cnt().read().wrapping_add(ahead);
-    tim.ccr(0).write_value(at);
-    if onechip_sched::clock::is_before(at, tim.cnt().read()) {
-        // Passed while arming (a long stepper interrupt): run again now
-        // rather than after TIM2 wraps.
-        tim.egr().write(|w| w.set_ccg(0, true));
-    }
+    let wake = io.heaters.next_wake();
+    crate::timer32::arm_for(pac::TIM2, wake, step_timer::now(), MIN_AHEAD, IDLE_WAKE);
 }

@@ -13,9 +13,9 @@
 //! - [`tmc_link`]: the TMC drivers' UART (TIM24) and SPI;
 //! - [`safety`]: the watchdog and the fault handlers that turn every
 //!   registered output off;
-//! - [`clocks`], [`priority`], [`gpio`], [`handler_cell`]: the clock
-//!   tree, the interrupt priorities, the ports, and state owned by one
-//!   interrupt.
+//! - [`clocks`], [`priority`], [`gpio`], [`handler_cell`], [`timer32`]:
+//!   the clock tree, the interrupt priorities, the ports, state owned by
+//!   one interrupt, and the timers the interrupts run on.
 #![no_std]
 
 pub mod clocks;
@@ -29,4 +29,5 @@ pub mod spi_sensors;
 pub mod step_pins;
 pub mod step_timer;
 pub mod tcm;
+pub mod timer32;
 pub mod tmc_link;

@@ -48,14 +48,7 @@ pub fn install(pin: OutPin) {
         pin,
     });
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM23>();
-    let tim = pac::TIM23;
-    tim.psc().write_value(0);
-    tim.arr().write_value(u32::MAX);
-    tim.egr().write(|w| w.set_ug(true));
-    tim.sr().write_value(Default::default());
-    tim.ccr(0).write_value(MIN_AHEAD);
-    tim.dier().write(|w| w.set_ccie(0, true));
-    tim.cr1().modify(|w| w.set_cen(true));
+    crate::timer32::start(pac::TIM23, Some(MIN_AHEAD));
     interrupt::TIM23.set_priority(crate::priority::PROBE_SERVO);
     // SAFETY: the handler below touches TIM23 and the servo, as the
     // servo's `HandlerCell` allows.
@@ -88,15 +81,6 @@ fn TIM23() {
         // No max_duration is set: a timeout never comes; off if it did.
         Err(_) => servo.pin.set(false),
     }
-    let now = step_timer::now();
-    let ahead = servo.output.next_event().map_or(IDLE_WAKE, |wake| {
-        let ahead = wake.wrapping_sub(now) as i32;
-        (ahead.max(0) as u32).clamp(MIN_AHEAD, IDLE_WAKE)
-    });
-    let tim = pac::TIM23;
-    let at = tim.cnt().read().wrapping_add(ahead);
-    tim.ccr(0).write_value(at);
-    if onechip_sched::clock::is_before(at, tim.cnt().read()) {
-        tim.egr().write(|w| w.set_ccg(0, true));
-    }
+    let wake = servo.output.next_event();
+    crate::timer32::arm_for(pac::TIM23, wake, step_timer::now(), MIN_AHEAD, IDLE_WAKE);
 }

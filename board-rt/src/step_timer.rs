@@ -76,14 +76,7 @@ fn with_engine<R>(f: impl FnOnce(&mut BoardEngine) -> R) -> Option<R> {
 /// its handler runs from ITCM, hence the proof that the TCMs are loaded.
 pub fn start(_tcm: crate::tcm::Loaded) {
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM5>();
-    let tim = pac::TIM5;
-    tim.psc().write_value(0);
-    tim.arr().write_value(u32::MAX);
-    tim.egr().write(|w| w.set_ug(true));
-    tim.sr().write_value(Default::default());
-    tim.ccr(0).write_value(FIRST_WAKE);
-    tim.dier().write(|w| w.set_ccie(0, true));
-    tim.cr1().modify(|w| w.set_cen(true));
+    crate::timer32::start(pac::TIM5, Some(FIRST_WAKE));
     interrupt::TIM5.set_priority(crate::priority::STEPPER);
     // SAFETY: the handler below touches TIM5 and the engine, as the
     // engine's `HandlerCell` allows.

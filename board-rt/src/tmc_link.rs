@@ -140,12 +140,7 @@ fn start_timer() {
         line: None,
     });
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM24>();
-    let tim = pac::TIM24;
-    tim.psc().write_value(0);
-    tim.arr().write_value(u32::MAX);
-    tim.egr().write(|w| w.set_ug(true));
-    tim.sr().write_value(Default::default());
-    tim.cr1().modify(|w| w.set_cen(true));
+    crate::timer32::start(pac::TIM24, None);
     interrupt::TIM24.set_priority(priority::TMC_UART);
     // SAFETY: the handler below touches TIM24 and the exchange, as the
     // exchange's `HandlerCell` allows.
@@ -168,15 +163,15 @@ fn exchange(line: UartLine, tx: &[u8], rx: &mut [u8]) -> Result<(), NoAnswer> {
     let limit = LEAD + longest + GRACE;
     let tim = pac::TIM24;
     let start = tim.cnt().read();
+    // The compare before the flags are cleared and the interrupt enabled
+    // (no stale match can start the exchange early); armed again once
+    // enabled, so that a first event passed meanwhile runs now (and
+    // fails as late: the exchange is tried again).
     let first = start.wrapping_add(LEAD);
     tim.ccr(0).write_value(first);
     tim.sr().write_value(Default::default());
     tim.dier().write(|w| w.set_ccie(0, true));
-    // Held off past the first event while arming: run it now (it fails
-    // as late, and the exchange is tried again).
-    if onechip_sched::clock::is_before(first, tim.cnt().read()) {
-        tim.egr().write(|w| w.set_ccg(0, true));
-    }
+    crate::timer32::arm(tim, first);
     while !DONE.load(Ordering::Acquire) {
         if tim.cnt().read().wrapping_sub(start) > limit {
             tim.dier().write(|w| w.set_ccie(0, false));
@@ -209,14 +204,8 @@ fn TIM24() {
     let event = x.uart.on_event(line.read(), late);
     line.apply(event.pin);
     match event.next {
-        Some(ticks) => {
-            let at = tim.ccr(0).read().wrapping_add(ticks);
-            tim.ccr(0).write_value(at);
-            // Already passed: run at once (the exchange then fails as late).
-            if onechip_sched::clock::is_before(at, tim.cnt().read()) {
-                tim.egr().write(|w| w.set_ccg(0, true));
-            }
-        }
+        // Already passed: it runs at once (and the exchange fails as late).
+        Some(ticks) => crate::timer32::arm(tim, tim.ccr(0).read().wrapping_add(ticks)),
         None => {
             tim.dier().write(|w| w.set_ccie(0, false));
             DONE.store(true, Ordering::Release);

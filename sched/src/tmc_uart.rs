@@ -52,6 +52,17 @@ const SLACK_BITS: usize = 4;
 /// Samples recorded of the longest reply, from its first start bit.
 const MAX_SAMPLES: usize = (MAX_BYTES * FRAME_BITS + SLACK_BITS) * OVERSAMPLE as usize;
 
+/// The line's level during bit time `bit` of `bytes` sent back to back:
+/// each byte's start bit (low), its 8 data bits least significant first,
+/// its stop bit (high); high (idle) past the last.
+pub fn wire_level(bytes: &[u8], bit: usize) -> bool {
+    match (bytes.get(bit / FRAME_BITS), bit % FRAME_BITS) {
+        (None, _) | (_, 9) => true,
+        (_, 0) => false,
+        (Some(byte), k) => byte >> (k - 1) & 1 != 0,
+    }
+}
+
 /// Why an exchange failed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Failure {
@@ -335,12 +346,7 @@ impl SoftUart {
 
     /// The level of bit `pos` of the request on the wire.
     fn tx_bit(&self, pos: u16) -> bool {
-        let (byte, bit) = (usize::from(pos) / FRAME_BITS, usize::from(pos) % FRAME_BITS);
-        match bit {
-            0 => false,
-            9 => true,
-            k => self.tx[byte] >> (k - 1) & 1 != 0,
-        }
+        wire_level(&self.tx[..usize::from(self.tx_len)], usize::from(pos))
     }
 
     fn record(&mut self, i: usize, level: bool) {
@@ -401,13 +407,14 @@ mod tests {
         let bits: Vec<bool> = (0..20)
             .map(|k| level_at(k * u64::from(BIT) + u64::from(BIT) / 2))
             .collect();
-        let expect = |byte: u8| {
-            let mut v = vec![false];
-            v.extend((0..8).map(|k| byte >> k & 1 != 0));
-            v.push(true);
-            v
-        };
-        assert_eq!(bits, [expect(0x05), expect(0xa3)].concat());
+        // 0x05 then 0xa3, least significant bit first, between start and
+        // stop bits.
+        let expect = [
+            [0, 1, 0, 1, 0, 0, 0, 0, 0, 1],
+            [0, 1, 1, 0, 0, 0, 1, 0, 1, 1],
+        ];
+        let expect: Vec<bool> = expect.iter().flatten().map(|&b| b == 1).collect();
+        assert_eq!(bits, expect);
         // A write ends driven high, at the end of the last stop bit.
         assert_eq!(uart.outcome(), Ok(()));
         assert_eq!(edges.last(), Some(&(20 * u64::from(BIT), true)));
@@ -430,16 +437,8 @@ mod tests {
     /// per bit, high around them.
     fn frames(bytes: &[u8], start: f64, bit: f64) -> impl Fn(u64) -> bool + '_ {
         move |t| {
-            let k = ((t as f64 - start) / bit).floor();
-            if k < 0.0 || k >= (bytes.len() * FRAME_BITS) as f64 {
-                return true;
-            }
-            let k = k as usize;
-            match k % FRAME_BITS {
-                0 => false,
-                9 => true,
-                b => bytes[k / FRAME_BITS] >> (b - 1) & 1 != 0,
-            }
+            let k = (t as f64 - start) / bit;
+            k < 0.0 || wire_level(bytes, k as usize)
         }
     }
 

@@ -20,7 +20,7 @@ use onechip_app::tmc::{NoAnswer, Tmc, TmcLink};
 use onechip_config::Config;
 use onechip_host::tmc_sim::TmcSim;
 use onechip_planner::machine::Machine;
-use onechip_sched::tmc_uart::{FRAME_BITS, Failure, Pin, SoftUart};
+use onechip_sched::tmc_uart::{FRAME_BITS, Failure, Pin, SoftUart, wire_level};
 use std::path::PathBuf;
 
 /// The board's timer clock, Hz, and Klipper's TMC UART bit rate.
@@ -124,16 +124,8 @@ fn driver_reads(edges: &[(f64, bool)]) -> Option<(Vec<u8>, f64, f64)> {
 /// The line's level at `t` while a driver sends `reply` from `start`,
 /// `bit` ticks per bit (high outside it: the pull-up).
 fn reply_level(reply: &[u8], start: f64, bit: f64, t: f64) -> bool {
-    let k = ((t - start) / bit).floor();
-    if k < 0.0 || k >= (reply.len() * FRAME_BITS) as f64 {
-        return true;
-    }
-    let k = k as usize;
-    match k % FRAME_BITS {
-        0 => false,
-        9 => true,
-        b => reply[k / FRAME_BITS] >> (b - 1) & 1 != 0,
-    }
+    let k = (t - start) / bit;
+    k < 0.0 || wire_level(reply, k as usize)
 }
 
 impl TmcLink for Wire {

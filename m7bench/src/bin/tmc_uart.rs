@@ -10,7 +10,7 @@
 
 use cortex_m_rt::entry;
 use onechip_m7bench::{exit, measure, report};
-use onechip_sched::tmc_uart::{FRAME_BITS, Pin, SoftUart, TURNAROUND_BITS};
+use onechip_sched::tmc_uart::{Pin, SoftUart, TURNAROUND_BITS, wire_level};
 
 /// Klipper's 40 kbit/s at the board's 260 MHz timer clock, ticks.
 const BIT: u32 = 6_500;
@@ -23,14 +23,8 @@ const REPLY: [u8; 8] = [0x05, 0xff, 0x02, 0x00, 0x00, 0x00, 0x07, 0x2c];
 
 /// The line's level `t` ticks after the release: the reply's bits.
 fn line_at(t: u32) -> bool {
-    let Some(k) = t.checked_sub(8 * BIT).map(|t| (t / BIT) as usize) else {
-        return true;
-    };
-    match (REPLY.get(k / FRAME_BITS), k % FRAME_BITS) {
-        (None, _) | (_, 9) => true,
-        (_, 0) => false,
-        (Some(byte), b) => byte >> (b - 1) & 1 != 0,
-    }
+    t.checked_sub(8 * BIT)
+        .is_none_or(|t| wire_level(&REPLY, (t / BIT) as usize))
 }
 
 /// The line's level at each event of one read exchange, recorded by
