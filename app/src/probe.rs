@@ -18,6 +18,7 @@ use onechip_planner::probe::{
     MAX_SAMPLES, ProbeConfig, ProbeHooks, ProbeState, SamplesResult, Sampling,
 };
 use onechip_planner::safe_home::{G28, requested};
+use onechip_planner::screws_tilt::{self, ScrewsTilt};
 
 /// The BLTouch's servo signal period, s (for the board's control pin).
 pub use onechip_planner::bltouch::SIGNAL_PERIOD;
@@ -31,6 +32,8 @@ const ACCURACY_SAMPLES: f64 = 10.0;
 #[derive(Debug, Clone, Copy)]
 pub struct Probing<'a> {
     probe: Option<ProbeConfig<'a>>,
+    /// `[screws_tilt_adjust]`, if present.
+    screws: Option<ScrewsTilt<'a>>,
     state: ProbeState,
     g28: G28<'a>,
     /// A `[homing_override]` script is running: its G28 homes plainly.
@@ -48,6 +51,7 @@ impl<'a> Probing<'a> {
     pub fn new(machine: &Machine<'a>) -> Self {
         Self {
             probe: machine.probe,
+            screws: machine.screws_tilt,
             state: machine
                 .probe
                 .as_ref()
@@ -302,13 +306,19 @@ impl<'a, const N: usize> Printer<'a, N> {
         sink: &mut impl MoveSink,
         out: &mut impl Write,
     ) -> Result<bool, LineError<'l>> {
+        let name = e.name;
+        let is = |n: &str| name.eq_ignore_ascii_case(n);
         let Some(probe) = self.probing.probe else {
+            if is("SCREWS_TILT_CALCULATE") && self.probing.screws.is_some() {
+                const MANUAL: &str = "SCREWS_TILT_CALCULATE without a [probe] (manual probing)";
+                return Err(CommandError::NotSupported(MANUAL).into());
+            }
             return Ok(false);
         };
         let now = self.probing.now;
-        let name = e.name;
-        let is = |n: &str| name.eq_ignore_ascii_case(n);
-        if is("PROBE") {
+        if is("SCREWS_TILT_CALCULATE") && self.probing.screws.is_some() {
+            self.screws_tilt_calculate(e, &probe, sink, out)?;
+        } else if is("PROBE") {
             let s = sampling(e, probe.sampling())?;
             let pos = (self.toolhead)
                 .run_probe(&probe, &mut self.probing.state, &s, now, sink, out)
@@ -382,6 +392,51 @@ impl<'a, const N: usize> Printer<'a, N> {
             return Ok(false);
         }
         Ok(true)
+    }
+
+    /// SCREWS_TILT_CALCULATE, as Klipper's `screws_tilt_adjust`: every
+    /// screw probed (the probe's own parameters, HORIZONTAL_MOVE_Z), then
+    /// each one's turn against the base; an error past MAX_DEVIATION.
+    fn screws_tilt_calculate<'l>(
+        &mut self,
+        e: &Extended<'l>,
+        probe: &ProbeConfig<'_>,
+        sink: &mut impl MoveSink,
+        out: &mut impl Write,
+    ) -> Result<(), LineError<'l>> {
+        let Some(screws) = self.probing.screws else {
+            return Ok(());
+        };
+        let (max_deviation, direction) = screws_tilt::parameters(e)?;
+        let s = sampling(e, probe.sampling())?;
+        let move_z = e.float("HORIZONTAL_MOVE_Z")?;
+        let move_z = move_z.unwrap_or(screws.horizontal_move_z);
+        if move_z < probe.offsets[2] {
+            return Err(CommandError::Refused(
+                "horizontal_move_z can't be less than probe's z_offset",
+            )
+            .into());
+        }
+        let points: heapless::Vec<[f64; 2], { screws_tilt::MAX_SCREWS }> =
+            screws.screws().iter().map(|screw| screw.at).collect();
+        let mut zs = [0.0; screws_tilt::MAX_SCREWS];
+        (self.toolhead)
+            .probe_points(
+                probe,
+                &mut self.probing.state,
+                &s,
+                &points,
+                (move_z, screws.speed),
+                self.probing.now,
+                sink,
+                out,
+                &mut |i, z| zs[i] = z,
+            )
+            .map_err(CommandError::Move)?;
+        self.gcode.reset_last_position(&self.toolhead);
+        screws
+            .report(&zs[..points.len()], direction, max_deviation, out)
+            .map_err(|d| CommandError::BedLevel(d).into())
     }
 
     /// PROBE_ACCURACY: SAMPLES probes (10) with a lift after each, then

@@ -42,6 +42,8 @@ pub enum CommandError<'a> {
     NotAnExtruder(&'a str),
     /// A refusal in Klipper's words.
     Refused(&'static str),
+    /// SCREWS_TILT_CALCULATE found a screw beyond MAX_DEVIATION.
+    BedLevel(crate::screws_tilt::Deviation),
 }
 
 impl<'a> From<GcodeError<'a>> for CommandError<'a> {
@@ -81,6 +83,7 @@ impl fmt::Display for CommandError<'_> {
             ),
             Self::NotAnExtruder(name) => write!(f, "'{}' is not a valid extruder.", Escaped(name)),
             Self::Refused(message) => f.write_str(message),
+            Self::BedLevel(deviation) => write!(f, "{deviation}"),
         }
     }
 }

@@ -49,6 +49,7 @@ pub mod output_pin;
 pub mod planned_move;
 pub mod probe;
 pub mod safe_home;
+pub mod screws_tilt;
 pub mod sensor_section;
 pub mod shaper_config;
 pub mod spi_temperature;

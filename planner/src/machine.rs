@@ -109,6 +109,8 @@ pub struct Machine<'a> {
     pub probe: Option<ProbeConfig<'a>>,
     /// How G28 homes (`[safe_z_home]`, `[homing_override]`).
     pub g28: G28<'a>,
+    /// `[screws_tilt_adjust]`, if present.
+    pub screws_tilt: Option<crate::screws_tilt::ScrewsTilt<'a>>,
     /// Named fans, output pins, board pin aliases, filament sensors.
     pub accessories: Accessories<'a>,
     /// The TMC drivers configured over UART or SPI (`[tmc2209 stepper_x]`).
@@ -250,6 +252,7 @@ impl<'a> Machine<'a> {
         let mut extra_rails = heapless::Vec::new();
         let probe = probe::read(config)?;
         let g28 = safe_home::read(config)?;
+        let screws_tilt = crate::screws_tilt::read(config)?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
@@ -359,6 +362,7 @@ impl<'a> Machine<'a> {
             if !MOTION_SECTIONS.contains(&name)
                 && (kinematics == Kinematics::Delta || extra_stepper_rail(name).is_none())
                 && !extruder_stepper::is_section(name)
+                && !crate::screws_tilt::is_section(name)
                 && !accessories::is_section(name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
@@ -388,6 +392,7 @@ impl<'a> Machine<'a> {
             secondaries,
             probe,
             g28,
+            screws_tilt,
             accessories,
             tmc,
             stall_homing,

@@ -412,39 +412,52 @@ impl<const N: usize> Toolhead<N> {
         sink: &mut impl MoveSink,
         out: &mut impl core::fmt::Write,
     ) -> Result<[f64; 3], MoveError> {
+        state.begin_multi();
+        let result = self.probe_samples(probe, state, sampling, now, sink, out);
+        let raised = self.end_multi_probe(probe, state, now, sink, out);
+        let pos = result?;
+        raised?;
+        Ok(pos)
+    }
+
+    /// [`Self::run_probe`]'s samples, within a multi-sample command the
+    /// caller began ([`ProbeState::begin_multi`]) and ends
+    /// ([`Self::end_multi_probe`]).
+    pub fn probe_samples(
+        &mut self,
+        probe: &ProbeConfig<'_>,
+        state: &mut ProbeState,
+        sampling: &Sampling,
+        now: f64,
+        sink: &mut impl MoveSink,
+        out: &mut impl core::fmt::Write,
+    ) -> Result<[f64; 3], MoveError> {
         let xy = self.position();
         let mut samples = Samples::new();
         let mut retries = 0;
         let wanted = (sampling.samples as usize).min(MAX_SAMPLES);
-        state.begin_multi();
-        let result = (|| {
-            while samples.len() < wanted {
-                let pos = self.probe_once(probe, state, sampling.speed, now, sink, out)?;
-                let _ = samples.push(pos);
-                let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
-                    (lo.min(p[2]), hi.max(p[2]))
-                });
-                if hi - lo > sampling.tolerance {
-                    if retries >= sampling.retries {
-                        return Err(error(EXCEED_TOLERANCE, self.position()));
-                    }
-                    let _ = writeln!(out, "// Probe samples exceed tolerance. Retrying...");
-                    retries += 1;
-                    samples.clear();
+        while samples.len() < wanted {
+            let pos = self.probe_once(probe, state, sampling.speed, now, sink, out)?;
+            let _ = samples.push(pos);
+            let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+                (lo.min(p[2]), hi.max(p[2]))
+            });
+            if hi - lo > sampling.tolerance {
+                if retries >= sampling.retries {
+                    return Err(error(EXCEED_TOLERANCE, self.position()));
                 }
-                if samples.len() < wanted {
-                    let mut lift = self.position();
-                    lift[0] = xy[0];
-                    lift[1] = xy[1];
-                    lift[2] = pos[2] + sampling.retract_dist;
-                    self.move_to(lift, sampling.lift_speed, sink)?;
-                }
+                let _ = writeln!(out, "// Probe samples exceed tolerance. Retrying...");
+                retries += 1;
+                samples.clear();
             }
-            Ok(())
-        })();
-        let raised = self.end_multi_probe(probe, state, now, sink, out);
-        result?;
-        raised?;
+            if samples.len() < wanted {
+                let mut lift = self.position();
+                lift[0] = xy[0];
+                lift[1] = xy[1];
+                lift[2] = pos[2] + sampling.retract_dist;
+                self.move_to(lift, sampling.lift_speed, sink)?;
+            }
+        }
         Ok(match sampling.result {
             SamplesResult::Median => median(&samples),
             SamplesResult::Average => mean(&samples),

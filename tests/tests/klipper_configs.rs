@@ -488,3 +488,80 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
         "{sensorless} home on a driver's stall, expected at least {MIN_SENSORLESS}"
     );
 }
+
+/// The stock printer configs with `[screws_tilt_adjust]` and a probe:
+/// G28, then SCREWS_TILT_CALCULATE probes every screw and reports a turn
+/// for each but the base, as Klipper; a config whose screw lies beyond
+/// its axis' range gets Klipper's "Move out of range" for it, as Klipper
+/// would (printer-creality-ender3-v2-neo-2022.cfg: screw2 at X 237.6,
+/// stepper_x's position_max 235).
+#[test]
+fn stock_screws_tilt_adjust_sections_probe_their_screws() {
+    let mut tried = 0;
+    for entry in std::fs::read_dir(corpus()).expect("the shared config folder") {
+        let file = entry.expect("entry").path();
+        let text = std::fs::read_to_string(&file).unwrap_or_default();
+        if !text.contains("\n[screws_tilt_adjust]") {
+            continue;
+        }
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned());
+        let name = name.unwrap_or_default();
+        let config = Config::parse("printer.cfg", &text).expect("parses");
+        let machine = Machine::from_config(&config).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let (Some(screws), Some(_)) = (machine.screws_tilt, machine.probe) else {
+            continue;
+        };
+        tried += 1;
+        // The first screw beyond X's or Y's travel, if any.
+        let range = |axis| machine.travel.homing_info(axis).expect("a rail").range;
+        let outside = screws
+            .screws()
+            .iter()
+            .find(|s| (0..2).any(|a| s.at[a] < range(a).0 || s.at[a] > range(a).1));
+        let dir =
+            std::env::temp_dir().join(format!("onechip-screws-{}-{tried}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        std::fs::write(dir.join("printer.cfg"), &text).expect("write printer.cfg");
+        std::fs::write(dir.join("job.gcode"), "G28\nSCREWS_TILT_CALCULATE\n").expect("job");
+        let options = Options {
+            start: Start::At([50.0, 50.0, 30.0]),
+            board_pins: false,
+            ..Options::default()
+        };
+        let summary =
+            onechip_host::run_with(&dir, &options).unwrap_or_else(|e| panic!("{name}: {e}"));
+        std::fs::remove_dir_all(&dir).ok();
+        let adjusted = summary.transcript.matches(" : adjust ").count();
+        match outside {
+            Some(screw) => {
+                let error = summary
+                    .errors
+                    .first()
+                    .map(|(_, e)| e.as_str())
+                    .unwrap_or("");
+                let expected = format!("Move out of range: {:.3} {:.3}", screw.at[0], screw.at[1]);
+                assert!(
+                    error.starts_with(&expected),
+                    "{name}: {error:?} vs {expected}"
+                );
+            }
+            None => {
+                assert!(summary.errors.is_empty(), "{name}: {:?}", summary.errors);
+                assert_eq!(
+                    adjusted,
+                    screws.screws().len() - 1,
+                    "{name}: {}",
+                    summary.transcript
+                );
+            }
+        }
+        println!(
+            "{name}: {} screws, {adjusted} adjusted",
+            screws.screws().len()
+        );
+    }
+    assert!(
+        tried >= 6,
+        "only {tried} stock configs with [screws_tilt_adjust] and a probe"
+    );
+}

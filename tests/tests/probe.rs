@@ -506,3 +506,103 @@ fn a_bltouch_whose_sensor_stays_triggered_fails_to_raise_after_klippers_three_tr
     let r = p.send("G28");
     assert!(!r.contains("!!"), "{r}");
 }
+
+/// `[screws_tilt_adjust]` over four screws, with `thread`.
+fn screws_section(thread: &str) -> String {
+    format!(
+        "[screws_tilt_adjust]\nscrew1: 50, 50\nscrew1_name: front left screw\n\
+         screw2: 200, 50\nscrew2_name: front right screw\nscrew3: 200, 200\n\
+         screw3_name: rear right screw\nscrew4: 50, 200\nscrew4_name: rear left screw\n\
+         horizontal_move_z: 10\nspeed: 100\nscrew_thread: {thread}\n"
+    )
+}
+
+/// Turns and minutes (and CW) Klipper gives a screw `diff` mm low
+/// against the base with a thread of `pitch` mm, clockwise-raising if
+/// `cw_thread`: diff / pitch turns, the fraction in sixtieths rounded.
+fn klipper_turn(diff: f64, pitch: f64, cw_thread: bool) -> String {
+    let adjust = if diff.abs() < 0.001 {
+        0.0
+    } else {
+        diff / pitch
+    };
+    let cw = (adjust >= 0.0) == cw_thread;
+    let turns = adjust.abs().trunc();
+    let minutes = ((adjust.abs() - turns) * 60.0).round_ties_even();
+    format!(
+        "{} {:02}:{:02}",
+        if cw { "CW" } else { "CCW" },
+        turns,
+        minutes
+    )
+}
+
+#[test]
+fn screws_tilt_calculate_probes_each_screw_and_reports_klippers_turns() {
+    let sections = format!("{}\n{}", probe_section(), screws_section("CW-M4"));
+    // A bed tilted 2 µm/mm along X and -1 µm/mm along Y: 0.3 mm from the
+    // left screws to the right ones, 0.15 mm front to back.
+    let mut p = printer_with("screws", &format!("{sections}\n{}", safe_z_home("")), BED);
+    assert!(p.send("G28").ends_with("ok\n"));
+    let r = p.send("SCREWS_TILT_CALCULATE");
+    assert!(r.ends_with("ok\n") && !r.contains("!!"), "{r}");
+    println!("{r}");
+    let lines: Vec<&str> = r.lines().filter(|l| l.contains(" : x=")).collect();
+    assert_eq!(lines.len(), 4, "{r}");
+    assert!(r.contains(
+        "// 01:20 means 1 full turn and 20 minutes, CW=clockwise, CCW=counter-clockwise\n"
+    ));
+    // Each screw probed where the nozzle is over it: the probe, offset
+    // from the nozzle, finds the bed beside the screw.
+    let screws = [(50.0, 50.0), (200.0, 50.0), (200.0, 200.0), (50.0, 200.0)];
+    let z: Vec<f64> = (lines.iter())
+        .map(|l| {
+            let z = l.split("z=").nth(1).and_then(|z| z.split(' ').next());
+            z.and_then(|z| z.parse().ok()).expect("z=")
+        })
+        .collect();
+    let bed_at = |(x, y): (f64, f64)| bed(x + OFFSETS[0], y + OFFSETS[1], BED);
+    for (i, &screw) in screws.iter().enumerate() {
+        let measured = z[i] - z[0];
+        let real = bed_at(screw) - bed_at(screws[0]);
+        assert!(
+            (measured - real).abs() <= Z_STEP + 1e-9,
+            "screw {i}: {measured} vs {real}"
+        );
+    }
+    assert!(
+        lines[0].starts_with("// front left screw (base) : x=50.0, y=50.0, z="),
+        "{}",
+        lines[0]
+    );
+    for (i, line) in lines.iter().enumerate().skip(1) {
+        let expected = klipper_turn(z[0] - z[i], 0.7, true);
+        assert!(
+            line.ends_with(&format!(" : adjust {expected}")),
+            "{line} vs {expected}"
+        );
+    }
+    // The front right screw is 0.3 mm high: 0.3 / 0.7 of a turn, about
+    // 26 minutes, counter-clockwise.
+    assert!(lines[1].ends_with("adjust CCW 00:26"), "{}", lines[1]);
+    // Probing ended at horizontal_move_z over the last screw.
+    assert_eq!(p.send("M114"), "X:50.000 Y:200.000 Z:10.000 E:0.000\nok\n");
+    // DIRECTION=CW: the highest screw is the base, every turn clockwise.
+    let r = p.send("SCREWS_TILT_CALCULATE DIRECTION=CW");
+    let adjusted: Vec<&str> = r.lines().filter(|l| l.contains(": adjust ")).collect();
+    assert!(r.contains("front right screw (base)"), "{r}");
+    assert!(adjusted.iter().all(|l| l.contains("adjust CW ")), "{r}");
+    // MAX_DEVIATION: Klipper's error past it.
+    let r = p.send("SCREWS_TILT_CALCULATE MAX_DEVIATION=0.1");
+    assert!(
+        r.contains(
+            "!! bed level exceeds configured limits (0.1mm)! Adjust screws and restart print.\n"
+        ),
+        "{r}"
+    );
+    let r = p.send("SCREWS_TILT_CALCULATE DIRECTION=UP");
+    assert!(
+        r.contains("!! ") && r.contains("DIRECTION must be either CW or CCW"),
+        "{r}"
+    );
+}
