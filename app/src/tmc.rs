@@ -55,8 +55,21 @@ pub fn port_numbers<'d>(drivers: &'d [TmcDriver<'_>]) -> impl Iterator<Item = u8
     })
 }
 
-/// How often the drivers are checked, s (Klipper's period).
+/// How often each driver is checked, s (Klipper's period).
 pub const CHECK_PERIOD: f64 = 1.0;
+/// Further tries of a periodic check whose UART read failed (Klipper's
+/// check reads a UART register up to 3 times).
+const READ_RETRIES: u8 = 2;
+/// The pause before such a try, s (Klipper's).
+const READ_RETRY_PAUSE: f64 = 0.050;
+
+/// Why a periodic check failed.
+enum Unreached {
+    /// A UART driver did not answer a read (tried again later).
+    Uart(ErrorText),
+    /// Anything else: an SPI driver that did not answer, an error flag.
+    Other(ErrorText),
+}
 /// Tries of one register access before it is an error (Klipper's).
 const TRIES: usize = 5;
 /// Longest daisy chain a transfer is built for.
@@ -90,6 +103,8 @@ pub struct Tmc<'a> {
     next_check: Option<f64>,
     /// The driver the next check looks at.
     next_driver: usize,
+    /// Further tries taken of its check after failed UART reads.
+    read_retries: u8,
     /// The first register write of a homing move's setup that failed, not
     /// yet reported.
     homing_failure: Option<Failure<'a>>,
@@ -145,6 +160,7 @@ impl<'a> Tmc<'a> {
             drivers: out,
             next_check: None,
             next_driver: 0,
+            read_retries: 0,
             homing_failure: None,
         }
     }
@@ -203,11 +219,14 @@ impl<'a> Tmc<'a> {
     }
 
     /// At start (the first call) every register of every driver is
-    /// written; then, every [`CHECK_PERIOD`] of MCU time `now` (s), each
-    /// driver is checked and a driver that was reset is written again
-    /// (reported on `out`), one driver per call (a call on the board's
-    /// UART waits for its exchanges: two reads, about 7 ms, so thread code
-    /// is held no longer). A driver that cannot be reached is an error.
+    /// written; then each driver is checked once every [`CHECK_PERIOD`] of
+    /// MCU time `now` (s), the drivers spread over the period, one per
+    /// call (a call on the board's UART waits for its exchanges: two
+    /// reads, about 7 ms, so thread code is held no longer). A driver that
+    /// was reset is written again (reported on `out`). A UART read that
+    /// fails is tried again 50 ms later, twice, as Klipper's check allows;
+    /// a driver that cannot be reached then is an error, as is one
+    /// reporting an error.
     pub fn poll(
         &mut self,
         link: &mut dyn TmcLink,
@@ -226,25 +245,19 @@ impl<'a> Tmc<'a> {
                 // A driver that fails is reported once; checks stop.
                 self.next_check = Some(f64::INFINITY);
                 let i = self.next_driver;
-                if let Some(name) = self.drivers.get(i).map(|d| d.config.stepper) {
-                    if self.was_reset(link, i)? {
-                        let _ = writeln!(
-                            out,
-                            "// TMC '{name}' was reset (power loss?): registers written again"
-                        );
-                        self.init(link, i)?;
-                        self.clear_reset(link, i)?;
+                match self.check(link, i, out) {
+                    Err(Unreached::Uart(_)) if self.read_retries < READ_RETRIES => {
+                        self.read_retries += 1;
+                        self.next_check = Some(now + READ_RETRY_PAUSE);
+                        return Ok(());
                     }
-                    self.check_errors(link, i)?;
+                    Err(Unreached::Uart(e) | Unreached::Other(e)) => return Err(e),
+                    Ok(()) => {}
                 }
-                self.next_driver = (i + 1) % self.drivers.len().max(1);
-                // The next driver at the next call; after the last, the
-                // next round a period later.
-                self.next_check = Some(if self.next_driver == 0 {
-                    now + CHECK_PERIOD
-                } else {
-                    due
-                });
+                self.read_retries = 0;
+                let n = self.drivers.len().max(1);
+                self.next_driver = (i + 1) % n;
+                self.next_check = Some(now + CHECK_PERIOD / n as f64);
             }
             Some(_) => {}
         }
@@ -260,42 +273,60 @@ impl<'a> Tmc<'a> {
         Ok(())
     }
 
-    /// True if driver `i` shows a reset: GSTAT's `reset` flag, or on the
-    /// TMC2660 (no GSTAT) a zero current scale (`se`) while CS is set.
-    fn was_reset(&mut self, link: &mut dyn TmcLink, i: usize) -> Result<bool, ErrorText> {
-        let kind = self.drivers[i].config.regs.kind();
-        if kind == DriverKind::Tmc2660 {
-            let status = self.read(link, i, "READRSP@RDSEL2")?;
-            let se = (status >> 14) & 0x1f;
-            return Ok(se == 0 && self.drivers[i].config.regs.get("cs") > 0);
-        }
-        Ok(self.read(link, i, "GSTAT")? & 1 != 0)
-    }
-
-    /// Driver `i`'s error flags, as Klipper's periodic check reads them:
-    /// overtemperature and shorts in DRV_STATUS (the TMC2660's read
-    /// response), driver error and undervoltage in GSTAT. An error is
+    /// Driver `i`'s periodic check: its status registers read once each
+    /// (DRV_STATUS and GSTAT; the TMC2660's read response). A reset
+    /// (GSTAT's `reset` flag; on the TMC2660 a zero current scale `se`
+    /// while CS is set) is reported and the registers written again. An
+    /// error flag (overtemperature, shorts, driver error, undervoltage) is
     /// Klipper's "TMC '…' reports error: REGISTER: value fields".
-    fn check_errors(&mut self, link: &mut dyn TmcLink, i: usize) -> Result<(), ErrorText> {
+    fn check(
+        &mut self,
+        link: &mut dyn TmcLink,
+        i: usize,
+        out: &mut dyn Write,
+    ) -> Result<(), Unreached> {
         const ERRORS: [&str; 7] = ["ot", "s2ga", "s2gb", "s2vsa", "s2vsb", "drv_err", "uv_cp"];
-        let kind = self.drivers[i].config.kind;
+        let Some(d) = self.drivers.get(i) else {
+            return Ok(());
+        };
+        let (kind, name) = (d.config.kind, d.config.stepper);
         let status = match kind {
             DriverKind::Tmc2660 => ["READRSP@RDSEL2", ""],
             _ => ["DRV_STATUS", "GSTAT"],
         };
+        let mut reset = false;
         for reg in status.iter().filter_map(|name| kind.register_any(name)) {
-            let value = self.read(link, i, reg.name)?;
+            let value = self.read(link, i, reg.name).map_err(|e| {
+                if kind.is_uart() {
+                    Unreached::Uart(e)
+                } else {
+                    Unreached::Other(e)
+                }
+            })?;
+            reset |= match kind {
+                DriverKind::Tmc2660 => {
+                    (value >> 14) & 0x1f == 0 && self.drivers[i].config.regs.get("cs") > 0
+                }
+                _ => reg.name == "GSTAT" && value & 1 != 0,
+            };
             let failed = reg
                 .fields
                 .iter()
                 .any(|f| ERRORS.contains(&f.name) && f.get(value) != 0);
             if failed {
-                let name = self.drivers[i].config.stepper;
-                return Err(cut_text(&format_args!(
+                return Err(Unreached::Other(cut_text(&format_args!(
                     "TMC '{name}' reports error: {}",
                     Pretty(kind, reg, value)
-                )));
+                ))));
             }
+        }
+        if reset {
+            let _ = writeln!(
+                out,
+                "// TMC '{name}' was reset (power loss?): registers written again"
+            );
+            self.init(link, i).map_err(Unreached::Other)?;
+            self.clear_reset(link, i).map_err(Unreached::Other)?;
         }
         Ok(())
     }

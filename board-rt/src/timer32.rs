@@ -19,13 +19,19 @@ pub fn start(tim: TimGp32, first: Option<u32>) {
     tim.cr1().modify(|w| w.set_cen(true));
 }
 
-/// Arms `tim`'s compare 1 at count `at`; if the count has passed it
-/// already (the interrupt was held off while arming), the interrupt is
-/// raised now rather than after the counter wraps.
+/// Arms `tim`'s compare 1 at count `at` ([`raise_if_passed`]).
 #[inline(always)]
 pub fn arm(tim: TimGp32, at: u32) {
     tim.ccr(0).write_value(at);
-    if onechip_sched::clock::is_before(at, tim.cnt().read()) {
+    raise_if_passed(tim, at);
+}
+
+/// Raises `tim`'s compare-1 interrupt now if its count has reached `at`
+/// already (the interrupt was held off while arming): a compare written
+/// at or behind the count matches only after the counter wraps.
+#[inline(always)]
+pub fn raise_if_passed(tim: TimGp32, at: u32) {
+    if !onechip_sched::clock::is_before(tim.cnt().read(), at) {
         tim.egr().write(|w| w.set_ccg(0, true));
     }
 }

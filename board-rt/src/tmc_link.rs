@@ -3,13 +3,15 @@
 //!
 //! - UART (TMC2208, TMC2209; `uart_pin`, and `tx_pin` if separate): the
 //!   single-wire UART bit-banged at Klipper's 40,000 bits/s from TIM24's
-//!   compare interrupt ([`onechip_sched::tmc_uart`], which measures each
-//!   event's latency and fails an exchange held off too long, to be tried
-//!   again). On the Octopus Pro each driver socket has its own pin (PC4,
-//!   PD11, PC6, PC7, PF2, PE4, PE1, PD3 in Klipper's board config), so
-//!   TIM24 serves one exchange at a time. Thread code sleeps (`wfe`) until
-//!   the exchange is over: a register write takes 2.0 ms (80 bits), a read
-//!   about 3.3 ms (40 bits out, the driver's 8-bit pause, 84 bits sampled).
+//!   compare interrupt, just below the stepper's
+//!   ([`onechip_sched::tmc_uart`], which measures each event's latency
+//!   and fails an exchange held off too long, to be tried again after
+//!   1 ms of idle line). On the Octopus Pro each driver socket has its
+//!   own pin (PC4, PD11, PC6, PC7, PF2, PE4, PE1, PD3 in Klipper's board
+//!   config), so TIM24 serves one exchange at a time. Thread code sleeps
+//!   (`wfe`) until the exchange is over: a register write takes 2.0 ms
+//!   (80 bits), a read about 3.3 ms (40 bits out, the driver's 8-bit
+//!   pause, 84 bits sampled).
 //! - SPI (TMC2130, TMC2240, TMC2660, TMC5160; `cs_pin`, `spi_bus: spi1`
 //!   or a software bus): [`crate::spi_sensors::SpiDevice`], as the
 //!   temperature chips use; a transfer holds the heaters' interrupt off,
@@ -43,6 +45,9 @@ const _: () = assert!(
 );
 /// The first event of an exchange, ticks after it is armed (20 µs).
 const LEAD: u32 = BIT_TICKS * 4 / 5;
+/// How long the line stays idle after a failed exchange, TIM24 ticks
+/// (1 ms: the I/O executor's 10 ms tick wakes the wait at the latest).
+const IDLE_AFTER_FAILURE: u32 = 260_000;
 /// Time allowed beyond an exchange's longest before thread code gives
 /// up on it, TIM24 ticks (1 ms; an exchange is at most about 6 ms, far
 /// below the counter's 16.5 s wrap).
@@ -162,16 +167,20 @@ fn exchange(line: UartLine, tx: &[u8], rx: &mut [u8]) -> Result<(), NoAnswer> {
     let longest = SoftUart::longest_bits(tx.len(), rx.len()) * BIT_TICKS;
     let limit = LEAD + longest + GRACE;
     let tim = pac::TIM24;
-    let start = tim.cnt().read();
-    // The compare before the flags are cleared and the interrupt enabled
-    // (no stale match can start the exchange early); armed again once
-    // enabled, so that a first event passed meanwhile runs now (and
+    // Armed with TIM24's interrupt held off, so that its first run sees
+    // the compare it is armed for: the compare before the flags are
+    // cleared and the interrupt enabled (no stale match starts the
+    // exchange early), and a first event passed meanwhile raised now (it
     // fails as late: the exchange is tried again).
-    let first = start.wrapping_add(LEAD);
-    tim.ccr(0).write_value(first);
-    tim.sr().write_value(Default::default());
-    tim.dier().write(|w| w.set_ccie(0, true));
-    crate::timer32::arm(tim, first);
+    let start = masked(mask_of(priority::TMC_UART), || {
+        let start = tim.cnt().read();
+        let first = start.wrapping_add(LEAD);
+        tim.ccr(0).write_value(first);
+        tim.sr().write_value(Default::default());
+        tim.dier().write(|w| w.set_ccie(0, true));
+        crate::timer32::raise_if_passed(tim, first);
+        start
+    });
     while !DONE.load(Ordering::Acquire) {
         if tim.cnt().read().wrapping_sub(start) > limit {
             tim.dier().write(|w| w.set_ccie(0, false));
@@ -183,9 +192,19 @@ fn exchange(line: UartLine, tx: &[u8], rx: &mut [u8]) -> Result<(), NoAnswer> {
         }
         cortex_m::asm::wfe();
     }
-    EXCHANGE
+    let reply = EXCHANGE
         .with(|x| x.uart.reply(rx))
-        .map_or(Err(NoAnswer), |r| r.map_err(|_| NoAnswer))
+        .map_or(Err(NoAnswer), |r| r.map_err(|_| NoAnswer));
+    if reply.is_err() {
+        // The line idle a while before the next try, so that a driver
+        // that took part of it sees its datagram end (Klipper's retries
+        // are a host round trip apart).
+        let end = tim.cnt().read();
+        while tim.cnt().read().wrapping_sub(end) < IDLE_AFTER_FAILURE {
+            cortex_m::asm::wfe();
+        }
+    }
+    reply
 }
 
 #[interrupt]

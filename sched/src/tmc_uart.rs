@@ -18,9 +18,14 @@
 //! the driver will have measured, and the reply is read at it.
 //!
 //! An event that runs later than its tolerance (another interrupt held it
-//! off: a quarter bit while sending, half a sample while receiving) ends
-//! the exchange with [`Failure::Late`]: the bits it drove or read could be
-//! wrong, so the caller tries again, as after any failed exchange.
+//! off: a quarter bit while sending, half a sample while receiving) fails
+//! the exchange ([`Failure::Late`]): the bits it drove or read could be
+//! wrong, so the caller tries again, as after any failed exchange. The
+//! exchange still runs its course, as Klipper's MCU never cuts one short:
+//! the request goes out whole (a request cut short could leave the
+//! driver's receiver mid-datagram, for the next one to complete), and the
+//! line stays released for the whole reply (driving it then would fight
+//! the driver's output).
 //!
 //! Line levels: `true` is high. The line idles high (driven high between
 //! exchanges, as Klipper leaves it); a byte is a low start bit, 8 data
@@ -134,6 +139,8 @@ pub struct SoftUart {
     bit_ticks: u32,
     /// How late the first event began, ticks.
     first_late: u32,
+    /// An event of this exchange began later than its tolerance.
+    late: bool,
     /// The reply's line levels from its first start bit on, one bit per
     /// sample.
     samples: [u8; MAX_SAMPLES.div_ceil(8)],
@@ -155,6 +162,7 @@ impl SoftUart {
             rx_len: 0,
             bit_ticks: 0,
             first_late: 0,
+            late: false,
             samples: [0; MAX_SAMPLES.div_ceil(8)],
         }
     }
@@ -171,6 +179,7 @@ impl SoftUart {
         self.rx_len = rx_len as u8;
         self.bit_ticks = bit_ticks;
         self.samples.fill(0);
+        self.late = false;
         self.phase = Phase::Sending { pos: 0 };
         Ok(())
     }
@@ -192,9 +201,7 @@ impl SoftUart {
         let sample_ticks = self.bit_ticks / OVERSAMPLE;
         match self.phase {
             Phase::Sending { pos } => {
-                if late > self.bit_ticks / 4 {
-                    return self.finish(Err(Failure::Late));
-                }
+                self.late |= late > self.bit_ticks / 4;
                 let level = self.tx_bit(pos);
                 // The driver measures our bit time on the sync nibble,
                 // from the first start bit's falling edge to the one 4
@@ -237,14 +244,17 @@ impl SoftUart {
                 }
             }
             Phase::Waiting { samples, idle } => {
-                if late > sample_ticks / 2 {
-                    return self.finish(Err(Failure::Late));
-                }
+                self.late |= late > sample_ticks / 2;
                 if !line && idle {
                     self.record(0, line);
                     self.phase = Phase::Reading { samples: 1 };
                 } else if u32::from(samples) + 1 >= REPLY_WAIT_BITS * OVERSAMPLE {
-                    return self.finish(Err(Failure::NoReply));
+                    let failure = if self.late {
+                        Failure::Late
+                    } else {
+                        Failure::NoReply
+                    };
+                    return self.finish(Err(failure));
                 } else {
                     self.phase = Phase::Waiting {
                         samples: samples + 1,
@@ -257,9 +267,7 @@ impl SoftUart {
                 }
             }
             Phase::Reading { samples } => {
-                if late > sample_ticks / 2 {
-                    return self.finish(Err(Failure::Late));
-                }
+                self.late |= late > sample_ticks / 2;
                 self.record(usize::from(samples), line);
                 let wanted =
                     (usize::from(self.rx_len) * FRAME_BITS + SLACK_BITS) * OVERSAMPLE as usize;
@@ -330,8 +338,14 @@ impl SoftUart {
         Ok(())
     }
 
-    /// Ends the exchange with `result`, the line driven idle high.
+    /// Ends the exchange with `result` (a failure if an event ran late),
+    /// the line driven idle high.
     fn finish(&mut self, result: Result<(), Failure>) -> Event {
+        let result = result.and(if self.late {
+            Err(Failure::Late)
+        } else {
+            Ok(())
+        });
         self.phase = Phase::Done(result);
         Event {
             pin: Pin::Drive(true),
@@ -421,7 +435,8 @@ mod tests {
     }
 
     /// Feeds the receive phase line levels from `wave(t)` (t in ticks
-    /// after the release), with `late` ticks of latency at every event.
+    /// after the release), with `late` ticks of latency at every event;
+    /// fails if the line is driven before the phase ends.
     fn receive(uart: &mut SoftUart, late: u32, wave: impl Fn(u64) -> bool) {
         let mut t = u64::from(TURNAROUND_BITS * uart.bit_ticks);
         loop {
@@ -430,6 +445,9 @@ mod tests {
                 Some(d) => t += u64::from(d),
                 None => return,
             }
+            // The line stays released until the reply's window is over,
+            // late events or not.
+            assert_eq!(e.pin, Pin::Keep, "the line taken back mid-reply");
         }
     }
 
@@ -497,13 +515,20 @@ mod tests {
             read(&reply, 8.0, f64::from(BIT), BIT / 7),
             Err(Failure::Late)
         );
-        // Sending: later than a quarter bit.
+        // Sending: later than a quarter bit. The request still goes out
+        // whole, as without the delay.
         let mut uart = SoftUart::new();
-        uart.start(&[0x05], 0, BIT).expect("fits");
+        uart.start(&[0x05, 0xa3], 0, BIT).expect("fits");
         uart.on_event(true, 0);
-        let e = uart.on_event(true, BIT / 4 + 1);
-        assert_eq!((e.pin, e.next), (Pin::Drive(true), None));
+        uart.on_event(true, BIT / 4 + 1);
+        assert_eq!(uart.outcome(), Err(Failure::Busy));
+        let mut on_time = SoftUart::new();
+        on_time.start(&[0x05, 0xa3], 0, BIT).expect("fits");
+        on_time.on_event(true, 0);
+        on_time.on_event(true, 0);
+        assert_eq!(drive(&mut uart), drive(&mut on_time));
         assert_eq!(uart.outcome(), Err(Failure::Late));
+        assert_eq!(on_time.outcome(), Ok(()));
     }
 
     #[test]

@@ -73,6 +73,8 @@ struct Wire {
     exchanges: usize,
     late: usize,
     no_reply: usize,
+    /// Times the firmware drove the line while the driver was sending.
+    contention: usize,
 }
 
 impl Wire {
@@ -83,6 +85,7 @@ impl Wire {
             exchanges: 0,
             late: 0,
             no_reply: 0,
+            contention: 0,
         }
     }
 }
@@ -150,6 +153,19 @@ impl TmcLink for Wire {
             let event = uart.on_event(line, late);
             match event.pin {
                 Pin::Drive(level) => {
+                    // The driver's output is on from its reply's start
+                    // to 4 bit times after its last stop bit, high for
+                    // those 4: driving the line while it sends its
+                    // frames, or low after them, fights it.
+                    if let Some((bytes, start, bit)) = &reply {
+                        let frames_end = start + (bytes.len() * FRAME_BITS) as f64 * bit;
+                        let off = frames_end + 4.0 * bit;
+                        if (*start..frames_end).contains(&t)
+                            || (!level && (frames_end..off).contains(&t))
+                        {
+                            self.contention += 1;
+                        }
+                    }
                     edges.push((t, level));
                     released = false;
                 }
@@ -248,7 +264,11 @@ fn stock_uart_drivers_get_the_same_writes_over_the_wire_as_over_datagrams() {
                 assert_eq!(sim.register(addr), value, "{file}: {} {addr:#x}", d.stepper);
             }
         }
-        assert_eq!((wire.late, wire.no_reply), (0, 0), "{file}");
+        assert_eq!(
+            (wire.late, wire.no_reply, wire.contention),
+            (0, 0, 0),
+            "{file}"
+        );
         eprintln!("{file}: {} exchanges over the wire", wire.exchanges);
     }
 }
@@ -270,6 +290,8 @@ fn an_exchange_held_off_by_another_interrupt_is_retried_never_misread() {
         "no exchange was late: the test shows nothing"
     );
     assert_eq!(writes(&wire.drivers), writes(&direct));
+    // A late exchange still leaves the line to the driver for its reply.
+    assert_eq!(wire.contention, 0, "the line driven during a reply");
     eprintln!(
         "{} exchanges, {} retried after a late event",
         wire.exchanges, wire.late
@@ -320,4 +342,63 @@ fn a_driver_that_never_answers_is_klippers_error_after_its_tries() {
     // 5 tries.
     assert_eq!(error, "Unable to read tmc uart 'stepper_x' register IFCNT");
     assert_eq!((wire.no_reply, wire.late), (5, 0), "Klipper's 5 tries");
+}
+
+#[test]
+fn a_periodic_check_tries_a_silent_uart_driver_three_times_50_ms_apart() {
+    let machine = machine("printer-sovol-sv06-2022.cfg");
+    let mut wire = Wire::new(TmcSim::new(&machine), Latency::new(9, BIT / 10, 0.0, 0));
+    let mut tmc = Tmc::new(&machine);
+    run(&mut tmc, &mut wire, 0).expect("start");
+    let mut out = String::new();
+    // stepper_x, the first checked, stops answering.
+    let at = wire
+        .drivers
+        .drivers
+        .iter()
+        .position(|d| d.stepper == "stepper_x");
+    wire.drivers.drivers.remove(at.expect("stepper_x"));
+    let mut poll =
+        |wire: &mut Wire, now: f64| tmc.poll(wire, now, &mut out).map_err(|e| e.to_string());
+    // Not due yet: nothing is read.
+    let before = wire.exchanges;
+    assert_eq!(poll(&mut wire, 0.5), Ok(()));
+    assert_eq!(wire.exchanges, before);
+    // Due: the read fails (5 exchanges), the check is tried again 50 ms
+    // later, not sooner.
+    assert_eq!(poll(&mut wire, 1.0), Ok(()));
+    assert_eq!(wire.no_reply, 5);
+    assert_eq!(poll(&mut wire, 1.04), Ok(()));
+    assert_eq!(wire.no_reply, 5);
+    assert_eq!(poll(&mut wire, 1.05), Ok(()));
+    assert_eq!(wire.no_reply, 10);
+    // The third try fails: Klipper's error.
+    assert_eq!(
+        poll(&mut wire, 1.10),
+        Err("Unable to read tmc uart 'stepper_x' register DRV_STATUS".into())
+    );
+    assert_eq!(wire.no_reply, 15);
+
+    // A driver back before its third try: no error, and the checks go on.
+    let mut tmc = Tmc::new(&machine);
+    let mut wire = Wire::new(TmcSim::new(&machine), Latency::new(9, BIT / 10, 0.0, 0));
+    run(&mut tmc, &mut wire, 0).expect("start");
+    let mut out = String::new();
+    let at = wire
+        .drivers
+        .drivers
+        .iter()
+        .position(|d| d.stepper == "stepper_x");
+    let unplugged = wire.drivers.drivers.remove(at.expect("stepper_x"));
+    assert!(tmc.poll(&mut wire, 1.0, &mut out).is_ok());
+    wire.drivers.drivers.push(unplugged);
+    for k in 1..=40 {
+        let now = 1.0 + 0.05 * f64::from(k);
+        tmc.poll(&mut wire, now, &mut out)
+            .unwrap_or_else(|e| panic!("at {now} s: {e}"));
+    }
+    assert_eq!(
+        wire.no_reply, 5,
+        "one failed read, then every check answered"
+    );
 }
