@@ -202,27 +202,55 @@ fn extrude_gcode_steps() -> i64 {
 
 #[test]
 fn a_print_with_the_extruder_on_a_stock_linux_mcu_steps_as_planned() {
-    let _alone = one_peer_at_a_time();
-    let peer = Peer::start(Firmware::Linux, "extruder");
-    let sd = peer.path.with_file_name("sd");
-    extruder_on_secondary(&sd, &peer.path, EXTRUDE_GCODE);
-    let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!(summary.shutdown, None, "{}", summary.transcript);
-    assert!(summary.errors.is_empty(), "{:?}", summary.errors);
-    let (p50, p99, max) = extruder_steps_as_planned(&summary, &peer);
-    let position = peer.position(EXTRUDER_STEP, EXTRUDER_DIR);
-    assert_eq!(position, extrude_gcode_steps());
-    println!(
-        "extruder on the Linux MCU: {} steps, final position {position}; edge vs plan p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
-        summary.secondary_steps[0].1.len(),
-        p50 * 1e6,
-        p99 * 1e6,
-        max * 1e6
-    );
     // The Linux MCU is as punctual as the kernel lets it be: nearly every
-    // edge within a tenth of a millisecond, the odd one a few ms late.
-    assert!(p99 < 0.000_500, "p99 {p99} s");
-    assert!(max < 0.010, "an edge {max} s away from its planned time");
+    // edge within a tenth of a millisecond, the odd one a few ms late. On
+    // a busy machine it can wait longer for a CPU, which no MCU does: a
+    // run whose latest edge the peer's own waits on the run queue explain
+    // is run again. The counts and the final position are checked on
+    // every run.
+    for attempt in 1..=TIMING_ATTEMPTS {
+        let _alone = one_peer_at_a_time();
+        let peer = Peer::start(Firmware::Linux, &format!("extruder-{attempt}"));
+        let sd = peer.path.with_file_name("sd");
+        extruder_on_secondary(&sd, &peer.path, EXTRUDE_GCODE);
+        let waited_before = run_queue_wait(peer.mcu_pid());
+        let summary = onechip_host::run(&sd, None).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(summary.shutdown, None, "{}", summary.transcript);
+        assert!(summary.errors.is_empty(), "{:?}", summary.errors);
+        let (p50, p99, max) = extruder_steps_as_planned(&summary, &peer);
+        let waited = run_queue_wait(peer.mcu_pid()) - waited_before;
+        let position = peer.position(EXTRUDER_STEP, EXTRUDER_DIR);
+        assert_eq!(position, extrude_gcode_steps());
+        println!(
+            "extruder on the Linux MCU: {} steps, final position {position}; edge vs plan p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs; the peer waited {:.1} ms for a CPU",
+            summary.secondary_steps[0].1.len(),
+            p50 * 1e6,
+            p99 * 1e6,
+            max * 1e6,
+            waited * 1e3
+        );
+        if p99 < 0.000_500 && max < 0.010 {
+            return;
+        }
+        assert!(
+            waited >= max,
+            "p99 {p99} s, an edge {max} s away from its planned time, the peer waited only {waited} s for a CPU"
+        );
+        println!("attempt {attempt}: the peer's waits for a CPU explain it; measured again");
+    }
+    panic!("in {TIMING_ATTEMPTS} runs the peer was kept from a CPU too long");
+}
+
+/// Runs of a peer-timing measurement before a busy machine fails it.
+const TIMING_ATTEMPTS: usize = 3;
+
+/// How long process `pid` has waited on a run queue so far, s (the
+/// kernel's schedstat `run_delay`; 0 if it does not report it).
+fn run_queue_wait(pid: i32) -> f64 {
+    std::fs::read_to_string(format!("/proc/{pid}/schedstat"))
+        .ok()
+        .and_then(|s| s.split_whitespace().nth(1)?.parse::<f64>().ok())
+        .map_or(0.0, |ns| ns * 1e-9)
 }
 
 #[test]
