@@ -7,6 +7,7 @@
 use crate::printer::{LineError, Printer};
 use core::fmt::Write;
 use onechip_config::decimal::Fixed;
+use onechip_planner::bed_screws::{Adjusting, Answer, BedScrews};
 use onechip_planner::bltouch::Command as BltCommand;
 use onechip_planner::gcode::{self, Command, Extended, Line};
 use onechip_planner::gcode_move::CommandError;
@@ -34,6 +35,10 @@ pub struct Probing<'a> {
     probe: Option<ProbeConfig<'a>>,
     /// `[screws_tilt_adjust]`, if present.
     screws: Option<ScrewsTilt<'a>>,
+    /// `[bed_screws]`, if present.
+    bed_screws: Option<BedScrews<'a>>,
+    /// BED_SCREWS_ADJUST waits at a screw for ACCEPT, ADJUSTED or ABORT.
+    adjusting: Option<Adjusting>,
     state: ProbeState,
     g28: G28<'a>,
     /// A `[homing_override]` script is running: its G28 homes plainly.
@@ -52,6 +57,8 @@ impl<'a> Probing<'a> {
         Self {
             probe: machine.probe,
             screws: machine.screws_tilt,
+            bed_screws: machine.bed_screws,
+            adjusting: None,
             state: machine
                 .probe
                 .as_ref()
@@ -205,7 +212,11 @@ impl<'a, const N: usize> Printer<'a, N> {
                 let named = ["X", "Y", "Z"].map(|a| t.param(a).is_some());
                 self.g28(named, sink, out)
             }
-            Command::Extended(e) if self.probing.probe.is_some() => {
+            Command::Extended(e)
+                if self.probing.probe.is_some()
+                    || self.probing.screws.is_some()
+                    || self.probing.bed_screws.is_some() =>
+            {
                 let result = self.probe_extended(&e, sink, out);
                 if result.as_ref().is_ok_and(|&handled| handled) || result.is_err() {
                     // The toolhead moved on its own: G-code follows it.
@@ -308,6 +319,9 @@ impl<'a, const N: usize> Printer<'a, N> {
     ) -> Result<bool, LineError<'l>> {
         let name = e.name;
         let is = |n: &str| name.eq_ignore_ascii_case(n);
+        if self.bed_screws_command(e, sink, out)? {
+            return Ok(true);
+        }
         let Some(probe) = self.probing.probe else {
             if is("SCREWS_TILT_CALCULATE") && self.probing.screws.is_some() {
                 const MANUAL: &str = "SCREWS_TILT_CALCULATE without a [probe] (manual probing)";
@@ -390,6 +404,61 @@ impl<'a, const N: usize> Printer<'a, N> {
             }
         } else {
             return Ok(false);
+        }
+        Ok(true)
+    }
+
+    /// BED_SCREWS_ADJUST and, while it waits at a screw, ACCEPT, ADJUSTED
+    /// and ABORT, as Klipper's `bed_screws` tool; false for any other
+    /// line. A move that fails ends the tool.
+    fn bed_screws_command<'l>(
+        &mut self,
+        e: &Extended<'l>,
+        sink: &mut impl MoveSink,
+        out: &mut impl Write,
+    ) -> Result<bool, LineError<'l>> {
+        let Some(tool) = self.probing.bed_screws else {
+            return Ok(false);
+        };
+        let is = |n: &str| e.name.eq_ignore_ascii_case(n);
+        let waiting = self.probing.adjusting;
+        let answer = match waiting {
+            _ if is("BED_SCREWS_ADJUST") => None,
+            Some(_) if is("ACCEPT") => Some(Answer::Accept),
+            Some(_) if is("ADJUSTED") => Some(Answer::Adjusted),
+            Some(_) if is("ABORT") => {
+                self.probing.adjusting = None;
+                return Ok(true);
+            }
+            _ => return Ok(false),
+        };
+        self.probing.adjusting = None;
+        let th = &mut self.toolhead;
+        let next = match (answer, waiting) {
+            (None, Some(_)) => {
+                self.probing.adjusting = waiting;
+                return Err(CommandError::Refused(
+                    "Already in bed_screws helper; use ABORT to exit",
+                )
+                .into());
+            }
+            (None, None) => tool.start(th, sink).map(Some),
+            (Some(answer), Some(state)) => tool.answer(state, answer, th, sink),
+            (Some(_), None) => Ok(None),
+        };
+        self.gcode.reset_last_position(&self.toolhead);
+        match next.map_err(CommandError::Move)? {
+            Some((state, screw)) => {
+                self.probing.adjusting = Some(state);
+                let _ = writeln!(
+                    out,
+                    "// Adjust {screw}. Then run ACCEPT, ADJUSTED, or ABORT\n\
+                     // Use ADJUSTED if a significant screw adjustment is made"
+                );
+            }
+            None => {
+                let _ = writeln!(out, "// Bed screws tool completed successfully");
+            }
         }
         Ok(true)
     }

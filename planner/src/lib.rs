@@ -31,6 +31,7 @@ macro_rules! cartesian_printer {
 
 pub mod accessories;
 pub mod adc_temperature;
+pub mod bed_screws;
 pub mod bltouch;
 pub mod board_pins;
 pub mod extruder_stepper;

@@ -111,6 +111,8 @@ pub struct Machine<'a> {
     pub g28: G28<'a>,
     /// `[screws_tilt_adjust]`, if present.
     pub screws_tilt: Option<crate::screws_tilt::ScrewsTilt<'a>>,
+    /// `[bed_screws]`, if present.
+    pub bed_screws: Option<crate::bed_screws::BedScrews<'a>>,
     /// Named fans, output pins, board pin aliases, filament sensors.
     pub accessories: Accessories<'a>,
     /// The TMC drivers configured over UART or SPI (`[tmc2209 stepper_x]`).
@@ -253,6 +255,7 @@ impl<'a> Machine<'a> {
         let probe = probe::read(config)?;
         let g28 = safe_home::read(config)?;
         let screws_tilt = crate::screws_tilt::read(config)?;
+        let bed_screws = crate::bed_screws::read(config)?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
@@ -363,6 +366,7 @@ impl<'a> Machine<'a> {
                 && (kinematics == Kinematics::Delta || extra_stepper_rail(name).is_none())
                 && !extruder_stepper::is_section(name)
                 && !crate::screws_tilt::is_section(name)
+                && !crate::bed_screws::is_section(name)
                 && !accessories::is_section(name)
                 && !name.starts_with("mcu ")
                 && !verified.contains(&name)
@@ -393,6 +397,7 @@ impl<'a> Machine<'a> {
             probe,
             g28,
             screws_tilt,
+            bed_screws,
             accessories,
             tmc,
             stall_homing,

@@ -11,7 +11,7 @@ use crate::probe::{ProbeConfig, ProbeState, Sampling};
 use crate::toolhead::{MoveError, Toolhead};
 use core::fmt::{self, Write};
 use onechip_config::decimal::{Fixed, Shortest};
-use onechip_config::{Bounds, Config, ConfigError, decimal};
+use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
 
 /// Most screws kept (Klipper reads `screw1` up to `screw99`; printers
 /// have 3 to 6).
@@ -28,25 +28,23 @@ const THREADS: [(&str, f64, bool); 6] = [
     ("CCW-M5", 0.8, false),
 ];
 
-/// One screw: where the nozzle goes to probe it (mm) and its name.
+/// One screw: where the nozzle goes for it (mm) and its name.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Screw<'a> {
-    /// `screwN`: X, Y of the nozzle, mm.
+    /// X, Y of the nozzle, mm (`screwN`, or a `screwN_fine_adjust`).
     pub at: [f64; 2],
-    /// `screwN_name`, if given (Klipper's default is `screw at X,Y`).
+    /// `screwN_name`, if given.
     pub name: Option<&'a str>,
+    /// `screwN` (Klipper's default name is `screw at X,Y` of it).
+    pub screw: [f64; 2],
 }
 
 impl fmt::Display for Screw<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let [x, y] = self.screw;
         match self.name {
             Some(name) => f.write_str(name),
-            None => write!(
-                f,
-                "screw at {},{}",
-                Fixed(self.at[0], 3),
-                Fixed(self.at[1], 3)
-            ),
+            None => write!(f, "screw at {},{}", Fixed(x, 3), Fixed(y, 3)),
         }
     }
 }
@@ -72,32 +70,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, Co
     let Some(s) = config.section("screws_tilt_adjust") else {
         return Ok(None);
     };
-    let mut screws = [Screw {
-        at: [0.0; 2],
-        name: None,
-    }; MAX_SCREWS];
-    let mut count = 0;
-    for (option, name) in SCREW_OPTIONS {
-        let Some(text) = s.get_opt(option) else {
-            break;
-        };
-        let at =
-            two_numbers(text).ok_or_else(|| s.error_for(option, "must be two numbers: x, y"))?;
-        let slot = screws
-            .get_mut(count)
-            .ok_or_else(|| s.error_for(option, "more screws than onechip keeps (9)"))?;
-        *slot = Screw {
-            at,
-            name: s.get_opt(name),
-        };
-        count += 1;
-    }
-    if count < 3 {
-        return Err(s.error_for(
-            "screw1",
-            "screws_tilt_adjust: Must have at least three screws",
-        ));
-    }
+    let (screws, count) = read_screws(&s, "screws_tilt_adjust: Must have at least three screws")?;
     let names = THREADS.map(|(name, ..)| name);
     let thread = s.get_choice("screw_thread", &names, Some("CW-M3"))?;
     let (_, pitch, clockwise_thread) = THREADS
@@ -114,27 +87,68 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, Co
     }))
 }
 
-/// `screw1` .. `screw10` and their `_name` options (one more than kept,
-/// so that a tenth screw is refused rather than ignored).
-const SCREW_OPTIONS: [(&str, &str); MAX_SCREWS + 1] = [
-    ("screw1", "screw1_name"),
-    ("screw2", "screw2_name"),
-    ("screw3", "screw3_name"),
-    ("screw4", "screw4_name"),
-    ("screw5", "screw5_name"),
-    ("screw6", "screw6_name"),
-    ("screw7", "screw7_name"),
-    ("screw8", "screw8_name"),
-    ("screw9", "screw9_name"),
-    ("screw10", "screw10_name"),
+/// `screw1` .. `screw10` with their `_name` and `_fine_adjust` options
+/// (one more screw than kept, so that a tenth is refused rather than
+/// ignored).
+pub(crate) const SCREW_OPTIONS: [(&str, &str, &str); MAX_SCREWS + 1] = [
+    ("screw1", "screw1_name", "screw1_fine_adjust"),
+    ("screw2", "screw2_name", "screw2_fine_adjust"),
+    ("screw3", "screw3_name", "screw3_fine_adjust"),
+    ("screw4", "screw4_name", "screw4_fine_adjust"),
+    ("screw5", "screw5_name", "screw5_fine_adjust"),
+    ("screw6", "screw6_name", "screw6_fine_adjust"),
+    ("screw7", "screw7_name", "screw7_fine_adjust"),
+    ("screw8", "screw8_name", "screw8_fine_adjust"),
+    ("screw9", "screw9_name", "screw9_fine_adjust"),
+    ("screw10", "screw10_name", "screw10_fine_adjust"),
 ];
 
-/// `x, y` as two finite numbers.
-fn two_numbers(text: &str) -> Option<[f64; 2]> {
+/// A section's `screw1`, `screw2`, … (with their names) up to the first
+/// missing, at least three (else `too_few`, Klipper's message), as
+/// Klipper's screw helpers read them; and how many.
+pub(crate) fn read_screws<'c, 'a>(
+    s: &Section<'c, 'a>,
+    too_few: &'static str,
+) -> Result<([Screw<'a>; MAX_SCREWS], usize), ConfigError<'c>> {
+    let mut screws = [Screw {
+        at: [0.0; 2],
+        name: None,
+        screw: [0.0; 2],
+    }; MAX_SCREWS];
+    let mut count = 0;
+    for (option, name, _) in SCREW_OPTIONS {
+        let Some(at) = coordinate(s, option)? else {
+            break;
+        };
+        let slot = screws
+            .get_mut(count)
+            .ok_or_else(|| s.error_for(option, "more screws than onechip keeps (9)"))?;
+        *slot = Screw {
+            at,
+            name: s.get_opt(name),
+            screw: at,
+        };
+        count += 1;
+    }
+    if count < 3 {
+        return Err(s.error_for("screw1", too_few));
+    }
+    Ok((screws, count))
+}
+
+/// Option `option` as an `x, y` coordinate (two finite numbers), if set
+/// (Klipper's message if not).
+pub(crate) fn coordinate<'c>(
+    s: &Section<'c, '_>,
+    option: &'c str,
+) -> Result<Option<[f64; 2]>, ConfigError<'c>> {
+    let Some(text) = s.get_opt(option) else {
+        return Ok(None);
+    };
     let mut parts = text.split(',').map(|p| decimal::parse(p.trim()));
     match (parts.next(), parts.next(), parts.next()) {
-        (Some(Some(x)), Some(Some(y)), None) if x.is_finite() && y.is_finite() => Some([x, y]),
-        _ => None,
+        (Some(Some(x)), Some(Some(y)), None) if x.is_finite() && y.is_finite() => Ok(Some([x, y])),
+        _ => Err(s.error_for(option, "needs to be an x,y coordinate")),
     }
 }
 

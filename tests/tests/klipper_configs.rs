@@ -518,19 +518,11 @@ fn stock_screws_tilt_adjust_sections_probe_their_screws() {
             .screws()
             .iter()
             .find(|s| (0..2).any(|a| s.at[a] < range(a).0 || s.at[a] > range(a).1));
-        let dir =
-            std::env::temp_dir().join(format!("onechip-screws-{}-{tried}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        std::fs::write(dir.join("printer.cfg"), &text).expect("write printer.cfg");
-        std::fs::write(dir.join("job.gcode"), "G28\nSCREWS_TILT_CALCULATE\n").expect("job");
-        let options = Options {
-            start: Start::At([50.0, 50.0, 30.0]),
-            board_pins: false,
-            ..Options::default()
-        };
-        let summary =
-            onechip_host::run_with(&dir, &options).unwrap_or_else(|e| panic!("{name}: {e}"));
-        std::fs::remove_dir_all(&dir).ok();
+        let summary = run_job(
+            &text,
+            &format!("screws-{tried}"),
+            "G28\nSCREWS_TILT_CALCULATE\n",
+        );
         let adjusted = summary.transcript.matches(" : adjust ").count();
         match outside {
             Some(screw) => {
@@ -564,4 +556,87 @@ fn stock_screws_tilt_adjust_sections_probe_their_screws() {
         tried >= 6,
         "only {tried} stock configs with [screws_tilt_adjust] and a probe"
     );
+}
+
+/// Runs stock config `text` unmodified as printer.cfg with `job` (G-code)
+/// in a temporary SD folder named after `name`, as on its own board.
+fn run_job(text: &str, name: &str, job: &str) -> Summary {
+    let dir = std::env::temp_dir().join(format!("onechip-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    std::fs::write(dir.join("printer.cfg"), text).expect("write printer.cfg");
+    std::fs::write(dir.join("job.gcode"), job).expect("job");
+    let options = Options {
+        start: Start::At([50.0, 50.0, 30.0]),
+        board_pins: false,
+        ..Options::default()
+    };
+    let summary = onechip_host::run_with(&dir, &options).unwrap_or_else(|e| panic!("{name}: {e}"));
+    std::fs::remove_dir_all(&dir).ok();
+    summary
+}
+
+/// The stock printer configs with `[bed_screws]`: G28, BED_SCREWS_ADJUST
+/// and an ACCEPT at every screw (and fine-adjust point) end with
+/// Klipper's "Bed screws tool completed successfully", or Klipper's "Move
+/// out of range" for a screw beyond its axis' travel.
+#[test]
+fn stock_bed_screws_sections_walk_their_screws() {
+    let mut tried = 0;
+    for entry in std::fs::read_dir(corpus()).expect("the shared config folder") {
+        let file = entry.expect("entry").path();
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned());
+        let name = name.unwrap_or_default();
+        let text = std::fs::read_to_string(&file).unwrap_or_default();
+        if !PREFIXES.iter().any(|p| name.starts_with(p)) || !text.contains("\n[bed_screws]") {
+            continue;
+        }
+        let config = Config::parse("printer.cfg", &text).expect("parses");
+        let Ok(machine) = Machine::from_config(&config) else {
+            continue;
+        };
+        let Some(tool) = machine.bed_screws else {
+            continue;
+        };
+        tried += 1;
+        let stops: Vec<[f64; 2]> = (tool.round(false).iter().chain(tool.round(true)))
+            .map(|s| s.at)
+            .collect();
+        let range = |axis| machine.travel.homing_info(axis).expect("a rail").range;
+        let outside = stops
+            .iter()
+            .find(|at| (0..2).any(|a| at[a] < range(a).0 || at[a] > range(a).1));
+        let job = format!("G28\nBED_SCREWS_ADJUST\n{}", "ACCEPT\n".repeat(stops.len()));
+        let summary = run_job(&text, &format!("bed-screws-{tried}"), &job);
+        match outside {
+            Some(at) => {
+                let error = summary
+                    .errors
+                    .first()
+                    .map(|(_, e)| e.as_str())
+                    .unwrap_or("");
+                let expected = format!("Move out of range: {:.3} {:.3}", at[0], at[1]);
+                assert!(
+                    error.starts_with(&expected),
+                    "{name}: {error:?} vs {expected}"
+                );
+            }
+            None => {
+                assert!(summary.errors.is_empty(), "{name}: {:?}", summary.errors);
+                let prompts = summary
+                    .transcript
+                    .matches("Then run ACCEPT, ADJUSTED, or ABORT")
+                    .count();
+                assert_eq!(prompts, stops.len(), "{name}: {}", summary.transcript);
+                assert!(
+                    summary
+                        .transcript
+                        .contains("// Bed screws tool completed successfully"),
+                    "{name}: {}",
+                    summary.transcript
+                );
+            }
+        }
+        println!("{name}: {} stops", stops.len());
+    }
+    assert!(tried >= 10, "only {tried} stock configs with [bed_screws]");
 }

@@ -606,3 +606,66 @@ fn screws_tilt_calculate_probes_each_screw_and_reports_klippers_turns() {
         "{r}"
     );
 }
+
+#[test]
+fn bed_screws_adjust_walks_the_screws_as_klippers_tool() {
+    let sections = "[bed_screws]\nscrew1: 30,30\nscrew1_name: front left\n\
+                    screw1_fine_adjust: 40,40\nscrew2: 200,30\nscrew2_name: front right\n\
+                    screw3: 115,200\nscrew3_fine_adjust: 115,190\n\
+                    horizontal_move_z: 8\nprobe_height: 0.2\n";
+    // The shipped printer as it is (Z on its endstop), with the section.
+    let mut p = shipped_with("bed-screws", ("[printer]", "[printer]"), sections, BED);
+    assert!(p.send("G28").ends_with("ok\n"));
+    let prompt = |name: &str| {
+        format!(
+            "// Adjust {name}. Then run ACCEPT, ADJUSTED, or ABORT\n\
+             // Use ADJUSTED if a significant screw adjustment is made\nok\n"
+        )
+    };
+    let mut step = |p: &mut ConsolePrinter, command: &str, name: &str, at: [f64; 2]| {
+        let r = p.send(command);
+        // Without the host protocol's keep-alive lines.
+        let r: String = r
+            .lines()
+            .filter(|l| !l.starts_with("echo:busy"))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        assert!(r.ends_with(&prompt(name)), "{command}: {r}");
+        assert_eq!(
+            p.send("M114"),
+            format!("X:{:.3} Y:{:.3} Z:0.200 E:0.000\nok\n", at[0], at[1]),
+            "after {command}"
+        );
+    };
+    step(&mut p, "BED_SCREWS_ADJUST", "front left", [30.0, 30.0]);
+    let again = p.send("BED_SCREWS_ADJUST");
+    assert!(
+        again.contains("!! Already in bed_screws helper; use ABORT to exit"),
+        "{again}"
+    );
+    step(&mut p, "ACCEPT", "front right", [200.0, 30.0]);
+    // A notable adjustment: the coarse round runs again after this one.
+    step(
+        &mut p,
+        "ADJUSTED",
+        "screw at 115.000,200.000",
+        [115.0, 200.0],
+    );
+    step(&mut p, "ACCEPT", "front left", [30.0, 30.0]);
+    step(&mut p, "ACCEPT", "front right", [200.0, 30.0]);
+    step(&mut p, "ACCEPT", "screw at 115.000,200.000", [115.0, 200.0]);
+    // Then the fine round, at the fine-adjust points.
+    step(&mut p, "ACCEPT", "front left", [40.0, 40.0]);
+    step(&mut p, "ACCEPT", "screw at 115.000,200.000", [115.0, 190.0]);
+    let done = p.send("ACCEPT");
+    assert!(
+        done.starts_with("// Bed screws tool completed successfully\n"),
+        "{done}"
+    );
+    assert_eq!(p.send("M114"), "X:115.000 Y:190.000 Z:8.000 E:0.000\nok\n");
+    // Done: ACCEPT means nothing any more; ABORT ends a tool midway.
+    assert!(p.send("ACCEPT").contains("Unknown command:\"ACCEPT\""));
+    step(&mut p, "BED_SCREWS_ADJUST", "front left", [30.0, 30.0]);
+    assert_eq!(p.send("ABORT"), "ok\n");
+    assert!(p.send("ADJUSTED").contains("Unknown command:\"ADJUSTED\""));
+}
