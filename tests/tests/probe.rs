@@ -622,7 +622,7 @@ fn bed_screws_adjust_walks_the_screws_as_klippers_tool() {
              // Use ADJUSTED if a significant screw adjustment is made\nok\n"
         )
     };
-    let mut step = |p: &mut ConsolePrinter, command: &str, name: &str, at: [f64; 2]| {
+    let step = |p: &mut ConsolePrinter, command: &str, name: &str, at: [f64; 2]| {
         let r = p.send(command);
         // Without the host protocol's keep-alive lines.
         let r: String = r
