@@ -22,6 +22,7 @@ use onechip_planner::board_pins::{BoardPins, ReservedPin};
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::SensorInput;
 use onechip_planner::spi_temperature::SpiBusPins;
+use onechip_planner::tmc::config::Bus;
 use onechip_planner::tmc::sensorless;
 
 /// The board's hardware SPI bus for SPI sensors (Klipper's name for SPI1
@@ -293,6 +294,7 @@ fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 
         });
     steppers
         .chain(diag_uses(machine))
+        .chain(tmc_bus_uses(machine))
         .chain(heaters)
         .chain(sensors)
         .chain(spi)
@@ -321,14 +323,52 @@ fn diag_uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a
         })
 }
 
+/// The TMC drivers' wires: UART pins (`uart_pin`, `tx_pin`), SPI chip
+/// selects (`cs_pin`) and software SPI pins.
+fn tmc_bus_uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 'm {
+    machine.tmc.iter().flat_map(|d| {
+        let pins: [(&'static str, Option<&'a str>); 4] = match d.bus {
+            Bus::Uart {
+                uart_pin, tx_pin, ..
+            } => [
+                ("uart_pin", Some(uart_pin)),
+                ("tx_pin", tx_pin),
+                ("", None),
+                ("", None),
+            ],
+            Bus::Spi {
+                cs_pin, software, ..
+            } => {
+                let [miso, mosi, sclk] = software.map_or([None; 3], |p| p.map(Some));
+                [
+                    ("cs_pin", Some(cs_pin)),
+                    ("spi_software_miso_pin", miso),
+                    ("spi_software_mosi_pin", mosi),
+                    ("spi_software_sclk_pin", sclk),
+                ]
+            }
+        };
+        pins.into_iter().filter_map(move |(option, pin)| {
+            pin.map(|pin| PinUse {
+                section: d.section,
+                option,
+                pin,
+            })
+        })
+    })
+}
+
 /// True if Klipper lets `a` and `b` name one pin: steppers' enable pins,
-/// or the endstop pins of one rail's steppers.
+/// the endstop pins of one rail's steppers, chips on one SPI bus, TMC
+/// drivers on one UART (told apart by address) or one SPI chip select (a
+/// daisy chain).
 fn may_share(a: &PinUse<'_>, b: &PinUse<'_>) -> bool {
     a.option == b.option
         && match a.option {
             "enable_pin" => true,
             // Chips on one software SPI bus.
             "spi_software_sclk_pin" | "spi_software_mosi_pin" | "spi_software_miso_pin" => true,
+            "uart_pin" | "tx_pin" | "cs_pin" => true,
             "endstop_pin" => rail(a.section).eq_ignore_ascii_case(rail(b.section)),
             _ => false,
         }

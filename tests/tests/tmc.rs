@@ -552,3 +552,56 @@ fn stock_tmc_sections_load_or_say_why() {
         "{refused:?}"
     );
 }
+
+/// The shipped printer.cfg with `extra` sections, in its own SD folder.
+fn shipped_plus(name: &str, extra: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("onechip-tmc-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let shipped =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
+    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    std::fs::write(dir.join("printer.cfg"), cfg + extra).expect("write");
+    dir
+}
+
+#[test]
+fn a_drivers_uart_or_chip_select_pin_is_checked_as_klipper_checks_pins() {
+    let options = Options::default();
+    // Four drivers on one UART pin, told apart by address (as the SKR
+    // Mini E3's): allowed.
+    let shared: String = (["stepper_x", "stepper_y", "stepper_z", "extruder"]
+        .iter()
+        .enumerate())
+    .map(|(a, s)| format!("\n[tmc2209 {s}]\nuart_pin: PC4\nuart_address: {a}\nrun_current: 0.8\n"))
+    .collect();
+    let dir = shipped_plus("shared-uart", &shared);
+    assert!(
+        ConsolePrinter::new(&dir, &options).is_ok(),
+        "a shared UART refused"
+    );
+    // A fan on a driver's UART pin: refused, naming both.
+    let clash = "\n[tmc2209 stepper_x]\nuart_pin: PC4\nrun_current: 0.8\n\
+                 [fan_generic aux]\npin: PC4\n";
+    let dir = shipped_plus("uart-clash", clash);
+    let message = match ConsolePrinter::new(&dir, &options) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("a fan on a TMC UART pin"),
+    };
+    assert!(
+        message.contains(
+            "pin PC4 used by both [tmc2209 stepper_x] uart_pin and [fan_generic aux] pin"
+        ),
+        "{message}"
+    );
+    // A driver's chip select on the board's USB pin: refused.
+    let usb = "\n[tmc2130 stepper_x]\ncs_pin: PA12\nspi_bus: spi1\nrun_current: 0.8\n";
+    let dir = shipped_plus("cs-usb", usb);
+    let message = match ConsolePrinter::new(&dir, &options) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("a chip select on USB D+"),
+    };
+    assert!(
+        message.contains("PA12") && message.contains("USB D+"),
+        "{message}"
+    );
+}
