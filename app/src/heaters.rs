@@ -724,10 +724,15 @@ impl Heaters {
         for (_, config) in &setup.outputs {
             let _ = io.add_output(*config, hw);
         }
-        for (_, query) in &setup.inputs {
+        for (pin, query) in &setup.inputs {
             match query {
                 InputQuery::Adc(q) => {
-                    if let Ok(index) = io.add_input() {
+                    // One on another MCU is sampled there: its reports
+                    // come through `remote_report`.
+                    let here = crate::mcu_config::pin_ref(pin).mcu == crate::mcu_config::MAIN;
+                    if let Ok(index) = io.add_input()
+                        && here
+                    {
                         let _ = io.query(index, *q);
                     }
                 }
@@ -823,36 +828,12 @@ impl Heaters {
     /// returned; the caller stops the steppers too.
     pub fn run(&mut self, now: u32, hw: &mut impl Peripherals) -> Result<(), Shutdown> {
         self.io.run(now, hw)?;
-        for index in 0..self.heaters.len() {
-            let Some(h) = self.heaters.get(index) else {
+        for index in 0..self.heaters.len() + self.sensors.len() {
+            let Some(conversion) = self.conversion(index) else {
                 continue;
             };
-            let conversion = Conversion::Sensor(h.sensor);
             if let Some((clock, temp)) = self.reading(index, &conversion) {
-                self.control(index, clock, temp, now, hw)?;
-            }
-        }
-        let first = self.heaters.len();
-        let delay = ticks(REPORT_TIME, self.freq);
-        for i in 0..self.sensors.len() {
-            let Some(sensor) = self.sensors.get(i) else {
-                continue;
-            };
-            let conversion = sensor.conversion;
-            let Some((clock, t)) = self.reading(first + i, &conversion) else {
-                continue;
-            };
-            let io = &mut self.io;
-            self.accessories.sensor_report(
-                i,
-                t,
-                clock,
-                now,
-                delay,
-                &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
-            )?;
-            if let Some(sensor) = self.sensors.get_mut(i) {
-                sensor.reading = Some(t);
+                self.on_temperature(index, clock, temp, now, hw)?;
             }
         }
         if self.io.shutdown_reason().is_some() {
@@ -871,6 +852,69 @@ impl Heaters {
             .poll(now, &readings, &mut |index, clock, value| {
                 queue_on(io, index, clock, value, now, hw)
             })
+    }
+
+    /// Input `index`'s report taken by another MCU (a secondary's
+    /// `analog_in_state`): the sum of its readings as `reading` (0..1 of
+    /// its full scale), the first of them at clock `clock` (this MCU's),
+    /// at clock `now`. It is handled as this MCU's own reports are (the
+    /// heater's control and verify_heater, a temperature fan's update);
+    /// a fault is returned. Nothing after a shutdown.
+    pub fn remote_report(
+        &mut self,
+        index: usize,
+        clock: u32,
+        reading: f64,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        if let Some(reason) = self.io.shutdown_reason() {
+            return Err(reason);
+        }
+        let Some(conversion) = self.conversion(index) else {
+            return Ok(());
+        };
+        let temp = conversion.temperature(reading);
+        self.on_temperature(index, clock, temp, now, hw)
+    }
+
+    /// Input `index`'s conversion (the heaters', then the temperature
+    /// sensors').
+    fn conversion(&self, index: usize) -> Option<Conversion> {
+        match self.heaters.get(index) {
+            Some(h) => Some(Conversion::Sensor(h.sensor)),
+            None => Some(self.sensors.get(index - self.heaters.len())?.conversion),
+        }
+    }
+
+    /// Input `index`'s temperature `temp` (°C) read at clock `clock`: a
+    /// heater's control, or a temperature sensor's reading (and its
+    /// temperature fan's update).
+    fn on_temperature(
+        &mut self,
+        index: usize,
+        clock: u32,
+        temp: f64,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        let Some(i) = index.checked_sub(self.heaters.len()) else {
+            return self.control(index, clock, temp, now, hw);
+        };
+        let delay = ticks(REPORT_TIME, self.freq);
+        let io = &mut self.io;
+        self.accessories.sensor_report(
+            i,
+            temp,
+            clock,
+            now,
+            delay,
+            &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
+        )?;
+        if let Some(sensor) = self.sensors.get_mut(i) {
+            sensor.reading = Some(temp);
+        }
+        Ok(())
     }
 
     /// Input `index`'s new report, if any, as its clock and temperature

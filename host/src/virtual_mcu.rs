@@ -534,12 +534,45 @@ impl VirtualMcu {
         if stopped {
             self.pushed = true;
         }
+        let readings = secondaries.take_readings();
+        self.remote_readings(&readings);
+        let Some(secondaries) = &mut self.secondaries else {
+            return;
+        };
         let main_down = self.engine.shutdown_reason().is_some();
         match secondaries.failure() {
             Some(reason) if !main_down => self.stop_all(reason),
             None if main_down => secondaries.emergency_stop(now),
             _ => {}
         }
+    }
+
+    /// The heaters' sensors on secondaries reported `readings` (io
+    /// input, host time of the first sample in s, value 0..1 of full
+    /// scale): each goes to the heater control as this MCU's own reports
+    /// do, and the updates it queues go out; a fault stops everything.
+    fn remote_readings(&mut self, readings: &[(usize, f64, f64)]) {
+        let Some(freq) = self.secondaries.as_ref().map(Secondaries::freq) else {
+            return;
+        };
+        let now = self.now;
+        let Some((heaters, plant)) = &mut self.thermal else {
+            return;
+        };
+        plant.now = now;
+        let mut fault = None;
+        for &(input, at, value) in readings {
+            let clock = (at * freq).max(0.0) as u64 as u32;
+            if let Err(reason) = heaters.remote_report(input, clock, value, now as u32, plant) {
+                fault = Some(reason);
+                break;
+            }
+        }
+        match fault {
+            Some(reason) => self.stop_all(reason),
+            None => self.update_io_wake(),
+        }
+        self.forward_outputs();
     }
 
     /// Every stepper stops and every heater goes off, for `reason`.

@@ -1,0 +1,140 @@
+//! Heater sensors on a secondary MCU, read as klippy's `MCU_adc` reads
+//! them: after the config phase each gets its `query_analog_in` (8
+//! readings 1 ms apart every 0.3 s, the range from the heater's
+//! min_temp/max_temp in that MCU's ADC counts, 4 reports out of range in a
+//! row shut that MCU down: [`onechip_app::heaters::McuSetup`] at its clock
+//! and ADC_MAX), and each `analog_in_state` becomes readings (0..1 of full
+//! scale) at the host time of their first sample, for the MCU role's
+//! heater control ([`onechip_app::heaters::Heaters::remote_report`]).
+//!
+//! Not yet: a heater whose sensor and output are on different MCUs, and a
+//! `[temperature_sensor]` on a secondary (refused by [`check`]).
+
+use super::AnalogReport;
+use onechip_app::heaters::SAMPLE_COUNT;
+use onechip_app::mcu_config::pin_ref;
+use onechip_planner::machine::Machine;
+use onechip_protocol::dictionary::Dictionary;
+use onechip_sched::adc::AdcQuery;
+use onechip_secondary_mcu::clock_sync::ClockSync;
+
+/// Bytes of one report in a batched `analog_in_state` (one `u16` sum:
+/// klippy asks heaters' sensors for one report per message).
+const BYTES_PER_REPORT: u8 = 2;
+/// How far ahead klippy starts the sampling of its ADC inputs, s (whole
+/// seconds of print time at least this far ahead, `get_query_slot`).
+const QUERY_LEAD: f64 = 1.5;
+/// How far apart klippy starts the inputs' sampling, s per object id.
+const QUERY_SLOT: f64 = 0.01;
+
+/// A heater's sensor on a secondary.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RemoteInput {
+    /// Its MCU (index into the attached secondaries).
+    pub mcu: usize,
+    /// Its oid there.
+    pub oid: u8,
+    /// Its input in the MCU role's io (a heater's index).
+    pub index: usize,
+    /// Ticks between two reports on that MCU.
+    rest_ticks: u32,
+    /// A report's full scale: sample count × that MCU's ADC_MAX.
+    full: f64,
+}
+
+impl RemoteInput {
+    /// Input `index` of the io, `oid` on MCU `mcu`, sampled as `query`
+    /// says by an ADC reading 0..=`adc_max`.
+    pub fn new(mcu: usize, oid: u8, index: usize, query: &AdcQuery, adc_max: u16) -> Self {
+        Self {
+            mcu,
+            oid,
+            index,
+            rest_ticks: query.rest_ticks,
+            full: f64::from(query.sample_count) * f64::from(adc_max),
+        }
+    }
+
+    /// The readings in `report` of this input (its MCU's clock line
+    /// `sync`): each one's host time (s, its first sample's, as klippy's
+    /// `next_clock` less one report period per report still to come) and
+    /// value (0..1 of full scale).
+    pub fn readings<'r>(
+        &self,
+        report: &'r AnalogReport,
+        sync: &'r ClockSync,
+    ) -> impl Iterator<Item = (f64, f64)> + 'r {
+        let next = sync.widen(report.next_clock);
+        let (rest, full, count) = (u64::from(self.rest_ticks), self.full, report.values.len());
+        report.values.iter().enumerate().map(move |(i, &v)| {
+            let periods = (count - i) as u64;
+            let clock = next.saturating_sub(periods * rest);
+            (sync.time_at(clock), f64::from(v) / full.max(1.0))
+        })
+    }
+}
+
+/// The `query_analog_in` for `query` (its clock ignored) as `dict`'s
+/// firmware takes it (Klipper's newer form has `bytes_per_report`), the
+/// first sampling at that MCU's clock `clock`.
+pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u64) -> String {
+    let batched = dict
+        .by_name("query_analog_in")
+        .is_some_and(|m| m.params().any(|(name, _)| name == "bytes_per_report"));
+    let per_report = if batched {
+        format!(" bytes_per_report={BYTES_PER_REPORT}")
+    } else {
+        String::new()
+    };
+    format!(
+        "query_analog_in oid={oid} clock={} sample_ticks={} sample_count={} rest_ticks={}{per_report} min_value={} max_value={} range_check_count={}",
+        clock & 0xffff_ffff,
+        query.sample_ticks,
+        query.sample_count,
+        query.rest_ticks,
+        query.min,
+        query.max,
+        query.range_check_count
+    )
+}
+
+/// Where klippy starts sampling input `oid` (`get_query_slot`): the whole
+/// second at least 1.5 s after host time `now` (s), plus 10 ms per oid, on
+/// the MCU's clock line `sync`.
+pub fn query_slot(sync: &ClockSync, oid: u8, now: f64) -> u64 {
+    let slot = (f64::from(oid) * QUERY_SLOT * sync.mcu_freq()) as u64;
+    sync.clock_at((now + QUERY_LEAD).floor()) + slot
+}
+
+/// The secondary's ADC full scale (`ADC_MAX` in its dictionary), if it
+/// has one a report's sum fits in.
+pub fn adc_max(dict: &Dictionary<'_>) -> Option<u16> {
+    let max = dict.constant_int("ADC_MAX")?;
+    let sum_fits = max.checked_mul(i64::from(SAMPLE_COUNT))? < 1 << 16;
+    u16::try_from(max).ok().filter(|&m| m > 0 && sum_fits)
+}
+
+/// Refuses what is not supported yet on secondary `mcu`: a heater with
+/// only one of its sensor and output there, a temperature sensor there.
+/// The message names the pin.
+pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
+    let here = |pin: &str| pin_ref(pin).mcu == mcu;
+    for heater in &machine.heaters {
+        if here(heater.sensor_pin) != here(heater.heater_pin) {
+            let pin = [heater.sensor_pin, heater.heater_pin]
+                .into_iter()
+                .find(|p| here(p));
+            return Err(format!(
+                "pin '{}': a heater's sensor_pin and heater_pin on different MCUs are not supported yet",
+                pin.unwrap_or(heater.heater_pin)
+            ));
+        }
+    }
+    if let Some(sensor) = machine.sensors.iter().find(|s| here(s.input.pin())) {
+        return Err(format!(
+            "pin '{}': a temperature sensor on a secondary MCU is not supported yet",
+            sensor.input.pin()
+        ));
+    }
+    Ok(())
+}

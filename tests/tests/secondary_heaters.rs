@@ -1,0 +1,417 @@
+//! The extruder's heater and thermistor on a secondary MCU, against stock
+//! Klipper's Linux MCU (`../shared/peers`): its ADC channel is a file the
+//! peer-shim wrapper serves as the channel's IIO file, and a bench thread
+//! closes the loop as a hot end would: it reads the heater pin's software
+//! PWM from the peer's pin-edge log, runs a first-order thermal model of a
+//! small hot end and writes the thermistor's raw reading back. Shown: M109
+//! S200 reaches and holds 200 °C (overshoot and settle time measured), M105
+//! reports it; an open thermistor is the peer's own `ADC out of range`
+//! shutdown on our console with every heater off; a heater that does not
+//! heat is Klipper's verify_heater fault; a peer killed mid-heat is `Lost
+//! communication with MCU 'ext'`.
+
+use onechip_host::Options;
+use onechip_host::console_printer::ConsolePrinter;
+use onechip_host::thermal_plant::{AMBIENT, HeaterModel, adc_raw};
+use onechip_planner::sensor_section::Conversion;
+use onechip_tests::peers::{AdcChannel, Firmware, Peer, monotonic_now, printer_with_extruder_on};
+use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use std::sync::{Mutex, MutexGuard, PoisonError};
+use std::time::Duration;
+
+/// One peer at a time (they run in real time).
+fn one_peer_at_a_time() -> MutexGuard<'static, ()> {
+    static PEERS: Mutex<()> = Mutex::new(());
+    PEERS.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The extruder heater's pin on the peer.
+const HEATER: &str = "gpiochip0/gpio30";
+/// Its thermistor's ADC channel (pin `analog0`).
+const SENSOR_CHANNEL: u8 = 0;
+/// The Linux MCU's ADC full scale (its dictionary's ADC_MAX).
+const LINUX_ADC_MAX: u16 = 4095;
+/// The heater's pwm_cycle_time, s (Klipper's default).
+const PWM_CYCLE: f64 = 0.100;
+/// The bench's hot end: the 40 W heater of the simulator's, with an
+/// eighth of its heat capacity, so that it heats in seconds (time
+/// constant 8.1 s, 350 °C at full power).
+const HOT_END: HeaterModel = HeaterModel {
+    watts: 40.0,
+    loss: 40.0 / 325.0,
+    capacity: 1.0,
+};
+/// PID gains for that hot end (Klipper's units), in place of the shipped
+/// printer's (tuned for a hot end eight times slower: on this one they
+/// overshoot by 11 °C and take 95 s to settle). Chosen on a model of
+/// Klipper's PID with its 0.3 s reports and 0.308 s PWM delay: within
+/// 0.6 °C of overshoot for a hot end 25 % slower or faster.
+const PID: &str = "pid_Kp: 8\npid_Ki: 3\npid_Kd: 2\n";
+/// How often the bench updates its model and the ADC file, s.
+const BENCH_STEP: f64 = 0.002;
+
+/// How the bench's hot end is wired.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+enum Wiring {
+    /// Heater and thermistor as they should be.
+    Connected = 0,
+    /// The heater's wire cut: the pin switches, nothing heats.
+    HeaterCut = 1,
+    /// The thermistor's wire cut: the ADC reads full scale.
+    SensorOpen = 2,
+}
+
+/// The simulated hot end, run by its own thread against the peer.
+struct Bench {
+    wiring: AtomicU8,
+    stop: AtomicBool,
+    /// Its temperature over time: pin-log time (s), °C.
+    temps: Mutex<Vec<(f64, f64)>>,
+}
+
+impl Bench {
+    fn new() -> Self {
+        Self {
+            wiring: AtomicU8::new(Wiring::Connected as u8),
+            stop: AtomicBool::new(false),
+            temps: Mutex::new(Vec::new()),
+        }
+    }
+
+    fn set_wiring(&self, wiring: Wiring) {
+        self.wiring.store(wiring as u8, Ordering::Relaxed);
+    }
+
+    fn wiring(&self) -> Wiring {
+        match self.wiring.load(Ordering::Relaxed) {
+            1 => Wiring::HeaterCut,
+            2 => Wiring::SensorOpen,
+            _ => Wiring::Connected,
+        }
+    }
+
+    /// The temperatures so far.
+    fn temps(&self) -> Vec<(f64, f64)> {
+        self.temps
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Runs the hot end until stopped: every [`BENCH_STEP`] its heater's
+    /// mean power since the last step (from the pin log) heats the model,
+    /// and the thermistor's raw reading goes to `adc`.
+    fn run(&self, peer: &Peer, adc: &AdcChannel, sensor: Conversion) {
+        let mut temp = AMBIENT;
+        let mut last = monotonic_now();
+        while !self.stop.load(Ordering::Relaxed) {
+            std::thread::sleep(Duration::from_secs_f64(BENCH_STEP));
+            let now = monotonic_now();
+            let power = match self.wiring() {
+                Wiring::HeaterCut => 0.0,
+                _ => mean_power(&peer.levels(HEATER), last, now),
+            };
+            temp = HOT_END.advance(temp, power, now - last);
+            last = now;
+            let raw = match self.wiring() {
+                Wiring::SensorOpen => LINUX_ADC_MAX,
+                _ => adc_raw(&sensor, temp, LINUX_ADC_MAX),
+            };
+            adc.set(raw).expect("ADC file");
+            self.temps
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .push((now, temp));
+        }
+    }
+}
+
+/// A pin's level at pin-log time `t` (s) by its `levels`, off before its
+/// first write.
+fn level_at(levels: &[(f64, bool)], t: f64) -> bool {
+    (levels.iter().take_while(|(at, _)| *at <= t).last()).is_some_and(|l| l.1)
+}
+
+/// A pin's mean level (0..1) over pin-log times `from..to` (s) by its
+/// `levels`.
+fn mean_power(levels: &[(f64, bool)], from: f64, to: f64) -> f64 {
+    if to <= from {
+        return 0.0;
+    }
+    let (mut at, mut high, mut on) = (from, level_at(levels, from), 0.0);
+    for &(t, level) in levels.iter().filter(|(t, _)| *t > from && *t <= to) {
+        if high {
+            on += t - at;
+        }
+        (at, high) = (t, level);
+    }
+    if high {
+        on += to - at;
+    }
+    on / (to - from)
+}
+
+/// Software PWM seen in `levels` between pin-log times `from` and `to`
+/// (s): the median time between two rising edges (each update restarts
+/// the cycle, so some are longer), the duty (0..1) from the first rise to
+/// the last, and how many cycles.
+fn pwm(levels: &[(f64, bool)], from: f64, to: f64) -> (f64, f64, usize) {
+    let rises: Vec<f64> = (levels.iter())
+        .filter(|(t, high)| *high && (from..to).contains(t))
+        .map(|l| l.0)
+        .collect();
+    let mut periods: Vec<f64> = rises.windows(2).map(|w| w[1] - w[0]).collect();
+    periods.sort_by(f64::total_cmp);
+    let (Some(&first), Some(&last), Some(&median)) =
+        (rises.first(), rises.last(), periods.get(periods.len() / 2))
+    else {
+        return (0.0, 0.0, 0);
+    };
+    (median, mean_power(levels, first, last), periods.len())
+}
+
+/// A started printer with the extruder (stepper, heater, thermistor) on
+/// a fresh Linux MCU peer whose ADC the bench drives; `extra` is added
+/// to printer.cfg.
+fn start(test: &str, extra: &str) -> (Peer, ConsolePrinter, AdcChannel) {
+    let peer = Peer::start_driven(test);
+    let adc = peer.adc(SENSOR_CHANNEL);
+    // The channel's file must be there for `config_analog_in`; its
+    // sampling starts 1.5 s after the config, when the file holds the
+    // room's reading (below).
+    adc.set(LINUX_ADC_MAX / 2).expect("ADC file");
+    let sd = peer.path.with_file_name("sd");
+    printer_with_extruder_on(Firmware::Linux, &sd, &peer.path, "command", "");
+    let cfg = sd.join("printer.cfg");
+    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
+    let heater = "heater_pin: PA0\nsensor_pin: PF4\n";
+    let gains = "pid_Kp: 22.2\npid_Ki: 1.08\npid_Kd: 114\n";
+    let ok = text.contains(heater) && text.contains(gains);
+    assert!(ok, "the shipped [extruder] changed");
+    let moved = format!("heater_pin: ext:{HEATER}\nsensor_pin: ext:analog{SENSOR_CHANNEL}\n");
+    let text = text.replace(heater, &moved).replace(gains, PID);
+    std::fs::write(&cfg, text + extra).expect("printer.cfg");
+    let p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
+    let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
+    // The thermistor at room temperature before the MCU samples it.
+    adc.set(adc_raw(&sensor, AMBIENT, LINUX_ADC_MAX))
+        .expect("ADC file");
+    (peer, p, adc)
+}
+
+/// The extruder's temperature and target in an M105 reply (`T:a /b`).
+fn m105_extruder(reply: &str) -> Option<(f64, f64)> {
+    let rest = reply.split("T:").nth(1)?;
+    let mut words = rest.split_whitespace();
+    let temp = words.next()?.parse().ok()?;
+    let target = words.next()?.strip_prefix('/')?.parse().ok()?;
+    Some((temp, target))
+}
+
+#[test]
+fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
+    let _alone = one_peer_at_a_time();
+    let (peer, mut p, adc) = start("heaters-m109", "");
+    let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
+    let bench = Bench::new();
+    std::thread::scope(|s| {
+        s.spawn(|| bench.run(&peer, &adc, sensor));
+        // The first reading comes 1.5 to 2.5 s after the config.
+        p.run_for(3.0);
+        let cold = p.send("M105");
+        let start = monotonic_now();
+        let wait = p.send("M109 S200");
+        let done = monotonic_now();
+        p.run_for(4.0);
+        let hot = p.send("M105");
+        bench.stop.store(true, Ordering::Relaxed);
+        println!("M105 cold: {}", cold.trim());
+        println!(
+            "M109: {} lines, last {:?}",
+            wait.lines().count(),
+            wait.lines().last()
+        );
+        println!("M105 hot: {}", hot.trim());
+        let temps = bench.temps();
+        let levels = peer.levels(HEATER);
+        for w in temps.chunks(500).filter(|w| w[0].0 >= start) {
+            let (a, b) = (w[0], w[w.len() - 1]);
+            println!(
+                "  {:6.2} s {:6.1} °C power {:.2}",
+                a.0 - start,
+                a.1,
+                mean_power(&levels, a.0, b.0)
+            );
+        }
+        let heating = temps.iter().filter(|(at, _)| *at >= start);
+        let reached = heating
+            .clone()
+            .find(|(_, c)| *c >= 200.0)
+            .map(|r| r.0 - start);
+        let peak = heating.clone().map(|r| r.1).fold(f64::MIN, f64::max);
+        let off_band = heating.clone().filter(|(_, c)| (c - 200.0).abs() > 2.0);
+        let settled = off_band.map(|r| r.0).fold(start, f64::max) - start;
+        let end = temps.last().map_or(done, |r| r.0);
+        let (period, duty, cycles) = pwm(&levels, end - 3.0, end);
+        let steady = HOT_END.loss * (200.0 - AMBIENT) / HOT_END.watts;
+        println!(
+            "M109 S200: 200 °C reached {:.2} s after M109, M109 done after {:.2} s, \
+             overshoot {:.2} °C (peak {peak:.2}), within ±2 °C from {settled:.2} s on; \
+             held: heater PWM period {:.2} ms (median of {cycles} cycles), duty {duty:.3} \
+             (the model's steady state {steady:.3})",
+            reached.unwrap_or(f64::NAN),
+            done - start,
+            peak - 200.0,
+            period * 1e3
+        );
+        assert!(!wait.contains("!!") && !hot.contains("!!"), "{wait}{hot}");
+        let (t, target) = m105_extruder(&cold).expect("M105 cold");
+        assert!((t - AMBIENT).abs() < 1.0 && target == 0.0, "{cold}");
+        let (t, target) = m105_extruder(&hot).expect("M105 hot");
+        assert!((t - 200.0).abs() < 1.0 && target == 200.0, "{hot}");
+        assert!(reached.is_some(), "200 °C never reached");
+        assert!(peak - 200.0 < 10.0, "overshoot {:.1}", peak - 200.0);
+        assert!(settled < done - start + 1.0, "settled at {settled:.2} s");
+        let held = temps.iter().filter(|(at, _)| *at > done);
+        assert!(held.clone().count() > 1000, "bench too slow");
+        for (at, c) in held {
+            assert!(
+                (c - 200.0).abs() < 2.0,
+                "{c:.2} °C {:.2} s after M109",
+                at - done
+            );
+        }
+        assert!((period - PWM_CYCLE).abs() < 0.001, "period {period}");
+        assert!((duty - steady).abs() < 0.1, "duty {duty}");
+    });
+}
+
+/// Runs the printer until it shuts down, up to `limit` s: everything the
+/// console wrote (an M105 after it included) and when the shutdown was
+/// seen (pin-log time, s), if it was.
+fn run_until_shutdown(p: &mut ConsolePrinter, limit: f64) -> (String, Option<f64>) {
+    let mut out = String::new();
+    let end = monotonic_now() + limit;
+    while monotonic_now() < end {
+        out += &p.run_for(0.05);
+        let reply = p.send("M105");
+        if reply.contains("!!") || out.contains("!!") {
+            let seen = monotonic_now();
+            return (out + &reply, Some(seen));
+        }
+    }
+    (out, None)
+}
+
+/// Asserts every heater is off: the extruder's pin on the peer, and the
+/// bed's on the main MCU.
+fn assert_heaters_off(peer: &Peer, p: &mut ConsolePrinter) {
+    let last = peer.levels(HEATER).last().copied();
+    assert_eq!(last.map(|l| l.1), Some(false), "extruder heater: {last:?}");
+    assert!(!p.heaters_on().iter().any(|&on| on), "{:?}", p.heaters_on());
+}
+
+/// Heats the extruder (on the peer) towards 200 °C and the bed (on the
+/// main MCU) towards 60 °C for `seconds` s, then checks both heat.
+fn heat_both(peer: &Peer, p: &mut ConsolePrinter, seconds: f64) {
+    p.run_for(3.0);
+    let replies = p.send("M104 S200") + &p.send("M140 S60");
+    assert!(!replies.contains("!!"), "{replies}");
+    p.run_for(seconds);
+    assert!(peer.levels(HEATER).iter().any(|l| l.1), "extruder never on");
+    assert_eq!(p.heaters_on().get(1), Some(&true), "bed off");
+}
+
+#[test]
+fn an_open_thermistor_on_a_linux_mcu_shuts_it_down_with_adc_out_of_range_and_every_heater_off() {
+    let _alone = one_peer_at_a_time();
+    let (peer, mut p, adc) = start("heaters-open", "");
+    let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
+    let bench = Bench::new();
+    std::thread::scope(|s| {
+        s.spawn(|| bench.run(&peer, &adc, sensor));
+        heat_both(&peer, &mut p, 2.0);
+        let opened = monotonic_now();
+        bench.set_wiring(Wiring::SensorOpen);
+        let (out, seen) = run_until_shutdown(&mut p, 5.0);
+        // The MCU acts on its own shutdown at once; give the pin log a
+        // moment.
+        std::thread::sleep(Duration::from_millis(100));
+        bench.stop.store(true, Ordering::Relaxed);
+        println!("console: {}", out.trim());
+        let seen = seen.unwrap_or_else(|| panic!("no shutdown: {out}"));
+        println!(
+            "open thermistor: shutdown seen on the console {:.2} s after it opened \
+             (4 reports of 0.3 s out of range)",
+            seen - opened
+        );
+        assert!(
+            out.contains("MCU 'ext' shutdown: ADC out of range"),
+            "{out}"
+        );
+        // Four reports in a row out of range, 0.3 s apart: 0.9 to 1.2 s,
+        // and the news on the link.
+        assert!((0.9..2.0).contains(&(seen - opened)), "{}", seen - opened);
+        assert_heaters_off(&peer, &mut p);
+    });
+}
+
+#[test]
+fn a_heater_on_a_linux_mcu_that_does_not_heat_is_klippers_verify_heater_fault() {
+    let _alone = one_peer_at_a_time();
+    // verify_heater's check_gain_time shortened from the hot end's 20 s.
+    let verify = "\n[verify_heater extruder]\ncheck_gain_time: 5\n";
+    let (peer, mut p, adc) = start("heaters-cut", verify);
+    let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
+    let bench = Bench::new();
+    bench.set_wiring(Wiring::HeaterCut);
+    std::thread::scope(|s| {
+        s.spawn(|| bench.run(&peer, &adc, sensor));
+        heat_both(&peer, &mut p, 0.5);
+        let set = monotonic_now() - 0.5;
+        let (out, seen) = run_until_shutdown(&mut p, 10.0);
+        std::thread::sleep(Duration::from_millis(200));
+        bench.stop.store(true, Ordering::Relaxed);
+        println!("console: {}", out.trim());
+        let seen = seen.unwrap_or_else(|| panic!("no shutdown: {out}"));
+        println!(
+            "cut heater: verify_heater's fault {:.2} s after M104 (check_gain_time 5 s)",
+            seen - set
+        );
+        assert!(
+            out.contains("Heater extruder not heating at expected rate"),
+            "{out}"
+        );
+        // The gain time, then the next 1 s check.
+        assert!((5.0..7.5).contains(&(seen - set)), "{}", seen - set);
+        assert!(bench.temps().iter().all(|(_, c)| *c < AMBIENT + 0.01));
+        assert_heaters_off(&peer, &mut p);
+    });
+}
+
+#[test]
+fn killing_the_linux_mcu_mid_heat_loses_communication_and_turns_heaters_off() {
+    let _alone = one_peer_at_a_time();
+    let (peer, mut p, adc) = start("heaters-kill", "");
+    let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
+    let bench = Bench::new();
+    std::thread::scope(|s| {
+        s.spawn(|| bench.run(&peer, &adc, sensor));
+        heat_both(&peer, &mut p, 2.0);
+        let killed = monotonic_now();
+        peer.signal_mcu(libc::SIGKILL);
+        let (out, seen) = run_until_shutdown(&mut p, 5.0);
+        bench.stop.store(true, Ordering::Relaxed);
+        println!("console: {}", out.trim());
+        let seen = seen.unwrap_or_else(|| panic!("no shutdown: {out}"));
+        println!(
+            "killed peer mid-heat: Lost communication seen {:.3} s after the kill",
+            seen - killed
+        );
+        assert!(out.contains("Lost communication with MCU 'ext'"), "{out}");
+        assert!(seen - killed < 1.0, "{}", seen - killed);
+        // The peer is gone: the bed (main MCU) is off.
+        assert!(!p.heaters_on().iter().any(|&on| on), "{:?}", p.heaters_on());
+    });
+}
