@@ -12,7 +12,7 @@
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
-use onechip_host::thermal_plant::{AMBIENT, HeaterModel, adc_raw};
+use onechip_host::thermal_plant::{AMBIENT, HeaterModel, adc_raw, mcu_sensor};
 use onechip_planner::sensor_section::Conversion;
 use onechip_tests::peers::{AdcChannel, Firmware, Peer, monotonic_now, printer_with_extruder_on};
 use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
@@ -29,6 +29,8 @@ fn one_peer_at_a_time() -> MutexGuard<'static, ()> {
 const HEATER: &str = "gpiochip0/gpio30";
 /// Its thermistor's ADC channel (pin `analog0`).
 const SENSOR_CHANNEL: u8 = 0;
+/// The ADC channels a test may use (`analog0`..).
+const CHANNELS: u8 = 3;
 /// The Linux MCU's ADC full scale (its dictionary's ADC_MAX).
 const LINUX_ADC_MAX: u16 = 4095;
 /// The heater's pwm_cycle_time, s (Klipper's default).
@@ -177,10 +179,12 @@ fn pwm(levels: &[(f64, bool)], from: f64, to: f64) -> (f64, f64, usize) {
 fn start(test: &str, extra: &str) -> (Peer, ConsolePrinter, AdcChannel) {
     let peer = Peer::start_driven(test);
     let adc = peer.adc(SENSOR_CHANNEL);
-    // The channel's file must be there for `config_analog_in`; its
-    // sampling starts 1.5 s after the config, when the file holds the
-    // room's reading (below).
-    adc.set(LINUX_ADC_MAX / 2).expect("ADC file");
+    // The channels' files must be there for `config_analog_in`; their
+    // sampling starts 1.5 s after the config, when the files hold the
+    // readings the test wants (the extruder's: the room's, below).
+    for channel in 0..CHANNELS {
+        peer.adc(channel).set(LINUX_ADC_MAX / 2).expect("ADC file");
+    }
     let sd = peer.path.with_file_name("sd");
     printer_with_extruder_on(Firmware::Linux, &sd, &peer.path, "command", "");
     let cfg = sd.join("printer.cfg");
@@ -285,6 +289,67 @@ fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
         assert!((period - PWM_CYCLE).abs() < 0.001, "period {period}");
         assert!((duty - steady).abs() < 0.1, "duty {duty}");
     });
+}
+
+/// A `[temperature_sensor]` and a `[temperature_fan]` (its sensor and fan)
+/// on the Linux MCU.
+const SENSORS: &str = "\n[temperature_sensor chamber]\nsensor_type: EPCOS 100K B57560G104F\n\
+    sensor_pin: ext:analog1\ngcode_id: C\n\
+    \n[temperature_fan board]\npin: ext:gpiochip0/gpio31\nsensor_type: EPCOS 100K B57560G104F\n\
+    sensor_pin: ext:analog2\nmin_temp: 0\nmax_temp: 100\ntarget_temp: 35\ngcode_id: BRD\n\
+    control: watermark\nmax_delta: 2\n";
+/// The temperature fan's pin on the peer.
+const BOARD_FAN: &str = "gpiochip0/gpio31";
+
+/// A sensor's reported temperature and target in an M105 reply
+/// (`LABEL:t /target`).
+fn m105_sensor(reply: &str, label: &str) -> Option<(f64, f64)> {
+    let rest = reply.split(&format!(" {label}:")).nth(1)?;
+    let mut words = rest.split_whitespace();
+    let temp = words.next()?.parse().ok()?;
+    let target = words.next()?.strip_prefix('/')?.parse().ok()?;
+    Some((temp, target))
+}
+
+#[test]
+fn a_temperature_sensor_and_a_temperature_fan_on_a_linux_mcu_read_and_cool_there() {
+    let _alone = one_peer_at_a_time();
+    let (peer, mut p, _) = start("heaters-sensors", SENSORS);
+    let machine = p.machine();
+    let raw = |i: usize, celsius: f64| {
+        let sensor = machine.sensors[i].conversion(mcu_sensor());
+        adc_raw(&sensor, celsius, LINUX_ADC_MAX)
+    };
+    let (chamber, board) = (peer.adc(1), peer.adc(2));
+    chamber.set(raw(0, 40.0)).expect("ADC file");
+    board.set(raw(1, 50.0)).expect("ADC file");
+    p.run_for(4.0);
+    let hot = p.send("M105");
+    // Above its target by more than max_delta: the fan at full speed.
+    let fan_on = peer.levels(BOARD_FAN).last().copied();
+    board.set(raw(1, 30.0)).expect("ADC file");
+    p.run_for(2.0);
+    let cool = p.send("M105");
+    let fan_off = peer.levels(BOARD_FAN).last().copied();
+    println!(
+        "{}\n{}\nboard fan: {fan_on:?} then {fan_off:?}",
+        hot.trim(),
+        cool.trim()
+    );
+    assert!(!hot.contains("!!") && !cool.contains("!!"), "{hot}{cool}");
+    let near = |reply: &str, label: &str, t: f64, target: f64| {
+        m105_sensor(reply, label).is_some_and(|(a, b)| (a - t).abs() < 0.5 && b == target)
+    };
+    assert!(
+        near(&hot, "C", 40.0, 0.0) && near(&hot, "BRD", 50.0, 35.0),
+        "{hot}"
+    );
+    assert!(
+        near(&cool, "C", 40.0, 0.0) && near(&cool, "BRD", 30.0, 35.0),
+        "{cool}"
+    );
+    assert_eq!(fan_on.map(|l| l.1), Some(true), "board fan at 50 °C");
+    assert_eq!(fan_off.map(|l| l.1), Some(false), "board fan at 30 °C");
 }
 
 /// Runs the printer until it shuts down, up to `limit` s: everything the
@@ -414,4 +479,26 @@ fn killing_the_linux_mcu_mid_heat_loses_communication_and_turns_heaters_off() {
         // The peer is gone: the bed (main MCU) is off.
         assert!(!p.heaters_on().iter().any(|&on| on), "{:?}", p.heaters_on());
     });
+}
+
+#[test]
+fn a_heater_split_across_mcus_is_refused_naming_its_pin() {
+    let sd = std::env::temp_dir().join(format!("onechip-split-heater-{}", std::process::id()));
+    let serial = sd.join("no-such-mcu");
+    printer_with_extruder_on(Firmware::Linux, &sd, &serial, "command", "");
+    let cfg = sd.join("printer.cfg");
+    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
+    let split = text.replace("heater_pin: PA0\n", &format!("heater_pin: ext:{HEATER}\n"));
+    std::fs::write(&cfg, split).expect("printer.cfg");
+    let refused = ConsolePrinter::new(&sd, &Options::default()).err();
+    let _ = std::fs::remove_dir_all(&sd);
+    let message = refused.map(|e| e.to_string()).unwrap_or_default();
+    assert!(
+        message.contains("option 'serial' in section 'mcu ext'")
+            && message.contains(&format!(
+                "pin 'ext:{HEATER}': a heater's sensor_pin and heater_pin on different MCUs \
+                 are not supported yet"
+            )),
+        "{message}"
+    );
 }

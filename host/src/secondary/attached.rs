@@ -533,10 +533,11 @@ impl Secondaries {
         }
     }
 
-    /// Starts sampling the heaters' sensors on MCU `k` (index into
-    /// `attached`, not yet pushed: `mcu`), whose object ids are `oids`, as
-    /// klippy's init commands do at host time `now` (s). An MCU without a
-    /// usable ADC_MAX is refused if it has any.
+    /// Starts sampling the heaters' and temperature sensors' ADC inputs
+    /// on MCU `k` (index into `attached`, not yet pushed: `mcu`), whose
+    /// object ids are `oids`, as klippy's init commands do at host time
+    /// `now` (s). An MCU without a usable ADC_MAX is refused if it has
+    /// any.
     fn add_inputs(
         &mut self,
         machine: &Machine<'_>,
@@ -545,9 +546,12 @@ impl Secondaries {
         k: usize,
         now: f64,
     ) -> Result<(), String> {
-        let sensors = oids.heaters.iter().enumerate();
-        let mut sensors = sensors
-            .filter_map(|(h, o)| Some((h, o.as_ref()?.0)))
+        // Io inputs: the heaters', then the temperature sensors'.
+        let heaters = oids.heaters.iter().take(machine.heaters.len());
+        let adcs = heaters.map(|h| h.map(|(adc, _)| adc)).chain(oids.sensors);
+        let mut sensors = adcs
+            .enumerate()
+            .filter_map(|(index, oid)| Some((index, oid?)))
             .peekable();
         if sensors.peek().is_none() {
             return Ok(());

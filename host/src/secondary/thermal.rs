@@ -1,19 +1,22 @@
-//! Heater sensors on a secondary MCU, read as klippy's `MCU_adc` reads
-//! them: after the config phase each gets its `query_analog_in` (8
+//! Heater and `[temperature_sensor]` thermistors on a secondary MCU,
+//! read as klippy's `MCU_adc` reads them: after the config phase each gets its `query_analog_in` (8
 //! readings 1 ms apart every 0.3 s, the range from the heater's
 //! min_temp/max_temp in that MCU's ADC counts, 4 reports out of range in a
-//! row shut that MCU down: [`onechip_app::heaters::McuSetup`] at its clock
-//! and ADC_MAX), and each `analog_in_state` becomes readings (0..1 of full
+//! row shut that MCU down; a temperature sensor's range is its
+//! min_temp/max_temp, none by default: [`onechip_app::heaters::McuSetup`]
+//! at its clock and ADC_MAX), and each `analog_in_state` becomes readings (0..1 of full
 //! scale) at the host time of their first sample, for the MCU role's
-//! heater control ([`onechip_app::heaters::Heaters::remote_report`]).
+//! heater control and temperature fans
+//! ([`onechip_app::heaters::Heaters::remote_report`]).
 //!
-//! Not yet: a heater whose sensor and output are on different MCUs, and a
-//! `[temperature_sensor]` on a secondary (refused by [`check`]).
+//! Not yet: a heater whose sensor and output are on different MCUs, and an
+//! SPI temperature chip on a secondary (refused by [`check`]).
 
 use super::AnalogReport;
 use onechip_app::heaters::SAMPLE_COUNT;
 use onechip_app::mcu_config::pin_ref;
 use onechip_planner::machine::Machine;
+use onechip_planner::sensor_section::{SensorInput, SensorSection};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_sched::adc::AdcQuery;
 use onechip_secondary_mcu::clock_sync::ClockSync;
@@ -27,14 +30,15 @@ const QUERY_LEAD: f64 = 1.5;
 /// How far apart klippy starts the inputs' sampling, s per object id.
 const QUERY_SLOT: f64 = 0.01;
 
-/// A heater's sensor on a secondary.
+/// A heater's or temperature sensor's ADC input on a secondary.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RemoteInput {
     /// Its MCU (index into the attached secondaries).
     pub mcu: usize,
     /// Its oid there.
     pub oid: u8,
-    /// Its input in the MCU role's io (a heater's index).
+    /// Its input in the MCU role's io (the heaters', then the
+    /// temperature sensors').
     pub index: usize,
     /// Ticks between two reports on that MCU.
     rest_ticks: u32,
@@ -115,8 +119,8 @@ pub fn adc_max(dict: &Dictionary<'_>) -> Option<u16> {
 }
 
 /// Refuses what is not supported yet on secondary `mcu`: a heater with
-/// only one of its sensor and output there, a temperature sensor there.
-/// The message names the pin.
+/// only one of its sensor and output there, a temperature sensor there
+/// that is not on an ADC pin (an SPI chip). The message names the pin.
 pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
     let here = |pin: &str| pin_ref(pin).mcu == mcu;
     for heater in &machine.heaters {
@@ -130,11 +134,99 @@ pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
             ));
         }
     }
-    if let Some(sensor) = machine.sensors.iter().find(|s| here(s.input.pin())) {
+    let not_adc = |s: &&SensorSection<'_>| !matches!(s.input, SensorInput::Adc { .. });
+    let mut sensors = machine.sensors.iter().filter(not_adc);
+    if let Some(sensor) = sensors.find(|s| here(s.input.pin())) {
         return Err(format!(
-            "pin '{}': a temperature sensor on a secondary MCU is not supported yet",
+            "pin '{}': an SPI temperature sensor on a secondary MCU is not supported yet",
             sensor.input.pin()
         ));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Klipper's newer firmware: batched reports.
+    const BATCHED: &str = r#"{"commands": {
+        "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u bytes_per_report=%c min_value=%hu max_value=%hu range_check_count=%c": 10},
+        "responses": {"analog_in_state oid=%c next_clock=%u values=%*s": 11,
+            "clock clock=%u": 12},
+        "config": {"ADC_MAX": 4095, "CLOCK_FREQ": 50000000}}"#;
+    /// Its older firmware: one value a report.
+    const SINGLE: &str = r#"{"commands": {
+        "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u min_value=%hu max_value=%hu range_check_count=%c": 10},
+        "responses": {"analog_in_state oid=%c next_clock=%u value=%hu": 11},
+        "config": {"ADC_MAX": 16383, "CLOCK_FREQ": 50000000}}"#;
+
+    fn query() -> AdcQuery {
+        AdcQuery {
+            clock: 0,
+            sample_ticks: 50_000,
+            sample_count: 8,
+            rest_ticks: 15_000_000,
+            min: 1503,
+            max: 32303,
+            range_check_count: 4,
+        }
+    }
+
+    /// `line` sent by an MCU of dictionary `dict`, as the host decodes it.
+    fn heard(dict: &Dictionary<'_>, line: &str) -> Option<AnalogReport> {
+        let mut buf = [0u8; 64];
+        let n = dict.encode_text(line, &mut buf).expect("encodes");
+        let (msg, _) = dict.decode(&buf[..n]).expect("decodes");
+        AnalogReport::from_message(&msg)
+    }
+
+    #[test]
+    fn the_query_has_bytes_per_report_only_for_firmware_that_takes_it() {
+        let batched = Dictionary::parse(BATCHED).expect("dictionary");
+        assert_eq!(
+            query_command(&batched, 4, &query(), (1 << 32) + 70_024_765),
+            "query_analog_in oid=4 clock=70024765 sample_ticks=50000 sample_count=8 \
+             rest_ticks=15000000 bytes_per_report=2 min_value=1503 max_value=32303 \
+             range_check_count=4"
+        );
+        let single = Dictionary::parse(SINGLE).expect("dictionary");
+        let command = query_command(&single, 4, &query(), 5);
+        assert!(!command.contains("bytes_per_report") && command.contains("clock=5 "));
+    }
+
+    #[test]
+    fn reports_are_read_at_their_first_samples_host_time() {
+        let dict = Dictionary::parse(BATCHED).expect("dictionary");
+        // The MCU's clock read 1e9 at host time 10 s.
+        let sync = ClockSync::new(50e6, 1_000_000_000, 10.0);
+        let rest = 15_000_000;
+        let next = 1_000_000_000 + 3 * rest;
+        // Two reports in one message: sums 1000 and 2000, little-endian.
+        let line = format!("analog_in_state oid=3 next_clock={next} values=e803d007");
+        let report = heard(&dict, &line).expect("a report");
+        assert_eq!(report.values, [1000, 2000]);
+        let input = RemoteInput::new(0, 3, 1, &query(), 4095);
+        let readings: Vec<(f64, f64)> = input.readings(&report, &sync).collect();
+        let full = 8.0 * 4095.0;
+        let expected = [(10.3, 1000.0 / full), (10.6, 2000.0 / full)];
+        for ((t, v), (et, ev)) in readings.iter().zip(expected) {
+            assert!((t - et).abs() < 1e-9 && (v - ev).abs() < 1e-12, "{t} {v}");
+        }
+        assert_eq!(readings.len(), 2);
+        let other = heard(&dict, "clock clock=5");
+        assert!(other.is_none());
+    }
+
+    #[test]
+    fn older_firmware_reports_one_value_and_an_adc_too_wide_is_refused() {
+        let dict = Dictionary::parse(SINGLE).expect("dictionary");
+        let line = "analog_in_state oid=2 next_clock=77 value=31000";
+        let got = heard(&dict, line).expect("a report");
+        assert_eq!((got.oid, got.next_clock, got.values), (2, 77, vec![31000]));
+        // 8 readings of 16383 do not fit the report's 16 bits.
+        assert_eq!(adc_max(&dict), None);
+        let dict = Dictionary::parse(BATCHED).expect("dictionary");
+        assert_eq!(adc_max(&dict), Some(4095));
+    }
 }
