@@ -49,6 +49,10 @@ const HOT_END: HeaterModel = HeaterModel {
 /// Klipper's PID with its 0.3 s reports and 0.308 s PWM delay: within
 /// 0.6 °C of overshoot for a hot end 25 % slower or faster.
 const PID: &str = "pid_Kp: 8\npid_Ki: 3\npid_Kd: 2\n";
+/// How far from its target a held temperature may swing, °C: Klipper's
+/// PID changes the power only by 0.05 or more (or every 2 s), a step
+/// worth 16 °C at equilibrium on this hot end; it swings by about 2 °C.
+const HOLD_BAND: f64 = 3.0;
 /// How often the bench updates its model and the ADC file, s.
 const BENCH_STEP: f64 = 0.002;
 
@@ -227,7 +231,7 @@ fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
         let start = monotonic_now();
         let wait = p.send("M109 S200");
         let done = monotonic_now();
-        p.run_for(4.0);
+        p.run_for(3.0);
         let hot = p.send("M105");
         bench.stop.store(true, Ordering::Relaxed);
         println!("M105 cold: {}", cold.trim());
@@ -254,19 +258,27 @@ fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
             .find(|(_, c)| *c >= 200.0)
             .map(|r| r.0 - start);
         let peak = heating.clone().map(|r| r.1).fold(f64::MIN, f64::max);
-        let off_band = heating.clone().filter(|(_, c)| (c - 200.0).abs() > 2.0);
+        let off_band = heating
+            .clone()
+            .filter(|(_, c)| (c - 200.0).abs() > HOLD_BAND);
         let settled = off_band.map(|r| r.0).fold(start, f64::max) - start;
         let end = temps.last().map_or(done, |r| r.0);
+        let held: Vec<f64> = (temps.iter().filter(|(at, _)| *at > done))
+            .map(|r| r.1)
+            .collect();
+        let (low, high) =
+            (held.iter()).fold((f64::MAX, f64::MIN), |(a, b), &c| (a.min(c), b.max(c)));
         let (period, duty, cycles) = pwm(&levels, end - 3.0, end);
         let steady = HOT_END.loss * (200.0 - AMBIENT) / HOT_END.watts;
         println!(
             "M109 S200: 200 °C reached {:.2} s after M109, M109 done after {:.2} s, \
-             overshoot {:.2} °C (peak {peak:.2}), within ±2 °C from {settled:.2} s on; \
-             held: heater PWM period {:.2} ms (median of {cycles} cycles), duty {duty:.3} \
-             (the model's steady state {steady:.3})",
+             overshoot {:.2} °C (peak {peak:.2}), within ±{HOLD_BAND} °C from {settled:.2} s on; \
+             held {:.1} s at {low:.2}..{high:.2} °C: heater PWM period {:.2} ms (median of \
+             {cycles} cycles), duty {duty:.3} (the model's steady state {steady:.3})",
             reached.unwrap_or(f64::NAN),
             done - start,
             peak - 200.0,
+            end - done,
             period * 1e3
         );
         assert!(!wait.contains("!!") && !hot.contains("!!"), "{wait}{hot}");
@@ -276,16 +288,13 @@ fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
         assert!((t - 200.0).abs() < 1.0 && target == 200.0, "{hot}");
         assert!(reached.is_some(), "200 °C never reached");
         assert!(peak - 200.0 < 10.0, "overshoot {:.1}", peak - 200.0);
-        assert!(settled < done - start + 1.0, "settled at {settled:.2} s");
-        let held = temps.iter().filter(|(at, _)| *at > done);
-        assert!(held.clone().count() > 1000, "bench too slow");
-        for (at, c) in held {
-            assert!(
-                (c - 200.0).abs() < 2.0,
-                "{c:.2} °C {:.2} s after M109",
-                at - done
-            );
-        }
+        assert!(settled < done - start, "settled at {settled:.2} s");
+        assert!(held.len() > 1000, "bench too slow: {} samples", held.len());
+        let band = 200.0 - HOLD_BAND..200.0 + HOLD_BAND;
+        assert!(
+            band.contains(&low) && band.contains(&high),
+            "held at {low:.2}..{high:.2}"
+        );
         assert!((period - PWM_CYCLE).abs() < 0.001, "period {period}");
         assert!((duty - steady).abs() < 0.1, "duty {duty}");
     });
@@ -389,7 +398,7 @@ fn heat_both(peer: &Peer, p: &mut ConsolePrinter, seconds: f64) {
 }
 
 #[test]
-fn an_open_thermistor_on_a_linux_mcu_shuts_it_down_with_adc_out_of_range_and_every_heater_off() {
+fn an_open_thermistor_on_a_linux_mcu_shuts_it_down_with_adc_out_of_range_until_firmware_restart() {
     let _alone = one_peer_at_a_time();
     let (peer, mut p, adc) = start("heaters-open", "");
     let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
@@ -403,7 +412,6 @@ fn an_open_thermistor_on_a_linux_mcu_shuts_it_down_with_adc_out_of_range_and_eve
         // The MCU acts on its own shutdown at once; give the pin log a
         // moment.
         std::thread::sleep(Duration::from_millis(100));
-        bench.stop.store(true, Ordering::Relaxed);
         println!("console: {}", out.trim());
         let seen = seen.unwrap_or_else(|| panic!("no shutdown: {out}"));
         println!(
@@ -419,6 +427,34 @@ fn an_open_thermistor_on_a_linux_mcu_shuts_it_down_with_adc_out_of_range_and_eve
         // and the news on the link.
         assert!((0.9..2.0).contains(&(seen - opened)), "{}", seen - opened);
         assert_heaters_off(&peer, &mut p);
+        // Mended, FIRMWARE_RESTART: the MCU is reset and configured again,
+        // its thermistor sampled and its heater driven as before.
+        bench.set_wiring(Wiring::Connected);
+        let restarted = p.send("FIRMWARE_RESTART");
+        p.run_for(3.0);
+        let edges = peer.levels(HEATER).len();
+        let replies = p.send("M104 S200") + &p.send("M105");
+        p.run_for(1.5);
+        let warm = p.send("M105");
+        bench.stop.store(true, Ordering::Relaxed);
+        println!("after FIRMWARE_RESTART: {}", warm.trim());
+        let all = restarted + &replies + &warm;
+        assert!(!all.contains("!!"), "{all}");
+        let (t, target) = m105_extruder(&warm).expect("M105 after the restart");
+        // Heating fast: M105's is smoothed over 1 s and 0.3 s old at
+        // most, within what the bench was over the last 2 s.
+        let now = monotonic_now();
+        let recent = bench.temps().into_iter().filter(|r| r.0 > now - 2.0);
+        let (low, high) = recent.fold((f64::MAX, f64::MIN), |(a, b), r| (a.min(r.1), b.max(r.1)));
+        let within = (low - 1.0..=high + 1.0).contains(&t);
+        assert!(
+            within && target == 200.0,
+            "{warm} (bench {low:.1}..{high:.1} °C)"
+        );
+        assert!(
+            peer.levels(HEATER).len() > edges,
+            "the heater did not switch again"
+        );
     });
 }
 
