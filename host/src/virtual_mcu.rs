@@ -13,6 +13,7 @@
 use crate::pace::Pace;
 use crate::plot::Window;
 use crate::secondary::attached::Secondaries;
+use crate::secondary::thermal::Reading;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::{StallDetect, TmcSim};
@@ -547,23 +548,27 @@ impl VirtualMcu {
         }
     }
 
-    /// The heaters' sensors on secondaries reported `readings` (io
-    /// input, host time of the first sample in s, value 0..1 of full
-    /// scale): each goes to the heater control as this MCU's own reports
-    /// do, and the updates it queues go out; a fault stops everything.
-    fn remote_readings(&mut self, readings: &[(usize, f64, f64)]) {
+    /// The ADC inputs on secondaries reported `readings`: each goes to
+    /// the heater control (or temperature sensor) as this MCU's own
+    /// reports do, and the updates it queues go out; a fault stops
+    /// everything.
+    fn remote_readings(&mut self, readings: &[Reading]) {
         let Some(freq) = self.secondaries.as_ref().map(Secondaries::freq) else {
             return;
         };
+        if readings.is_empty() {
+            return;
+        }
         let now = self.now;
         let Some((heaters, plant)) = &mut self.thermal else {
             return;
         };
         plant.now = now;
         let mut fault = None;
-        for &(input, at, value) in readings {
-            let clock = (at * freq).max(0.0) as u64 as u32;
-            if let Err(reason) = heaters.remote_report(input, clock, value, now as u32, plant) {
+        for r in readings {
+            // Host time is the main clock in seconds.
+            let clock = (r.at * freq).max(0.0) as u64 as u32;
+            if let Err(reason) = heaters.remote_report(r.input, clock, r.value, now as u32, plant) {
                 fault = Some(reason);
                 break;
             }

@@ -23,7 +23,7 @@
 //! the PWM updates the control queues go out as the fans' do.
 
 use super::homing::Homing;
-use super::thermal::{self, RemoteInput};
+use super::thermal::{self, Reading, RemoteInput};
 use super::{ConnectError, Heard, Secondary, Start};
 use crate::thermal_plant::mcu_sensor;
 use onechip_app::heaters::{McuSetup, full_scale};
@@ -282,11 +282,10 @@ pub struct Secondaries {
     /// Each stepper's enable pin (index into `enables`), if on a
     /// secondary, and whether the stepper is enabled.
     stepper_enables: Vec<Option<(usize, bool)>>,
-    /// The heaters' sensors on secondaries.
+    /// The heaters' and temperature sensors' ADC inputs on secondaries.
     inputs: Vec<RemoteInput>,
-    /// Readings heard and not taken yet: the io input, the host time of
-    /// the first sample (s) and the value (0..1 of full scale).
-    readings: Vec<(usize, f64, f64)>,
+    /// Their readings heard and not taken yet.
+    readings: Vec<Reading>,
 }
 
 impl Secondaries {
@@ -561,7 +560,7 @@ impl Secondaries {
             .ok_or_else(|| format!("MCU '{}' has no usable ADC_MAX", mcu.name))?;
         let setup = McuSetup::new(machine, mcu.clock_freq(), adc_max, mcu_sensor(), 0);
         let Some(sync) = mcu.connection().clock().copied() else {
-            return Ok(());
+            return Err(format!("MCU '{}': no clock", mcu.name));
         };
         for (h, oid) in sensors {
             let Some(query) = setup.inputs.get(h).and_then(|(_, q)| q.adc()) else {
@@ -577,10 +576,9 @@ impl Secondaries {
         Ok(())
     }
 
-    /// The readings of the heaters' sensors on secondaries heard since
-    /// last taken: each one's io input, host time of its first sample (s)
-    /// and value (0..1 of full scale).
-    pub fn take_readings(&mut self) -> Vec<(usize, f64, f64)> {
+    /// The readings of the ADC inputs on secondaries heard since last
+    /// taken, oldest first.
+    pub fn take_readings(&mut self) -> Vec<Reading> {
         std::mem::take(&mut self.readings)
     }
 
@@ -772,9 +770,7 @@ impl Secondaries {
                             .iter()
                             .find(|i| i.mcu == k && i.oid == report.oid);
                         if let (Some(input), Some(sync)) = (input, a.mcu.connection().clock()) {
-                            let readings = input.readings(&report, sync);
-                            let index = input.index;
-                            self.readings.extend(readings.map(|(t, v)| (index, t, v)));
+                            self.readings.extend(input.readings(&report, sync));
                         }
                     }
                 }

@@ -30,6 +30,17 @@ const QUERY_LEAD: f64 = 1.5;
 /// How far apart klippy starts the inputs' sampling, s per object id.
 const QUERY_SLOT: f64 = 0.01;
 
+/// One report of an ADC input on a secondary, for the MCU role's io.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reading {
+    /// The io input (the heaters', then the temperature sensors').
+    pub input: usize,
+    /// Host time of the report's first sample, s.
+    pub at: f64,
+    /// The sum of its samples, 0..1 of full scale.
+    pub value: f64,
+}
+
 /// A heater's or temperature sensor's ADC input on a secondary.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RemoteInput {
@@ -60,20 +71,24 @@ impl RemoteInput {
     }
 
     /// The readings in `report` of this input (its MCU's clock line
-    /// `sync`): each one's host time (s, its first sample's, as klippy's
-    /// `next_clock` less one report period per report still to come) and
-    /// value (0..1 of full scale).
+    /// `sync`), each at its first sample's host time: klippy's
+    /// `next_clock` less one report period per report still to come.
     pub fn readings<'r>(
         &self,
         report: &'r AnalogReport,
         sync: &'r ClockSync,
-    ) -> impl Iterator<Item = (f64, f64)> + 'r {
+    ) -> impl Iterator<Item = Reading> + 'r {
         let next = sync.widen(report.next_clock);
         let (rest, full, count) = (u64::from(self.rest_ticks), self.full, report.values.len());
+        let input = self.index;
         report.values.iter().enumerate().map(move |(i, &v)| {
             let periods = (count - i) as u64;
             let clock = next.saturating_sub(periods * rest);
-            (sync.time_at(clock), f64::from(v) / full.max(1.0))
+            Reading {
+                input,
+                at: sync.time_at(clock),
+                value: f64::from(v) / full.max(1.0),
+            }
         })
     }
 }
@@ -207,11 +222,12 @@ mod tests {
         let report = heard(&dict, &line).expect("a report");
         assert_eq!(report.values, [1000, 2000]);
         let input = RemoteInput::new(0, 3, 1, &query(), 4095);
-        let readings: Vec<(f64, f64)> = input.readings(&report, &sync).collect();
+        let readings: Vec<Reading> = input.readings(&report, &sync).collect();
         let full = 8.0 * 4095.0;
         let expected = [(10.3, 1000.0 / full), (10.6, 2000.0 / full)];
-        for ((t, v), (et, ev)) in readings.iter().zip(expected) {
-            assert!((t - et).abs() < 1e-9 && (v - ev).abs() < 1e-12, "{t} {v}");
+        for (r, (at, value)) in readings.iter().zip(expected) {
+            let close = (r.at - at).abs() < 1e-9 && (r.value - value).abs() < 1e-12;
+            assert!(close && r.input == 1, "{r:?}");
         }
         assert_eq!(readings.len(), 2);
         let other = heard(&dict, "clock clock=5");
