@@ -87,8 +87,9 @@ pub struct Oids {
     pub endstops: [Option<(u8, u8)>; MAX_STEPPERS],
     /// Each stepper's enable pin output, if on this MCU.
     pub enables: [Option<u8>; MAX_STEPPERS],
-    /// Each heater's sensor and output (by `machine.heaters` index).
-    pub heaters: [Option<(u8, u8)>; 2],
+    /// Each heater's sensor and output (by `machine.heaters` index), each
+    /// if on this MCU.
+    pub heaters: [(Option<u8>, Option<u8>); 2],
     /// Each temperature sensor's ADC input (by `machine.sensors` index).
     pub sensors: [Option<u8>; MAX_SENSORS],
     /// Each fan's or pin's output, by its index in [`McuSetup::outputs`]
@@ -261,7 +262,7 @@ fn write_output(
     }
 }
 
-/// Writes heater `h`'s sensor and output, if on this MCU.
+/// Writes heater `h`'s sensor and output, those on this MCU.
 fn write_heater(
     machine: &Machine<'_>,
     setup: &McuSetup<'_>,
@@ -271,14 +272,19 @@ fn write_heater(
     out: &mut dyn FnMut(&str),
 ) {
     let (Some((adc, pwm)), Some(heater), Some((_, output))) = (
-        oids.heaters[h],
+        oids.heaters.get(h),
         machine.heaters.get(h),
         setup.outputs.get(h),
     ) else {
         return;
     };
-    let pin = pin_ref(heater.sensor_pin).pin;
-    line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
+    if let Some(adc) = adc {
+        let pin = pin_ref(heater.sensor_pin).pin;
+        line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
+    }
+    let Some(pwm) = pwm else {
+        return;
+    };
     let heater_pin = pin_ref(heater.heater_pin);
     let (value, max) = (u8::from(heater_pin.inverted), output.max_duration);
     line.emit(
@@ -331,10 +337,16 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             }
         }
         Object::Heater(h) => {
-            if on_mcu(machine.heaters.get(h).map(|heater| heater.heater_pin))
-                && setup.outputs.get(h).is_some()
-            {
-                oids.heaters[h] = Some((take(), take()));
+            // klippy creates the sensor's ADC, then the heater's output.
+            let heater = machine
+                .heaters
+                .get(h)
+                .filter(|_| setup.outputs.get(h).is_some());
+            if on_mcu(heater.map(|heater| heater.sensor_pin)) {
+                oids.heaters[h].0 = Some(take());
+            }
+            if on_mcu(heater.map(|heater| heater.heater_pin)) {
+                oids.heaters[h].1 = Some(take());
             }
         }
         Object::Output(k) => {

@@ -181,6 +181,18 @@ fn pwm(levels: &[(f64, bool)], from: f64, to: f64) -> (f64, f64, usize) {
 /// a fresh Linux MCU peer whose ADC the bench drives; `extra` is added
 /// to printer.cfg.
 fn start(test: &str, extra: &str) -> (Peer, ConsolePrinter, AdcChannel) {
+    let heater = format!("ext:{HEATER}");
+    let sensor = format!("ext:analog{SENSOR_CHANNEL}");
+    start_with(test, (&heater, &sensor), extra)
+}
+
+/// [`start`] with the extruder's `heater_pin` and `sensor_pin` as given
+/// (either may be the main MCU's).
+fn start_with(
+    test: &str,
+    (heater_pin, sensor_pin): (&str, &str),
+    extra: &str,
+) -> (Peer, ConsolePrinter, AdcChannel) {
     let peer = Peer::start_driven(test);
     let adc = peer.adc(SENSOR_CHANNEL);
     // The channels' files must be there for `config_analog_in`; their
@@ -197,7 +209,7 @@ fn start(test: &str, extra: &str) -> (Peer, ConsolePrinter, AdcChannel) {
     let gains = "pid_Kp: 22.2\npid_Ki: 1.08\npid_Kd: 114\n";
     let ok = text.contains(heater) && text.contains(gains);
     assert!(ok, "the shipped [extruder] changed");
-    let moved = format!("heater_pin: ext:{HEATER}\nsensor_pin: ext:analog{SENSOR_CHANNEL}\n");
+    let moved = format!("heater_pin: {heater_pin}\nsensor_pin: {sensor_pin}\n");
     let text = text.replace(heater, &moved).replace(gains, PID);
     std::fs::write(&cfg, text + extra).expect("printer.cfg");
     let p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
@@ -518,23 +530,96 @@ fn killing_the_linux_mcu_mid_heat_loses_communication_and_turns_heaters_off() {
 }
 
 #[test]
-fn a_heater_split_across_mcus_is_refused_naming_its_pin() {
-    let sd = std::env::temp_dir().join(format!("onechip-split-heater-{}", std::process::id()));
+fn a_thermistor_on_a_linux_mcu_controls_a_heater_on_the_main_mcu() {
+    let _alone = one_peer_at_a_time();
+    let sensor_pin = format!("ext:analog{SENSOR_CHANNEL}");
+    let (_peer, mut p, adc) = start_with("heaters-split-sensor", ("PA0", &sensor_pin), "");
+    let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
+    p.run_for(3.0);
+    let replies = p.send("M104 S200");
+    assert!(!replies.contains("!!"), "{replies}");
+    // The bench in this thread: the heater is the main MCU's simulated
+    // output, read as the console's time passes (its PWM cycle is 0.1 s).
+    let (start, mut temp, mut peak) = (monotonic_now(), AMBIENT, AMBIENT);
+    let mut last = start;
+    let mut reached = None;
+    while monotonic_now() - start < 13.0 {
+        let on = p.heaters_on().first().copied().unwrap_or(false);
+        let out = p.run_for(BENCH_STEP * 2.0);
+        assert!(!out.contains("!!"), "{out}");
+        let now = monotonic_now();
+        temp = HOT_END.advance(temp, f64::from(u8::from(on)), now - last);
+        last = now;
+        peak = peak.max(temp);
+        if temp >= 200.0 && reached.is_none() {
+            reached = Some(now - start);
+        }
+        adc.set(adc_raw(&sensor, temp, LINUX_ADC_MAX))
+            .expect("ADC file");
+    }
+    let reply = p.send("M105");
+    println!(
+        "thermistor on the peer, heater on the main MCU: 200 °C reached {:.2} s after M104, \
+         peak {peak:.2} °C, at 13 s {temp:.2} °C; {}",
+        reached.unwrap_or(f64::NAN),
+        reply.trim()
+    );
+    assert!(reached.is_some() && peak < 210.0, "peak {peak:.1}");
+    assert!((temp - 200.0).abs() < HOLD_BAND, "{temp:.2} °C");
+    let (t, target) = m105_extruder(&reply).expect("M105");
+    assert!((t - 200.0).abs() < HOLD_BAND && target == 200.0, "{reply}");
+}
+
+#[test]
+fn a_heater_on_a_linux_mcu_follows_a_thermistor_on_the_main_mcu() {
+    let _alone = one_peer_at_a_time();
+    let heater_pin = format!("ext:{HEATER}");
+    let (peer, mut p, _) = start_with("heaters-split-heater", (&heater_pin, "PF4"), "");
+    p.run_for(1.0);
+    let replies = p.send("M104 S200");
+    assert!(!replies.contains("!!"), "{replies}");
+    p.run_for(3.0);
+    let heating = p.send("M105");
+    // The main MCU's simulated hot end (its thermistor's) follows the
+    // heater's output, whose updates went to the peer: there the pin is
+    // on, at full power far from the target.
+    let levels = peer.levels(HEATER);
+    let on = levels.iter().find(|l| l.1).map(|l| l.0);
+    let (_, duty, _) = on.map_or((0.0, 0.0, 0), |t| {
+        (0.0, mean_power(&levels, t, monotonic_now()), 0)
+    });
+    println!(
+        "heater on the peer, thermistor on the main MCU: {} ; peer pin on {:.3} of the time since it went on",
+        heating.trim(),
+        duty
+    );
+    let (t, target) = m105_extruder(&heating).expect("M105");
+    assert!(t > 30.0 && target == 200.0, "{heating}");
+    assert!(on.is_some() && duty > 0.95, "{levels:?}");
+    p.send("M104 S0");
+    p.run_for(1.0);
+    assert_eq!(peer.levels(HEATER).last().map(|l| l.1), Some(false));
+}
+
+#[test]
+fn an_spi_temperature_chip_on_a_secondary_is_refused_naming_its_pin() {
+    let sd = std::env::temp_dir().join(format!("onechip-spi-secondary-{}", std::process::id()));
     let serial = sd.join("no-such-mcu");
     printer_with_extruder_on(Firmware::Linux, &sd, &serial, "command", "");
     let cfg = sd.join("printer.cfg");
     let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
-    let split = text.replace("heater_pin: PA0\n", &format!("heater_pin: ext:{HEATER}\n"));
-    std::fs::write(&cfg, split).expect("printer.cfg");
+    let chip = "\n[temperature_sensor k_therm]\nsensor_type: MAX31855\n\
+        sensor_pin: ext:gpiochip0/gpio40\nspi_bus: spi1\n";
+    std::fs::write(&cfg, text + chip).expect("printer.cfg");
     let refused = ConsolePrinter::new(&sd, &Options::default()).err();
     let _ = std::fs::remove_dir_all(&sd);
     let message = refused.map(|e| e.to_string()).unwrap_or_default();
     assert!(
         message.contains("option 'serial' in section 'mcu ext'")
-            && message.contains(&format!(
-                "pin 'ext:{HEATER}': a heater's sensor_pin and heater_pin on different MCUs \
-                 are not supported yet"
-            )),
+            && message.contains(
+                "pin 'ext:gpiochip0/gpio40': an SPI temperature sensor on a secondary MCU \
+                 is not supported yet"
+            ),
         "{message}"
     );
 }

@@ -160,7 +160,7 @@ fn reserved_slots(oids: &Oids) -> usize {
     let mut enables: Vec<u8> = oids.enables.iter().flatten().copied().collect();
     enables.sort_unstable();
     enables.dedup();
-    let heaters = oids.heaters.iter().flatten().count();
+    let heaters = oids.heaters.iter().filter(|h| h.1.is_some()).count();
     enables.len() + heaters + oids.outputs.iter().flatten().count()
 }
 
@@ -493,7 +493,7 @@ impl Secondaries {
         let there = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
         // The heaters' outputs first (io order), then the fans' and pins'.
         let heaters = oids.heaters.iter().take(machine.heaters.len());
-        let heater_oids = heaters.map(|h| h.map(|(_, pwm)| pwm));
+        let heater_oids = heaters.map(|h| h.1);
         let output_oids = oids.outputs.iter().skip(machine.heaters.len()).copied();
         for (index, oid) in heater_oids.chain(output_oids).enumerate() {
             let (Some(oid), Some((pin, config)), Some((_, here))) =
@@ -547,7 +547,7 @@ impl Secondaries {
     ) -> Result<(), String> {
         // Io inputs: the heaters', then the temperature sensors'.
         let heaters = oids.heaters.iter().take(machine.heaters.len());
-        let adcs = heaters.map(|h| h.map(|(adc, _)| adc)).chain(oids.sensors);
+        let adcs = heaters.map(|h| h.0).chain(oids.sensors);
         let mut sensors = adcs
             .enumerate()
             .filter_map(|(index, oid)| Some((index, oid?)))

@@ -9,8 +9,8 @@
 //! heater control and temperature fans
 //! ([`onechip_app::heaters::Heaters::remote_report`]).
 //!
-//! Not yet: a heater whose sensor and output are on different MCUs, and an
-//! SPI temperature chip on a secondary (refused by [`check`]).
+//! A heater's sensor and output may be on different MCUs. Not yet: an SPI
+//! temperature chip on a secondary (refused by [`check`]).
 
 use super::AnalogReport;
 use onechip_app::heaters::SAMPLE_COUNT;
@@ -133,31 +133,26 @@ pub fn adc_max(dict: &Dictionary<'_>) -> Option<u16> {
     u16::try_from(max).ok().filter(|&m| m > 0 && sum_fits)
 }
 
-/// Refuses what is not supported yet on secondary `mcu`: a heater with
-/// only one of its sensor and output there, a temperature sensor there
-/// that is not on an ADC pin (an SPI chip). The message names the pin.
+/// Refuses what is not supported yet on secondary `mcu`: a heater's or
+/// temperature sensor's SPI chip there (its `sensor_pin`, the chip
+/// select). The message names the pin.
 pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
-    let here = |pin: &str| pin_ref(pin).mcu == mcu;
-    for heater in &machine.heaters {
-        if here(heater.sensor_pin) != here(heater.heater_pin) {
-            let pin = [heater.sensor_pin, heater.heater_pin]
-                .into_iter()
-                .find(|p| here(p));
-            return Err(format!(
-                "pin '{}': a heater's sensor_pin and heater_pin on different MCUs are not supported yet",
-                pin.unwrap_or(heater.heater_pin)
-            ));
-        }
-    }
+    let here = |pin: &&str| pin_ref(pin).mcu == mcu;
+    let heaters = (machine.heaters.iter())
+        .filter(|h| h.sensor.spi().is_some())
+        .map(|h| h.sensor_pin);
     let not_adc = |s: &&SensorSection<'_>| !matches!(s.input, SensorInput::Adc { .. });
-    let mut sensors = machine.sensors.iter().filter(not_adc);
-    if let Some(sensor) = sensors.find(|s| here(s.input.pin())) {
-        return Err(format!(
-            "pin '{}': an SPI temperature sensor on a secondary MCU is not supported yet",
-            sensor.input.pin()
-        ));
+    let sensors = machine
+        .sensors
+        .iter()
+        .filter(not_adc)
+        .map(|s| s.input.pin());
+    match heaters.chain(sensors).find(here) {
+        Some(pin) => Err(format!(
+            "pin '{pin}': an SPI temperature sensor on a secondary MCU is not supported yet"
+        )),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 #[cfg(test)]
