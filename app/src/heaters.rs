@@ -699,6 +699,9 @@ pub struct Heaters {
     pwm_delay: u32,
     /// Ticks after which a heater's unchanged power is sent again.
     refresh_ticks: u32,
+    /// Ticks a report's readings take: klippy times a report by their
+    /// end.
+    sampling_ticks: u32,
     /// Ticks between verify_heater checks.
     verify_ticks: u32,
     freq: f64,
@@ -800,7 +803,11 @@ impl Heaters {
             fan,
             accessories,
             pwm_delay: ticks(PWM_DELAY, freq),
-            refresh_ticks: ticks(0.75 * MAX_HEAT_TIME, freq),
+            // klippy's: three report periods (and a ms) short of
+            // max_duration, so that the next report's update comes in
+            // time even over a secondary MCU's link.
+            refresh_ticks: ticks(MAX_HEAT_TIME - (3.0 * REPORT_TIME + 0.001), freq),
+            sampling_ticks: ticks(f64::from(SAMPLE_COUNT) * SAMPLE_TIME, freq),
             verify_ticks: ticks(VERIFY_TIME, freq),
             freq,
             adc_full: adc_full(adc_max),
@@ -970,7 +977,8 @@ impl Heaters {
         if h.target <= 0.0 {
             power = 0.0;
         }
-        let fresh = is_before(clock, h.refresh_by) && h.last_power != 0.0;
+        let read = clock.wrapping_add(self.sampling_ticks);
+        let fresh = is_before(read, h.refresh_by) && h.last_power != 0.0;
         if (fresh || h.last_power == 0.0) && (power - h.last_power).abs() < 0.05 {
             return Ok(());
         }

@@ -400,6 +400,17 @@ impl Peer {
             .collect()
     }
 
+    /// Every write of `pin` in the pin log, a level it already had too
+    /// (the Linux MCU writes an output at each of its updates): the time
+    /// (s, as [`Self::rising_edges`]) and the level.
+    pub fn writes(&self, pin: &str) -> Vec<(f64, bool)> {
+        let text = std::fs::read_to_string(&self.pin_log).unwrap_or_default();
+        changes(&text)
+            .filter(|c| c.name == pin)
+            .map(|c| (c.time, c.high))
+            .collect()
+    }
+
     /// The rising edges in the pin log for `pin`: their times in seconds
     /// (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16 MHz).
     pub fn rising_edges(&self, pin: &str) -> Vec<f64> {

@@ -177,6 +177,23 @@ fn pwm(levels: &[(f64, bool)], from: f64, to: f64) -> (f64, f64, usize) {
     (median, mean_power(levels, first, last), periods.len())
 }
 
+/// The first stretch after pin-log time `from` (s) in which a pin's
+/// `writes` keep it on: how long (s), and the longest time between two of
+/// its writes (s).
+fn full_power_refreshes(writes: &[(f64, bool)], from: f64) -> (f64, f64) {
+    let after: Vec<&(f64, bool)> = writes.iter().filter(|w| w.0 >= from).collect();
+    let Some(first) = after.iter().position(|w| w.1) else {
+        return (0.0, 0.0);
+    };
+    let on: Vec<f64> = (after[first..].iter())
+        .take_while(|w| w.1)
+        .map(|w| w.0)
+        .collect();
+    let off = after.get(first + on.len()).map_or(f64::NAN, |w| w.0);
+    let gap = on.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+    (off - on[0], gap.max(off - on[on.len() - 1]))
+}
+
 /// A started printer with the extruder (stepper, heater, thermistor) on
 /// a fresh Linux MCU peer whose ADC the bench drives; `extra` is added
 /// to printer.cfg.
@@ -281,17 +298,24 @@ fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
         let (low, high) =
             (held.iter()).fold((f64::MAX, f64::MIN), |(a, b), &c| (a.min(c), b.max(c)));
         let (period, duty, cycles) = pwm(&levels, end - 3.0, end);
+        // At full power the pin stays on: each update the MCU takes is one
+        // more write of the same level, and one must come within
+        // max_duration (3 s) of the last (else the MCU shuts down).
+        let full_on = full_power_refreshes(&peer.writes(HEATER), start);
         let steady = HOT_END.loss * (200.0 - AMBIENT) / HOT_END.watts;
         println!(
             "M109 S200: 200 °C reached {:.2} s after M109, M109 done after {:.2} s, \
              overshoot {:.2} °C (peak {peak:.2}), within ±{HOLD_BAND} °C from {settled:.2} s on; \
              held {:.1} s at {low:.2}..{high:.2} °C: heater PWM period {:.2} ms (median of \
-             {cycles} cycles), duty {duty:.3} (the model's steady state {steady:.3})",
+             {cycles} cycles), duty {duty:.3} (the model's steady state {steady:.3}); \
+             at full power {:.2} s, the pin rewritten every {:.2} s at most",
             reached.unwrap_or(f64::NAN),
             done - start,
             peak - 200.0,
             end - done,
-            period * 1e3
+            period * 1e3,
+            full_on.0,
+            full_on.1
         );
         assert!(!wait.contains("!!") && !hot.contains("!!"), "{wait}{hot}");
         let (t, target) = m105_extruder(&cold).expect("M105 cold");
@@ -307,6 +331,12 @@ fn m109_with_the_extruder_heater_on_a_linux_mcu_reaches_and_holds_200() {
             band.contains(&low) && band.contains(&high),
             "held at {low:.2}..{high:.2}"
         );
+        assert!(full_on.0 > 3.0, "full power for {:.2} s only", full_on.0);
+        // klippy's cadence: an unchanged power is sent again with the
+        // first report 2.099 s after it took effect, 8 reports later: 2.4 s
+        // (one report later would be 2.7 s).
+        let gap = full_on.1;
+        assert!(gap < 2.6, "no update for {gap:.2} s at full power");
         assert!((period - PWM_CYCLE).abs() < 0.001, "period {period}");
         assert!((duty - steady).abs() < 0.1, "duty {duty}");
     });
