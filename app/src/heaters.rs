@@ -5,7 +5,9 @@
 //! 0.3 s with Klipper's range and fault checks, [`InputQuery::Spi`]); each
 //! temperature report runs
 //! the heater's control (PID or watermark) at once, which queues the next
-//! PWM value 0.308 s after the report, as Klipper's host does.
+//! PWM value 0.308 s after the report, as Klipper's host does. An ADC
+//! input on another MCU (`NAME:PIN`, a secondary board) is sampled there,
+//! not here: its reports come in through [`Heaters::remote_report`].
 //!
 //! Klipper's host-side heater safety runs here too, on the same reports:
 //! each heater's `[verify_heater]` checks (once a second of heater time;

@@ -6,7 +6,10 @@
 //! ([`Physics`]) through the step pins, as the board's interrupt reads its
 //! GPIOs. The heaters and fan ([`Heaters`], the io the board runs from its
 //! second timer) run in the same virtual time against simulated physics
-//! ([`Plant`]); a fault of either shuts both down. It is the session's
+//! ([`Plant`]); a fault of either shuts both down. A sensor on a
+//! secondary MCU is sampled there: its reports reach the heaters through
+//! the secondaries' links ([`Heaters::remote_report`]), and the updates of
+//! an output there go out on them. It is the session's
 //! [`Mcu`]: a wait runs the next timer event, no earlier than its wall
 //! time when virtual time is paced ([`Pace`]).
 
