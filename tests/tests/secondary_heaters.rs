@@ -4,11 +4,14 @@
 //! closes the loop as a hot end would: it reads the heater pin's software
 //! PWM from the peer's pin-edge log, runs a first-order thermal model of a
 //! small hot end and writes the thermistor's raw reading back. Shown: M109
-//! S200 reaches and holds 200 °C (overshoot and settle time measured), M105
-//! reports it; an open thermistor is the peer's own `ADC out of range`
-//! shutdown on our console with every heater off; a heater that does not
+//! S200 reaches and holds 200 °C (overshoot, settle time, the PWM and its
+//! refresh at full power measured), M105 reports it; an open thermistor
+//! is the peer's own `ADC out of range` shutdown on our console with every
+//! heater off, and FIRMWARE_RESTART brings it back; a heater that does not
 //! heat is Klipper's verify_heater fault; a peer killed mid-heat is `Lost
-//! communication with MCU 'ext'`.
+//! communication with MCU 'ext'`; a heater's sensor and output on
+//! different MCUs, either way; a `[temperature_sensor]` and a
+//! `[temperature_fan]` on the peer; an SPI chip there refused.
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
@@ -44,14 +47,17 @@ const HOT_END: HeaterModel = HeaterModel {
     capacity: 1.0,
 };
 /// PID gains for that hot end (Klipper's units), in place of the shipped
-/// printer's (tuned for a hot end eight times slower: on this one they
-/// overshoot by 11 °C and take 95 s to settle). Chosen on a model of
-/// Klipper's PID with its 0.3 s reports and 0.308 s PWM delay: within
-/// 0.6 °C of overshoot for a hot end 25 % slower or faster.
+/// printer's, which are for a slower hot end (on one of 1.5 J/K, M109
+/// S200 overshot by 11.8 °C and took 95 s). Chosen on a model of
+/// Klipper's PID with its 0.3 s reports and 0.308 s PWM delay, which
+/// predicted 0.6 °C of overshoot at most for a hot end 25 % slower or
+/// faster; measured here about 2 °C (the model left out the 0.05 power
+/// deadband, [`HOLD_BAND`]).
 const PID: &str = "pid_Kp: 8\npid_Ki: 3\npid_Kd: 2\n";
 /// How far from its target a held temperature may swing, °C: Klipper's
-/// PID changes the power only by 0.05 or more (or every 2 s), a step
-/// worth 16 °C at equilibrium on this hot end; it swings by about 2 °C.
+/// heaters change the power only by 0.05 or more (else they repeat it
+/// every 2.4 s), a step worth 16 °C at equilibrium on this hot end; it
+/// swings by about 2 °C.
 const HOLD_BAND: f64 = 3.0;
 /// How often the bench updates its model and the ADC file, s.
 const BENCH_STEP: f64 = 0.002;
