@@ -11,7 +11,8 @@
 //! heat is Klipper's verify_heater fault; a peer killed mid-heat is `Lost
 //! communication with MCU 'ext'`; a heater's sensor and output on
 //! different MCUs, either way; a `[temperature_sensor]` and a
-//! `[temperature_fan]` on the peer; an SPI chip there refused.
+//! `[temperature_fan]` on the peer; M190 with the bed there too (watermark);
+//! an SPI chip there refused.
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
@@ -74,8 +75,12 @@ enum Wiring {
     SensorOpen = 2,
 }
 
-/// The simulated hot end, run by its own thread against the peer.
+/// A simulated heater, run by its own thread against the peer.
 struct Bench {
+    /// Its heater's pin on the peer.
+    pin: &'static str,
+    /// Its physics.
+    model: HeaterModel,
     wiring: AtomicU8,
     stop: AtomicBool,
     /// Its temperature over time: pin-log time (s), °C.
@@ -83,8 +88,16 @@ struct Bench {
 }
 
 impl Bench {
+    /// The extruder's hot end.
     fn new() -> Self {
+        Self::heater(HEATER, HOT_END)
+    }
+
+    /// A heater on `pin` of the peer, as `model`.
+    fn heater(pin: &'static str, model: HeaterModel) -> Self {
         Self {
+            pin,
+            model,
             wiring: AtomicU8::new(Wiring::Connected as u8),
             stop: AtomicBool::new(false),
             temps: Mutex::new(Vec::new()),
@@ -111,7 +124,7 @@ impl Bench {
             .clone()
     }
 
-    /// Runs the hot end until stopped: every [`BENCH_STEP`] its heater's
+    /// Runs the heater until stopped: every [`BENCH_STEP`] its
     /// mean power since the last step (from the pin log) heats the model,
     /// and the thermistor's raw reading goes to `adc`.
     fn run(&self, peer: &Peer, adc: &AdcChannel, sensor: Conversion) {
@@ -122,9 +135,9 @@ impl Bench {
             let now = monotonic_now();
             let power = match self.wiring() {
                 Wiring::HeaterCut => 0.0,
-                _ => mean_power(&peer.levels(HEATER), last, now),
+                _ => mean_power(&peer.levels(self.pin), last, now),
             };
-            temp = HOT_END.advance(temp, power, now - last);
+            temp = self.model.advance(temp, power, now - last);
             last = now;
             let raw = match self.wiring() {
                 Wiring::SensorOpen => LINUX_ADC_MAX,
@@ -206,14 +219,16 @@ fn full_power_refreshes(writes: &[(f64, bool)], from: f64) -> (f64, f64) {
 fn start(test: &str, extra: &str) -> (Peer, ConsolePrinter, AdcChannel) {
     let heater = format!("ext:{HEATER}");
     let sensor = format!("ext:analog{SENSOR_CHANNEL}");
-    start_with(test, (&heater, &sensor), extra)
+    start_with(test, (&heater, &sensor), &[], extra)
 }
 
 /// [`start`] with the extruder's `heater_pin` and `sensor_pin` as given
-/// (either may be the main MCU's).
+/// (either may be the main MCU's) and `edits` of printer.cfg (every place
+/// of each first text replaced by its second).
 fn start_with(
     test: &str,
     (heater_pin, sensor_pin): (&str, &str),
+    edits: &[(&str, &str)],
     extra: &str,
 ) -> (Peer, ConsolePrinter, AdcChannel) {
     let peer = Peer::start_driven(test);
@@ -233,7 +248,11 @@ fn start_with(
     let ok = text.contains(heater) && text.contains(gains);
     assert!(ok, "the shipped [extruder] changed");
     let moved = format!("heater_pin: {heater_pin}\nsensor_pin: {sensor_pin}\n");
-    let text = text.replace(heater, &moved).replace(gains, PID);
+    let mut text = text.replace(heater, &moved).replace(gains, PID);
+    for (from, to) in edits {
+        assert!(text.contains(from), "printer.cfg has no {from:?}");
+        text = text.replace(from, to);
+    }
     std::fs::write(&cfg, text + extra).expect("printer.cfg");
     let p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
     let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
@@ -569,7 +588,7 @@ fn killing_the_linux_mcu_mid_heat_loses_communication_and_turns_heaters_off() {
 fn a_thermistor_on_a_linux_mcu_controls_a_heater_on_the_main_mcu() {
     let _alone = one_peer_at_a_time();
     let sensor_pin = format!("ext:analog{SENSOR_CHANNEL}");
-    let (_peer, mut p, adc) = start_with("heaters-split-sensor", ("PA0", &sensor_pin), "");
+    let (_peer, mut p, adc) = start_with("heaters-split-sensor", ("PA0", &sensor_pin), &[], "");
     let sensor = Conversion::Sensor(p.machine().heaters[0].sensor);
     p.run_for(3.0);
     let replies = p.send("M104 S200");
@@ -610,7 +629,7 @@ fn a_thermistor_on_a_linux_mcu_controls_a_heater_on_the_main_mcu() {
 fn a_heater_on_a_linux_mcu_follows_a_thermistor_on_the_main_mcu() {
     let _alone = one_peer_at_a_time();
     let heater_pin = format!("ext:{HEATER}");
-    let (peer, mut p, _) = start_with("heaters-split-heater", (&heater_pin, "PF4"), "");
+    let (peer, mut p, _) = start_with("heaters-split-heater", (&heater_pin, "PF4"), &[], "");
     p.run_for(1.0);
     let replies = p.send("M104 S200");
     assert!(!replies.contains("!!"), "{replies}");
@@ -635,6 +654,73 @@ fn a_heater_on_a_linux_mcu_follows_a_thermistor_on_the_main_mcu() {
     p.send("M104 S0");
     p.run_for(1.0);
     assert_eq!(peer.levels(HEATER).last().map(|l| l.1), Some(false));
+}
+
+/// The bed's heater pin on the peer.
+const BED_HEATER: &str = "gpiochip0/gpio32";
+/// Its thermistor's ADC channel (pin `analog1`).
+const BED_CHANNEL: u8 = 1;
+/// The bench's bed: the simulator's 250 W bed with a tenth of its heat
+/// capacity (time constant 30 s, 140 °C at full power).
+const FAST_BED: HeaterModel = HeaterModel {
+    watts: 250.0,
+    loss: 250.0 / 115.0,
+    capacity: 65.0,
+};
+
+#[test]
+fn m190_with_the_bed_and_the_extruder_on_a_linux_mcu_heats_both_there() {
+    let _alone = one_peer_at_a_time();
+    let bed_pins = (
+        "heater_pin: PA1\nsensor_pin: PF3\n",
+        format!("heater_pin: ext:{BED_HEATER}\nsensor_pin: ext:analog{BED_CHANNEL}\n"),
+    );
+    let heater = format!("ext:{HEATER}");
+    let sensor = format!("ext:analog{SENSOR_CHANNEL}");
+    let edits = [(bed_pins.0, bed_pins.1.as_str())];
+    let (peer, mut p, adc) = start_with("heaters-bed", (&heater, &sensor), &edits, "");
+    let (hot_end, bed) = (Bench::new(), Bench::heater(BED_HEATER, FAST_BED));
+    let machine = p.machine();
+    let sensor_of = |h: usize| Conversion::Sensor(machine.heaters[h].sensor);
+    let bed_adc = peer.adc(BED_CHANNEL);
+    bed_adc
+        .set(adc_raw(&sensor_of(1), AMBIENT, LINUX_ADC_MAX))
+        .expect("ADC file");
+    std::thread::scope(|s| {
+        s.spawn(|| hot_end.run(&peer, &adc, sensor_of(0)));
+        s.spawn(|| bed.run(&peer, &bed_adc, sensor_of(1)));
+        p.run_for(3.0);
+        let start = monotonic_now();
+        let replies = p.send("M104 S150") + &p.send("M190 S60");
+        let done = monotonic_now();
+        p.run_for(2.0);
+        let both = p.send("M105");
+        hot_end.stop.store(true, Ordering::Relaxed);
+        bed.stop.store(true, Ordering::Relaxed);
+        let temps = bed.temps();
+        let peak = (temps.iter().filter(|r| r.0 > start)).fold(f64::MIN, |m, r| m.max(r.1));
+        let now = temps.last().map_or(f64::NAN, |r| r.1);
+        println!(
+            "M190 S60 (watermark, max_delta 2) with the bed on the peer: done {:.2} s \
+             after it, peak {peak:.2} °C, {now:.2} °C 2 s later; {}",
+            done - start,
+            both.trim()
+        );
+        assert!(
+            !replies.contains("!!") && !both.contains("!!"),
+            "{replies}{both}"
+        );
+        // Watermark: off from 62 °C, the last update 0.6 s old at most.
+        assert!((58.0..66.0).contains(&peak), "peak {peak:.2}");
+        let bed_reported = m105_sensor(&both, "B").expect("M105 bed");
+        assert!(
+            (bed_reported.0 - 60.0).abs() < 6.0 && bed_reported.1 == 60.0,
+            "{both}"
+        );
+        let (t, target) = m105_extruder(&both).expect("M105 extruder");
+        assert!(t > 60.0 && target == 150.0, "{both}");
+        assert!(peer.levels(BED_HEATER).iter().any(|l| !l.1));
+    });
 }
 
 #[test]
