@@ -1,13 +1,12 @@
-//! Heater and `[temperature_sensor]` thermistors on a secondary MCU,
-//! read as klippy's `MCU_adc` reads them: after the config phase each gets its `query_analog_in` (8
-//! readings 1 ms apart every 0.3 s, the range from the heater's
-//! min_temp/max_temp in that MCU's ADC counts, 4 reports out of range in a
-//! row shut that MCU down; a temperature sensor's range is its
-//! min_temp/max_temp, none by default: [`onechip_app::heaters::McuSetup`]
-//! at its clock and ADC_MAX), and each `analog_in_state` becomes readings (0..1 of full
-//! scale) at the host time of their first sample, for the MCU role's
-//! heater control and temperature fans
-//! ([`onechip_app::heaters::Heaters::remote_report`]).
+//! Heater and `[temperature_sensor]` thermistors on a secondary MCU, read
+//! as klippy's `MCU_adc` reads them. After the config phase each gets its
+//! `query_analog_in` ([`onechip_app::heaters::McuSetup`] at that MCU's
+//! clock and ADC_MAX: 8 readings 1 ms apart every 0.3 s, the range from
+//! min_temp/max_temp in its ADC counts — none by default for a
+//! temperature sensor — and 4 reports out of range in a row shut that MCU
+//! down). Each `analog_in_state` becomes readings (0..1 of full scale) at
+//! the host time of their first sample, for the MCU role's heater control
+//! and temperature fans ([`onechip_app::heaters::Heaters::remote_report`]).
 //!
 //! A heater's sensor and output may be on different MCUs. Not yet: an SPI
 //! temperature chip on a secondary (refused by [`check`]).
