@@ -5,7 +5,9 @@
 //! 0.3 s with Klipper's range and fault checks, [`InputQuery::Spi`]); each
 //! temperature report runs
 //! the heater's control (PID or watermark) at once, which queues the next
-//! PWM value 0.308 s after the report, as Klipper's host does.
+//! PWM value 0.308 s after the report, as Klipper's host does. An ADC
+//! input on another MCU (`NAME:PIN`, a secondary board) is sampled there,
+//! not here: its reports come in through [`Heaters::remote_report`].
 //!
 //! Klipper's host-side heater safety runs here too, on the same reports:
 //! each heater's `[verify_heater]` checks (once a second of heater time;
@@ -699,6 +701,9 @@ pub struct Heaters {
     pwm_delay: u32,
     /// Ticks after which a heater's unchanged power is sent again.
     refresh_ticks: u32,
+    /// Ticks a report's readings take: klippy times a report by their
+    /// end.
+    sampling_ticks: u32,
     /// Ticks between verify_heater checks.
     verify_ticks: u32,
     freq: f64,
@@ -724,10 +729,15 @@ impl Heaters {
         for (_, config) in &setup.outputs {
             let _ = io.add_output(*config, hw);
         }
-        for (_, query) in &setup.inputs {
+        for (pin, query) in &setup.inputs {
             match query {
                 InputQuery::Adc(q) => {
-                    if let Ok(index) = io.add_input() {
+                    // One on another MCU is sampled there: its reports
+                    // come through `remote_report`.
+                    let here = crate::mcu_config::pin_ref(pin).mcu == crate::mcu_config::MAIN;
+                    if let Ok(index) = io.add_input()
+                        && here
+                    {
                         let _ = io.query(index, *q);
                     }
                 }
@@ -795,7 +805,11 @@ impl Heaters {
             fan,
             accessories,
             pwm_delay: ticks(PWM_DELAY, freq),
-            refresh_ticks: ticks(0.75 * MAX_HEAT_TIME, freq),
+            // klippy's: three report periods (and a ms) short of
+            // max_duration, so that the next report's update comes in
+            // time even over a secondary MCU's link.
+            refresh_ticks: ticks(MAX_HEAT_TIME - (3.0 * REPORT_TIME + 0.001), freq),
+            sampling_ticks: ticks(f64::from(SAMPLE_COUNT) * SAMPLE_TIME, freq),
             verify_ticks: ticks(VERIFY_TIME, freq),
             freq,
             adc_full: adc_full(adc_max),
@@ -823,36 +837,12 @@ impl Heaters {
     /// returned; the caller stops the steppers too.
     pub fn run(&mut self, now: u32, hw: &mut impl Peripherals) -> Result<(), Shutdown> {
         self.io.run(now, hw)?;
-        for index in 0..self.heaters.len() {
-            let Some(h) = self.heaters.get(index) else {
+        for index in 0..self.heaters.len() + self.sensors.len() {
+            let Some(conversion) = self.conversion(index) else {
                 continue;
             };
-            let conversion = Conversion::Sensor(h.sensor);
             if let Some((clock, temp)) = self.reading(index, &conversion) {
-                self.control(index, clock, temp, now, hw)?;
-            }
-        }
-        let first = self.heaters.len();
-        let delay = ticks(REPORT_TIME, self.freq);
-        for i in 0..self.sensors.len() {
-            let Some(sensor) = self.sensors.get(i) else {
-                continue;
-            };
-            let conversion = sensor.conversion;
-            let Some((clock, t)) = self.reading(first + i, &conversion) else {
-                continue;
-            };
-            let io = &mut self.io;
-            self.accessories.sensor_report(
-                i,
-                t,
-                clock,
-                now,
-                delay,
-                &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
-            )?;
-            if let Some(sensor) = self.sensors.get_mut(i) {
-                sensor.reading = Some(t);
+                self.on_temperature(index, clock, temp, now, hw)?;
             }
         }
         if self.io.shutdown_reason().is_some() {
@@ -871,6 +861,70 @@ impl Heaters {
             .poll(now, &readings, &mut |index, clock, value| {
                 queue_on(io, index, clock, value, now, hw)
             })
+    }
+
+    /// Input `index`'s report taken by another MCU (a secondary's
+    /// `analog_in_state`): the sum of its readings as `reading` (0..1 of
+    /// its full scale), the first of them at clock `clock` (this MCU's),
+    /// at clock `now`. It is handled as this MCU's own reports are (the
+    /// heater's control and verify_heater, a temperature fan's update);
+    /// a fault is returned. Ignored after a shutdown (the other MCU may
+    /// report until it hears of it).
+    pub fn remote_report(
+        &mut self,
+        index: usize,
+        clock: u32,
+        reading: f64,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        if self.io.shutdown_reason().is_some() {
+            return Ok(());
+        }
+        let Some(conversion) = self.conversion(index) else {
+            return Ok(());
+        };
+        let temp = conversion.temperature(reading);
+        self.on_temperature(index, clock, temp, now, hw)
+    }
+
+    /// Input `index`'s conversion (the heaters', then the temperature
+    /// sensors').
+    fn conversion(&self, index: usize) -> Option<Conversion> {
+        match self.heaters.get(index) {
+            Some(h) => Some(Conversion::Sensor(h.sensor)),
+            None => Some(self.sensors.get(index - self.heaters.len())?.conversion),
+        }
+    }
+
+    /// Input `index`'s temperature `temp` (°C) read at clock `clock`: a
+    /// heater's control, or a temperature sensor's reading (and its
+    /// temperature fan's update).
+    fn on_temperature(
+        &mut self,
+        index: usize,
+        clock: u32,
+        temp: f64,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        let Some(i) = index.checked_sub(self.heaters.len()) else {
+            return self.control(index, clock, temp, now, hw);
+        };
+        let delay = ticks(REPORT_TIME, self.freq);
+        let io = &mut self.io;
+        self.accessories.sensor_report(
+            i,
+            temp,
+            clock,
+            now,
+            delay,
+            &mut |index, clock, value| queue_on(io, index, clock, value, now, hw),
+        )?;
+        if let Some(sensor) = self.sensors.get_mut(i) {
+            sensor.reading = Some(temp);
+        }
+        Ok(())
     }
 
     /// Input `index`'s new report, if any, as its clock and temperature
@@ -925,7 +979,8 @@ impl Heaters {
         if h.target <= 0.0 {
             power = 0.0;
         }
-        let fresh = is_before(clock, h.refresh_by) && h.last_power != 0.0;
+        let read = clock.wrapping_add(self.sampling_ticks);
+        let fresh = is_before(read, h.refresh_by) && h.last_power != 0.0;
         if (fresh || h.last_power == 0.0) && (power - h.last_power).abs() < 0.05 {
             return Ok(());
         }

@@ -9,8 +9,9 @@
 //! stepper; enable pins, heater sensors and heater, fan and pin outputs
 //! take theirs when their config is written. Config order: each
 //! `[extruder_stepper]`'s stepper and enable pin; the part fan, the named
-//! fans, the `[output_pin]`s and the `[static_digital_output]` pins (extra
-//! sections, which klippy loads before the toolhead); each rail's endstop,
+//! fans, the `[output_pin]`s and the `[static_digital_output]` pins, then
+//! the `[temperature_sensor]`s on an ADC pin (extra sections, which klippy
+//! loads before the toolhead); each rail's endstop,
 //! trsync, stepper and enable pin; the extruder's heater (sensor, output)
 //! before its stepper and enable pin; then the other heaters. (Checked
 //! against klippy for the golden configs, which have no `[heater_bed]`,
@@ -33,6 +34,7 @@ use crate::heaters::{McuSetup, OUTPUTS, full_scale};
 use core::fmt::{self, Write};
 use onechip_planner::extruder_stepper::EXTRUDER;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::sensor_section::{MAX_SENSORS, SensorInput};
 use onechip_sched::outputs::OutputKind;
 
 /// The main MCU's name (`[mcu]`).
@@ -85,8 +87,11 @@ pub struct Oids {
     pub endstops: [Option<(u8, u8)>; MAX_STEPPERS],
     /// Each stepper's enable pin output, if on this MCU.
     pub enables: [Option<u8>; MAX_STEPPERS],
-    /// Each heater's sensor and output (by `machine.heaters` index).
-    pub heaters: [Option<(u8, u8)>; 2],
+    /// Each heater's sensor and output (by `machine.heaters` index), each
+    /// if on this MCU.
+    pub heaters: [(Option<u8>, Option<u8>); 2],
+    /// Each temperature sensor's ADC input (by `machine.sensors` index).
+    pub sensors: [Option<u8>; MAX_SENSORS],
     /// Each fan's or pin's output, by its index in [`McuSetup::outputs`]
     /// (the MCU role's io order; heaters and static pins have none).
     pub outputs: [Option<u8>; OUTPUTS],
@@ -104,6 +109,8 @@ enum Object {
     /// Output `k` of [`McuSetup::outputs`]: the part fan, a named fan, an
     /// output pin or a static pin.
     Output(usize),
+    /// Temperature sensor `i` of the machine, read on an ADC pin.
+    Sensor(usize),
 }
 
 /// The `[extruder_stepper]`s' steppers (by `machine.steppers` index), in
@@ -130,12 +137,14 @@ fn in_creation_order<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = usize
 
 /// Calls `f` with each object in klippy's config order: the
 /// `[extruder_stepper]`s, the fans and pins (`outputs`: how many
-/// [`McuSetup::outputs`] there are), the rails, then the heaters, the
+/// [`McuSetup::outputs`] there are), the temperature sensors, the rails,
+/// then the heaters, the
 /// extruder's stepper right after the extruder's heater (or after the
 /// heaters if it has none).
 fn in_config_order(machine: &Machine<'_>, outputs: usize, mut f: impl FnMut(Object)) {
     extra_extruder_steppers(machine).for_each(|i| f(Object::Stepper(i)));
     (machine.heaters.len()..outputs).for_each(|k| f(Object::Output(k)));
+    (0..machine.sensors.len()).for_each(|i| f(Object::Sensor(i)));
     (0..machine.motion_steppers()).for_each(|i| f(Object::Stepper(i)));
     let extruder = machine
         .extruder_steppers
@@ -177,6 +186,12 @@ pub fn write_config(
         }
         Object::Heater(h) => write_heater(machine, setup, &oids, h, &mut line, out),
         Object::Output(k) => write_output(machine, setup, mcu, &oids, k, &mut line, out),
+        Object::Sensor(i) => {
+            if let (Some(oid), Some(sensor)) = (oids.sensors[i], machine.sensors.get(i)) {
+                let pin = pin_ref(sensor.input.pin()).pin;
+                line.emit(out, format_args!("config_analog_in oid={oid} pin={pin}"));
+            }
+        }
     });
     oids
 }
@@ -247,7 +262,7 @@ fn write_output(
     }
 }
 
-/// Writes heater `h`'s sensor and output, if on this MCU.
+/// Writes heater `h`'s sensor and output, those on this MCU.
 fn write_heater(
     machine: &Machine<'_>,
     setup: &McuSetup<'_>,
@@ -257,14 +272,19 @@ fn write_heater(
     out: &mut dyn FnMut(&str),
 ) {
     let (Some((adc, pwm)), Some(heater), Some((_, output))) = (
-        oids.heaters[h],
+        oids.heaters.get(h),
         machine.heaters.get(h),
         setup.outputs.get(h),
     ) else {
         return;
     };
-    let pin = pin_ref(heater.sensor_pin).pin;
-    line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
+    if let Some(adc) = adc {
+        let pin = pin_ref(heater.sensor_pin).pin;
+        line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
+    }
+    let Some(pwm) = pwm else {
+        return;
+    };
     let heater_pin = pin_ref(heater.heater_pin);
     let (value, max) = (u8::from(heater_pin.inverted), output.max_duration);
     line.emit(
@@ -317,10 +337,16 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             }
         }
         Object::Heater(h) => {
-            if on_mcu(machine.heaters.get(h).map(|heater| heater.heater_pin))
-                && setup.outputs.get(h).is_some()
-            {
-                oids.heaters[h] = Some((take(), take()));
+            // klippy creates the sensor's ADC, then the heater's output.
+            let heater = machine
+                .heaters
+                .get(h)
+                .filter(|_| setup.outputs.get(h).is_some());
+            if on_mcu(heater.map(|heater| heater.sensor_pin)) {
+                oids.heaters[h].0 = Some(take());
+            }
+            if on_mcu(heater.map(|heater| heater.heater_pin)) {
+                oids.heaters[h].1 = Some(take());
             }
         }
         Object::Output(k) => {
@@ -330,6 +356,17 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             });
             if on_this && k < statics {
                 oids.outputs[k] = Some(take());
+            }
+        }
+        Object::Sensor(i) => {
+            // On an ADC pin of this MCU (an SPI chip or the MCU's own
+            // sensor has no analog input).
+            let adc = machine.sensors.get(i).and_then(|s| match s.input {
+                SensorInput::Adc { pin, .. } => Some(pin),
+                _ => None,
+            });
+            if on_mcu(adc) {
+                oids.sensors[i] = Some(take());
             }
         }
     });
@@ -455,6 +492,33 @@ mod tests {
         // Io order: no heaters, the part fan, the named fans, the pin.
         assert_eq!(oids.outputs[..4], [Some(1), None, Some(2), Some(3)]);
         assert_eq!(oids.enables[2], Some(4));
+    }
+
+    #[test]
+    fn temperature_sensors_are_configured_on_the_mcu_of_their_adc_pin() {
+        let text = "[mcu ext]\nserial: /dev/null\n\
+            [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\n\
+            rotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [stepper_z]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 8\n\
+            position_endstop: 0\nposition_max: 200\n\
+            [temperature_sensor here]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: PF5\n\
+            [temperature_sensor there]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: ext:PA2\n";
+        let config = Config::parse("printer.cfg", text).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        let setup = McuSetup::new(&machine, 16e6, 1023, typical_mcu(), 0);
+        let mut lines: heapless::Vec<heapless::String<128>, 4> = heapless::Vec::new();
+        let oids = write_config(&machine, &setup, "ext", &|_| 32, &mut |l| {
+            let _ = lines.push(heapless::String::try_from(l).expect("short"));
+        });
+        let lines: heapless::Vec<&str, 4> = lines.iter().map(|l| l.as_str()).collect();
+        assert_eq!(
+            lines[..],
+            ["allocate_oids count=1", "config_analog_in oid=0 pin=PA2"]
+        );
+        assert_eq!(oids.sensors[..2], [None, Some(0)]);
     }
 
     #[test]

@@ -143,6 +143,11 @@ impl ConsolePrinter {
         );
     }
 
+    /// The printer as printer.cfg describes it.
+    pub fn machine(&self) -> &'static Machine<'static> {
+        self.machine
+    }
+
     /// True while a file prints from the card.
     pub fn is_printing(&self) -> bool {
         self.console.is_printing()

@@ -71,6 +71,24 @@ impl HeaterModel {
         loss: 250.0 / 115.0,
         capacity: 650.0,
     };
+
+    /// The temperature (°C) `dt` s after `temp` (°C) with the heater at
+    /// `power` (0..1) all along, the room at [`AMBIENT`] (first order:
+    /// exact for a constant power).
+    pub fn advance(&self, temp: f64, power: f64, dt: f64) -> f64 {
+        let settle = AMBIENT + power * self.watts / self.loss;
+        let decay = (-dt * self.loss / self.capacity).exp();
+        settle + (temp - settle) * decay
+    }
+}
+
+/// What an ADC of full scale `adc_max` reads from a sensor read through
+/// `conversion` at `celsius` (°C), rounded.
+pub fn adc_raw(conversion: &Conversion, celsius: f64, adc_max: u16) -> u16 {
+    let reading = conversion.reading(celsius);
+    (reading * f64::from(adc_max))
+        .round()
+        .clamp(0.0, f64::from(adc_max)) as u16
 }
 
 /// What one output did.
@@ -107,9 +125,7 @@ impl Lump {
             return;
         }
         let dt = (now - self.at) as f64 / freq;
-        let settle = AMBIENT + self.power * self.model.watts / self.model.loss;
-        let decay = (-dt * self.model.loss / self.model.capacity).exp();
-        self.temp = settle + (self.temp - settle) * decay;
+        self.temp = self.model.advance(self.temp, self.power, dt);
         self.peak = self.peak.max(self.temp);
         self.at = now;
     }
@@ -320,10 +336,7 @@ impl Peripherals for Plant {
         let Some((conversion, celsius)) = self.input(index) else {
             return 0;
         };
-        let reading = conversion.reading(celsius);
-        (reading * f64::from(ADC_MAX))
-            .round()
-            .clamp(0.0, f64::from(ADC_MAX)) as u16
+        adc_raw(&conversion, celsius, ADC_MAX)
     }
 
     /// The chip answers as the real one does to the reads Klipper's MCU

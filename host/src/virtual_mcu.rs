@@ -6,13 +6,17 @@
 //! ([`Physics`]) through the step pins, as the board's interrupt reads its
 //! GPIOs. The heaters and fan ([`Heaters`], the io the board runs from its
 //! second timer) run in the same virtual time against simulated physics
-//! ([`Plant`]); a fault of either shuts both down. It is the session's
+//! ([`Plant`]); a fault of either shuts both down. A sensor on a
+//! secondary MCU is sampled there: its reports reach the heaters through
+//! the secondaries' links ([`Heaters::remote_report`]), and the updates of
+//! an output there go out on them. It is the session's
 //! [`Mcu`]: a wait runs the next timer event, no earlier than its wall
 //! time when virtual time is paced ([`Pace`]).
 
 use crate::pace::Pace;
 use crate::plot::Window;
 use crate::secondary::attached::Secondaries;
+use crate::secondary::thermal::Reading;
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::{StallDetect, TmcSim};
@@ -534,12 +538,49 @@ impl VirtualMcu {
         if stopped {
             self.pushed = true;
         }
+        let readings = secondaries.take_readings();
+        self.remote_readings(&readings);
+        let Some(secondaries) = &mut self.secondaries else {
+            return;
+        };
         let main_down = self.engine.shutdown_reason().is_some();
         match secondaries.failure() {
             Some(reason) if !main_down => self.stop_all(reason),
             None if main_down => secondaries.emergency_stop(now),
             _ => {}
         }
+    }
+
+    /// The ADC inputs on secondaries reported `readings`: each goes to
+    /// the heater control (or temperature sensor) as this MCU's own
+    /// reports do, and the updates it queues go out; a fault stops
+    /// everything.
+    fn remote_readings(&mut self, readings: &[Reading]) {
+        let Some(freq) = self.secondaries.as_ref().map(Secondaries::freq) else {
+            return;
+        };
+        if readings.is_empty() {
+            return;
+        }
+        let now = self.now;
+        let Some((heaters, plant)) = &mut self.thermal else {
+            return;
+        };
+        plant.now = now;
+        let mut fault = None;
+        for r in readings {
+            // Host time is the main clock in seconds.
+            let clock = (r.at * freq).max(0.0) as u64 as u32;
+            if let Err(reason) = heaters.remote_report(r.input, clock, r.value, now as u32, plant) {
+                fault = Some(reason);
+                break;
+            }
+        }
+        match fault {
+            Some(reason) => self.stop_all(reason),
+            None => self.update_io_wake(),
+        }
+        self.forward_outputs();
     }
 
     /// Every stepper stops and every heater goes off, for `reason`.

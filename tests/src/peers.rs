@@ -164,6 +164,32 @@ pub struct Peer {
     /// The file its inputs read, if a test drives them
     /// ([`Self::start_driven`]).
     inputs: Option<PathBuf>,
+    /// The folder standing in for its IIO device, if a test drives its
+    /// ADC ([`Self::adc`]).
+    iio: Option<PathBuf>,
+}
+
+/// One ADC channel of a driven Linux MCU (`analogN` in its pin names): the
+/// file the peer-shim wrapper serves as the channel's IIO file.
+#[derive(Debug, Clone)]
+pub struct AdcChannel {
+    path: PathBuf,
+}
+
+impl AdcChannel {
+    /// The channel reads `raw` (0..=4095, the Linux MCU's ADC_MAX) from
+    /// now on. The file is rewritten in place at a fixed width, never
+    /// truncated: the MCU keeps it open and reads it from offset 0 at each
+    /// sample (an empty read would shut it down).
+    pub fn set(&self, raw: u16) -> std::io::Result<()> {
+        use std::os::unix::fs::FileExt;
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&self.path)?;
+        file.write_all_at(format!("{raw:05}\n").as_bytes(), 0)
+    }
 }
 
 impl Peer {
@@ -211,13 +237,22 @@ impl Peer {
     pub fn set_inputs(&self, level: u8) -> f64 {
         let path = self.inputs.as_ref().expect("a peer started driven");
         std::fs::write(path, level.to_string()).expect("inputs file");
-        let mut now = libc::timespec {
-            tv_sec: 0,
-            tv_nsec: 0,
-        };
-        // SAFETY: a valid timespec for the call to fill.
-        unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut now) };
-        now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9
+        monotonic_now()
+    }
+
+    /// ADC channel `channel` (pin `analog<channel>`) of a peer started by
+    /// [`Self::start_driven`]: set its reading before the MCU is
+    /// configured (`config_analog_in` opens it; a channel never set is
+    /// `Unable to open adc device`).
+    ///
+    /// # Panics
+    ///
+    /// If the peer's inputs are not driven.
+    pub fn adc(&self, channel: u8) -> AdcChannel {
+        let dir = self.iio.as_ref().expect("a peer started driven");
+        AdcChannel {
+            path: dir.join(format!("in_voltage{channel}_raw")),
+        }
     }
 
     fn launch(firmware: Firmware, test: &str, inputs: Inputs) -> Self {
@@ -227,6 +262,7 @@ impl Peer {
         let path = dir.join("mcu");
         let pin_log = dir.join("pins.log");
         let input_file = dir.join("inputs");
+        let iio = dir.join("iio");
         let mut cmd = match firmware {
             Firmware::Linux => {
                 let mut c = Command::new(peers_dir().join("start-linux-mcu"));
@@ -235,8 +271,10 @@ impl Peer {
                     Inputs::Level(level) => c.env("FAKEGPIO_IN", level.to_string()),
                     Inputs::File => {
                         std::fs::write(&input_file, "0").expect("inputs file");
+                        std::fs::create_dir_all(&iio).expect("iio folder");
                         c.env("FAKEGPIO_SO", driven_shim())
                             .env("FAKEGPIO_IN_FILE", &input_file)
+                            .env("FAKEIIO_DIR", &iio)
                     }
                 };
                 // Real-time priority keeps its steps punctual; it needs root.
@@ -280,6 +318,7 @@ impl Peer {
             path,
             pin_log,
             inputs: (inputs == Inputs::File).then_some(input_file),
+            iio: (inputs == Inputs::File).then_some(iio),
         }
     }
 
@@ -361,6 +400,17 @@ impl Peer {
             .collect()
     }
 
+    /// Every write of `pin` in the pin log, a level it already had too
+    /// (the Linux MCU writes an output at each of its updates): the time
+    /// (s, as [`Self::rising_edges`]) and the level.
+    pub fn writes(&self, pin: &str) -> Vec<(f64, bool)> {
+        let text = std::fs::read_to_string(&self.pin_log).unwrap_or_default();
+        changes(&text)
+            .filter(|c| c.name == pin)
+            .map(|c| (c.time, c.high))
+            .collect()
+    }
+
     /// The rising edges in the pin log for `pin`: their times in seconds
     /// (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16 MHz).
     pub fn rising_edges(&self, pin: &str) -> Vec<f64> {
@@ -414,6 +464,17 @@ impl Drop for RealtimeGuard {
             unsafe { libc::sched_setscheduler(0, libc::SCHED_OTHER, &param) };
         }
     }
+}
+
+/// CLOCK_MONOTONIC now, s: the Linux peer's pin-log clock.
+pub fn monotonic_now() -> f64 {
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: a valid timespec for the call to fill.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut now) };
+    now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9
 }
 
 /// Rising edges of `pin` in a pin log, s.

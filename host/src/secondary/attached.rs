@@ -15,8 +15,15 @@
 //! an enable pin goes active with its stepper's first step and inactive
 //! at M84/M18. A shutdown is the MCU's own: `emergency_stop` puts every
 //! output at its configured shutdown value.
+//!
+//! A heater on a secondary (its sensor and output there) is run by the MCU
+//! role's heater control as the main MCU's are: its sensor is sampled
+//! there ([`super::thermal`]: `query_analog_in` after the config phase),
+//! its reports come back as readings ([`Secondaries::take_readings`]), and
+//! the PWM updates the control queues go out as the fans' do.
 
 use super::homing::Homing;
+use super::thermal::{self, Reading, RemoteInput};
 use super::{ConnectError, Heard, Secondary, Start};
 use crate::thermal_plant::mcu_sensor;
 use onechip_app::heaters::{McuSetup, full_scale};
@@ -153,7 +160,7 @@ fn reserved_slots(oids: &Oids) -> usize {
     let mut enables: Vec<u8> = oids.enables.iter().flatten().copied().collect();
     enables.sort_unstable();
     enables.dedup();
-    let heaters = oids.heaters.iter().flatten().count();
+    let heaters = oids.heaters.iter().filter(|h| h.1.is_some()).count();
     enables.len() + heaters + oids.outputs.iter().flatten().count()
 }
 
@@ -275,6 +282,10 @@ pub struct Secondaries {
     /// Each stepper's enable pin (index into `enables`), if on a
     /// secondary, and whether the stepper is enabled.
     stepper_enables: Vec<Option<(usize, bool)>>,
+    /// The heaters' and temperature sensors' ADC inputs on secondaries.
+    inputs: Vec<RemoteInput>,
+    /// Their readings heard and not taken yet.
+    readings: Vec<Reading>,
 }
 
 impl Secondaries {
@@ -357,6 +368,8 @@ impl Secondaries {
             outputs: Vec::new(),
             enables: Vec::new(),
             stepper_enables: vec![None; machine.steppers.len()],
+            inputs: Vec::new(),
+            readings: Vec::new(),
         };
         // The io's outputs, at the main clock.
         let io = McuSetup::new(machine, freq, 0, mcu_sensor(), 0);
@@ -378,6 +391,15 @@ impl Secondaries {
         }
         for secondary in &machine.secondaries {
             let name: &'static str = Box::leak(secondary.name.to_string().into_boxed_str());
+            let unsupported = |why: String| {
+                let (file, line) = secondary.serial_at;
+                ConnectError::Mcu {
+                    mcu: name.to_string(),
+                    at: (file.to_string(), line),
+                    error: Box::new(ConnectError::Unsupported(why)),
+                }
+            };
+            thermal::check(machine, name).map_err(unsupported)?;
             // The config depends on the MCU's clock (step pulses in its
             // ticks), which identify tells; its object ids are kept.
             let oids = Cell::new(Oids::default());
@@ -420,6 +442,8 @@ impl Secondaries {
             let sync = mcu.connection().clock().copied();
             let start = sync.map_or(0, |s| s.clock_at(now() + START_LEAD));
             all.add_outputs(machine, &io, &oids, k, mcu.clock_freq(), start);
+            all.add_inputs(machine, &oids, &mut mcu, k, now())
+                .map_err(unsupported)?;
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
                 let encoder = StepCommandEncoder::new(dict, oid, all.dir_inverted[i])
@@ -467,9 +491,13 @@ impl Secondaries {
         start: u64,
     ) {
         let there = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
-        for (index, oid) in oids.outputs.iter().enumerate() {
+        // The heaters' outputs first (io order), then the fans' and pins'.
+        let heaters = oids.heaters.iter().take(machine.heaters.len());
+        let heater_oids = heaters.map(|h| h.1);
+        let output_oids = oids.outputs.iter().skip(machine.heaters.len()).copied();
+        for (index, oid) in heater_oids.chain(output_oids).enumerate() {
             let (Some(oid), Some((pin, config)), Some((_, here))) =
-                (*oid, io.outputs.get(index), there.outputs.get(index))
+                (oid, io.outputs.get(index), there.outputs.get(index))
             else {
                 continue;
             };
@@ -502,6 +530,56 @@ impl Secondaries {
             });
             self.stepper_enables[i] = Some((e, false));
         }
+    }
+
+    /// Starts sampling the heaters' and temperature sensors' ADC inputs
+    /// on MCU `k` (index into `attached`, not yet pushed: `mcu`), whose
+    /// object ids are `oids`, as klippy's init commands do at host time
+    /// `now` (s). An MCU without a usable ADC_MAX is refused if it has
+    /// any.
+    fn add_inputs(
+        &mut self,
+        machine: &Machine<'_>,
+        oids: &Oids,
+        mcu: &mut Secondary,
+        k: usize,
+        now: f64,
+    ) -> Result<(), String> {
+        // Io inputs: the heaters', then the temperature sensors'.
+        let heaters = oids.heaters.iter().take(machine.heaters.len());
+        let adcs = heaters.map(|h| h.0).chain(oids.sensors);
+        let mut sensors = adcs
+            .enumerate()
+            .filter_map(|(index, oid)| Some((index, oid?)))
+            .peekable();
+        if sensors.peek().is_none() {
+            return Ok(());
+        }
+        let dict = mcu.dictionary();
+        let adc_max = thermal::adc_max(dict)
+            .ok_or_else(|| format!("MCU '{}' has no usable ADC_MAX", mcu.name))?;
+        let setup = McuSetup::new(machine, mcu.clock_freq(), adc_max, mcu_sensor(), 0);
+        let Some(sync) = mcu.connection().clock().copied() else {
+            return Err(format!("MCU '{}': no clock", mcu.name));
+        };
+        for (h, oid) in sensors {
+            let Some(query) = setup.inputs.get(h).and_then(|(_, q)| q.adc()) else {
+                continue;
+            };
+            let clock = thermal::query_slot(&sync, oid, now);
+            let command = thermal::query_command(dict, oid, query, clock);
+            let sent = mcu.connection().send_text(&command, 0);
+            sent.map_err(|_| format!("MCU '{}': {command} not sent", mcu.name))?;
+            self.inputs
+                .push(RemoteInput::new(k, oid, h, query, adc_max));
+        }
+        Ok(())
+    }
+
+    /// The readings of the ADC inputs on secondaries heard since last
+    /// taken, oldest first.
+    pub fn take_readings(&mut self) -> Vec<Reading> {
+        std::mem::take(&mut self.readings)
     }
 
     /// The MCU role's io queued `value` for output `index` at main clock
@@ -686,6 +764,15 @@ impl Secondaries {
                     }
                     Heard::Failed(_) => failure = Some(lost),
                     Heard::Response(text) => responses.push((k, text)),
+                    Heard::Analog(report) => {
+                        let input = self
+                            .inputs
+                            .iter()
+                            .find(|i| i.mcu == k && i.oid == report.oid);
+                        if let (Some(input), Some(sync)) = (input, a.mcu.connection().clock()) {
+                            self.readings.extend(input.readings(&report, sync));
+                        }
+                    }
                 }
             }
             if failure.is_some() {

@@ -5,8 +5,10 @@
 pub mod attached;
 pub mod homing;
 pub mod port;
+pub mod thermal;
 
 use onechip_planner::mcu_section::RestartMethod;
+use onechip_protocol::codec::{Decoded, Field};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_protocol::transport::{
     DEFAULT_RECEIVE_WINDOW, HostLink, LinkStats, MAX_PENDING_BLOCKS,
@@ -94,10 +96,54 @@ pub enum Start {
 pub enum Heard {
     /// A response other than the connection's own (`stepper_position …`).
     Response(String),
+    /// An ADC input's report ([`AnalogReport`]).
+    Analog(AnalogReport),
     /// The MCU shut down: its `shutdown` message.
     Shutdown(String),
     /// The link failed.
     Failed(Failure),
+}
+
+/// An ADC input's `analog_in_state`: Klipper's older firmware sends one
+/// `value`, newer firmware a batch of them (`values`, two bytes each,
+/// little-endian), the last report's sampling ending just before
+/// `next_clock`'s.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AnalogReport {
+    /// The input's oid.
+    pub oid: u8,
+    /// When its next sampling starts, the MCU's 32-bit clock.
+    pub next_clock: u32,
+    /// Each report's sum of readings, oldest first.
+    pub values: Vec<u16>,
+}
+
+impl AnalogReport {
+    /// `msg` as a report, if it is an `analog_in_state`.
+    fn from_message(msg: &Decoded<'_, '_, '_>) -> Option<Self> {
+        if msg.message.name() != "analog_in_state" {
+            return None;
+        }
+        let oid = u8::try_from(msg.int("oid")?).ok()?;
+        let next_clock = msg.int("next_clock")? as u32;
+        let values = match msg.int("value") {
+            Some(v) => vec![u16::try_from(v).ok()?],
+            None => {
+                let mut fields = msg.message.params().zip(&msg.fields);
+                let bytes = fields.find_map(|((name, _), f)| match f {
+                    Field::Bytes(b) if name == "values" => Some(*b),
+                    _ => None,
+                })?;
+                let pairs = bytes.chunks_exact(2);
+                pairs.map(|p| u16::from_le_bytes([p[0], p[1]])).collect()
+            }
+        };
+        Some(Self {
+            oid,
+            next_clock,
+            values,
+        })
+    }
 }
 
 /// A configured secondary MCU.
@@ -329,7 +375,10 @@ impl Secondary {
     pub fn service(&mut self, now: f64, wait: Duration, heard: &mut Vec<Heard>) -> io::Result<()> {
         let reasons = self.conn.dictionary().enumeration_for("static_string_id");
         let mut on_event = |event: Event<'_, 'static>| match event {
-            Event::Response(msg) => heard.push(Heard::Response(msg.to_string())),
+            Event::Response(msg) => heard.push(match AnalogReport::from_message(msg) {
+                Some(report) => Heard::Analog(report),
+                None => Heard::Response(msg.to_string()),
+            }),
             Event::Shutdown(msg) => {
                 // The message is the MCU's static string for the id.
                 let mut reason = String::new();

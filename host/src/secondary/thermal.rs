@@ -1,0 +1,242 @@
+//! Heater and `[temperature_sensor]` thermistors on a secondary MCU, read
+//! as klippy's `MCU_adc` reads them. After the config phase each gets its
+//! `query_analog_in` ([`onechip_app::heaters::McuSetup`] at that MCU's
+//! clock and ADC_MAX: 8 readings 1 ms apart every 0.3 s, the range from
+//! min_temp/max_temp in its ADC counts — none by default for a
+//! temperature sensor — and 4 reports out of range in a row shut that MCU
+//! down). Each `analog_in_state` becomes readings (0..1 of full scale) at
+//! the host time of their first sample, for the MCU role's heater control
+//! and temperature fans ([`onechip_app::heaters::Heaters::remote_report`]).
+//!
+//! A heater's sensor and output may be on different MCUs. Not yet: an SPI
+//! temperature chip on a secondary (refused by [`check`]).
+
+use super::AnalogReport;
+use onechip_app::heaters::SAMPLE_COUNT;
+use onechip_app::mcu_config::pin_ref;
+use onechip_planner::machine::Machine;
+use onechip_planner::sensor_section::{SensorInput, SensorSection};
+use onechip_protocol::dictionary::Dictionary;
+use onechip_sched::adc::AdcQuery;
+use onechip_secondary_mcu::clock_sync::ClockSync;
+
+/// Bytes of one report in a batched `analog_in_state` (one `u16` sum:
+/// klippy asks heaters' sensors for one report per message).
+const BYTES_PER_REPORT: u8 = 2;
+/// How far ahead klippy starts the sampling of its ADC inputs, s (whole
+/// seconds of print time at least this far ahead, `get_query_slot`).
+const QUERY_LEAD: f64 = 1.5;
+/// How far apart klippy starts the inputs' sampling, s per object id.
+const QUERY_SLOT: f64 = 0.01;
+
+/// One report of an ADC input on a secondary, for the MCU role's io.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reading {
+    /// The io input (the heaters', then the temperature sensors').
+    pub input: usize,
+    /// Host time of the report's first sample, s.
+    pub at: f64,
+    /// The sum of its samples, 0..1 of full scale.
+    pub value: f64,
+}
+
+/// A heater's or temperature sensor's ADC input on a secondary.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RemoteInput {
+    /// Its MCU (index into the attached secondaries).
+    pub mcu: usize,
+    /// Its oid there.
+    pub oid: u8,
+    /// Its input in the MCU role's io (the heaters', then the
+    /// temperature sensors').
+    pub index: usize,
+    /// Ticks between two reports on that MCU.
+    rest_ticks: u32,
+    /// A report's full scale: sample count × that MCU's ADC_MAX.
+    full: f64,
+}
+
+impl RemoteInput {
+    /// Input `index` of the io, `oid` on MCU `mcu`, sampled as `query`
+    /// says by an ADC reading 0..=`adc_max`.
+    pub fn new(mcu: usize, oid: u8, index: usize, query: &AdcQuery, adc_max: u16) -> Self {
+        Self {
+            mcu,
+            oid,
+            index,
+            rest_ticks: query.rest_ticks,
+            full: f64::from(query.sample_count) * f64::from(adc_max),
+        }
+    }
+
+    /// The readings in `report` of this input (its MCU's clock line
+    /// `sync`), each at its first sample's host time: klippy's
+    /// `next_clock` less one report period per report still to come.
+    pub fn readings<'r>(
+        &self,
+        report: &'r AnalogReport,
+        sync: &'r ClockSync,
+    ) -> impl Iterator<Item = Reading> + 'r {
+        let next = sync.widen(report.next_clock);
+        let (rest, full, count) = (u64::from(self.rest_ticks), self.full, report.values.len());
+        let input = self.index;
+        report.values.iter().enumerate().map(move |(i, &v)| {
+            let periods = (count - i) as u64;
+            let clock = next.saturating_sub(periods * rest);
+            Reading {
+                input,
+                at: sync.time_at(clock),
+                value: f64::from(v) / full.max(1.0),
+            }
+        })
+    }
+}
+
+/// The `query_analog_in` for `query` (its clock ignored) as `dict`'s
+/// firmware takes it (Klipper's newer form has `bytes_per_report`), the
+/// first sampling at that MCU's clock `clock`.
+pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u64) -> String {
+    let batched = dict
+        .by_name("query_analog_in")
+        .is_some_and(|m| m.params().any(|(name, _)| name == "bytes_per_report"));
+    let per_report = if batched {
+        format!(" bytes_per_report={BYTES_PER_REPORT}")
+    } else {
+        String::new()
+    };
+    format!(
+        "query_analog_in oid={oid} clock={} sample_ticks={} sample_count={} rest_ticks={}{per_report} min_value={} max_value={} range_check_count={}",
+        clock & 0xffff_ffff,
+        query.sample_ticks,
+        query.sample_count,
+        query.rest_ticks,
+        query.min,
+        query.max,
+        query.range_check_count
+    )
+}
+
+/// Where klippy starts sampling input `oid` (`get_query_slot`): the whole
+/// second at least 1.5 s after host time `now` (s), plus 10 ms per oid, on
+/// the MCU's clock line `sync`.
+pub fn query_slot(sync: &ClockSync, oid: u8, now: f64) -> u64 {
+    let slot = (f64::from(oid) * QUERY_SLOT * sync.mcu_freq()) as u64;
+    sync.clock_at((now + QUERY_LEAD).floor()) + slot
+}
+
+/// The secondary's ADC full scale (`ADC_MAX` in its dictionary), if it
+/// has one a report's sum fits in.
+pub fn adc_max(dict: &Dictionary<'_>) -> Option<u16> {
+    let max = dict.constant_int("ADC_MAX")?;
+    let sum_fits = max.checked_mul(i64::from(SAMPLE_COUNT))? < 1 << 16;
+    u16::try_from(max).ok().filter(|&m| m > 0 && sum_fits)
+}
+
+/// Refuses what is not supported yet on secondary `mcu`: a heater's or
+/// temperature sensor's SPI chip there (its `sensor_pin`, the chip
+/// select). The message names the pin.
+pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
+    let here = |pin: &&str| pin_ref(pin).mcu == mcu;
+    let heaters = (machine.heaters.iter())
+        .filter(|h| h.sensor.spi().is_some())
+        .map(|h| h.sensor_pin);
+    let not_adc = |s: &&SensorSection<'_>| !matches!(s.input, SensorInput::Adc { .. });
+    let sensors = machine
+        .sensors
+        .iter()
+        .filter(not_adc)
+        .map(|s| s.input.pin());
+    match heaters.chain(sensors).find(here) {
+        Some(pin) => Err(format!(
+            "pin '{pin}': an SPI temperature sensor on a secondary MCU is not supported yet"
+        )),
+        None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Klipper's newer firmware: batched reports.
+    const BATCHED: &str = r#"{"commands": {
+        "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u bytes_per_report=%c min_value=%hu max_value=%hu range_check_count=%c": 10},
+        "responses": {"analog_in_state oid=%c next_clock=%u values=%*s": 11,
+            "clock clock=%u": 12},
+        "config": {"ADC_MAX": 4095, "CLOCK_FREQ": 50000000}}"#;
+    /// Its older firmware: one value a report.
+    const SINGLE: &str = r#"{"commands": {
+        "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u min_value=%hu max_value=%hu range_check_count=%c": 10},
+        "responses": {"analog_in_state oid=%c next_clock=%u value=%hu": 11},
+        "config": {"ADC_MAX": 16383, "CLOCK_FREQ": 50000000}}"#;
+
+    fn query() -> AdcQuery {
+        AdcQuery {
+            clock: 0,
+            sample_ticks: 50_000,
+            sample_count: 8,
+            rest_ticks: 15_000_000,
+            min: 1503,
+            max: 32303,
+            range_check_count: 4,
+        }
+    }
+
+    /// `line` sent by an MCU of dictionary `dict`, as the host decodes it.
+    fn heard(dict: &Dictionary<'_>, line: &str) -> Option<AnalogReport> {
+        let mut buf = [0u8; 64];
+        let n = dict.encode_text(line, &mut buf).expect("encodes");
+        let (msg, _) = dict.decode(&buf[..n]).expect("decodes");
+        AnalogReport::from_message(&msg)
+    }
+
+    #[test]
+    fn the_query_has_bytes_per_report_only_for_firmware_that_takes_it() {
+        let batched = Dictionary::parse(BATCHED).expect("dictionary");
+        assert_eq!(
+            query_command(&batched, 4, &query(), (1 << 32) + 70_024_765),
+            "query_analog_in oid=4 clock=70024765 sample_ticks=50000 sample_count=8 \
+             rest_ticks=15000000 bytes_per_report=2 min_value=1503 max_value=32303 \
+             range_check_count=4"
+        );
+        let single = Dictionary::parse(SINGLE).expect("dictionary");
+        let command = query_command(&single, 4, &query(), 5);
+        assert!(!command.contains("bytes_per_report") && command.contains("clock=5 "));
+    }
+
+    #[test]
+    fn reports_are_read_at_their_first_samples_host_time() {
+        let dict = Dictionary::parse(BATCHED).expect("dictionary");
+        // The MCU's clock read 1e9 at host time 10 s.
+        let sync = ClockSync::new(50e6, 1_000_000_000, 10.0);
+        let rest = 15_000_000;
+        let next = 1_000_000_000 + 3 * rest;
+        // Two reports in one message: sums 1000 and 2000, little-endian.
+        let line = format!("analog_in_state oid=3 next_clock={next} values=e803d007");
+        let report = heard(&dict, &line).expect("a report");
+        assert_eq!(report.values, [1000, 2000]);
+        let input = RemoteInput::new(0, 3, 1, &query(), 4095);
+        let readings: Vec<Reading> = input.readings(&report, &sync).collect();
+        let full = 8.0 * 4095.0;
+        let expected = [(10.3, 1000.0 / full), (10.6, 2000.0 / full)];
+        for (r, (at, value)) in readings.iter().zip(expected) {
+            let close = (r.at - at).abs() < 1e-9 && (r.value - value).abs() < 1e-12;
+            assert!(close && r.input == 1, "{r:?}");
+        }
+        assert_eq!(readings.len(), 2);
+        let other = heard(&dict, "clock clock=5");
+        assert!(other.is_none());
+    }
+
+    #[test]
+    fn older_firmware_reports_one_value_and_an_adc_too_wide_is_refused() {
+        let dict = Dictionary::parse(SINGLE).expect("dictionary");
+        let line = "analog_in_state oid=2 next_clock=77 value=31000";
+        let got = heard(&dict, line).expect("a report");
+        assert_eq!((got.oid, got.next_clock, got.values), (2, 77, vec![31000]));
+        // 8 readings of 16383 do not fit the report's 16 bits.
+        assert_eq!(adc_max(&dict), None);
+        let dict = Dictionary::parse(BATCHED).expect("dictionary");
+        assert_eq!(adc_max(&dict), Some(4095));
+    }
+}
