@@ -113,6 +113,24 @@ impl<'a> PrinterSetup<'a> {
         &self.machine
     }
 
+    /// For a build that has no links to secondary MCUs (the board's, so
+    /// far; QEMU's): an `[mcu NAME]` section is refused, naming its
+    /// `serial` option, rather than its pins taken for this MCU's.
+    #[allow(clippy::result_large_err)]
+    pub fn without_secondaries(&self) -> Result<(), SetupError> {
+        match self.machine.secondaries.first() {
+            Some(mcu) => {
+                let (file, line) = mcu.serial_at;
+                Err(cut_text(&format_args!(
+                    "{file}:{line}: option 'serial' in section 'mcu {}': this board does not \
+                     drive secondary MCUs yet (the simulator does)",
+                    mcu.name
+                )))
+            }
+            None => Ok(()),
+        }
+    }
+
     /// What to wire for each stepper, in the machine's order.
     pub fn steppers(&self) -> impl Iterator<Item = StepperWiring<'a>> + '_ {
         let rails = self.machine.motion_steppers();
@@ -194,5 +212,50 @@ impl<'a> PrinterSetup<'a> {
             changed = true;
         }
         changed
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use onechip_config::ConfigFile;
+    use std::boxed::Box;
+    use std::string::{String, ToString};
+
+    /// The shipped printer.cfg with `extra` appended, read as the board
+    /// reads it.
+    fn with_shipped(extra: &str, check: impl FnOnce(&PrinterSetup<'_>)) {
+        let text: String =
+            include_str!("../../sdcard-configs/octopus-pro-h723/printer.cfg").to_string() + extra;
+        let mut files = ConfigFiles::new();
+        let file = ConfigFile {
+            name: "printer.cfg",
+            text: &text,
+        };
+        files.push(file).expect("one file");
+        let mut scratch = Box::new(MaybeUninit::uninit());
+        let setup =
+            PrinterSetup::load(&files, pin_check::BOARD_RESERVED, &mut scratch).expect("loads");
+        check(&setup);
+    }
+
+    #[test]
+    fn a_build_without_secondary_links_refuses_an_mcu_section_naming_its_serial_option() {
+        with_shipped("", |setup| assert_eq!(setup.without_secondaries(), Ok(())));
+        let lines = include_str!("../../sdcard-configs/octopus-pro-h723/printer.cfg")
+            .lines()
+            .count();
+        with_shipped("\n[mcu ext]\nserial: /dev/ttyUSB1\n", |setup| {
+            let expected = std::format!(
+                "printer.cfg:{}: option 'serial' in section 'mcu ext': this board does not drive \
+                 secondary MCUs yet (the simulator does)",
+                lines + 3
+            );
+            assert_eq!(
+                setup.without_secondaries().map_err(|e| e.to_string()),
+                Err(expected)
+            );
+        });
     }
 }

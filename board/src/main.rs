@@ -202,6 +202,7 @@ fn load_printer(
         LoadArea::scratch(area),
     )
     .map_err(|e| error_text(&e))?;
+    setup.without_secondaries().map_err(|e| error_text(&e))?;
     for section in setup.unsupported() {
         defmt::info!("[{}] is not supported yet, ignored", section);
     }

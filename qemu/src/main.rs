@@ -108,6 +108,7 @@ fn load_printer() -> Result<&'static mut BoardSession<'static>, ErrorText> {
     let texts = config_files::load(&mut card::BuiltIn, TEXT.take()).map_err(|e| error_text(&e))?;
     let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
         .map_err(|e| error_text(&e))?;
+    setup.without_secondaries().map_err(|e| error_text(&e))?;
     install_engine(&setup)?;
     install_heaters(&mut setup)?;
     Ok(BoardSession::init_in(
