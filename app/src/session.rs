@@ -593,6 +593,9 @@ impl<'a, const L: usize> Session<'a, L> {
             Err(e) => return Err(error_text(&e)),
         }
         self.tmc_poll(mcu, out);
+        if self.tmc.writes_after_moves(&line) && mcu.tmc_link().is_some() {
+            self.run("M400", mcu, out)?;
+        }
         if let Some(link) = mcu.tmc_link()
             && let Some(result) = self.tmc.command(&line, link, out)
         {

@@ -10,9 +10,10 @@
 //! The bytes go through a [`TmcLink`] that the board or the simulator
 //! provides; the datagrams are `onechip_planner::tmc::wire`'s.
 //!
-//! Differences from Klipper, by design of this firmware: register writes
-//! are sent when the command runs, not timed to the end of the queued
-//! moves; drivers stay enabled, so a reset is repaired when the periodic
+//! A command that writes registers waits, as Klipper's does, until the
+//! queued moves have run (Klipper sends the writes for the last move's
+//! time and waits for their answer). Differences from Klipper, by design
+//! of this firmware: drivers stay enabled, so a reset is repaired when the periodic
 //! check sees it (Klipper rewrites the registers at the next enable and
 //! reports a reset seen while enabled as an error).
 
@@ -481,6 +482,19 @@ impl<'a> Tmc<'a> {
             _ => self.init(link, i),
         });
         Some(result)
+    }
+
+    /// True if `line` is a command that writes registers (SET_TMC_CURRENT,
+    /// SET_TMC_FIELD, INIT_TMC) and there are drivers: Klipper sends its
+    /// writes for the time the queued moves end, and waits for them.
+    pub fn writes_after_moves(&self, line: &Line<'_>) -> bool {
+        let Command::Extended(e) = line.command else {
+            return false;
+        };
+        !self.drivers.is_empty()
+            && ["SET_TMC_CURRENT", "SET_TMC_FIELD", "INIT_TMC"]
+                .iter()
+                .any(|c| e.name.eq_ignore_ascii_case(c))
     }
 
     /// The driver named by STEPPER=.

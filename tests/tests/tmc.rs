@@ -605,3 +605,27 @@ fn a_drivers_uart_or_chip_select_pin_is_checked_as_klipper_checks_pins() {
         "{message}"
     );
 }
+
+#[test]
+fn set_tmc_current_takes_effect_once_the_queued_moves_have_run() {
+    let dir = sd_with_drivers();
+    let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
+    assert!(p.send("G28").contains("ok"));
+    // A 10 s move queued, then a new run current for X (0.5 A: irun 15).
+    let irun = |p: &mut ConsolePrinter| {
+        p.tmc_drivers()
+            .driver("stepper_x")
+            .and_then(|d| d.field("irun"))
+    };
+    assert_eq!(irun(&mut p), Some(25));
+    let start = p.now();
+    let out = p.send("G1 X100 F600\nSET_TMC_CURRENT STEPPER=stepper_x CURRENT=0.5");
+    assert!(out.ends_with("ok\n") && !out.contains("!!"), "{out}");
+    // The write waited for the move (100 mm at 10 mm/s from the endstop
+    // at X 0), as Klipper's does: the reply came after it (the shipped
+    // printer's clock: 260 MHz).
+    let waited = (p.now() - start) as f64 / 260e6;
+    assert!(waited > 9.0, "SET_TMC_CURRENT answered after {waited} s");
+    assert_eq!(irun(&mut p), Some(15));
+    assert!(in_sync(&mut p, "stepper_x"));
+}
