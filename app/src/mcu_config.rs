@@ -446,32 +446,51 @@ impl Line {
 
 #[cfg(test)]
 mod tests {
+    extern crate std;
     use super::*;
     use crate::heaters::tests::typical_mcu;
     use onechip_config::Config;
 
-    #[test]
-    fn fans_and_pins_on_a_secondary_are_configured_as_klippys_pwm_and_digital_outs() {
-        let text = "[mcu ext]\nserial: /dev/null\n\
-            [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\n\
-            rotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_z]\nstep_pin: ext:PB0\ndir_pin: ext:PB1\nenable_pin: !ext:PA1\n\
-            microsteps: 16\nrotation_distance: 8\nposition_endstop: 0\nposition_max: 200\n\
-            [fan]\npin: ext:PC0\n\
-            [fan_generic aux]\npin: PA8\n\
-            [heater_fan hot]\npin: !ext:PC1\nheater:\n\
-            [output_pin light]\npin: ext:PC2\nvalue: 1\nshutdown_value: 1\nmaximum_mcu_duration: 2\n\
-            [static_digital_output leds]\npins: ext:PC3, !ext:PC4\n";
+    /// A cartesian printer with a secondary MCU `ext`: its Z stepper's
+    /// `z_pins` (step, dir, enable options), then `extra` sections.
+    fn with_ext(z_pins: &str, extra: &str) -> std::string::String {
+        std::format!(
+            "[mcu ext]\nserial: /dev/null\n\
+             [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+             [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\n\
+             rotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
+             [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+             position_endstop: 0\nposition_max: 200\n\
+             [stepper_z]\n{z_pins}\
+             microsteps: 16\nrotation_distance: 8\nposition_endstop: 0\nposition_max: 200\n\
+             {extra}"
+        )
+    }
+
+    /// The config lines `ext` gets for printer.cfg `text` (16 MHz, 1023
+    /// ADC counts), and its object ids.
+    fn ext_config(text: &str) -> (std::vec::Vec<std::string::String>, Oids) {
         let config = Config::parse("printer.cfg", text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
         let setup = McuSetup::new(&machine, 16e6, 1023, typical_mcu(), 0);
-        let mut lines: heapless::Vec<heapless::String<128>, 16> = heapless::Vec::new();
+        let mut lines = std::vec::Vec::new();
         let oids = write_config(&machine, &setup, "ext", &|_| 32, &mut |l| {
-            let _ = lines.push(heapless::String::try_from(l).expect("short"));
+            lines.push(std::string::String::from(l));
         });
+        (lines, oids)
+    }
+
+    #[test]
+    fn fans_and_pins_on_a_secondary_are_configured_as_klippys_pwm_and_digital_outs() {
+        let text = with_ext(
+            "step_pin: ext:PB0\ndir_pin: ext:PB1\nenable_pin: !ext:PA1\n",
+            "[fan]\npin: ext:PC0\n\
+             [fan_generic aux]\npin: PA8\n\
+             [heater_fan hot]\npin: !ext:PC1\nheater:\n\
+             [output_pin light]\npin: ext:PC2\nvalue: 1\nshutdown_value: 1\nmaximum_mcu_duration: 2\n\
+             [static_digital_output leds]\npins: ext:PC3, !ext:PC4\n",
+        );
+        let (lines, oids) = ext_config(&text);
         // The stepper's oid is given at creation; the outputs' (and the
         // enable pin's) as their config is written: the fans and pins
         // first (klippy loads them before the toolhead).
@@ -487,8 +506,7 @@ mod tests {
             "config_stepper oid=0 step_pin=PB0 dir_pin=PB1 invert_step=0 step_pulse_ticks=32",
             "config_digital_out oid=4 pin=PA1 value=1 default_value=1 max_duration=0",
         ];
-        let lines: heapless::Vec<&str, 16> = lines.iter().map(|l| l.as_str()).collect();
-        assert_eq!(lines[..], expected);
+        assert_eq!(lines, expected);
         // Io order: no heaters, the part fan, the named fans, the pin.
         assert_eq!(oids.outputs[..4], [Some(1), None, Some(2), Some(3)]);
         assert_eq!(oids.enables[2], Some(4));
@@ -496,26 +514,14 @@ mod tests {
 
     #[test]
     fn temperature_sensors_are_configured_on_the_mcu_of_their_adc_pin() {
-        let text = "[mcu ext]\nserial: /dev/null\n\
-            [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-            [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\n\
-            rotation_distance: 40\nposition_endstop: 0\nposition_max: 200\n\
-            [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [stepper_z]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 8\n\
-            position_endstop: 0\nposition_max: 200\n\
-            [temperature_sensor here]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: PF5\n\
-            [temperature_sensor there]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: ext:PA2\n";
-        let config = Config::parse("printer.cfg", text).expect("config");
-        let machine = Machine::from_config(&config).expect("machine");
-        let setup = McuSetup::new(&machine, 16e6, 1023, typical_mcu(), 0);
-        let mut lines: heapless::Vec<heapless::String<128>, 4> = heapless::Vec::new();
-        let oids = write_config(&machine, &setup, "ext", &|_| 32, &mut |l| {
-            let _ = lines.push(heapless::String::try_from(l).expect("short"));
-        });
-        let lines: heapless::Vec<&str, 4> = lines.iter().map(|l| l.as_str()).collect();
+        let text = with_ext(
+            "step_pin: PB0\ndir_pin: PB1\n",
+            "[temperature_sensor here]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: PF5\n\
+             [temperature_sensor there]\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: ext:PA2\n",
+        );
+        let (lines, oids) = ext_config(&text);
         assert_eq!(
-            lines[..],
+            lines,
             ["allocate_oids count=1", "config_analog_in oid=0 pin=PA2"]
         );
         assert_eq!(oids.sensors[..2], [None, Some(0)]);
