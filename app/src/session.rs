@@ -10,7 +10,7 @@
 
 use crate::filament::{FilamentEvent, FilamentSensors};
 use crate::heaters::{ThermalCommand, Wait};
-use crate::idle_timeout::{self, IdleTimeout, ToolheadState};
+use crate::idle_timeout::{self, IdleState, IdleTimeout, ToolheadState};
 use crate::line::command_word;
 use crate::printer::{LineError, Printer};
 use crate::text::{ErrorText, error_text};
@@ -408,6 +408,8 @@ pub struct Session<'a, const L: usize> {
     filament: FilamentSensors<'a>,
     /// The TMC drivers.
     tmc: Tmc<'a>,
+    /// The idle timeout's state the TMC drivers last followed.
+    tmc_state: IdleState,
 }
 
 /// The session with the board's queue sizes.
@@ -513,6 +515,7 @@ impl<'a, const L: usize> Session<'a, L> {
             let sensors = &machine.accessories.filament_sensors;
             addr_of_mut!((*p).filament).write(FilamentSensors::new(sensors, start as f64 / freq));
             addr_of_mut!((*p).tmc).write(Tmc::new(machine));
+            addr_of_mut!((*p).tmc_state).write(IdleState::Idle);
             slot.assume_init_mut()
         }
     }
@@ -626,6 +629,7 @@ impl<'a, const L: usize> Session<'a, L> {
             if idle_timeout::is_activity(&line) {
                 let now = mcu.now() as f64 / self.engine.freq;
                 self.idle.note_activity(now, self.printer.print_time());
+                self.tmc_follow_idle(mcu, out);
             }
         }
         result.and(thermal)
@@ -805,6 +809,29 @@ impl<'a, const L: usize> Session<'a, L> {
         }
     }
 
+    /// The TMC drivers follow the idle timeout's state as Klipper's do
+    /// (a TMC2660's idle_current_percent: its run current while Printing,
+    /// that share of it once Ready); a driver that cannot be reached shuts
+    /// the printer down.
+    fn tmc_follow_idle(&mut self, mcu: &mut (impl Mcu + ?Sized), out: &mut impl Write) {
+        let state = self.idle.state();
+        if state == self.tmc_state {
+            return;
+        }
+        self.tmc_state = state;
+        let printing = match state {
+            IdleState::Printing => true,
+            IdleState::Ready => false,
+            IdleState::Idle => return,
+        };
+        if let Some(link) = mcu.tmc_link()
+            && let Err(e) = self.tmc.follow_motion(link, printing)
+        {
+            let _ = writeln!(out, "!! {e}");
+            mcu.shutdown(Shutdown::TmcError);
+        }
+    }
+
     /// The TMC drivers (their registers as last written).
     pub fn tmc(&self) -> &Tmc<'a> {
         &self.tmc
@@ -854,7 +881,9 @@ impl<'a, const L: usize> Session<'a, L> {
             print_time: self.printer.print_time(),
             lookahead_empty: self.printer.is_idle(),
         };
-        let Some(gcode) = self.idle.poll(now, toolhead) else {
+        let gcode = self.idle.poll(now, toolhead);
+        self.tmc_follow_idle(mcu, out);
+        let Some(gcode) = gcode else {
             return;
         };
         let mut ok = true;

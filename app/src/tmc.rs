@@ -543,6 +543,30 @@ impl<'a> Tmc<'a> {
         Ok(())
     }
 
+    /// Klipper's TMC2660 `idle_current_percent` below 100: the driver's
+    /// current is its run current while the printer is printing
+    /// (`printing`), that share of it once it is ready (idle); the run
+    /// current asked for is kept.
+    pub fn follow_motion(
+        &mut self,
+        link: &mut dyn TmcLink,
+        printing: bool,
+    ) -> Result<(), ErrorText> {
+        for i in 0..self.drivers.len() {
+            let d = &mut self.drivers[i];
+            if d.config.kind != DriverKind::Tmc2660 || d.config.idle_current_percent >= 100 {
+                continue;
+            }
+            let run = d.current_2660;
+            let share = f64::from(d.config.idle_current_percent) / 100.0;
+            let current = if printing { run } else { run * share };
+            for (addr, value) in current_2660(d, current).into_iter().flatten() {
+                self.write(link, i, addr, value)?;
+            }
+        }
+        Ok(())
+    }
+
     /// The run and hold currents the registers give now, A (the TMC2660:
     /// the current asked for, and no hold current).
     fn currents(&self, i: usize) -> (f64, Option<f64>) {
@@ -684,12 +708,7 @@ fn set_currents(d: &mut Driver<'_>, run: f64, hold: Option<f64>) -> [Option<(u8,
     let mut writes = [None, None];
     if cfg.kind == DriverKind::Tmc2660 {
         d.current_2660 = run;
-        let bits = cfg.scale.bits(run, run);
-        writes[0] = regs.set("cs", i64::from(bits.irun)).ok().flatten();
-        if i64::from(bits.vsense) != regs.get("vsense") {
-            writes[1] = regs.set("vsense", i64::from(bits.vsense)).ok().flatten();
-        }
-        return writes;
+        return current_2660(d, run);
     }
     let hold = hold.unwrap_or(cfg.max_current);
     d.req_hold = Some(hold);
@@ -704,6 +723,19 @@ fn set_currents(d: &mut Driver<'_>, run: f64, hold: Option<f64>) -> [Option<(u8,
     }
     let _ = regs.set("ihold", i64::from(bits.ihold));
     writes[1] = regs.set("irun", i64::from(bits.irun)).ok().flatten();
+    writes
+}
+
+/// A TMC2660's register writes for `current` (A, its CS and, only if it
+/// changes, VSENSE), its run current left as asked.
+fn current_2660(d: &mut Driver<'_>, current: f64) -> [Option<(u8, u32)>; 2] {
+    let regs = &mut d.config.regs;
+    let bits = d.config.scale.bits(current, current);
+    let mut writes = [None, None];
+    writes[0] = regs.set("cs", i64::from(bits.irun)).ok().flatten();
+    if i64::from(bits.vsense) != regs.get("vsense") {
+        writes[1] = regs.set("vsense", i64::from(bits.vsense)).ok().flatten();
+    }
     writes
 }
 

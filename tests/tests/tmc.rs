@@ -629,3 +629,37 @@ fn set_tmc_current_takes_effect_once_the_queued_moves_have_run() {
     assert_eq!(irun(&mut p), Some(15));
     assert!(in_sync(&mut p, "stepper_x"));
 }
+
+#[test]
+fn a_tmc2660_runs_at_its_idle_current_percent_while_the_printer_is_ready() {
+    // Klipper's CS for 1.0 A over 0.051 Ω: with VSENSE 0 (0.310 V)
+    // int(32 × 1.0 × 0.051 × √2 / 0.310 − 1 + .5) = 6 < 16, so VSENSE 1
+    // (0.165 V): int(13.49) = 13. At 50 %, 0.5 A: int(6.49) = 6.
+    let section = "\n[tmc2660 stepper_x]\ncs_pin: PC4\nspi_bus: spi1\nrun_current: 1.0\n\
+                   sense_resistor: 0.051\nidle_current_percent: 50\n";
+    let dir = shipped_plus("idle-current", section);
+    let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
+    let cs = |p: &mut ConsolePrinter| {
+        p.tmc_drivers()
+            .driver("stepper_x")
+            .and_then(|d| d.field("cs"))
+    };
+    assert!(p.send("G28").ends_with("ok\n"));
+    assert_eq!(cs(&mut p), Some(13), "printing: the run current");
+    // Ready 0.5 s after the last move finished: half the current.
+    p.run_for(2.0);
+    assert_eq!(cs(&mut p), Some(6), "ready: idle_current_percent of it");
+    // A move: printing again, at the run current.
+    assert!(p.send("G1 X20 F3000").ends_with("ok\n"));
+    assert_eq!(cs(&mut p), Some(13));
+    // SET_TMC_CURRENT changes the run current the idle share is taken of.
+    p.run_for(2.0);
+    let out = p.send("SET_TMC_CURRENT STEPPER=stepper_x CURRENT=1.2");
+    assert!(out.contains("// Run Current: 1.20A"), "{out}");
+    // 1.2 A: int(32 × 1.2 × 0.051 × √2 / 0.165 − .5) = 16; ready, 0.6 A:
+    // int(7.89) = 7.
+    p.send("G1 X30");
+    assert_eq!(cs(&mut p), Some(16));
+    p.run_for(2.0);
+    assert_eq!(cs(&mut p), Some(7), "ready: 0.6 A");
+}
