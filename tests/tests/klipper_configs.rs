@@ -167,8 +167,6 @@ fn sensorless_axes(machine: &Machine<'_>) -> Vec<usize> {
 /// Runs `file` as printer.cfg in the SD folder `dir`.
 fn run(file: &Path, dir: &Path) -> RunResult {
     let text = std::fs::read_to_string(file).expect("a stock config is text");
-    std::fs::create_dir_all(dir).expect("temp dir");
-    std::fs::write(dir.join("printer.cfg"), &text).expect("write printer.cfg");
     // The job's targets come from the machine the planner reads; if it
     // refuses the file the loader refuses it too, and the job is moot.
     let config = Config::parse("printer.cfg", &text).ok();
@@ -180,13 +178,7 @@ fn run(file: &Path, dir: &Path) -> RunResult {
         .and_then(|m| pin_check::check(m, pin_check::BOARD_RESERVED).err())
         .map(|conflict| conflict.to_string());
     let sensorless = machine.as_ref().map(sensorless_axes).unwrap_or_default();
-    std::fs::write(dir.join("job.gcode"), gcode).expect("write job");
-    let options = Options {
-        start: Start::At(start),
-        board_pins: false,
-        ..Options::default()
-    };
-    match onechip_host::run_with(dir, &options) {
+    match run_in(dir, &text, &gcode, start) {
         Err(SimError::Config(message)) => (
             Outcome::Refused(message),
             Vec::new(),
@@ -205,6 +197,21 @@ fn run(file: &Path, dir: &Path) -> RunResult {
             (outcome, unsupported, board_pins, summary.stalls)
         }
     }
+}
+
+/// Runs `text` unmodified as printer.cfg with `job` (G-code) in the SD
+/// folder `dir`, the toolhead starting at `start` (mm), as on its own
+/// board (its pins not checked against the simulated board's).
+fn run_in(dir: &Path, text: &str, job: &str, start: [f64; 3]) -> Result<Summary, SimError> {
+    std::fs::create_dir_all(dir).expect("temp dir");
+    std::fs::write(dir.join("printer.cfg"), text).expect("write printer.cfg");
+    std::fs::write(dir.join("job.gcode"), job).expect("write job");
+    let options = Options {
+        start: Start::At(start),
+        board_pins: false,
+        ..Options::default()
+    };
+    onechip_host::run_with(dir, &options)
 }
 
 /// Whether a run that loaded homed and ended where the job says, the
@@ -498,81 +505,30 @@ fn every_stock_klipper_config_loads_homes_and_moves_or_says_why_not() {
 #[test]
 fn stock_screws_tilt_adjust_sections_probe_their_screws() {
     let mut tried = 0;
-    for entry in std::fs::read_dir(corpus()).expect("the shared config folder") {
-        let file = entry.expect("entry").path();
-        let text = std::fs::read_to_string(&file).unwrap_or_default();
-        if !text.contains("\n[screws_tilt_adjust]") {
-            continue;
-        }
-        let name = file.file_name().map(|n| n.to_string_lossy().into_owned());
-        let name = name.unwrap_or_default();
+    for (name, text) in stock_configs_with("[screws_tilt_adjust]") {
         let config = Config::parse("printer.cfg", &text).expect("parses");
         let machine = Machine::from_config(&config).unwrap_or_else(|e| panic!("{name}: {e}"));
         let (Some(screws), Some(_)) = (machine.screws_tilt, machine.probe) else {
             continue;
         };
         tried += 1;
-        // The first screw beyond X's or Y's travel, if any.
-        let range = |axis| machine.travel.homing_info(axis).expect("a rail").range;
-        let outside = screws
-            .screws()
-            .iter()
-            .find(|s| (0..2).any(|a| s.at[a] < range(a).0 || s.at[a] > range(a).1));
+        let points: Vec<[f64; 2]> = screws.screws().iter().map(|s| s.at).collect();
         let summary = run_job(
             &text,
             &format!("screws-{tried}"),
             "G28\nSCREWS_TILT_CALCULATE\n",
         );
         let adjusted = summary.transcript.matches(" : adjust ").count();
-        match outside {
-            Some(screw) => {
-                let error = summary
-                    .errors
-                    .first()
-                    .map(|(_, e)| e.as_str())
-                    .unwrap_or("");
-                let expected = format!("Move out of range: {:.3} {:.3}", screw.at[0], screw.at[1]);
-                assert!(
-                    error.starts_with(&expected),
-                    "{name}: {error:?} vs {expected}"
-                );
-            }
-            None => {
-                assert!(summary.errors.is_empty(), "{name}: {:?}", summary.errors);
-                assert_eq!(
-                    adjusted,
-                    screws.screws().len() - 1,
-                    "{name}: {}",
-                    summary.transcript
-                );
-            }
+        if !refused_beyond_travel(&name, &machine, &points, &summary) {
+            assert!(summary.errors.is_empty(), "{name}: {:?}", summary.errors);
+            assert_eq!(adjusted, points.len() - 1, "{name}: {}", summary.transcript);
         }
-        println!(
-            "{name}: {} screws, {adjusted} adjusted",
-            screws.screws().len()
-        );
+        println!("{name}: {} screws, {adjusted} adjusted", points.len());
     }
     assert!(
         tried >= 6,
         "only {tried} stock configs with [screws_tilt_adjust] and a probe"
     );
-}
-
-/// Runs stock config `text` unmodified as printer.cfg with `job` (G-code)
-/// in a temporary SD folder named after `name`, as on its own board.
-fn run_job(text: &str, name: &str, job: &str) -> Summary {
-    let dir = std::env::temp_dir().join(format!("onechip-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    std::fs::write(dir.join("printer.cfg"), text).expect("write printer.cfg");
-    std::fs::write(dir.join("job.gcode"), job).expect("job");
-    let options = Options {
-        start: Start::At([50.0, 50.0, 30.0]),
-        board_pins: false,
-        ..Options::default()
-    };
-    let summary = onechip_host::run_with(&dir, &options).unwrap_or_else(|e| panic!("{name}: {e}"));
-    std::fs::remove_dir_all(&dir).ok();
-    summary
 }
 
 /// The stock printer configs with `[bed_screws]`: G28, BED_SCREWS_ADJUST
@@ -582,14 +538,7 @@ fn run_job(text: &str, name: &str, job: &str) -> Summary {
 #[test]
 fn stock_bed_screws_sections_walk_their_screws() {
     let mut tried = 0;
-    for entry in std::fs::read_dir(corpus()).expect("the shared config folder") {
-        let file = entry.expect("entry").path();
-        let name = file.file_name().map(|n| n.to_string_lossy().into_owned());
-        let name = name.unwrap_or_default();
-        let text = std::fs::read_to_string(&file).unwrap_or_default();
-        if !PREFIXES.iter().any(|p| name.starts_with(p)) || !text.contains("\n[bed_screws]") {
-            continue;
-        }
+    for (name, text) in stock_configs_with("[bed_screws]") {
         let config = Config::parse("printer.cfg", &text).expect("parses");
         let Ok(machine) = Machine::from_config(&config) else {
             continue;
@@ -601,42 +550,76 @@ fn stock_bed_screws_sections_walk_their_screws() {
         let stops: Vec<[f64; 2]> = (tool.round(false).iter().chain(tool.round(true)))
             .map(|s| s.at)
             .collect();
-        let range = |axis| machine.travel.homing_info(axis).expect("a rail").range;
-        let outside = stops
-            .iter()
-            .find(|at| (0..2).any(|a| at[a] < range(a).0 || at[a] > range(a).1));
         let job = format!("G28\nBED_SCREWS_ADJUST\n{}", "ACCEPT\n".repeat(stops.len()));
         let summary = run_job(&text, &format!("bed-screws-{tried}"), &job);
-        match outside {
-            Some(at) => {
-                let error = summary
-                    .errors
-                    .first()
-                    .map(|(_, e)| e.as_str())
-                    .unwrap_or("");
-                let expected = format!("Move out of range: {:.3} {:.3}", at[0], at[1]);
-                assert!(
-                    error.starts_with(&expected),
-                    "{name}: {error:?} vs {expected}"
-                );
-            }
-            None => {
-                assert!(summary.errors.is_empty(), "{name}: {:?}", summary.errors);
-                let prompts = summary
+        if !refused_beyond_travel(&name, &machine, &stops, &summary) {
+            assert!(summary.errors.is_empty(), "{name}: {:?}", summary.errors);
+            let prompts = summary
+                .transcript
+                .matches("Then run ACCEPT, ADJUSTED, or ABORT")
+                .count();
+            assert_eq!(prompts, stops.len(), "{name}: {}", summary.transcript);
+            assert!(
+                summary
                     .transcript
-                    .matches("Then run ACCEPT, ADJUSTED, or ABORT")
-                    .count();
-                assert_eq!(prompts, stops.len(), "{name}: {}", summary.transcript);
-                assert!(
-                    summary
-                        .transcript
-                        .contains("// Bed screws tool completed successfully"),
-                    "{name}: {}",
-                    summary.transcript
-                );
-            }
+                    .contains("// Bed screws tool completed successfully"),
+                "{name}: {}",
+                summary.transcript
+            );
         }
         println!("{name}: {} stops", stops.len());
     }
     assert!(tried >= 10, "only {tried} stock configs with [bed_screws]");
+}
+
+/// The whole-printer stock configs (file name, text) with a `section`
+/// header line (`[bed_screws]`).
+fn stock_configs_with(section: &str) -> Vec<(String, String)> {
+    let mut found: Vec<(String, String)> = std::fs::read_dir(corpus())
+        .expect("the shared config folder")
+        .filter_map(|entry| {
+            let file = entry.ok()?.path();
+            let name = file.file_name()?.to_string_lossy().into_owned();
+            let text = std::fs::read_to_string(&file).ok()?;
+            let whole = PREFIXES.iter().any(|p| name.starts_with(p));
+            (whole && text.contains(&format!("\n{section}"))).then_some((name, text))
+        })
+        .collect();
+    found.sort();
+    found
+}
+
+/// True if one of the nozzle's `points` (X, Y, mm) lies beyond the
+/// machine's X or Y travel; the run must then have stopped with Klipper's
+/// "Move out of range" for the first such point, as Klipper would.
+fn refused_beyond_travel(
+    name: &str,
+    machine: &Machine<'_>,
+    points: &[[f64; 2]],
+    summary: &Summary,
+) -> bool {
+    let range = |axis| machine.travel.homing_info(axis).expect("a rail").range;
+    let Some(at) = points
+        .iter()
+        .find(|at| (0..2).any(|a| at[a] < range(a).0 || at[a] > range(a).1))
+    else {
+        return false;
+    };
+    let error = summary.errors.first().map_or("", |(_, e)| e.as_str());
+    let expected = format!("Move out of range: {:.3} {:.3}", at[0], at[1]);
+    assert!(
+        error.starts_with(&expected),
+        "{name}: {error:?} vs {expected}"
+    );
+    true
+}
+
+/// Runs stock config `text` with `job` in a temporary SD folder named
+/// after `name` ([`run_in`], the toolhead starting at 50, 50, 30).
+fn run_job(text: &str, name: &str, job: &str) -> Summary {
+    let dir = std::env::temp_dir().join(format!("onechip-{name}-{}", std::process::id()));
+    let summary =
+        run_in(&dir, text, job, [50.0, 50.0, 30.0]).unwrap_or_else(|e| panic!("{name}: {e}"));
+    std::fs::remove_dir_all(&dir).ok();
+    summary
 }
