@@ -339,23 +339,20 @@ fn invalid_driver_fields_name_file_line_and_option() {
 /// An SD folder: the shipped Octopus Pro config with TMC2209 drivers on
 /// its X, Y, Z and extruder sockets (the board's UART pins).
 fn sd_with_drivers() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-tmc-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let mut cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
-    for (stepper, pin) in [
+    let drivers: String = [
         ("stepper_x", "PC4"),
         ("stepper_y", "PD11"),
         ("stepper_z", "PC6"),
         ("extruder", "PC7"),
-    ] {
-        cfg.push_str(&format!(
+    ]
+    .iter()
+    .map(|(stepper, pin)| {
+        format!(
             "\n[tmc2209 {stepper}]\nuart_pin: {pin}\nrun_current: 0.800\nstealthchop_threshold: 999999\n"
-        ));
-    }
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("write");
-    dir
+        )
+    })
+    .collect();
+    shipped_plus("drivers", &drivers)
 }
 
 /// The registers the session wrote equal those the simulated driver of
