@@ -54,8 +54,13 @@ const SYNC_END: u16 = 4;
 /// bytes' length: room for a driver a little slower than us, or a pause
 /// between its bytes.
 const SLACK_BITS: usize = 4;
-/// Samples recorded of the longest reply, from its first start bit.
-const MAX_SAMPLES: usize = (MAX_BYTES * FRAME_BITS + SLACK_BITS) * OVERSAMPLE as usize;
+/// Bit times recorded of a reply of `rx_len` bytes, from its first start
+/// bit.
+const fn recorded_bits(rx_len: usize) -> usize {
+    rx_len * FRAME_BITS + SLACK_BITS
+}
+/// Samples recorded of the longest reply.
+const MAX_SAMPLES: usize = recorded_bits(MAX_BYTES) * OVERSAMPLE as usize;
 
 /// The line's level during bit time `bit` of `bytes` sent back to back:
 /// each byte's start bit (low), its 8 data bits least significant first,
@@ -191,8 +196,7 @@ impl SoftUart {
         if rx_len == 0 {
             return send;
         }
-        let record = (rx_len * FRAME_BITS + SLACK_BITS) as u32;
-        send + TURNAROUND_BITS + REPLY_WAIT_BITS + record
+        send + TURNAROUND_BITS + REPLY_WAIT_BITS + recorded_bits(rx_len) as u32
     }
 
     /// The timer event: `line` is the line's level read as the event
@@ -249,12 +253,7 @@ impl SoftUart {
                     self.record(0, line);
                     self.phase = Phase::Reading { samples: 1 };
                 } else if u32::from(samples) + 1 >= REPLY_WAIT_BITS * OVERSAMPLE {
-                    let failure = if self.late {
-                        Failure::Late
-                    } else {
-                        Failure::NoReply
-                    };
-                    return self.finish(Err(failure));
+                    return self.finish(Err(Failure::NoReply));
                 } else {
                     self.phase = Phase::Waiting {
                         samples: samples + 1,
@@ -269,9 +268,7 @@ impl SoftUart {
             Phase::Reading { samples } => {
                 self.late |= late > sample_ticks / 2;
                 self.record(usize::from(samples), line);
-                let wanted =
-                    (usize::from(self.rx_len) * FRAME_BITS + SLACK_BITS) * OVERSAMPLE as usize;
-                if usize::from(samples) + 1 >= wanted {
+                if usize::from(samples) + 1 >= self.recorded_samples() {
                     return self.finish(Ok(()));
                 }
                 self.phase = Phase::Reading {
@@ -312,7 +309,7 @@ impl SoftUart {
         let out = out
             .get_mut(..usize::from(self.rx_len))
             .ok_or(Failure::TooLong)?;
-        let recorded = (usize::from(self.rx_len) * FRAME_BITS + SLACK_BITS) * OVERSAMPLE as usize;
+        let recorded = self.recorded_samples();
         let per_bit = OVERSAMPLE as usize;
         // The first sample is the first start bit's first low reading.
         let mut edge = 0;
@@ -338,19 +335,25 @@ impl SoftUart {
         Ok(())
     }
 
-    /// Ends the exchange with `result` (a failure if an event ran late),
-    /// the line driven idle high.
+    /// Ends the exchange with `result` ([`Failure::Late`] instead if an
+    /// event ran late: whatever it saw is not trusted), the line driven
+    /// idle high.
     fn finish(&mut self, result: Result<(), Failure>) -> Event {
-        let result = result.and(if self.late {
+        let result = if self.late {
             Err(Failure::Late)
         } else {
-            Ok(())
-        });
+            result
+        };
         self.phase = Phase::Done(result);
         Event {
             pin: Pin::Drive(true),
             next: None,
         }
+    }
+
+    /// Samples recorded of this exchange's reply.
+    fn recorded_samples(&self) -> usize {
+        recorded_bits(usize::from(self.rx_len)) * OVERSAMPLE as usize
     }
 
     /// Bits of the request on the wire.
