@@ -20,7 +20,7 @@
 use crate::handler_cell::{HandlerCell, mask_of, masked};
 use crate::priority;
 use crate::spi_sensors::SpiDevice;
-use crate::step_pins::gpio_pin;
+use crate::step_pins::{InPin, gpio_pin};
 use core::sync::atomic::{AtomicBool, Ordering};
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::InterruptExt;
@@ -53,44 +53,32 @@ const IDLE_AFTER_FAILURE: u32 = 260_000;
 /// below the counter's 16.5 s wrap).
 const GRACE: u32 = 260_000;
 
-/// A driver's single-wire UART: its receive pin, and its transmit pin if
-/// that is another.
+/// A driver's single-wire UART: its receive pin, and the pin driven (the
+/// transmit pin if separate, else the receive pin itself).
 #[derive(Clone, Copy)]
 pub struct UartLine {
-    rx: pac::gpio::Gpio,
-    rx_number: usize,
-    /// The transmit pin, if separate (`tx_pin`): it idles high.
-    tx: Option<(pac::gpio::Gpio, usize)>,
+    rx: InPin,
+    /// The pin driven: its port and number.
+    wire: (pac::gpio::Gpio, usize),
+    /// The wire is the receive pin: released as an input.
+    single: bool,
 }
 
 impl UartLine {
     /// The UART on `uart_pin` (with its pull-up if written `^`) and
-    /// `tx_pin` if any, both idle high. An inverted pin is refused, as
+    /// `tx_pin` if any, driven idle high. An inverted pin is refused, as
     /// Klipper refuses one.
     pub fn new<'a>(uart_pin: &'a str, tx_pin: Option<&'a str>) -> Result<Self, BadPin<'a>> {
-        let (rx, rx_number, parsed) = gpio_pin(uart_pin)?;
-        if parsed.inverted {
-            return Err(BadPin(uart_pin));
-        }
-        let pull = if parsed.pull_up {
-            vals::Pupdr::PULL_UP
-        } else {
-            vals::Pupdr::FLOATING
+        let not_inverted = |name: &'a str| match gpio_pin(name)? {
+            (_, _, parsed) if parsed.inverted => Err(BadPin(name)),
+            (port, number, _) => Ok((port, number)),
         };
-        rx.pupdr().modify(|w| w.set_pupdr(rx_number, pull));
-        let tx = match tx_pin {
-            Some(name) => {
-                let (port, number, parsed) = gpio_pin(name)?;
-                if parsed.inverted {
-                    return Err(BadPin(name));
-                }
-                rx.moder()
-                    .modify(|w| w.set_moder(rx_number, vals::Moder::INPUT));
-                Some((port, number))
-            }
-            None => None,
+        let rx_wire = not_inverted(uart_pin)?;
+        let line = Self {
+            rx: InPin::new(uart_pin)?,
+            wire: tx_pin.map_or(Ok(rx_wire), not_inverted)?,
+            single: tx_pin.is_none(),
         };
-        let line = Self { rx, rx_number, tx };
         line.apply(Pin::Drive(true));
         Ok(line)
     }
@@ -98,28 +86,25 @@ impl UartLine {
     /// The line's level now.
     #[inline(always)]
     fn read(&self) -> bool {
-        self.rx.idr().read().0 & (1 << self.rx_number) != 0
+        self.rx.is_active()
     }
 
     /// Does what an event asks of the pin: drive it (a single wire
-    /// becomes an output), or let it go (an input; a separate transmit
-    /// pin goes back to idle high).
+    /// becomes an output), or let it go (a single wire becomes an input
+    /// again; a separate transmit pin goes back to idle high).
     #[inline(always)]
     fn apply(&self, pin: Pin) {
-        let (port, number) = self.tx.unwrap_or((self.rx, self.rx_number));
+        let (port, number) = self.wire;
+        let mode = |mode| port.moder().modify(|w| w.set_moder(number, mode));
         let drive = |level: bool| {
             let bit = if level { number } else { number + 16 };
             port.bsrr().write_value(pac::gpio::regs::Bsrr(1 << bit));
-            port.moder()
-                .modify(|w| w.set_moder(number, vals::Moder::OUTPUT));
+            mode(vals::Moder::OUTPUT);
         };
         match pin {
             Pin::Drive(level) => drive(level),
-            Pin::Release if self.tx.is_some() => drive(true),
-            Pin::Release => self
-                .rx
-                .moder()
-                .modify(|w| w.set_moder(self.rx_number, vals::Moder::INPUT)),
+            Pin::Release if self.single => mode(vals::Moder::INPUT),
+            Pin::Release => drive(true),
             Pin::Keep => {}
         }
     }
