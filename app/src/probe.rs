@@ -330,8 +330,8 @@ impl<'a, const N: usize> Printer<'a, N> {
             return Ok(false);
         };
         let now = self.probing.now;
-        if is("SCREWS_TILT_CALCULATE") && self.probing.screws.is_some() {
-            self.screws_tilt_calculate(e, &probe, sink, out)?;
+        if let Some(screws) = self.probing.screws.filter(|_| is("SCREWS_TILT_CALCULATE")) {
+            self.screws_tilt_calculate(e, &screws, &probe, sink, out)?;
         } else if is("PROBE") {
             let s = sampling(e, probe.sampling())?;
             let pos = (self.toolhead)
@@ -421,11 +421,15 @@ impl<'a, const N: usize> Printer<'a, N> {
             return Ok(false);
         };
         let is = |n: &str| e.name.eq_ignore_ascii_case(n);
-        let waiting = self.probing.adjusting;
-        let answer = match waiting {
-            _ if is("BED_SCREWS_ADJUST") => None,
-            Some(_) if is("ACCEPT") => Some(Answer::Accept),
-            Some(_) if is("ADJUSTED") => Some(Answer::Adjusted),
+        // What was answered at which screw; None: the tool starts.
+        let answer = match self.probing.adjusting {
+            Some(_) if is("BED_SCREWS_ADJUST") => {
+                const BUSY: &str = "Already in bed_screws helper; use ABORT to exit";
+                return Err(CommandError::Refused(BUSY).into());
+            }
+            None if is("BED_SCREWS_ADJUST") => None,
+            Some(state) if is("ACCEPT") => Some((state, Answer::Accept)),
+            Some(state) if is("ADJUSTED") => Some((state, Answer::Adjusted)),
             Some(_) if is("ABORT") => {
                 self.probing.adjusting = None;
                 return Ok(true);
@@ -434,19 +438,10 @@ impl<'a, const N: usize> Printer<'a, N> {
         };
         self.probing.adjusting = None;
         let th = &mut self.toolhead;
-        let next = match (answer, waiting) {
-            (None, Some(_)) => {
-                self.probing.adjusting = waiting;
-                return Err(CommandError::Refused(
-                    "Already in bed_screws helper; use ABORT to exit",
-                )
-                .into());
-            }
-            (None, None) => tool.start(th, sink).map(Some),
-            (Some(answer), Some(state)) => tool.answer(state, answer, th, sink),
-            (Some(_), None) => Ok(None),
+        let next = match answer {
+            None => tool.start(th, sink).map(Some),
+            Some((state, answer)) => tool.answer(state, answer, th, sink),
         };
-        self.gcode.reset_last_position(&self.toolhead);
         match next.map_err(CommandError::Move)? {
             Some((state, screw)) => {
                 self.probing.adjusting = Some(state);
@@ -469,13 +464,11 @@ impl<'a, const N: usize> Printer<'a, N> {
     fn screws_tilt_calculate<'l>(
         &mut self,
         e: &Extended<'l>,
+        screws: &ScrewsTilt<'_>,
         probe: &ProbeConfig<'_>,
         sink: &mut impl MoveSink,
         out: &mut impl Write,
     ) -> Result<(), LineError<'l>> {
-        let Some(screws) = self.probing.screws else {
-            return Ok(());
-        };
         let (max_deviation, direction) = screws_tilt::parameters(e)?;
         let s = sampling(e, probe.sampling())?;
         let move_z = e.float("HORIZONTAL_MOVE_Z")?;
@@ -502,7 +495,6 @@ impl<'a, const N: usize> Printer<'a, N> {
                 &mut |i, z| zs[i] = z,
             )
             .map_err(CommandError::Move)?;
-        self.gcode.reset_last_position(&self.toolhead);
         screws
             .report(&zs[..points.len()], direction, max_deviation, out)
             .map_err(|d| CommandError::BedLevel(d).into())
