@@ -6,20 +6,18 @@
 //! screws with a `_fine_adjust` point get a fine round there.
 
 use crate::move_sink::MoveSink;
-use crate::screws_tilt::{MAX_SCREWS, SCREW_OPTIONS, Screw, coordinate, read_screws};
+use crate::screws_tilt::{Screw, Screws, read_fine_points, read_screws};
 use crate::toolhead::{MoveError, Toolhead};
 use onechip_config::{Bounds, Config, ConfigError};
 
 /// The `[bed_screws]` section.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BedScrews<'a> {
-    /// The screws (`screwN`, `screwN_name`): the first `count` in use.
-    screws: [Screw<'a>; MAX_SCREWS],
-    count: usize,
+    /// The screws (`screwN`, `screwN_name`).
+    screws: Screws<'a>,
     /// The fine-adjust points (`screwN_fine_adjust`, with the screw's
-    /// name): the first `fine_count` in use.
-    fine: [Screw<'a>; MAX_SCREWS],
-    fine_count: usize,
+    /// name).
+    fine: Screws<'a>,
     /// `horizontal_move_z`: the height moves between screws go at, mm.
     pub horizontal_move_z: f64,
     /// `probe_height`: the nozzle's height over a screw, mm.
@@ -35,20 +33,10 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<BedScrews<'a>>, Con
     let Some(s) = config.section("bed_screws") else {
         return Ok(None);
     };
-    let (screws, count) = read_screws(&s, "bed_screws: Must have at least three screws")?;
-    let mut fine = screws;
-    let mut fine_count = 0;
-    for (screw, (_, _, option)) in screws[..count].iter().zip(SCREW_OPTIONS) {
-        if let Some(at) = coordinate(&s, option)? {
-            fine[fine_count] = Screw { at, ..*screw };
-            fine_count += 1;
-        }
-    }
+    let screws = read_screws(&s, "bed_screws: Must have at least three screws")?;
     Ok(Some(BedScrews {
         screws,
-        count,
-        fine,
-        fine_count,
+        fine: read_fine_points(&s, &screws)?,
         speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
         probe_speed: s.get_float("probe_speed", Some(5.0), Bounds::POSITIVE)?,
         horizontal_move_z: s.get_float("horizontal_move_z", Some(5.0), Bounds::NONE)?,
@@ -85,11 +73,7 @@ pub enum Answer {
 impl<'a> BedScrews<'a> {
     /// The screws of the coarse round (`fine` false) or the fine one.
     pub fn round(&self, fine: bool) -> &[Screw<'a>] {
-        if fine {
-            &self.fine[..self.fine_count]
-        } else {
-            &self.screws[..self.count]
-        }
+        if fine { &self.fine } else { &self.screws }
     }
 
     /// BED_SCREWS_ADJUST: up to horizontal_move_z, then to the first
@@ -134,7 +118,7 @@ impl<'a> BedScrews<'a> {
                 screw: 0,
                 again: false,
             }
-        } else if !state.fine && self.fine_count > 0 {
+        } else if !state.fine && !self.fine.is_empty() {
             Adjusting {
                 fine: true,
                 screw: 0,

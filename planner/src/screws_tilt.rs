@@ -49,12 +49,51 @@ impl fmt::Display for Screw<'_> {
     }
 }
 
+/// Screws in order, at most [`MAX_SCREWS`] (in an array, so that the
+/// sections holding them stay `Copy`); a slice of them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Screws<'a> {
+    list: [Screw<'a>; MAX_SCREWS],
+    count: usize,
+}
+
+impl<'a> Screws<'a> {
+    /// None yet.
+    const fn new() -> Self {
+        let none = Screw {
+            at: [0.0; 2],
+            name: None,
+            screw: [0.0; 2],
+        };
+        Self {
+            list: [none; MAX_SCREWS],
+            count: 0,
+        }
+    }
+
+    /// Adds `screw` at the end; false if there are [`MAX_SCREWS`] already.
+    fn push(&mut self, screw: Screw<'a>) -> bool {
+        let Some(slot) = self.list.get_mut(self.count) else {
+            return false;
+        };
+        *slot = screw;
+        self.count += 1;
+        true
+    }
+}
+
+impl<'a> core::ops::Deref for Screws<'a> {
+    type Target = [Screw<'a>];
+    fn deref(&self) -> &Self::Target {
+        &self.list[..self.count]
+    }
+}
+
 /// The `[screws_tilt_adjust]` section.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ScrewsTilt<'a> {
-    /// The screws ([`Self::screws`]): the first `count` in use.
-    screws: [Screw<'a>; MAX_SCREWS],
-    count: usize,
+    /// The screws ([`Self::screws`]).
+    screws: Screws<'a>,
     /// How far one turn moves the bed, mm.
     pub pitch: f64,
     /// A clockwise turn raises the bed (`CW-…` threads).
@@ -70,7 +109,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, Co
     let Some(s) = config.section("screws_tilt_adjust") else {
         return Ok(None);
     };
-    let (screws, count) = read_screws(&s, "screws_tilt_adjust: Must have at least three screws")?;
+    let screws = read_screws(&s, "screws_tilt_adjust: Must have at least three screws")?;
     let names = THREADS.map(|(name, ..)| name);
     let thread = s.get_choice("screw_thread", &names, Some("CW-M3"))?;
     let (_, pitch, clockwise_thread) = THREADS
@@ -79,7 +118,6 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, Co
         .unwrap_or(THREADS[0]);
     Ok(Some(ScrewsTilt {
         screws,
-        count,
         pitch,
         clockwise_thread,
         horizontal_move_z: s.get_float("horizontal_move_z", Some(5.0), Bounds::NONE)?,
@@ -90,7 +128,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, Co
 /// `screw1` .. `screw10` with their `_name` and `_fine_adjust` options
 /// (one more screw than kept, so that a tenth is refused rather than
 /// ignored).
-pub(crate) const SCREW_OPTIONS: [(&str, &str, &str); MAX_SCREWS + 1] = [
+const SCREW_OPTIONS: [(&str, &str, &str); MAX_SCREWS + 1] = [
     ("screw1", "screw1_name", "screw1_fine_adjust"),
     ("screw2", "screw2_name", "screw2_fine_adjust"),
     ("screw3", "screw3_name", "screw3_fine_adjust"),
@@ -105,40 +143,50 @@ pub(crate) const SCREW_OPTIONS: [(&str, &str, &str); MAX_SCREWS + 1] = [
 
 /// A section's `screw1`, `screw2`, … (with their names) up to the first
 /// missing, at least three (else `too_few`, Klipper's message), as
-/// Klipper's screw helpers read them; and how many.
+/// Klipper's screw helpers read them.
 pub(crate) fn read_screws<'c, 'a>(
     s: &Section<'c, 'a>,
     too_few: &'static str,
-) -> Result<([Screw<'a>; MAX_SCREWS], usize), ConfigError<'c>> {
-    let mut screws = [Screw {
-        at: [0.0; 2],
-        name: None,
-        screw: [0.0; 2],
-    }; MAX_SCREWS];
-    let mut count = 0;
+) -> Result<Screws<'a>, ConfigError<'c>> {
+    let mut screws = Screws::new();
     for (option, name, _) in SCREW_OPTIONS {
         let Some(at) = coordinate(s, option)? else {
             break;
         };
-        let slot = screws
-            .get_mut(count)
-            .ok_or_else(|| s.error_for(option, "more screws than onechip keeps (9)"))?;
-        *slot = Screw {
+        let screw = Screw {
             at,
             name: s.get_opt(name),
             screw: at,
         };
-        count += 1;
+        if !screws.push(screw) {
+            return Err(s.error_for(option, "more screws than onechip keeps (9)"));
+        }
     }
-    if count < 3 {
+    if screws.len() < 3 {
         return Err(s.error_for("screw1", too_few));
     }
-    Ok((screws, count))
+    Ok(screws)
+}
+
+/// The fine-adjust points of `screws` (`screwN_fine_adjust`, each with
+/// its screw's name), in order, for the screws that have one.
+pub(crate) fn read_fine_points<'c, 'a>(
+    s: &Section<'c, 'a>,
+    screws: &Screws<'a>,
+) -> Result<Screws<'a>, ConfigError<'c>> {
+    let mut fine = Screws::new();
+    for (screw, (_, _, option)) in screws.iter().zip(SCREW_OPTIONS) {
+        if let Some(at) = coordinate(s, option)? {
+            // At most one per screw: there is room.
+            fine.push(Screw { at, ..*screw });
+        }
+    }
+    Ok(fine)
 }
 
 /// Option `option` as an `x, y` coordinate (two finite numbers), if set
 /// (Klipper's message if not).
-pub(crate) fn coordinate<'c>(
+fn coordinate<'c>(
     s: &Section<'c, '_>,
     option: &'c str,
 ) -> Result<Option<[f64; 2]>, ConfigError<'c>> {
@@ -172,7 +220,7 @@ pub struct Turn {
 impl<'a> ScrewsTilt<'a> {
     /// The screws, in order (the first is the base without DIRECTION).
     pub fn screws(&self) -> &[Screw<'a>] {
-        &self.screws[..self.count]
+        &self.screws
     }
 
     /// The base screw's index for probed heights `zs` (mm, one per
