@@ -15,7 +15,9 @@
 //! - [`tmc`]: TMC stepper drivers over UART/SPI (registers, checks,
 //!   SET_TMC_CURRENT, SET_TMC_FIELD, DUMP_TMC, INIT_TMC);
 //! - [`pins`]: MCU pin names as printer.cfg writes them;
-//! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card.
+//! - [`sdcard`]: reading `printer.cfg` from a FAT16/FAT32 SD card;
+//! - [`secondary`]: secondary MCUs on stock Klipper firmware, over the
+//!   links a build supplies.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod card;
@@ -35,6 +37,7 @@ pub mod printer;
 pub mod probe;
 pub mod sd_print;
 pub mod sdcard;
+pub mod secondary;
 pub mod session;
 pub mod setup;
 pub mod step_pulse;

@@ -31,7 +31,7 @@ use onechip_planner::machine::{Kinematics, Machine};
 use onechip_planner::move_sink::TrapqMove;
 use onechip_sched::outputs::Drive;
 use pace::Pace;
-use secondary::attached::Secondaries;
+use secondary::Secondaries;
 use std::fmt;
 use std::io::{BufReader, Read as _};
 use std::path::{Path, PathBuf};
@@ -656,7 +656,13 @@ fn attach_secondaries(
     let wall = pace.clone();
     let now = move || wall.clock_now() as f64 / freq;
     let pulses: Vec<f64> = setup.steppers().map(|w| w.step_pulse).collect();
-    let secondaries = Secondaries::connect(setup.machine(), &|i| pulses[i], freq, &now)
+    let machine = setup.machine();
+    let names: Vec<&'static str> = (machine.secondaries.iter())
+        .map(|s| secondary::leak(s.name))
+        .collect();
+    let main = (freq, crate::thermal_plant::mcu_sensor());
+    let links = &mut secondary::SerialDevices;
+    let secondaries = Secondaries::connect(machine, &names, &|i| pulses[i], main, links, &now)
         .map_err(|e| SimError::Secondary(e.to_string()))?;
     mcu.set_pace(pace);
     mcu.attach(secondaries);
@@ -793,7 +799,7 @@ pub(crate) fn with_session<const L: usize>(
     summary.stalls = mcu.stalls().to_vec();
     mcu.flush_steps().map_err(write_error)?;
     if let Some(secondaries) = mcu.secondaries() {
-        summary.secondary_fault_at = secondaries.failed_at();
+        summary.secondary_fault_at = mcu.secondary_fault_at();
         summary.homing_timeouts = secondaries.homing_timeouts();
         let links = secondaries
             .links()
@@ -808,7 +814,8 @@ pub(crate) fn with_session<const L: usize>(
         let (steps, position) = match sent {
             Some(sent) => {
                 let name = stepper.name.to_string();
-                summary.secondary_steps.push((name, sent.clocks.clone()));
+                let clocks = mcu.secondary_steps(i).unwrap_or_default().to_vec();
+                summary.secondary_steps.push((name, clocks));
                 (sent.count as usize, sent.position)
             }
             None => (log.count, log.position),

@@ -15,13 +15,14 @@
 
 use crate::pace::Pace;
 use crate::plot::Window;
-use crate::secondary::attached::Secondaries;
-use crate::secondary::thermal::Reading;
+use crate::secondary::{Secondaries, SerialDevices};
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::{StallDetect, TmcSim};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand, Wait};
 use onechip_app::outputs::AccessoryCommand;
+use onechip_app::secondary::attached::each_step;
+use onechip_app::secondary::thermal::Reading;
 use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};
 use onechip_planner::machine::MAX_STEPPERS;
@@ -37,6 +38,7 @@ use std::path::Path;
 use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
 /// Moves each virtual stepper's queue holds, and commands its outbox holds.
 pub const MOVE_QUEUE: usize = 256;
@@ -256,6 +258,11 @@ pub struct VirtualMcu {
     no_filament: Vec<usize>,
     /// The secondary MCUs and the steppers on them.
     secondaries: Option<Secondaries>,
+    /// Each stepper's steps sent to a secondary: their clocks on its MCU,
+    /// ticks (for comparing with what its pins did).
+    secondary_steps: Vec<Vec<u64>>,
+    /// When (wall clock) a secondary's fault was noticed, if one was.
+    secondary_fault_at: Option<Instant>,
     /// The last homing trigger taken was a trsync communication timeout.
     comms_timeout: bool,
     /// The simulated TMC drivers.
@@ -281,6 +288,8 @@ impl VirtualMcu {
             io_wake: None,
             pace: None,
             secondaries: None,
+            secondary_steps: Vec::new(),
+            secondary_fault_at: None,
             comms_timeout: false,
             emergency: None,
             no_filament: Vec::new(),
@@ -354,7 +363,18 @@ impl VirtualMcu {
         if let Some(now) = self.host_clock()
             && let Some(secondaries) = &mut self.secondaries
         {
-            secondaries.restart(machine, &now);
+            match secondaries.restart(machine, &mut SerialDevices, &now) {
+                Ok(()) => {
+                    // What the steppers were sent counts from here.
+                    self.secondary_steps.iter_mut().for_each(Vec::clear);
+                    self.secondary_fault_at = None;
+                }
+                Err(e) => {
+                    // Klipper's message alone: the config loaded before.
+                    let message = crate::secondary::leak(&e.to_string());
+                    secondaries.fail(Shutdown::SecondaryNotReady { message });
+                }
+            }
             // Time went on while they were brought back.
             self.run_to_wall_clock();
         }
@@ -479,6 +499,7 @@ impl VirtualMcu {
     /// now on (virtual time must be paced: they run in real time).
     pub fn attach(&mut self, secondaries: Secondaries) {
         self.secondaries = Some(secondaries);
+        self.secondary_steps = vec![Vec::new(); MAX_STEPPERS];
         if let Some((_, plant)) = &mut self.thermal {
             plant.queued = Some(Vec::new());
         }
@@ -500,6 +521,17 @@ impl VirtualMcu {
     /// The secondary MCUs, if any.
     pub fn secondaries(&self) -> Option<&Secondaries> {
         self.secondaries.as_ref()
+    }
+
+    /// The clocks (on its MCU, ticks) of every step sent to stepper
+    /// `stepper` on a secondary.
+    pub fn secondary_steps(&self, stepper: usize) -> Option<&[u64]> {
+        self.secondary_steps.get(stepper).map(Vec::as_slice)
+    }
+
+    /// When (wall clock) a secondary's shutdown or silence was noticed.
+    pub fn secondary_fault_at(&self) -> Option<Instant> {
+        self.secondary_fault_at
     }
 
     /// Host time for the secondaries: the main clock in seconds, as the
@@ -538,11 +570,14 @@ impl VirtualMcu {
         if stopped {
             self.pushed = true;
         }
-        let readings = secondaries.take_readings();
+        let readings: Vec<Reading> = std::iter::from_fn(|| secondaries.take_reading()).collect();
         self.remote_readings(&readings);
         let Some(secondaries) = &mut self.secondaries else {
             return;
         };
+        if secondaries.failure().is_some() {
+            self.secondary_fault_at.get_or_insert_with(Instant::now);
+        }
         let main_down = self.engine.shutdown_reason().is_some();
         match secondaries.failure() {
             Some(reason) if !main_down => self.stop_all(reason),
@@ -806,7 +841,19 @@ impl Mcu for VirtualMcu {
         if let Some(secondaries) = &mut self.secondaries
             && secondaries.routes(stepper)
         {
-            return secondaries.push(stepper, cmd, clock);
+            secondaries.push(stepper, cmd, clock)?;
+            if let (
+                StepCommand::Steps {
+                    interval,
+                    count,
+                    add,
+                },
+                Some(steps),
+            ) = (cmd, self.secondary_steps.get_mut(stepper))
+            {
+                each_step(clock, interval, count, add, |at| steps.push(at));
+            }
+            return Ok(());
         }
         if stepper >= self.steppers {
             // A stepper the engine does not drive here: dropped.
@@ -915,7 +962,8 @@ impl Mcu for VirtualMcu {
             && s.routes(stepper)
         {
             let at = clock as f64 / s.freq();
-            return s.moved_since(stepper, at, &now).unwrap_or(0);
+            let mut sleep = |s: f64| std::thread::sleep(Duration::from_secs_f64(s));
+            return s.moved_since(stepper, at, &now, &mut sleep).unwrap_or(0);
         }
         self.logs()
             .nth(stepper)

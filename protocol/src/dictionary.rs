@@ -201,6 +201,17 @@ impl<'a> Enumeration<'a> {
         })
     }
 
+    /// The symbol of a single entry for `value` (the last one defined, if
+    /// several share it), escapes included, as [`Self::write_name`]
+    /// writes it; None if no single entry has it.
+    pub fn name_of(&self, value: i64) -> Option<&'a str> {
+        let singles = self.entries().filter_map(|entry| match entry {
+            Entry::Single(key, v) if v == value => Some(key.raw()),
+            _ => None,
+        });
+        singles.last()
+    }
+
     /// Writes the symbol for `value` (the last one defined, if several
     /// share it), or `?value` if none has it.
     pub fn write_name(&self, value: i64, out: &mut impl fmt::Write) -> fmt::Result {

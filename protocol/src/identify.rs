@@ -138,6 +138,11 @@ impl<'b> Fetcher<'b> {
     pub fn into_output(self) -> &'b [u8] {
         &self.out[..self.out_len]
     }
+
+    /// Gives up the fetch: the buffer it inflated into, for another.
+    pub fn into_buffer(self) -> &'b mut [u8] {
+        self.out
+    }
 }
 
 /// The MCU side: serves a compressed dictionary in `identify` chunks.

@@ -38,6 +38,8 @@ pub struct Identify<'b> {
     /// Wait before asking again once a question is acknowledged without
     /// its answer, s.
     lost_retry: f64,
+    /// The MCU's receive buffer, bytes.
+    receive_window: usize,
 }
 
 impl<'b> Identify<'b> {
@@ -51,6 +53,7 @@ impl<'b> Identify<'b> {
             questions: 0,
             waiting: false,
             lost_retry: LOST_ANSWER_RETRY,
+            receive_window,
         }
     }
 
@@ -122,6 +125,12 @@ impl<'b> Identify<'b> {
             self.lost_retry = (2.0 * self.lost_retry).min(RETRY_TIME);
         }
         result
+    }
+
+    /// The same fetch from its start, into the same buffer, for a link
+    /// opened anew (the old one went before the dictionary was in).
+    pub fn restart(self) -> Self {
+        Self::new(self.fetcher.into_buffer(), self.receive_window)
     }
 
     /// Once the dictionary is in: the link to go on with, and the

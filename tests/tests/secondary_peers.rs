@@ -2,7 +2,7 @@
 //! (`../shared/peers`): identify, the config phase with klippy's CRC,
 //! clock synchronisation and step commands, checked on the peer's pins.
 
-use onechip_host::secondary::{Heard, Secondary};
+use onechip_host::secondary::{self, Said, Secondary};
 use onechip_secondary_mcu::clock_sync::{MAX_PENDING_QUERIES, QUERY_PERIOD};
 use onechip_tests::noisy_link::NoisyLink;
 use onechip_tests::peers::{
@@ -36,11 +36,10 @@ fn one_stepper(step: &str, dir: &str, pulse_ticks: u32) -> Vec<String> {
 }
 
 /// Services the link until `until` (host s), collecting what it heard.
-fn run_until(mcu: &mut Secondary, now: &dyn Fn() -> f64, until: f64) -> Vec<Heard> {
+fn run_until(mcu: &mut Secondary, now: &dyn Fn() -> f64, until: f64) -> Vec<Said> {
     let mut heard = Vec::new();
     while now() < until {
-        mcu.service(now(), Duration::from_millis(2), &mut heard)
-            .expect("link");
+        heard.extend(secondary::serve(mcu, now, Duration::from_millis(2)).expect("link"));
     }
     heard
 }
@@ -53,7 +52,7 @@ fn hundred_steps(firmware: Firmware, step: &str, dir: &str, pulse_ticks: u32, fr
     let now = clock();
     let config = one_stepper(step, dir, pulse_ticks);
     let start = Instant::now();
-    let mut mcu = Secondary::connect(
+    let mut mcu = secondary::connect(
         "ext",
         &peer.path,
         &|_| config.clone(),
@@ -98,7 +97,7 @@ fn hundred_steps(firmware: Firmware, step: &str, dir: &str, pulse_ticks: u32, fr
     let t = now();
     let heard = run_until(&mut mcu, &now, t + 0.3);
     assert!(
-        heard.contains(&Heard::Response("stepper_position oid=0 pos=100".into())),
+        heard.contains(&Said::Response("stepper_position oid=0 pos=100".into())),
         "{heard:?}"
     );
     let edges = peer.rising_edges(step);
@@ -436,7 +435,7 @@ fn a_shutdown_of_the_peer_reaches_the_console_and_stops_the_printer() {
 /// link a little so its clock settles.
 fn connect_peer(name: &str, peer: &Peer, lines: &[&str], now: &dyn Fn() -> f64) -> Secondary {
     let config: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
-    let mut mcu = Secondary::connect(
+    let mut mcu = secondary::connect(
         name,
         &peer.path,
         &|_| config.clone(),
@@ -500,7 +499,7 @@ fn an_endstop_on_one_stock_mcu_stops_the_steppers_of_another_through_trsync() {
 /// One homing across a fresh Linux MCU (the endstop) and AVR; its figures,
 /// or None if a communication timeout aborted it (every MCU stopped).
 fn trsync_homing_attempt() -> Option<String> {
-    use onechip_host::secondary::homing::Homing;
+    use onechip_app::secondary::homing::Homing;
     use onechip_secondary_mcu::trsync::{REPORT_FRACTION, TIMEOUT, reason};
     // The Linux MCU's inputs read 1: its endstop is pressed as soon as
     // homing samples it.
@@ -534,8 +533,7 @@ fn trsync_homing_attempt() -> Option<String> {
     let settle = now() + SYNC_SETTLE;
     while now() < settle {
         for mcu in [&mut linux, &mut avr] {
-            mcu.service(now(), Duration::from_millis(1), &mut Vec::new())
-                .expect("link");
+            secondary::serve(mcu, &now, Duration::from_millis(1)).expect("link");
         }
     }
     // Both steppers: 5000 steps at 5 kHz from `first`; the endstop is
@@ -559,15 +557,9 @@ fn trsync_homing_attempt() -> Option<String> {
         reason::ENDSTOP_HIT
     );
     linux.connection().send_text(&home, 0).expect("queued");
-    let mut heard = Vec::new();
     while now() < first + 1.2 {
         homing
-            .service(
-                &mut [&mut linux, &mut avr],
-                now(),
-                Duration::from_millis(1),
-                &mut heard,
-            )
+            .service(&mut [&mut linux, &mut avr], now(), 0.001, &mut |_, _| {})
             .unwrap_or_else(|e| panic!("{e}"));
     }
     let (trigger, why) = homing.triggered().expect("the endstop triggered");
@@ -608,7 +600,7 @@ fn trsync_homing_attempt() -> Option<String> {
             .send_text("stepper_get_position oid=0", 0)
             .expect("queued");
     }
-    let positions: Vec<Vec<Heard>> = [&mut linux, &mut avr]
+    let positions: Vec<Vec<Said>> = [&mut linux, &mut avr]
         .into_iter()
         .map(|mcu| run_until(mcu, &now, now() + 0.2))
         .collect();
@@ -629,7 +621,7 @@ fn trsync_homing_attempt() -> Option<String> {
             "{name}: {made} steps, never stopped"
         );
         assert!(
-            heard.contains(&Heard::Response(format!(
+            heard.contains(&Said::Response(format!(
                 "stepper_position oid=0 pos={made}"
             ))),
             "{name}: {heard:?} vs {made} edges"

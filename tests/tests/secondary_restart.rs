@@ -7,7 +7,7 @@
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
-use onechip_host::secondary::Secondary;
+use onechip_host::secondary;
 use onechip_planner::mcu_section::RestartMethod;
 use onechip_tests::peers::{Firmware, Peer, extruder_pins, printer_with_extruder_on};
 use std::sync::{Mutex, MutexGuard, PoisonError};
@@ -43,16 +43,16 @@ fn holding_another_config(firmware: Firmware) {
     let start = Instant::now();
     let now = move || start.elapsed().as_secs_f64();
     let old = one_stepper(firmware, 32);
-    let first = Secondary::connect("ext", &peer.path, &|_| old.clone(), &now, CONNECT);
+    let first = secondary::connect("ext", &peer.path, &|_| old.clone(), &now, CONNECT);
     drop(first.unwrap_or_else(|e| panic!("first config: {e}")));
     let new = one_stepper(firmware, 40);
-    let refused = Secondary::connect("ext", &peer.path, &|_| new.clone(), &now, CONNECT);
+    let refused = secondary::connect("ext", &peer.path, &|_| new.clone(), &now, CONNECT);
     assert_eq!(
         refused.err().map(|e| e.to_string()).as_deref(),
         Some("MCU 'ext' CRC does not match config")
     );
     // A pseudo-terminal has no DTR line to reset an Arduino by.
-    let by_dtr = Secondary::connect_or_restart(
+    let by_dtr = secondary::connect_or_restart(
         "ext",
         &peer.path,
         RestartMethod::Arduino,
@@ -67,7 +67,7 @@ fn holding_another_config(firmware: Firmware) {
         )
     );
     let asked = now();
-    let mcu = Secondary::connect_or_restart(
+    let mcu = secondary::connect_or_restart(
         "ext",
         &peer.path,
         RestartMethod::Command,
@@ -85,7 +85,7 @@ fn holding_another_config(firmware: Firmware) {
     assert!(mcu.move_count > 0);
     drop(mcu);
     // It holds the new config now: connecting with it needs no reset.
-    let again = Secondary::connect("ext", &peer.path, &|_| new.clone(), &now, CONNECT);
+    let again = secondary::connect("ext", &peer.path, &|_| new.clone(), &now, CONNECT);
     assert!(again.is_ok(), "{:?}", again.err().map(|e| e.to_string()));
 }
 

@@ -7,10 +7,10 @@
 //! TriggerDispatch has it; and the secondaries' clock syncs are measured
 //! against the clocks they report.
 
+use onechip_app::secondary::homing::Homing;
 use onechip_app::session::Mcu;
 use onechip_host::pace::Pace;
-use onechip_host::secondary::homing::Homing;
-use onechip_host::secondary::{Heard, Secondary};
+use onechip_host::secondary::{self, Said, Secondary};
 use onechip_host::virtual_mcu::{Physics, VirtualMcu};
 use onechip_planner::kinematics::StepperKinematics;
 use onechip_sched::endstop::Endstop;
@@ -65,7 +65,7 @@ impl Rig {
         };
         let connect = |name: &str, peer: &Peer, lines: &[&str]| {
             let config: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
-            Secondary::connect(
+            secondary::connect(
                 name,
                 &peer.path,
                 &|_| config.clone(),
@@ -113,15 +113,14 @@ impl Rig {
 
     /// Serves both links for `seconds`; what they said goes to `heard`
     /// with the host time it was heard at.
-    fn serve_for(&mut self, seconds: f64, heard: &mut Vec<(usize, f64, Heard)>) {
+    fn serve_for(&mut self, seconds: f64, heard: &mut Vec<(usize, f64, Said)>) {
         let end = self.now() + seconds;
+        let pace = self.pace.clone();
+        let now = move || pace.clock_now() as f64 / MAIN_FREQ;
         while self.now() < end {
             for (i, mcu) in [&mut self.linux, &mut self.avr].into_iter().enumerate() {
-                let mut got = Vec::new();
-                let now = self.pace.clock_now() as f64 / MAIN_FREQ;
-                mcu.service(now, Duration::from_millis(1), &mut got)
-                    .expect("link");
-                let at = self.pace.clock_now() as f64 / MAIN_FREQ;
+                let got = secondary::serve(mcu, &now, Duration::from_millis(1)).expect("link");
+                let at = now();
                 heard.extend(got.into_iter().map(|h| (i, at, h)));
             }
         }
@@ -269,7 +268,6 @@ fn homing(rig: &mut Rig, on: EndstopOn) -> Option<Stops> {
             mcu.connection().send_text(&home, 0).expect("queued");
         }
     }
-    let mut heard = Vec::new();
     // When the service round that relayed the trigger ended (host time).
     let mut relayed_by = None;
     while rig.now() < first + 1.2 {
@@ -283,7 +281,7 @@ fn homing(rig: &mut Rig, on: EndstopOn) -> Option<Stops> {
                 .unwrap_or_else(|e| panic!("{e}"));
         }
         homing
-            .service_with_main(mcus, &mut main, now, Duration::from_millis(1), &mut heard)
+            .service_with_main(mcus, &mut main, now, 0.001, &mut |_, _| {})
             .unwrap_or_else(|e| panic!("{e}"));
         if relayed_by.is_none() && homing.relayed_at().is_some() {
             relayed_by = Some(rig.now());
@@ -485,13 +483,12 @@ fn measure_clock_sync(attempt: usize) -> Result<[SyncSamples; 2], String> {
             mcu.connection().send_text("get_uptime", 0).expect("queued");
             // It goes out now.
             asked[i] = rig.pace.clock_now() as f64 / MAIN_FREQ;
-            mcu.service(asked[i], Duration::ZERO, &mut Vec::new())
-                .expect("link");
+            secondary::serve(mcu, &|| asked[i], Duration::ZERO).expect("link");
         }
         let mut heard = Vec::new();
         rig.serve_for(0.05, &mut heard);
         for (i, at, h) in heard {
-            let Heard::Response(text) = h else { continue };
+            let Said::Response(text) = h else { continue };
             let Some(rest) = text.strip_prefix("uptime ") else {
                 continue;
             };

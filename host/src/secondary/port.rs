@@ -2,6 +2,7 @@
 //! peer process), raw and non-blocking.
 
 use crate::serial::pty::make_raw;
+use onechip_app::secondary::{LinkError, SecondaryLink};
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read, Write};
 use std::os::fd::{AsRawFd, OwnedFd};
@@ -55,19 +56,6 @@ impl Port {
         Ok(())
     }
 
-    /// Writes `out`, waits up to `wait` for an answer and reads what has
-    /// arrived into `input`: its length (0 if nothing).
-    pub fn round_trip(
-        &mut self,
-        out: &[u8],
-        wait: Duration,
-        input: &mut [u8],
-    ) -> io::Result<usize> {
-        self.write_all(out)?;
-        self.wait(libc::POLLIN, wait)?;
-        self.read(input)
-    }
-
     /// Pulses the modem lines as klippy resets an Arduino-style board
     /// (its DTR is wired to the chip's reset): DTR raised then dropped,
     /// 100 ms apart. With `cheetah`, as klippy's Fysetc Cheetah reset:
@@ -114,5 +102,29 @@ impl Port {
             }
         }
         Ok(())
+    }
+}
+
+/// `e` in a link's words.
+pub fn link_error(e: &io::Error) -> LinkError {
+    LinkError(onechip_app::secondary::text(format_args!("{e}")))
+}
+
+impl SecondaryLink for Port {
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        Port::write_all(self, bytes).map_err(|e| link_error(&e))
+    }
+
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, LinkError> {
+        Port::read(self, buf).map_err(|e| link_error(&e))
+    }
+
+    fn wait_readable(&mut self, timeout: f64) -> Result<(), LinkError> {
+        let timeout = Duration::from_secs_f64(timeout.max(0.0));
+        self.wait(libc::POLLIN, timeout).map_err(|e| link_error(&e))
+    }
+
+    fn pulse_reset(&mut self, cheetah: bool) -> Result<(), LinkError> {
+        self.pulse_dtr(cheetah).map_err(|e| link_error(&e))
     }
 }

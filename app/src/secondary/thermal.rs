@@ -1,6 +1,6 @@
 //! Heater and `[temperature_sensor]` thermistors on a secondary MCU, read
 //! as klippy's `MCU_adc` reads them. After the config phase each gets its
-//! `query_analog_in` ([`onechip_app::heaters::McuSetup`] at that MCU's
+//! `query_analog_in` ([`crate::heaters::McuSetup`] at that MCU's
 //! clock and ADC_MAX: 8 readings 1 ms apart every 0.3 s, the range from
 //! min_temp/max_temp in its ADC counts — none by default for a
 //! temperature sensor — and 4 reports out of range in a row shut that MCU
@@ -11,9 +11,10 @@
 //! A heater's sensor and output may be on different MCUs. Not yet: an SPI
 //! temperature chip on a secondary (refused by [`check`]).
 
-use super::AnalogReport;
-use onechip_app::heaters::SAMPLE_COUNT;
-use onechip_app::mcu_config::pin_ref;
+use super::{AnalogReport, CommandLine, Text, command, text};
+use crate::heaters::SAMPLE_COUNT;
+use crate::mcu_config::pin_ref;
+use core::fmt::Write as _;
 use onechip_planner::machine::Machine;
 use onechip_planner::sensor_section::{SensorInput, SensorSection};
 use onechip_protocol::dictionary::Dictionary;
@@ -95,25 +96,29 @@ impl RemoteInput {
 /// The `query_analog_in` for `query` (its clock ignored) as `dict`'s
 /// firmware takes it (Klipper's newer form has `bytes_per_report`), the
 /// first sampling at that MCU's clock `clock`.
-pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u64) -> String {
+pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u64) -> CommandLine {
     let batched = dict
         .by_name("query_analog_in")
         .is_some_and(|m| m.params().any(|(name, _)| name == "bytes_per_report"));
-    let per_report = if batched {
-        format!(" bytes_per_report={BYTES_PER_REPORT}")
-    } else {
-        String::new()
-    };
-    format!(
-        "query_analog_in oid={oid} clock={} sample_ticks={} sample_count={} rest_ticks={}{per_report} min_value={} max_value={} range_check_count={}",
+    let mut line = command(format_args!(
+        "query_analog_in oid={oid} clock={} sample_ticks={} sample_count={} rest_ticks={}",
         clock & 0xffff_ffff,
         query.sample_ticks,
         query.sample_count,
         query.rest_ticks,
-        query.min,
-        query.max,
-        query.range_check_count
-    )
+    ));
+    let per_report = batched.then_some(BYTES_PER_REPORT);
+    let fits = per_report.is_none_or(|n| write!(line, " bytes_per_report={n}").is_ok())
+        && write!(
+            line,
+            " min_value={} max_value={} range_check_count={}",
+            query.min, query.max, query.range_check_count
+        )
+        .is_ok();
+    if !fits {
+        line.clear();
+    }
+    line
 }
 
 /// Where klippy starts sampling input `oid` (`get_query_slot`): the whole
@@ -121,7 +126,7 @@ pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u6
 /// the MCU's clock line `sync`.
 pub fn query_slot(sync: &ClockSync, oid: u8, now: f64) -> u64 {
     let slot = (f64::from(oid) * QUERY_SLOT * sync.mcu_freq()) as u64;
-    sync.clock_at((now + QUERY_LEAD).floor()) + slot
+    sync.clock_at(libm::floor(now + QUERY_LEAD)) + slot
 }
 
 /// The secondary's ADC full scale (`ADC_MAX` in its dictionary), if it
@@ -135,7 +140,7 @@ pub fn adc_max(dict: &Dictionary<'_>) -> Option<u16> {
 /// Refuses what is not supported yet on secondary `mcu`: a heater's or
 /// temperature sensor's SPI chip there (its `sensor_pin`, the chip
 /// select). The message names the pin.
-pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
+pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), Text> {
     let here = |pin: &&str| pin_ref(pin).mcu == mcu;
     let heaters = (machine.heaters.iter())
         .filter(|h| h.sensor.spi().is_some())
@@ -147,16 +152,19 @@ pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), String> {
         .filter(not_adc)
         .map(|s| s.input.pin());
     match heaters.chain(sensors).find(here) {
-        Some(pin) => Err(format!(
+        Some(pin) => Err(text(format_args!(
             "pin '{pin}': an SPI temperature sensor on a secondary MCU is not supported yet"
-        )),
+        ))),
         None => Ok(()),
     }
 }
 
 #[cfg(test)]
 mod tests {
+    extern crate std;
     use super::*;
+    use std::format;
+    use std::vec::Vec;
 
     /// Klipper's newer firmware: batched reports.
     const BATCHED: &str = r#"{"commands": {
@@ -233,7 +241,10 @@ mod tests {
         let dict = Dictionary::parse(SINGLE).expect("dictionary");
         let line = "analog_in_state oid=2 next_clock=77 value=31000";
         let got = heard(&dict, line).expect("a report");
-        assert_eq!((got.oid, got.next_clock, got.values), (2, 77, vec![31000]));
+        assert_eq!(
+            (got.oid, got.next_clock, &got.values[..]),
+            (2, 77, &[31000][..])
+        );
         // 8 readings of 16383 do not fit the report's 16 bits.
         assert_eq!(adc_max(&dict), None);
         let dict = Dictionary::parse(BATCHED).expect("dictionary");

@@ -9,18 +9,19 @@
 //! `trsync_trigger`, and it stops by itself if the secondaries' reports
 //! stop coming (klippy's main MCU's trsync timeout).
 
-use super::{Heard, Secondary};
-use onechip_app::session::Mcu;
+use super::{Heard, LinkError, Secondary, SecondaryLink, Text, command, text};
+use crate::session::Mcu;
+use core::fmt;
+use onechip_protocol::codec::Decoded;
 use onechip_secondary_mcu::connection::SendTextError;
 use onechip_secondary_mcu::trsync::{Dispatch, MAX_MCUS, Member, Relay, reason};
-use std::time::Duration;
 
 /// A homing in progress over some secondaries (`mcus[i]` with trsync
 /// `trsyncs[i]`), and perhaps the main MCU.
 pub struct Homing {
     dispatch: Dispatch,
     /// Why each MCU's trsync stopped its steppers, once it reported it.
-    stopped: Vec<Option<u8>>,
+    stopped: heapless::Vec<Option<u8>, MAX_MCUS>,
     /// Host time (s) the first trigger was heard and relayed.
     relayed_at: Option<f64>,
     /// The main MCU's part, if it takes part.
@@ -40,21 +41,21 @@ struct MainPart {
 
 /// Why a homing command could not be queued.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct HomingError(pub String);
+pub struct HomingError(pub Text);
 
-impl std::fmt::Display for HomingError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+impl fmt::Display for HomingError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(&self.0)
     }
 }
 
-fn send(mcu: &mut Secondary, line: &str) -> Result<(), HomingError> {
+fn send<L: SecondaryLink>(mcu: &mut Secondary<L>, line: &str) -> Result<(), HomingError> {
     mcu.connection().send_text(line, 0).map_err(|e| {
         let why = match e {
             SendTextError::Encode => "not in its dictionary",
             SendTextError::Full => "its outbox is full",
         };
-        HomingError(format!("MCU '{}': {line}: {why}", mcu.name))
+        HomingError(text(format_args!("MCU '{}': {line}: {why}", mcu.name)))
     })
 }
 
@@ -62,8 +63,8 @@ impl Homing {
     /// Starts every MCU's trsync (`trsyncs[i]` on `mcus[i]`) at host time
     /// `start` (s) and ties their steppers to it (`steppers[i]`: the
     /// stepper oids on `mcus[i]`).
-    pub fn start(
-        mcus: &mut [&mut Secondary],
+    pub fn start<L: SecondaryLink>(
+        mcus: &mut [&mut Secondary<L>],
         trsyncs: &[u8],
         steppers: &[&[u8]],
         start: f64,
@@ -74,8 +75,8 @@ impl Homing {
     /// [`Self::start`] with the main MCU taking part if `main` is given:
     /// `(stops, freq)`, its steppers in the homing move (bit `i`: stepper
     /// `i`) and its clock, Hz (host time is that clock in seconds).
-    pub fn start_with_main(
-        mcus: &mut [&mut Secondary],
+    pub fn start_with_main<L: SecondaryLink>(
+        mcus: &mut [&mut Secondary<L>],
         trsyncs: &[u8],
         steppers: &[&[u8]],
         main: Option<(u32, f64)>,
@@ -83,22 +84,25 @@ impl Homing {
     ) -> Result<Self, HomingError> {
         let members_count = mcus.len() + usize::from(main.is_some());
         if trsyncs.len() != mcus.len() || members_count > MAX_MCUS {
-            return Err(HomingError(format!(
+            return Err(HomingError(text(format_args!(
                 "{} MCUs with {} trsyncs (one each, at most {MAX_MCUS})",
                 mcus.len(),
                 trsyncs.len()
-            )));
+            ))));
         }
-        let mut members = Vec::new();
+        let mut members = heapless::Vec::<Member, MAX_MCUS>::new();
         for (mcu, &trsync) in mcus.iter_mut().zip(trsyncs) {
-            let sync =
-                mcu.connection().clock().copied().ok_or_else(|| {
-                    HomingError(format!("MCU '{}' has no clock sync yet", mcu.name))
-                })?;
-            members.push(Member::new(trsync, sync));
+            let sync = mcu.connection().clock().copied().ok_or_else(|| {
+                HomingError(text(format_args!(
+                    "MCU '{}' has no clock sync yet",
+                    mcu.name
+                )))
+            })?;
+            // At most MAX_MCUS members, checked above.
+            let _ = members.push(Member::new(trsync, sync));
         }
         let main = main.map(|(stops, freq)| {
-            members.push(Member::local(freq));
+            let _ = members.push(Member::local(freq));
             MainPart {
                 index: mcus.len(),
                 stops,
@@ -111,15 +115,15 @@ impl Homing {
                 send(mcu, &line)?;
             }
             for oid in steppers.get(i).copied().unwrap_or_default() {
-                send(
-                    mcu,
-                    &format!("stepper_stop_on_trigger oid={oid} trsync_oid={trsync}"),
-                )?;
+                let line = command(format_args!(
+                    "stepper_stop_on_trigger oid={oid} trsync_oid={trsync}"
+                ));
+                send(mcu, &line)?;
             }
         }
         Ok(Self {
             dispatch,
-            stopped: vec![None; mcus.len()],
+            stopped: core::iter::repeat_n(None, mcus.len()).collect(),
             relayed_at: None,
             main,
         })
@@ -134,9 +138,9 @@ impl Homing {
 
     /// The main MCU's endstop triggered at host time `at` (s; its engine
     /// stopped its steppers): every secondary's trsync is triggered.
-    pub fn main_triggered(
+    pub fn main_triggered<L: SecondaryLink>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         at: f64,
         now: f64,
     ) -> Result<(), HomingError> {
@@ -151,9 +155,9 @@ impl Homing {
     }
 
     /// Sends what the dispatch decided.
-    fn relay(
+    fn relay<L: SecondaryLink>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         relay: Relay,
         now: f64,
     ) -> Result<(), HomingError> {
@@ -177,13 +181,13 @@ impl Homing {
     /// (it can still trigger, as long as the host serves the links) moves
     /// the secondaries' timeouts on, its own timeout stops its steppers,
     /// and a secondary's trigger stops them at once.
-    pub fn service_with_main<M: Mcu>(
+    pub fn service_with_main<L: SecondaryLink, M: Mcu>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         main: &mut M,
         now: f64,
-        wait: Duration,
-        heard: &mut Vec<(usize, Heard)>,
+        wait: f64,
+        heard: &mut dyn FnMut(usize, Heard<'_>),
     ) -> Result<(), HomingError> {
         self.main_news(mcus, now, &mut |stops| main.stop_steppers(stops))?;
         self.service_inner(
@@ -199,9 +203,9 @@ impl Homing {
     /// which moves the secondaries' timeouts on; past its own timeout
     /// `stop_main(stops)` stops its steppers and every secondary is
     /// triggered.
-    pub fn main_news(
+    pub fn main_news<L: SecondaryLink>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         now: f64,
         stop_main: &mut dyn FnMut(u32),
     ) -> Result<(), HomingError> {
@@ -251,61 +255,84 @@ impl Homing {
     }
 
     /// Serves every link once at host time `now` (s), waiting up to
-    /// `wait` on each, and relays the trsync reports; other responses go
-    /// to `heard` as `(mcu, what)`.
-    pub fn service(
+    /// `wait` s on each, and relays the trsync reports; what else they
+    /// said goes to `heard` as `(mcu, what)`.
+    pub fn service<L: SecondaryLink>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         now: f64,
-        wait: Duration,
-        heard: &mut Vec<(usize, Heard)>,
+        wait: f64,
+        heard: &mut dyn FnMut(usize, Heard<'_>),
     ) -> Result<(), HomingError> {
         self.service_inner(mcus, &mut |_| {}, now, wait, heard)
     }
 
     /// Serves the links; `stop_main(stops)` stops the main MCU's steppers.
-    fn service_inner(
+    fn service_inner<L: SecondaryLink>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         stop_main: &mut dyn FnMut(u32),
         now: f64,
-        wait: Duration,
-        heard: &mut Vec<(usize, Heard)>,
+        wait: f64,
+        heard: &mut dyn FnMut(usize, Heard<'_>),
     ) -> Result<(), HomingError> {
         for i in 0..mcus.len() {
-            let mut got = Vec::new();
-            mcus[i]
-                .service(now, wait, &mut got)
-                .map_err(|e| HomingError(format!("MCU '{}': {e}", mcus[i].name)))?;
-            for h in got {
-                let taken = match &h {
-                    Heard::Response(text) => self.on_response(mcus, i, text, now, stop_main)?,
-                    _ => false,
-                };
-                if !taken {
-                    heard.push((i, h));
+            // The reports of one round, relayed once it is over.
+            let mut states = heapless::Vec::<TrsyncState, 16>::new();
+            let mcu = &mut *mcus[i];
+            let name = mcu.name;
+            let served = mcu.service(&|| now, wait, &mut |h| {
+                if let Heard::Response(msg) = &h
+                    && let Some(state) = TrsyncState::from_message(msg)
+                {
+                    // Only the latest reports count if a round brings
+                    // more than fit.
+                    if states.is_full() {
+                        states.remove(0);
+                    }
+                    let _ = states.push(state);
+                } else {
+                    heard(i, h);
                 }
+            });
+            served.map_err(|e: LinkError| HomingError(text(format_args!("MCU '{name}': {e}"))))?;
+            for state in states {
+                self.on_state(mcus, i, state, now, stop_main)?;
             }
         }
         Ok(())
     }
 
-    /// Takes response `text` of `mcus[i]`, heard at host time `now` (s):
+    /// Takes response `msg` of `mcus[i]`, heard at host time `now` (s):
     /// false if it is not a trsync report. A trigger stops the main MCU's
     /// steppers (`stop_main(stops)`) and is relayed to the others.
-    pub fn on_response(
+    pub fn on_response<L: SecondaryLink>(
         &mut self,
-        mcus: &mut [&mut Secondary],
+        mcus: &mut [&mut Secondary<L>],
         i: usize,
-        text: &str,
+        msg: &Decoded<'_, '_, '_>,
         now: f64,
         stop_main: &mut dyn FnMut(u32),
     ) -> Result<bool, HomingError> {
-        let Some(state) = TrsyncState::parse(text) else {
+        let Some(state) = TrsyncState::from_message(msg) else {
             return Ok(false);
         };
+        self.on_state(mcus, i, state, now, stop_main)?;
+        Ok(true)
+    }
+
+    /// Takes `mcus[i]`'s trsync report `state`, heard at host time `now`
+    /// (s).
+    pub fn on_state<L: SecondaryLink>(
+        &mut self,
+        mcus: &mut [&mut Secondary<L>],
+        i: usize,
+        state: TrsyncState,
+        now: f64,
+        stop_main: &mut dyn FnMut(u32),
+    ) -> Result<(), HomingError> {
         if !self.dispatch.is_current(i, state.clock) {
-            return Ok(true);
+            return Ok(());
         }
         if let Some(stopped @ None) = self.stopped.get_mut(i)
             && !state.can_trigger
@@ -323,14 +350,17 @@ impl Homing {
             stop_main(part.stops);
             self.set_main_stopped(now, reason::HOST_REQUEST);
         }
-        self.relay(mcus, relay, now)?;
-        Ok(true)
+        self.relay(mcus, relay, now)
     }
 
     /// Ends the homing at host time `now` (s): every secondary's trsync
     /// not triggered yet is (`HOST_REQUEST`), as klippy ends a homing
     /// move that ran to its end.
-    pub fn finish(&mut self, mcus: &mut [&mut Secondary], now: f64) -> Result<(), HomingError> {
+    pub fn finish<L: SecondaryLink>(
+        &mut self,
+        mcus: &mut [&mut Secondary<L>],
+        now: f64,
+    ) -> Result<(), HomingError> {
         if let Relay::Triggered(_, _, lines) = self.dispatch.end(now) {
             for (j, line) in lines {
                 if let Some(mcu) = mcus.get_mut(j) {
@@ -344,26 +374,22 @@ impl Homing {
 
 /// A `trsync_state oid=… can_trigger=… trigger_reason=… clock=…` report.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct TrsyncState {
+pub struct TrsyncState {
     can_trigger: bool,
     reason: u8,
     clock: u32,
 }
 
 impl TrsyncState {
-    /// The report in a response's text, if it is one.
-    fn parse(text: &str) -> Option<Self> {
-        let rest = text.strip_prefix("trsync_state ")?;
-        let field = |name: &str| -> Option<u64> {
-            rest.split_whitespace()
-                .find_map(|w| w.strip_prefix(name)?.strip_prefix('='))?
-                .parse()
-                .ok()
-        };
+    /// The report in a response, if it is one.
+    pub(crate) fn from_message(msg: &Decoded<'_, '_, '_>) -> Option<Self> {
+        if msg.message.name() != "trsync_state" {
+            return None;
+        }
         Some(Self {
-            can_trigger: field("can_trigger")? != 0,
-            reason: u8::try_from(field("trigger_reason")?).ok()?,
-            clock: u32::try_from(field("clock")?).ok()?,
+            can_trigger: msg.int("can_trigger")? != 0,
+            reason: u8::try_from(msg.int("trigger_reason")?).ok()?,
+            clock: msg.int("clock")? as u32,
         })
     }
 }
@@ -371,17 +397,29 @@ impl TrsyncState {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use onechip_protocol::dictionary::Dictionary;
 
     #[test]
-    fn a_trsync_report_is_read_from_its_text() {
+    fn a_trsync_report_is_read_from_its_message() {
+        let dict = Dictionary::parse(
+            r#"{"commands": {}, "responses": {"trsync_state oid=%c can_trigger=%c trigger_reason=%c clock=%u": 5,
+                "stepper_position oid=%c pos=%i": 6}}"#,
+        )
+        .expect("dictionary");
+        let read = |line: &str| {
+            let mut buf = [0u8; 32];
+            let n = dict.encode_text(line, &mut buf).expect("encodes");
+            let (msg, _) = dict.decode(&buf[..n]).expect("decodes");
+            TrsyncState::from_message(&msg)
+        };
         assert_eq!(
-            TrsyncState::parse("trsync_state oid=2 can_trigger=0 trigger_reason=1 clock=4000"),
+            read("trsync_state oid=2 can_trigger=0 trigger_reason=1 clock=4000"),
             Some(TrsyncState {
                 can_trigger: false,
                 reason: 1,
                 clock: 4000
             })
         );
-        assert_eq!(TrsyncState::parse("stepper_position oid=0 pos=3"), None);
+        assert_eq!(read("stepper_position oid=0 pos=3"), None);
     }
 }

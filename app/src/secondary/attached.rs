@@ -1,5 +1,5 @@
-//! The secondary MCUs of a simulated printer: their steppers' commands go
-//! to the real boards (or peers) instead of the virtual MCU, each in that
+//! The secondary MCUs of a printer: their steppers' commands go to the
+//! real boards (or peers) instead of the main MCU's engine, each in that
 //! MCU's clock, within its move queue, and their faults stop the printer.
 //! A homing move whose steppers or endstop are on secondaries runs across
 //! the MCUs with trsync ([`super::homing::Homing`], the main MCU one of
@@ -22,15 +22,19 @@
 //! its reports come back as readings ([`Secondaries::take_readings`]), and
 //! the PWM updates the control queues go out as the fans' do.
 
-use super::homing::Homing;
+use super::homing::{Homing, TrsyncState};
 use super::thermal::{self, Reading, RemoteInput};
-use super::{ConnectError, Heard, Secondary, Start};
-use crate::thermal_plant::mcu_sensor;
-use onechip_app::heaters::{McuSetup, full_scale};
-use onechip_app::mcu_config::{Oids, pin_ref, write_config};
-use onechip_app::step_pulse::pulse_ticks;
-use onechip_planner::machine::Machine;
-use onechip_planner::mcu_section::RestartMethod;
+use super::{
+    CommandLine, ConnectError, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text,
+    command, text,
+};
+use crate::heaters::{INPUTS, LinearConversion, McuSetup, OUTPUTS, full_scale};
+use crate::mcu_config::{Oids, pin_ref, write_config};
+use crate::step_pulse::pulse_ticks;
+use core::cell::Cell;
+use heapless::binary_heap::{BinaryHeap, Min};
+use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::mcu_section::{MAX_SECONDARIES, RestartMethod};
 use onechip_protocol::transport::LinkStats;
 use onechip_sched::engine::Full;
 use onechip_sched::outputs::OutputKind;
@@ -38,17 +42,13 @@ use onechip_sched::shutdown::Shutdown;
 use onechip_sched::step_command::StepCommand;
 use onechip_secondary_mcu::connection::OUTBOX;
 use onechip_secondary_mcu::step_commands::StepCommandEncoder;
-use std::cell::Cell;
-use std::cmp::Reverse;
-use std::collections::{BinaryHeap, VecDeque};
-use std::path::Path;
-use std::time::{Duration, Instant};
+use onechip_secondary_mcu::trsync::reason;
 
 /// Seconds between two re-fits of the steppers' clock lines (klippy
 /// re-fits from its once-a-second stats).
 const CALIBRATE_PERIOD: f64 = 1.0;
-/// How long a secondary may take to connect.
-const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
+/// How long a secondary may take to connect, s.
+const CONNECT_TIMEOUT: f64 = 15.0;
 /// How far ahead of now a software PWM output's start value is queued
 /// after the config phase, s (klippy's 0.2 s for its init command).
 const START_LEAD: f64 = 0.200;
@@ -59,6 +59,31 @@ const ENABLE_LEAD: f64 = 0.001;
 /// at least PIN_MIN_TIME ahead, or at the end of the queued moves), but
 /// it must reach the MCU before its clock.
 const OUTPUT_LEAD: f64 = 0.050;
+/// Step commands of one MCU tracked until they have run: at most this
+/// many wait in its move queue (the Linux MCU's queue is far longer, an
+/// AVR's shorter), `min(move_count, MOVE_SLOTS)` less its outputs' slots.
+pub const MOVE_SLOTS: usize = 512;
+/// Output updates waiting for the one before them to take effect, per
+/// output (a fan's kick and its speed, a heater's updates).
+const PENDING_UPDATES: usize = 8;
+/// Step commands of one stepper remembered to place a homing's trigger
+/// among its steps (those that end before the trigger count whole).
+const RECENT_COMMANDS: usize = 32;
+/// Responses kept from one service round, for a `stepper_position` asked.
+const RESPONSES: usize = 8;
+
+/// Calls `step(clock)` for each step of a `queue_step` whose first step
+/// is at `clock` (64-bit, ticks): step k+1 comes `interval + (k+1) × add`
+/// ticks after step k, as the MCU runs it.
+pub fn each_step(clock: u64, interval: u32, count: u16, add: i16, mut step: impl FnMut(u64)) {
+    let mut at = clock;
+    let mut gap = i64::from(interval);
+    for _ in 0..count {
+        step(at);
+        gap += i64::from(add);
+        at = at.saturating_add_signed(gap);
+    }
+}
 
 /// A fan's, output pin's or enable pin's output on a secondary, driven as
 /// klippy's `MCU_digital_out` and `MCU_pwm` drive theirs: one update at
@@ -76,8 +101,9 @@ struct RemoteOutput {
     inverted: bool,
     /// The clock (that MCU's, 64-bit) of the last update sent.
     last_clock: u64,
-    /// Updates not sent yet: clock, level (0..1 of full scale).
-    pending: VecDeque<(u64, f64)>,
+    /// Updates not sent yet: clock, level (0..1 of full scale). When full,
+    /// the newest is replaced (only the latest level matters).
+    pending: heapless::Deque<(u64, f64), PENDING_UPDATES>,
     /// How late (s) the updates queued while the last one was still to
     /// come are sent, so that they keep their spacing (a fan's kick).
     delay: f64,
@@ -96,7 +122,7 @@ impl RemoteOutput {
             cycle_ticks,
             inverted,
             last_clock: 0,
-            pending: VecDeque::new(),
+            pending: heapless::Deque::new(),
             delay: 0.0,
             last_at: 0.0,
         }
@@ -104,23 +130,26 @@ impl RemoteOutput {
 
     /// The update to `level` (0..1) at `clock` as the MCU takes it: on
     /// ticks of its cycle, or on/off.
-    fn command(&self, clock: u64, level: f64) -> String {
+    fn update(&self, clock: u64, level: f64) -> CommandLine {
         let level = if self.inverted { 1.0 - level } else { level };
         let on_ticks = match self.cycle_ticks {
             0 => u32::from(level != 0.0),
             cycle => (level.clamp(0.0, 1.0) * f64::from(cycle) + 0.5) as u32,
         };
-        format!(
+        command(format_args!(
             "queue_digital_out oid={} clock={} on_ticks={on_ticks}",
             self.oid,
             clock & 0xffff_ffff
-        )
+        ))
     }
 
     /// Queues `level` at `clock`, never before an update queued earlier.
     fn queue(&mut self, clock: u64, level: f64) {
         let after = self.pending.back().map_or(self.last_clock, |p| p.0);
-        self.pending.push_back((clock.max(after), level));
+        if self.pending.is_full() {
+            self.pending.pop_back();
+        }
+        let _ = self.pending.push_back((clock.max(after), level));
     }
 }
 
@@ -132,17 +161,6 @@ struct RemoteEnable {
     output: RemoteOutput,
     /// Steppers enabled on it.
     count: usize,
-}
-
-/// The secondaries among `attached` whose indices are `members` (a
-/// homing's), in order.
-fn members<'a>(attached: &'a mut [Attached], members: &[usize]) -> Vec<&'a mut Secondary> {
-    attached
-        .iter_mut()
-        .enumerate()
-        .filter(|(k, _)| members.contains(k))
-        .map(|(_, a)| &mut a.mcu)
-        .collect()
 }
 
 /// An io output's `value` as a level, 0..1 of its `full` scale (0: a
@@ -157,21 +175,21 @@ fn level(value: u32, full: u32) -> f64 {
 /// The move queue slots an MCU with objects `oids` keeps for its outputs:
 /// one for each enable pin, heater, fan and pin output.
 fn reserved_slots(oids: &Oids) -> usize {
-    let mut enables: Vec<u8> = oids.enables.iter().flatten().copied().collect();
+    let mut enables: heapless::Vec<u8, MAX_STEPPERS> =
+        oids.enables.iter().flatten().copied().collect();
     enables.sort_unstable();
-    enables.dedup();
+    let distinct =
+        enables.windows(2).filter(|w| w[0] != w[1]).count() + usize::from(!enables.is_empty());
     let heaters = oids.heaters.iter().filter(|h| h.1.is_some()).count();
-    enables.len() + heaters + oids.outputs.iter().flatten().count()
+    distinct + heaters + oids.outputs.iter().flatten().count()
 }
 
 /// One connected secondary and its move queue.
-struct Attached {
-    mcu: Secondary,
-    /// Name, for shutdown messages.
-    name: &'static str,
+struct Attached<L> {
+    mcu: Secondary<L>,
     /// End clocks of the `queue_step`s the MCU may still hold, soonest
-    /// first: at most `move_count`.
-    slots: BinaryHeap<Reverse<u64>>,
+    /// first: at most its room.
+    slots: BinaryHeap<u64, Min, MOVE_SLOTS>,
     /// The trsync its steppers and endstop use while homing.
     trsync: u8,
     /// How it is reset (its `restart_method`).
@@ -179,6 +197,15 @@ struct Attached {
     /// Move queue slots kept for its outputs, one each (klippy's
     /// `request_move_queue_slot`).
     reserved: usize,
+}
+
+impl<L> Attached<L> {
+    /// Step commands it may hold at once.
+    fn room(&self) -> usize {
+        usize::from(self.mcu.move_count)
+            .saturating_sub(self.reserved)
+            .min(MOVE_SLOTS)
+    }
 }
 
 /// A rail's endstop on a secondary.
@@ -196,7 +223,7 @@ struct RemoteEndstop {
 struct ActiveHoming {
     homing: Homing,
     /// The secondaries taking part (indices into `attached`, ascending).
-    members: Vec<usize>,
+    members: heapless::Vec<usize, MAX_SECONDARIES>,
     /// The endstop, if on a secondary: its MCU (index into `attached`)
     /// and oid.
     endstop: Option<(usize, u8)>,
@@ -204,59 +231,92 @@ struct ActiveHoming {
     taken: bool,
 }
 
-/// A routed stepper's commands and what they add up to.
+/// A `queue_step` sent, as its steps fall: first step's clock (64-bit,
+/// ticks), interval, count, add, direction (true: forward).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct SentCommand {
+    clock: u64,
+    interval: u32,
+    count: u16,
+    add: i16,
+    forward: bool,
+}
+
+/// What a stepper on a secondary was sent, and what it adds up to.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct SentSteps {
     /// Steps sent.
     pub count: u64,
     /// Their sum, +1 forward and −1 back.
     pub position: i64,
-    /// Each step's clock on its MCU, ticks (for comparing with what its
-    /// pins did).
-    pub clocks: Vec<u64>,
-    /// Each step's direction (true: forward), as `clocks`.
-    directions: Vec<bool>,
     /// The direction of the next steps.
     forward: bool,
     /// The MCU's position when it last halted (a homing's stop), steps.
     halt: i64,
-    /// The steps sent since: `clocks[since..]`; the MCU may have dropped
-    /// some sent before.
-    since: usize,
+    /// The sum of the steps sent since.
+    since_halt: i64,
+    /// The last step commands sent since, oldest first.
+    recent: heapless::Deque<SentCommand, RECENT_COMMANDS>,
 }
 
 impl SentSteps {
     /// The stepper's position at MCU clock `clock` (ticks, after its last
-    /// halt), in steps: the halt's, moved by the steps sent since up to
-    /// that clock.
+    /// halt), in steps: the halt's, moved by the steps sent since, less
+    /// those of the remembered commands after `clock`.
     fn position_at(&self, clock: u64) -> i64 {
-        let (clocks, directions) = (&self.clocks[self.since..], &self.directions[self.since..]);
-        let made = clocks.partition_point(|&c| c <= clock);
-        let signs = directions[..made].iter().map(|&f| if f { 1 } else { -1 });
-        self.halt + signs.sum::<i64>()
+        let mut after = 0;
+        for c in &self.recent {
+            let sign = if c.forward { 1 } else { -1 };
+            each_step(c.clock, c.interval, c.count, c.add, |at| {
+                if at > clock {
+                    after += sign;
+                }
+            });
+        }
+        self.halt + self.since_halt - after
+    }
+
+    /// A `queue_step` was sent.
+    fn sent(&mut self, command: SentCommand) {
+        if self.recent.is_full() {
+            self.recent.pop_front();
+        }
+        let _ = self.recent.push_back(command);
+        let steps = i64::from(command.count) * if command.forward { 1 } else { -1 };
+        self.count += u64::from(command.count);
+        self.position += steps;
+        self.since_halt += steps;
     }
 
     /// The MCU halted at position `halt` (steps, as it reports it): what
     /// it was sent so far but did not make is forgotten.
     fn halted_at(&mut self, halt: i64) {
         self.halt = halt;
-        self.since = self.clocks.len();
+        self.since_halt = 0;
+        self.recent.clear();
     }
 }
 
+/// A stepper on a secondary.
+struct Route {
+    /// Its MCU (index into `attached`).
+    mcu: usize,
+    /// Its oid there.
+    oid: u8,
+    encoder: StepCommandEncoder<'static>,
+}
+
 /// Every secondary of the printer.
-pub struct Secondaries {
-    attached: Vec<Attached>,
-    /// For each stepper on a secondary: which one, and its encoder.
-    routes: Vec<Option<(usize, StepCommandEncoder<'static>)>>,
+pub struct Secondaries<L> {
+    attached: heapless::Vec<Attached<L>, MAX_SECONDARIES>,
+    /// For each stepper on a secondary: where, and its encoder.
+    routes: [Option<Route>; MAX_STEPPERS],
     /// What each stepper on a secondary was sent.
-    sent: Vec<SentSteps>,
-    /// Each stepper's oid, if on a secondary.
-    stepper_oids: Vec<Option<u8>>,
+    sent: [SentSteps; MAX_STEPPERS],
     /// Each stepper's direction pin is inverted (`!`).
-    dir_inverted: Vec<bool>,
+    dir_inverted: [bool; MAX_STEPPERS],
     /// Each rail's endstop, if on a secondary.
-    endstops: Vec<Option<RemoteEndstop>>,
+    endstops: [Option<RemoteEndstop>; MAX_STEPPERS],
     /// The homing running across MCUs, if one is.
     homing: Option<ActiveHoming>,
     /// Homings ended by a communication timeout.
@@ -265,177 +325,212 @@ pub struct Secondaries {
     freq: f64,
     next_calibrate: f64,
     failure: Option<Shutdown>,
-    /// When (wall clock) the failure was noticed.
-    failed_at: Option<Instant>,
     /// `emergency_stop` went to every secondary.
     stopped: bool,
-    /// The responses the last [`Self::service`] heard: the MCU's index
-    /// and the text.
-    responses: Vec<(usize, String)>,
+    /// The `stepper_position` answers the last [`Self::service`] heard:
+    /// the MCU's index, the oid and the position.
+    positions: heapless::Vec<(usize, u8, i64), RESPONSES>,
     /// Each stepper's step pulse, s (for configuring them again).
-    pulses: Vec<f64>,
+    pulses: [f64; MAX_STEPPERS],
+    /// The main MCU's internal temperature sensor calibration (for the
+    /// io setups computed here).
+    mcu_sensor: LinearConversion,
     /// The MCU role's io outputs (by index) that are on a secondary, and
     /// each one's full scale in the io (0: steady on/off).
-    outputs: Vec<Option<(RemoteOutput, u32)>>,
+    outputs: [Option<(RemoteOutput, u32)>; OUTPUTS],
     /// The enable pins on secondaries.
-    enables: Vec<RemoteEnable>,
+    enables: heapless::Vec<RemoteEnable, MAX_STEPPERS>,
     /// Each stepper's enable pin (index into `enables`), if on a
     /// secondary, and whether the stepper is enabled.
-    stepper_enables: Vec<Option<(usize, bool)>>,
+    stepper_enables: [Option<(usize, bool)>; MAX_STEPPERS],
     /// The heaters' and temperature sensors' ADC inputs on secondaries.
-    inputs: Vec<RemoteInput>,
-    /// Their readings heard and not taken yet.
-    readings: Vec<Reading>,
+    inputs: heapless::Vec<RemoteInput, INPUTS>,
+    /// Their readings heard and not taken yet (the oldest dropped if the
+    /// MCU role does not take them).
+    readings: heapless::Deque<Reading, 32>,
 }
 
-impl Secondaries {
-    /// Connects every `[mcu NAME]` of `machine` and configures its
-    /// steppers (`pulse(i)`: stepper `i`'s step pulse, s); `now` is host
-    /// time (s) on the main clock of `freq` Hz. One holding another
-    /// config is reset and configured anew, as klippy's automated
-    /// firmware restart.
-    pub fn connect(
+impl<L: SecondaryLink> Secondaries<L> {
+    /// Connects every `[mcu NAME]` of `machine` (`names`: their names, in
+    /// that order, as long as the printer runs) over `links` and
+    /// configures its steppers (`pulse(i)`: stepper `i`'s step pulse, s);
+    /// `now` is host time (s) on the main clock of `freq` Hz, whose
+    /// internal temperature sensor is calibrated as `mcu_sensor`. One
+    /// holding another config is reset and configured anew, as klippy's
+    /// automated firmware restart.
+    pub fn connect<O: Links<Link = L>>(
         machine: &Machine<'_>,
+        names: &[&'static str],
         pulse: &dyn Fn(usize) -> f64,
-        freq: f64,
+        (freq, mcu_sensor): (f64, LinearConversion),
+        links: &mut O,
         now: &dyn Fn() -> f64,
-    ) -> Result<Self, ConnectError> {
-        let pulses = (0..machine.steppers.len()).map(pulse).collect();
-        Self::connect_all(machine, pulses, freq, now, Start::Fresh)
+    ) -> Result<Self, McuError> {
+        let mut pulses = [0.0; MAX_STEPPERS];
+        for (i, p) in pulses.iter_mut().enumerate().take(machine.steppers.len()) {
+            *p = pulse(i);
+        }
+        Self::connect_all(
+            machine,
+            names,
+            pulses,
+            (freq, mcu_sensor),
+            links,
+            now,
+            Start::Fresh,
+        )
+    }
+
+    /// The names of the secondaries, in printer.cfg's order.
+    pub fn names(&self) -> impl Iterator<Item = &'static str> + '_ {
+        self.attached.iter().map(|a| a.mcu.name)
     }
 
     /// FIRMWARE_RESTART: every secondary is reset as its
-    /// `restart_method` says, then connected and configured again (one
-    /// still configured is `Failed automated reset of MCU 'NAME'`); what
-    /// the steppers were sent counts from there, as their MCU positions
-    /// do. On an error the printer stays shut down with its message.
-    pub fn restart(&mut self, machine: &Machine<'_>, now: &dyn Fn() -> f64) {
-        let reset = self
-            .attached
-            .iter_mut()
-            .try_for_each(|a| a.mcu.reset(a.restart, now));
-        let again = reset.and_then(|()| {
-            let pulses = self.pulses.clone();
-            Self::connect_all(machine, pulses, self.freq, now, Start::Restarted)
-        });
-        match again {
-            Ok(fresh) => {
-                let timeouts = self.homing_timeouts;
-                *self = fresh;
-                self.homing_timeouts = timeouts;
-            }
-            Err(e) => {
-                // Klipper's message alone: the config loaded before.
-                let e = match e {
-                    ConnectError::Mcu { error, .. } => *error,
-                    e => e,
-                };
-                let message = Box::leak(e.to_string().into_boxed_str());
-                self.failure = Some(Shutdown::SecondaryNotReady { message });
-                self.failed_at = Some(Instant::now());
-                self.homing = None;
-            }
+    /// `restart_method` says, then connected over `links` and configured
+    /// again (one still configured is `Failed automated reset of MCU
+    /// 'NAME'`); what the steppers were sent counts from there, as their
+    /// MCU positions do. On an error the secondaries are left as they
+    /// were, with no homing: the caller shuts the printer down with it
+    /// ([`Self::fail`]).
+    pub fn restart<O: Links<Link = L>>(
+        &mut self,
+        machine: &Machine<'_>,
+        links: &mut O,
+        now: &dyn Fn() -> f64,
+    ) -> Result<(), ConnectError> {
+        self.homing = None;
+        for a in &mut self.attached {
+            a.mcu.reset(a.restart, now)?;
         }
+        let mut names = heapless::Vec::<&'static str, MAX_SECONDARIES>::new();
+        for a in &self.attached {
+            let _ = names.push(a.mcu.name);
+        }
+        let setup = (self.freq, self.mcu_sensor);
+        let fresh = Self::connect_all(
+            machine,
+            &names,
+            self.pulses,
+            setup,
+            links,
+            now,
+            Start::Restarted,
+        );
+        let fresh = fresh.map_err(|e| e.error)?;
+        let timeouts = self.homing_timeouts;
+        *self = fresh;
+        self.homing_timeouts = timeouts;
+        Ok(())
     }
 
-    fn connect_all(
+    /// The printer stays shut down for `reason` (a secondary that could
+    /// not be brought back), whatever stopped it before: no homing goes
+    /// on.
+    pub fn fail(&mut self, reason: Shutdown) {
+        self.failure = Some(reason);
+        self.homing = None;
+    }
+
+    #[allow(clippy::too_many_lines)]
+    fn connect_all<O: Links<Link = L>>(
         machine: &Machine<'_>,
-        pulses: Vec<f64>,
-        freq: f64,
+        names: &[&'static str],
+        pulses: [f64; MAX_STEPPERS],
+        (freq, mcu_sensor): (f64, LinearConversion),
+        links: &mut O,
         now: &dyn Fn() -> f64,
         start: Start,
-    ) -> Result<Self, ConnectError> {
+    ) -> Result<Self, McuError> {
+        let mut dir_inverted = [false; MAX_STEPPERS];
+        for (inverted, s) in dir_inverted.iter_mut().zip(&machine.steppers) {
+            *inverted = pin_ref(s.dir_pin).inverted;
+        }
         let mut all = Self {
-            attached: Vec::new(),
-            routes: vec![None; machine.steppers.len()],
-            sent: vec![SentSteps::default(); machine.steppers.len()],
-            stepper_oids: vec![None; machine.steppers.len()],
-            dir_inverted: machine
-                .steppers
-                .iter()
-                .map(|s| pin_ref(s.dir_pin).inverted)
-                .collect(),
-            endstops: vec![None; machine.steppers.len()],
+            attached: heapless::Vec::new(),
+            routes: Default::default(),
+            sent: Default::default(),
+            dir_inverted,
+            endstops: [None; MAX_STEPPERS],
             homing: None,
             homing_timeouts: 0,
             freq,
             next_calibrate: 0.0,
             failure: None,
-            failed_at: None,
             stopped: false,
-            responses: Vec::new(),
+            positions: heapless::Vec::new(),
             pulses,
-            outputs: Vec::new(),
-            enables: Vec::new(),
-            stepper_enables: vec![None; machine.steppers.len()],
-            inputs: Vec::new(),
-            readings: Vec::new(),
+            mcu_sensor,
+            outputs: core::array::from_fn(|_| None),
+            enables: heapless::Vec::new(),
+            stepper_enables: [None; MAX_STEPPERS],
+            inputs: heapless::Vec::new(),
+            readings: heapless::Deque::new(),
         };
         // The io's outputs, at the main clock.
-        let io = McuSetup::new(machine, freq, 0, mcu_sensor(), 0);
-        all.outputs = vec![None; io.outputs.len()];
-        for secondary in &machine.secondaries {
+        let io = McuSetup::new(machine, freq, 0, mcu_sensor, 0);
+        for (k, secondary) in machine.secondaries.iter().enumerate() {
+            let name = names.get(k).copied().unwrap_or("?");
+            let error = |error: ConnectError| {
+                let (file, line) = secondary.serial_at;
+                let mut at = heapless::String::new();
+                let _ = at.push_str(file);
+                McuError {
+                    mcu: name,
+                    file: at,
+                    line,
+                    error,
+                }
+            };
+            let unsupported = |why: Text| error(ConnectError::Unsupported(why));
             let hard = (io.outputs.iter().skip(machine.heaters.len())).find(|(pin, c)| {
                 pin_ref(pin).mcu == secondary.name && c.kind == OutputKind::HardPwm
             });
             if let Some((pin, _)) = hard {
-                let (file, line) = secondary.serial_at;
-                return Err(ConnectError::Mcu {
-                    mcu: secondary.name.to_string(),
-                    at: (file.to_string(), line),
-                    error: Box::new(ConnectError::Unsupported(format!(
-                        "pin '{pin}': hardware_pwm on a secondary MCU is not supported yet"
-                    ))),
-                });
+                return Err(unsupported(text(format_args!(
+                    "pin '{pin}': hardware_pwm on a secondary MCU is not supported yet"
+                ))));
             }
-        }
-        for secondary in &machine.secondaries {
-            let name: &'static str = Box::leak(secondary.name.to_string().into_boxed_str());
-            let unsupported = |why: String| {
-                let (file, line) = secondary.serial_at;
-                ConnectError::Mcu {
-                    mcu: name.to_string(),
-                    at: (file.to_string(), line),
-                    error: Box::new(ConnectError::Unsupported(why)),
-                }
-            };
-            thermal::check(machine, name).map_err(unsupported)?;
+            thermal::check(machine, secondary.name).map_err(unsupported)?;
             // The config depends on the MCU's clock (step pulses in its
             // ticks), which identify tells; its object ids are kept.
             let oids = Cell::new(Oids::default());
-            let lines = |mcu_freq: f64| {
-                let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
-                let mut lines = Vec::new();
-                let ticks = |i: usize| pulse_ticks(all.pulses[i], mcu_freq);
-                let o = write_config(machine, &setup, name, &ticks, &mut |l| {
-                    lines.push(l.to_string())
-                });
+            let config = |mcu_freq: f64, out: &mut dyn FnMut(&str)| {
+                let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor, 0);
+                let ticks = |i: usize| pulse_ticks(pulses[i], mcu_freq);
+                let o = write_config(machine, &setup, secondary.name, &ticks, &mut |_| {});
                 // One more object: the trsync for homing moves.
-                if let Some(first) = lines.first_mut() {
-                    *first = format!("allocate_oids count={}", u16::from(o.count) + 1);
-                }
-                lines.push(format!("config_trsync oid={}", o.count));
+                let mut first = true;
+                write_config(machine, &setup, secondary.name, &ticks, &mut |l| {
+                    if core::mem::take(&mut first) {
+                        out(&command(format_args!(
+                            "allocate_oids count={}",
+                            u16::from(o.count) + 1
+                        )));
+                    } else {
+                        out(l);
+                    }
+                });
+                out(&command(format_args!("config_trsync oid={}", o.count)));
                 oids.set(o);
-                lines
             };
-            let path = Path::new(secondary.serial);
+            let serial = (secondary.serial, secondary.baud);
             let method = secondary.restart_method;
             let mcu = match start {
-                Start::Fresh => {
-                    Secondary::connect_or_restart(name, path, method, &lines, now, CONNECT_TIMEOUT)
-                }
+                Start::Fresh => Secondary::connect_or_restart(
+                    name,
+                    serial,
+                    links,
+                    method,
+                    &config,
+                    now,
+                    CONNECT_TIMEOUT,
+                ),
                 Start::Restarted => {
-                    Secondary::connect_as(name, path, &lines, now, CONNECT_TIMEOUT, start)
+                    Secondary::connect(name, serial, links, &config, now, CONNECT_TIMEOUT, start)
                 }
             };
-            let mut mcu = mcu.map_err(|e| {
-                let (file, line) = secondary.serial_at;
-                ConnectError::Mcu {
-                    mcu: name.to_string(),
-                    at: (file.to_string(), line),
-                    error: Box::new(e),
-                }
-            })?;
+            let mut mcu = mcu.map_err(error)?;
             let dict = mcu.dictionary();
             let oids = oids.get();
             let k = all.attached.len();
@@ -447,9 +542,12 @@ impl Secondaries {
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
                 let encoder = StepCommandEncoder::new(dict, oid, all.dir_inverted[i])
-                    .map_err(|e| ConnectError::Dictionary(e.to_string()))?;
-                all.routes[i] = Some((all.attached.len(), encoder));
-                all.stepper_oids[i] = Some(oid);
+                    .map_err(|e| error(ConnectError::Dictionary(text(format_args!("{e}")))))?;
+                all.routes[i] = Some(Route {
+                    mcu: k,
+                    oid,
+                    encoder,
+                });
             }
             for (i, endstop) in oids.endstops.iter().enumerate() {
                 let (Some((oid, _)), Some(pin)) = (
@@ -459,19 +557,24 @@ impl Secondaries {
                     continue;
                 };
                 all.endstops[i] = Some(RemoteEndstop {
-                    mcu: all.attached.len(),
+                    mcu: k,
                     oid,
                     inverted: pin_ref(pin).inverted,
                 });
             }
-            all.attached.push(Attached {
+            let attached = Attached {
                 mcu,
-                name,
                 slots: BinaryHeap::new(),
                 trsync: oids.count,
                 restart: secondary.restart_method,
                 reserved: reserved_slots(&oids),
-            });
+            };
+            // machine.secondaries holds at most MAX_SECONDARIES.
+            if all.attached.push(attached).is_err() {
+                return Err(unsupported(text(format_args!(
+                    "more than {MAX_SECONDARIES} secondary MCUs"
+                ))));
+            }
         }
         Ok(all)
     }
@@ -490,7 +593,7 @@ impl Secondaries {
         mcu_freq: f64,
         start: u64,
     ) {
-        let there = McuSetup::new(machine, mcu_freq, 0, mcu_sensor(), 0);
+        let there = McuSetup::new(machine, mcu_freq, 0, self.mcu_sensor, 0);
         // The heaters' outputs first (io order), then the fans' and pins'.
         let heaters = oids.heaters.iter().take(machine.heaters.len());
         let heater_oids = heaters.map(|h| h.1);
@@ -508,7 +611,7 @@ impl Secondaries {
             let mut output = RemoteOutput::new(k, oid, cycle_ticks, pin_ref(pin).inverted);
             let full = full_scale(config.kind);
             if cycle_ticks > 0 {
-                output.pending.push_back((start, level(config.value, full)));
+                output.queue(start, level(config.value, full));
             }
             if let Some(slot) = self.outputs.get_mut(index) {
                 *slot = Some((output, full));
@@ -521,13 +624,18 @@ impl Secondaries {
             };
             let shared =
                 (self.enables.iter()).position(|e| e.output.mcu == k && e.output.oid == oid);
-            let e = shared.unwrap_or_else(|| {
-                self.enables.push(RemoteEnable {
-                    output: RemoteOutput::new(k, oid, 0, pin_ref(pin).inverted),
-                    count: 0,
-                });
-                self.enables.len() - 1
-            });
+            let e = match shared {
+                Some(e) => e,
+                None => {
+                    let enable = RemoteEnable {
+                        output: RemoteOutput::new(k, oid, 0, pin_ref(pin).inverted),
+                        count: 0,
+                    };
+                    // One per stepper at most.
+                    let _ = self.enables.push(enable);
+                    self.enables.len() - 1
+                }
+            };
             self.stepper_enables[i] = Some((e, false));
         }
     }
@@ -541,10 +649,10 @@ impl Secondaries {
         &mut self,
         machine: &Machine<'_>,
         oids: &Oids,
-        mcu: &mut Secondary,
+        mcu: &mut Secondary<L>,
         k: usize,
         now: f64,
-    ) -> Result<(), String> {
+    ) -> Result<(), Text> {
         // Io inputs: the heaters', then the temperature sensors'.
         let heaters = oids.heaters.iter().take(machine.heaters.len());
         let adcs = heaters.map(|h| h.0).chain(oids.sensors);
@@ -556,11 +664,12 @@ impl Secondaries {
             return Ok(());
         }
         let dict = mcu.dictionary();
+        let name = mcu.name;
         let adc_max = thermal::adc_max(dict)
-            .ok_or_else(|| format!("MCU '{}' has no usable ADC_MAX", mcu.name))?;
-        let setup = McuSetup::new(machine, mcu.clock_freq(), adc_max, mcu_sensor(), 0);
+            .ok_or_else(|| text(format_args!("MCU '{name}' has no usable ADC_MAX")))?;
+        let setup = McuSetup::new(machine, mcu.clock_freq(), adc_max, self.mcu_sensor, 0);
         let Some(sync) = mcu.connection().clock().copied() else {
-            return Err(format!("MCU '{}': no clock", mcu.name));
+            return Err(text(format_args!("MCU '{name}': no clock")));
         };
         for (h, oid) in sensors {
             let Some(query) = setup.inputs.get(h).and_then(|(_, q)| q.adc()) else {
@@ -569,17 +678,19 @@ impl Secondaries {
             let clock = thermal::query_slot(&sync, oid, now);
             let command = thermal::query_command(dict, oid, query, clock);
             let sent = mcu.connection().send_text(&command, 0);
-            sent.map_err(|_| format!("MCU '{}': {command} not sent", mcu.name))?;
-            self.inputs
+            sent.map_err(|_| text(format_args!("MCU '{name}': {command} not sent")))?;
+            // At most INPUTS inputs in the io.
+            let _ = self
+                .inputs
                 .push(RemoteInput::new(k, oid, h, query, adc_max));
         }
         Ok(())
     }
 
-    /// The readings of the ADC inputs on secondaries heard since last
-    /// taken, oldest first.
-    pub fn take_readings(&mut self) -> Vec<Reading> {
-        std::mem::take(&mut self.readings)
+    /// The next reading of the ADC inputs on secondaries heard and not
+    /// taken yet, oldest first.
+    pub fn take_reading(&mut self) -> Option<Reading> {
+        self.readings.pop_front()
     }
 
     /// The MCU role's io queued `value` for output `index` at main clock
@@ -612,7 +723,7 @@ impl Secondaries {
         let Some(Some((e, enabled))) = self.stepper_enables.get_mut(stepper) else {
             return;
         };
-        if std::mem::replace(enabled, true) {
+        if core::mem::replace(enabled, true) {
             return;
         }
         let Some(enable) = self.enables.get_mut(*e) else {
@@ -667,7 +778,7 @@ impl Secondaries {
                 && conn.queued() + 1 < OUTBOX
             {
                 let clock = clock.max(soonest);
-                let _ = conn.send_text(&output.command(clock, level), 0);
+                let _ = conn.send_text(&output.update(clock, level), 0);
                 output.last_clock = clock;
                 output.pending.pop_front();
             }
@@ -682,7 +793,9 @@ impl Secondaries {
     /// What stepper `stepper` was sent (nothing if it is not on a
     /// secondary).
     pub fn sent(&self, stepper: usize) -> Option<&SentSteps> {
-        self.sent.get(stepper)
+        self.routes(stepper)
+            .then(|| self.sent.get(stepper))
+            .flatten()
     }
 
     /// Queues a step command for a stepper on a secondary, `clock` (its
@@ -690,16 +803,16 @@ impl Secondaries {
     /// a free slot of the MCU's move queue: it goes out once the oldest
     /// command it displaces has run.
     pub fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
-        let Some(Some((index, encoder))) = self.routes.get(stepper) else {
+        let Some(Some(route)) = self.routes.get(stepper) else {
             return Ok(());
         };
-        let attached = &mut self.attached[*index];
+        let attached = &mut self.attached[route.mcu];
         let conn = attached.mcu.connection();
         if conn.queued() + 1 >= OUTBOX {
             return Err(Full);
         }
         let mut bytes = [0u8; 32];
-        let Ok(len) = encoder.encode(&cmd, &mut bytes) else {
+        let Ok(len) = route.encoder.encode(&cmd, &mut bytes) else {
             return Ok(());
         };
         let mut min_clock = 0;
@@ -710,23 +823,20 @@ impl Secondaries {
                 count,
                 add,
             } => {
-                let room = usize::from(attached.mcu.move_count).saturating_sub(attached.reserved);
-                if attached.slots.len() >= room {
-                    min_clock = attached.slots.pop().map_or(0, |Reverse(c)| c);
+                if attached.slots.len() >= attached.room() {
+                    min_clock = attached.slots.pop().unwrap_or(0);
                 }
-                // Step k comes at clock + k × interval + k(k+1)/2 × add.
-                let mut at = clock;
-                let mut step = i64::from(interval);
-                for _ in 0..count {
-                    sent.clocks.push(at);
-                    sent.directions.push(sent.forward);
-                    step += i64::from(add);
-                    at = at.saturating_add_signed(step);
-                }
-                let last = sent.clocks.last().copied().unwrap_or(clock);
-                attached.slots.push(Reverse(last));
-                sent.count += u64::from(count);
-                sent.position += if sent.forward { 1 } else { -1 } * i64::from(count);
+                let mut last = clock;
+                each_step(clock, interval, count, add, |at| last = at);
+                // Room for it: one was just taken if it was full.
+                let _ = attached.slots.push(last);
+                sent.sent(SentCommand {
+                    clock,
+                    interval,
+                    count,
+                    add,
+                    forward: sent.forward,
+                });
             }
             StepCommand::Dir(forward) => sent.forward = forward,
             StepCommand::ResetClock(_) => {}
@@ -744,53 +854,64 @@ impl Secondaries {
     /// reports are relayed; `stop_main(stops)` stops the main MCU's
     /// steppers when another MCU triggered (or the reports stopped).
     pub fn service(&mut self, now: f64, stop_main: &mut dyn FnMut(u32)) {
-        let mut responses = Vec::new();
+        self.positions.clear();
+        let mut states = heapless::Vec::<(usize, TrsyncState), 16>::new();
         for (k, a) in self.attached.iter_mut().enumerate() {
-            let mut heard = Vec::new();
-            let io = a.mcu.service(now, Duration::ZERO, &mut heard);
-            if self.failure.is_some() {
-                continue;
-            }
-            let lost = Shutdown::LostCommunication { mcu: a.name };
-            let mut failure = io.is_err().then_some(lost);
-            for h in heard {
-                match h {
-                    Heard::Shutdown(reason) => {
-                        let reason: &'static str = Box::leak(reason.into_boxed_str());
-                        failure = Some(Shutdown::Secondary {
-                            mcu: a.name,
-                            reason,
-                        });
+            let name = a.mcu.name;
+            let lost = Shutdown::LostCommunication { mcu: name };
+            let mut failure = None;
+            let (inputs, readings, positions) =
+                (&self.inputs, &mut self.readings, &mut self.positions);
+            let sync = a.mcu.connection().clock().copied();
+            let io = a.mcu.service(&|| now, 0.0, &mut |h| match h {
+                Heard::Shutdown(reason) => {
+                    failure = Some(Shutdown::Secondary { mcu: name, reason });
+                }
+                Heard::Failed(_) => failure = Some(lost),
+                Heard::Response(msg) => {
+                    if let Some(state) = TrsyncState::from_message(msg) {
+                        if states.is_full() {
+                            states.remove(0);
+                        }
+                        let _ = states.push((k, state));
+                    } else if msg.message.name() == "stepper_position"
+                        && let (Some(oid), Some(pos)) = (msg.int("oid"), msg.int("pos"))
+                    {
+                        if positions.is_full() {
+                            positions.remove(0);
+                        }
+                        let _ = positions.push((k, oid as u8, pos));
                     }
-                    Heard::Failed(_) => failure = Some(lost),
-                    Heard::Response(text) => responses.push((k, text)),
-                    Heard::Analog(report) => {
-                        let input = self
-                            .inputs
-                            .iter()
-                            .find(|i| i.mcu == k && i.oid == report.oid);
-                        if let (Some(input), Some(sync)) = (input, a.mcu.connection().clock()) {
-                            self.readings.extend(input.readings(&report, sync));
+                }
+                Heard::Analog(report) => {
+                    let input = inputs.iter().find(|i| i.mcu == k && i.oid == report.oid);
+                    if let (Some(input), Some(sync)) = (input, sync.as_ref()) {
+                        for reading in input.readings(&report, sync) {
+                            if readings.is_full() {
+                                readings.pop_front();
+                            }
+                            let _ = readings.push_back(reading);
                         }
                     }
                 }
+            });
+            if io.is_err() {
+                failure.get_or_insert(lost);
             }
-            if failure.is_some() {
+            if self.failure.is_none() && failure.is_some() {
                 self.failure = failure;
-                self.failed_at = Some(Instant::now());
             }
         }
         self.send_outputs(now);
         if let Some(h) = &mut self.homing {
             let mut mcus = members(&mut self.attached, &h.members);
-            for (k, text) in &responses {
-                if let Some(i) = h.members.iter().position(|m| m == k) {
-                    let _ = h.homing.on_response(&mut mcus, i, text, now, stop_main);
+            for (k, state) in states {
+                if let Some(i) = h.members.iter().position(|&m| m == k) {
+                    let _ = h.homing.on_state(&mut mcus, i, state, now, stop_main);
                 }
             }
             let _ = h.homing.main_news(&mut mcus, now, stop_main);
         }
-        self.responses = responses;
     }
 
     /// How far stepper `stepper`, on a secondary, moved after host time
@@ -798,23 +919,28 @@ impl Secondaries {
     /// forward): as klippy, its position asked of the MCU
     /// (`stepper_get_position`) less its position at the trigger by the
     /// steps sent. None if it is not on a secondary, or its MCU did not
-    /// answer within a second (`now`: host time, s).
-    pub fn moved_since(&mut self, stepper: usize, at: f64, now: &dyn Fn() -> f64) -> Option<i64> {
-        let (k, oid) = match (self.routes.get(stepper), self.stepper_oids.get(stepper)) {
-            (Some(Some((k, _))), Some(Some(oid))) => (*k, *oid),
-            _ => return None,
+    /// answer within a second (`now`: host time, s; `wait(s)` sleeps up
+    /// to `s` s between two services of the links).
+    pub fn moved_since(
+        &mut self,
+        stepper: usize,
+        at: f64,
+        now: &dyn Fn() -> f64,
+        wait: &mut dyn FnMut(f64),
+    ) -> Option<i64> {
+        let Some(Some(route)) = self.routes.get(stepper) else {
+            return None;
         };
+        let (k, oid) = (route.mcu, route.oid);
         let a = self.attached.get_mut(k)?;
         let trigger = a.mcu.connection().clock()?.clock_at(at);
-        let ask = format!("stepper_get_position oid={oid}");
+        let ask = command(format_args!("stepper_get_position oid={oid}"));
         a.mcu.connection().send_text(&ask, 0).ok()?;
-        let answer = format!("stepper_position oid={oid} pos=");
         let deadline = now() + 1.0;
         while now() < deadline && self.failure.is_none() {
             self.service(now(), &mut |_| {});
-            let mut heard = self.responses.iter().filter(|(m, _)| *m == k);
-            let pos = heard.find_map(|(_, text)| text.strip_prefix(&answer)?.parse::<i64>().ok());
-            if let Some(pos) = pos {
+            let answer = self.positions.iter().find(|p| p.0 == k && p.1 == oid);
+            if let Some(&(_, _, pos)) = answer {
                 // The MCU counts by its direction pin's level.
                 let inverted = self.dir_inverted.get(stepper).copied().unwrap_or(false);
                 let halt = if inverted { -pos } else { pos };
@@ -823,7 +949,7 @@ impl Secondaries {
                 sent.halted_at(halt);
                 return Some(moved);
             }
-            std::thread::sleep(Duration::from_millis(1));
+            wait(0.001);
         }
         None
     }
@@ -847,41 +973,47 @@ impl Secondaries {
         self.homing = None;
         let remote = self.endstops.get(endstop_of).copied().flatten();
         let mut main_stops = 0;
-        let mut members: Vec<usize> = remote.iter().map(|e| e.mcu).collect();
+        let mut taking_part = heapless::Vec::<usize, MAX_SECONDARIES>::new();
+        let mut add = |k: usize| {
+            if !taking_part.contains(&k) {
+                let _ = taking_part.push(k);
+            }
+        };
+        if let Some(e) = remote {
+            add(e.mcu);
+        }
         for i in (0..32).filter(|i| stops & (1 << i) != 0) {
             match self.routes.get(i) {
-                Some(Some((k, _))) => members.push(*k),
+                Some(Some(route)) => add(route.mcu),
                 _ => main_stops |= 1 << i,
             }
         }
-        members.sort_unstable();
-        members.dedup();
-        if members.is_empty() {
+        taking_part.sort_unstable();
+        if taking_part.is_empty() {
             return None;
         }
         let main_takes_part = main_stops != 0 || remote.is_none();
-        let trsyncs: Vec<u8> = members.iter().map(|&k| self.attached[k].trsync).collect();
-        let steppers: Vec<Vec<u8>> = members
-            .iter()
-            .map(|&k| {
-                (0..self.routes.len())
-                    .filter(|&i| stops & (1 << i) != 0)
-                    .filter(|&i| matches!(self.routes[i], Some((m, _)) if m == k))
-                    .filter_map(|i| self.stepper_oids[i])
-                    .collect()
-            })
-            .collect();
+        let mut trsyncs = heapless::Vec::<u8, MAX_SECONDARIES>::new();
+        let mut steppers: [heapless::Vec<u8, MAX_STEPPERS>; MAX_SECONDARIES] =
+            core::array::from_fn(|_| heapless::Vec::new());
+        for (m, &k) in taking_part.iter().enumerate() {
+            let _ = trsyncs.push(self.attached[k].trsync);
+            let on_k = (self.routes.iter().enumerate())
+                .filter(|(i, _)| *i < 32 && stops & (1 << i) != 0)
+                .filter_map(|(_, r)| r.as_ref().filter(|r| r.mcu == k));
+            steppers[m].extend(on_k.map(|r| r.oid));
+        }
         let freq = self.freq;
-        let mut mcus: Vec<&mut Secondary> = self
-            .attached
-            .iter_mut()
-            .enumerate()
-            .filter(|(k, _)| members.contains(k))
-            .map(|(_, a)| &mut a.mcu)
+        let steppers: heapless::Vec<&[u8], MAX_SECONDARIES> = steppers
+            .iter()
+            .take(taking_part.len())
+            .map(|s| s.as_slice())
             .collect();
-        let steppers: Vec<&[u8]> = steppers.iter().map(Vec::as_slice).collect();
         let main = main_takes_part.then_some((main_stops, freq));
-        let homing = Homing::start_with_main(&mut mcus, &trsyncs, &steppers, main, start).ok()?;
+        let mut mcus = members(&mut self.attached, &taking_part);
+        let homing = Homing::start_with_main(&mut mcus, &trsyncs, &steppers, main, start);
+        drop(mcus);
+        let homing = homing.ok()?;
         let mut endstop = None;
         if let Some(e) = remote {
             let a = &mut self.attached[e.mcu];
@@ -889,7 +1021,7 @@ impl Secondaries {
             let ticks =
                 |main_ticks: u32| (f64::from(main_ticks) / freq * sync.mcu_freq()).max(1.0) as u32;
             let (sample_ticks, sample_count, rest_ticks) = sampling;
-            let home = format!(
+            let home = command(format_args!(
                 "endstop_home oid={} clock={} sample_ticks={} sample_count={sample_count} rest_ticks={} pin_value={} trsync_oid={} trigger_reason={}",
                 e.oid,
                 sync.clock_at(start) & 0xffff_ffff,
@@ -897,14 +1029,14 @@ impl Secondaries {
                 ticks(rest_ticks),
                 u8::from(!e.inverted),
                 a.trsync,
-                onechip_secondary_mcu::trsync::reason::ENDSTOP_HIT
-            );
+                reason::ENDSTOP_HIT
+            ));
             a.mcu.connection().send_text(&home, 0).ok()?;
             endstop = Some((e.mcu, e.oid));
         }
         self.homing = Some(ActiveHoming {
             homing,
-            members,
+            members: taking_part,
             endstop,
             taken: false,
         });
@@ -933,7 +1065,7 @@ impl Secondaries {
         }
         let trigger = h.homing.triggered()?;
         h.taken = true;
-        if trigger.1 == onechip_secondary_mcu::trsync::reason::COMMS_TIMEOUT {
+        if trigger.1 == reason::COMMS_TIMEOUT {
             self.homing_timeouts += 1;
         }
         Some(trigger)
@@ -950,15 +1082,14 @@ impl Secondaries {
         let Some(mut h) = self.homing.take() else {
             return;
         };
-        let mut mcus = members(&mut self.attached, &h.members);
-        let _ = h.homing.finish(&mut mcus, now);
+        let _ = h
+            .homing
+            .finish(&mut members(&mut self.attached, &h.members), now);
         if let Some((k, oid)) = h.endstop {
-            let _ = self.attached[k].mcu.connection().send_text(
-                &format!(
-                    "endstop_home oid={oid} clock=0 sample_ticks=0 sample_count=0 rest_ticks=0 pin_value=0 trsync_oid=0 trigger_reason=0"
-                ),
-                0,
-            );
+            let disarm = command(format_args!(
+                "endstop_home oid={oid} clock=0 sample_ticks=0 sample_count=0 rest_ticks=0 pin_value=0 trsync_oid=0 trigger_reason=0"
+            ));
+            let _ = self.attached[k].mcu.connection().send_text(&disarm, 0);
         }
     }
 
@@ -967,20 +1098,17 @@ impl Secondaries {
         self.failure
     }
 
-    /// When (wall clock) the secondary's fault was noticed, if one was.
-    pub fn failed_at(&self) -> Option<Instant> {
-        self.failed_at
-    }
-
     /// Each secondary's name and link counters (retransmissions, bytes).
     pub fn links(&self) -> impl Iterator<Item = (&'static str, LinkStats)> + '_ {
-        self.attached.iter().map(|a| (a.name, a.mcu.link_stats()))
+        self.attached
+            .iter()
+            .map(|a| (a.mcu.name, a.mcu.link_stats()))
     }
 
     /// Every secondary stops at once (`emergency_stop`), as klippy does
     /// when the printer shuts down.
     pub fn emergency_stop(&mut self, now: f64) {
-        if std::mem::replace(&mut self.stopped, true) {
+        if core::mem::replace(&mut self.stopped, true) {
             return;
         }
         for a in &mut self.attached {
@@ -998,19 +1126,13 @@ impl Secondaries {
             return;
         }
         self.next_calibrate = now + CALIBRATE_PERIOD;
-        let lines: Vec<Option<(f64, f64)>> = self
-            .attached
-            .iter_mut()
-            .map(|a| {
-                a.mcu
-                    .connection()
-                    .clock_mut()
-                    .map(|c| c.calibrate(print_time, now))
-            })
-            .collect();
+        let mut lines = [None; MAX_SECONDARIES];
+        for (line, a) in lines.iter_mut().zip(&mut self.attached) {
+            *line = (a.mcu.connection().clock_mut()).map(|c| c.calibrate(print_time, now));
+        }
         for (stepper, route) in self.routes.iter().enumerate() {
-            if let Some((index, _)) = route
-                && let Some(Some((offset, freq))) = lines.get(*index)
+            if let Some(route) = route
+                && let Some(Some((offset, freq))) = lines.get(route.mcu)
             {
                 set(stepper, *offset, *freq);
             }
@@ -1021,4 +1143,14 @@ impl Secondaries {
     pub fn freq(&self) -> f64 {
         self.freq
     }
+}
+
+/// The secondaries among `attached` whose indices are `members` (a
+/// homing's), in order.
+fn members<'a, L>(
+    attached: &'a mut [Attached<L>],
+    members: &[usize],
+) -> heapless::Vec<&'a mut Secondary<L>, MAX_SECONDARIES> {
+    let chosen = (attached.iter_mut().enumerate()).filter(|(k, _)| members.contains(k));
+    chosen.map(|(_, a)| &mut a.mcu).collect()
 }
