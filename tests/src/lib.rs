@@ -4,6 +4,7 @@
 pub mod noisy_link;
 pub mod peers;
 pub mod qemu;
+pub mod sd_folder;
 
 pub use onechip_golden::{golden_dir, summary_value};
 

@@ -78,9 +78,7 @@ pub fn shipped_printer(
     mcus: &[(&str, &Path, &str)],
     gcode: &str,
 ) {
-    let shipped = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../sdcard-configs/octopus-pro-h723/printer.cfg");
-    let mut cfg = std::fs::read_to_string(shipped).expect("shipped printer.cfg");
+    let mut cfg = crate::sd_folder::shipped_cfg();
     for (from, to) in edits {
         assert!(
             cfg.contains(from),
@@ -95,9 +93,7 @@ pub fn shipped_printer(
         );
         cfg = cfg.replace("[printer]", &section);
     }
-    std::fs::create_dir_all(dir).expect("sd folder");
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("printer.cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
+    crate::sd_folder::write(dir, &cfg, Some(gcode));
 }
 
 /// [`shipped_printer`] with its extruder on the secondary MCU `ext`

@@ -13,6 +13,7 @@
 
 use onechip_host::Options;
 use onechip_host::serial::{Port, serve};
+use onechip_tests::sd_folder;
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -30,15 +31,7 @@ fn root() -> PathBuf {
 
 /// A fresh SD folder with the shipped printer.cfg.
 fn sd(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-clients-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    std::fs::copy(
-        root().join("sdcard-configs/octopus-pro-h723/printer.cfg"),
-        dir.join("printer.cfg"),
-    )
-    .expect("printer.cfg");
-    dir
+    sd_folder::new(&format!("clients-{name}"), &sd_folder::shipped_cfg(), None)
 }
 
 /// A host on the simulator's port: sends lines, reads replies to `ok`.
@@ -192,10 +185,9 @@ fn a_print_through_the_port_steps_as_the_same_file_from_the_card() {
     let dir = sd("same-steps");
     // The shipped sample, heater waits included (the hot end must reach
     // min_extrude_temp before it extrudes).
-    let program = std::fs::read_to_string(
-        root().join("sdcard-configs/octopus-pro-h723/first-layer-square.gcode"),
-    )
-    .expect("sample");
+    let program =
+        std::fs::read_to_string(sd_folder::shipped_dir().join("first-layer-square.gcode"))
+            .expect("sample");
     // At 10×, a host stalled for 0.2 s (a loaded CI machine) is 2 s late
     // in virtual time, as long as the lookahead holds (see the slow-host
     // test below).

@@ -6,20 +6,16 @@
 
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start};
+use onechip_tests::sd_folder;
 use std::path::{Path, PathBuf};
 
 /// A short job: home while the hot end heats, then a square with
 /// extrusion.
 const JOB: &str = "M104 S200\nG28\nM109 S200\nG90\nG1 Z5 F600\nG1 X20 Y20 F6000\nG1 X60 Y20 E2\nG1 X60 Y60 E4\nG1 X20 Y60 E6\nG1 X20 Y20 E8\nM400\n";
 
+/// A fresh SD folder with the shipped printer.cfg.
 fn sd(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-protocol-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    std::fs::copy(shipped.join("printer.cfg"), dir.join("printer.cfg")).expect("cfg");
-    dir
+    sd_folder::new(&format!("protocol-{name}"), &sd_folder::shipped_cfg(), None)
 }
 
 fn printer(dir: &Path) -> ConsolePrinter {

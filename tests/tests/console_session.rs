@@ -5,6 +5,7 @@
 //! the same printer. printer.cfg is only an `[include]` of the machine.
 
 use onechip_host::Options;
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
 
 const SCRIPT: &str = "M115\n\
@@ -19,12 +20,9 @@ G1 X60 Y40 E2 F3000\n\
 M114\n";
 
 fn sd() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-console-{}", std::process::id()));
+    let dir = sd_folder::new("console", "[include machine/*.cfg]\n", None);
     std::fs::create_dir_all(dir.join("machine")).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    std::fs::copy(shipped.join("printer.cfg"), dir.join("machine/octopus.cfg")).expect("cfg");
-    std::fs::write(dir.join("printer.cfg"), "[include machine/*.cfg]\n").expect("include");
+    std::fs::write(dir.join("machine/octopus.cfg"), sd_folder::shipped_cfg()).expect("cfg");
     std::fs::write(dir.join("session.gcode"), SCRIPT).expect("gcode");
     dir
 }

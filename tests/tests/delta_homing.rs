@@ -7,6 +7,7 @@
 //! G28 with Klipper's message.
 
 use onechip_host::{Options, Start, Summary};
+use onechip_tests::sd_folder;
 use std::path::{Path, PathBuf};
 
 /// Arm length and delta radius, mm.
@@ -44,14 +45,11 @@ fn config(endstops: [f64; 3]) -> String {
 }
 
 fn sd(name: &str, endstops: [f64; 3], gcode: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "onechip-delta-homing-{name}-{}",
-        std::process::id()
-    ));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    std::fs::write(dir.join("printer.cfg"), config(endstops)).expect("cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
-    dir
+    sd_folder::new(
+        &format!("delta-homing-{name}"),
+        &config(endstops),
+        Some(gcode),
+    )
 }
 
 fn run(dir: &Path, start: [f64; 3], dead_endstop: Option<usize>) -> Summary {

@@ -9,6 +9,7 @@
 
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start, Summary};
+use onechip_tests::sd_folder;
 use std::path::{Path, PathBuf};
 
 /// The extra stepper's section name, as its step log names it.
@@ -22,12 +23,7 @@ const STEP_TOLERANCE: f64 = 25e-6;
 /// whole millimetres are whole steps) and `[extruder_stepper e1]` with
 /// `e1` lines; `gcode` as its job.
 fn sd(name: &str, e1: &str, gcode: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-estep-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let text = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let text = sd_folder::shipped_cfg();
     assert!(text.contains("rotation_distance: 33.500\n"));
     let text = text
         .replace("[extruder]\n", "[extruder]\nmin_extrude_temp: 0\n")
@@ -36,9 +32,7 @@ fn sd(name: &str, e1: &str, gcode: &str) -> PathBuf {
         "\n[extruder_stepper e1]\nstep_pin: PG4\ndir_pin: PC1\nenable_pin: !PA2\n\
          microsteps: 16\n{e1}\n"
     );
-    std::fs::write(dir.join("printer.cfg"), text + &section).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
-    dir
+    sd_folder::new(&format!("estep-{name}"), &(text + &section), Some(gcode))
 }
 
 /// Runs the folder's job with every step logged; the summary and the
@@ -210,25 +204,19 @@ fn the_geeetech_301s_extruder_steppers_follow_the_extruder_once_synced() {
     // Klipper's stock config for the Geeetech A30 / 301 (three filaments
     // into one nozzle: `[extruder_stepper e1]` and `e2` synced to
     // nothing), extruding cold; the G-code syncs one, then the other.
-    let dir = std::env::temp_dir().join(format!("onechip-estep-301-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
     let stock = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../../shared/klipper-configs/printer-geeetech-301-2019.cfg");
     let text = std::fs::read_to_string(stock).expect("stock config");
-    std::fs::write(
-        dir.join("printer.cfg"),
-        text + "\n[extruder]\nmin_extrude_temp: 0\n",
-    )
-    .expect("write cfg");
-    std::fs::write(
-        dir.join("job.gcode"),
-        "G28\nG1 Z150 F6000\nM83\nG1 X10 E1 F1200\n\
-         SYNC_EXTRUDER_MOTION EXTRUDER=e1 MOTION_QUEUE=extruder\nG1 Y10 E1\n\
-         SYNC_EXTRUDER_MOTION EXTRUDER=e1 MOTION_QUEUE=\n\
-         SYNC_EXTRUDER_MOTION EXTRUDER=e2 MOTION_QUEUE=extruder\nG1 X-10 E2\nM400\n",
-    )
-    .expect("gcode");
+    let dir = sd_folder::new(
+        "estep-301",
+        &(text + "\n[extruder]\nmin_extrude_temp: 0\n"),
+        Some(
+            "G28\nG1 Z150 F6000\nM83\nG1 X10 E1 F1200\n\
+             SYNC_EXTRUDER_MOTION EXTRUDER=e1 MOTION_QUEUE=extruder\nG1 Y10 E1\n\
+             SYNC_EXTRUDER_MOTION EXTRUDER=e1 MOTION_QUEUE=\n\
+             SYNC_EXTRUDER_MOTION EXTRUDER=e2 MOTION_QUEUE=extruder\nG1 X-10 E2\nM400\n",
+        ),
+    );
     let s = onechip_host::run_with(
         &dir,
         &Options {

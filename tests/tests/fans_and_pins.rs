@@ -7,6 +7,7 @@
 
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start};
+use onechip_tests::sd_folder;
 use std::path::{Path, PathBuf};
 
 /// Sections added to the shipped printer.cfg.
@@ -45,15 +46,11 @@ const JOB: &str = "G28\nG90\nG1 Z5 F600\nG1 X20 Y20 F6000\nG1 X200 Y20 F600\nG1 
 /// A throw-away SD folder: the shipped printer.cfg with `extras`, and
 /// the job.
 fn sd(name: &str, extras: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-pins-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
-    std::fs::write(dir.join("printer.cfg"), cfg + extras).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), JOB).expect("write job");
-    dir
+    sd_folder::new(
+        &format!("pins-{name}"),
+        &(sd_folder::shipped_cfg() + extras),
+        Some(JOB),
+    )
 }
 
 fn printer(dir: &Path) -> ConsolePrinter {

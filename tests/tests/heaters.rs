@@ -3,26 +3,22 @@
 //! whole printer down.
 
 use onechip_host::Options;
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
-
-fn shipped_default() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
-}
 
 /// A throw-away SD folder with the shipped printer.cfg (edited by `cfg`)
 /// and `gcode`.
 fn sd_with(name: &str, cfg: impl Fn(String) -> String, gcode: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-heat-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    std::fs::write(dir.join("printer.cfg"), cfg(text)).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("write gcode");
-    dir
+    sd_folder::new(
+        &format!("heat-{name}"),
+        &cfg(sd_folder::shipped_cfg()),
+        Some(gcode),
+    )
 }
 
 #[test]
 fn an_open_thermistor_mid_print_shuts_everything_down() {
-    let whole = onechip_host::run(&shipped_default(), None).expect("runs");
+    let whole = onechip_host::run(&sd_folder::shipped_dir(), None).expect("runs");
     assert_eq!(whole.shutdown, None);
     // The hot end's thermistor opens 60 s into the print, once it reached
     // 200 °C, while Z homes.
@@ -30,7 +26,7 @@ fn an_open_thermistor_mid_print_shuts_everything_down() {
         open_sensor: Some((60.0, 0)),
         ..Options::default()
     };
-    let s = onechip_host::run_with(&shipped_default(), &options).expect("runs");
+    let s = onechip_host::run_with(&sd_folder::shipped_dir(), &options).expect("runs");
     assert_eq!(s.shutdown.as_deref(), Some("ADC out of range"));
     // Four reports in a row (0.3 s apart) out of range, then every stepper
     // stops and both heaters are off.

@@ -4,16 +4,15 @@
 //! afterwards is what Klipper sets, which is where the toolhead really is.
 
 use onechip_host::{Options, Start};
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
 
 fn sd(name: &str, gcode: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-homing-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    std::fs::copy(shipped.join("printer.cfg"), dir.join("printer.cfg")).expect("cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("gcode");
-    dir
+    sd_folder::new(
+        &format!("homing-{name}"),
+        &sd_folder::shipped_cfg(),
+        Some(gcode),
+    )
 }
 
 /// The shipped machine: endstops at X 0, Y 0, Z 0.5; 0.0125 mm per X/Y

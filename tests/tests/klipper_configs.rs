@@ -33,6 +33,7 @@ use onechip_config::Config;
 use onechip_host::{Options, SimError, Start, Summary};
 use onechip_planner::machine::Machine;
 use onechip_planner::toolhead::Travel;
+use onechip_tests::sd_folder;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -203,9 +204,7 @@ fn run(file: &Path, dir: &Path) -> RunResult {
 /// folder `dir`, the toolhead starting at `start` (mm), as on its own
 /// board (its pins not checked against the simulated board's).
 fn run_in(dir: &Path, text: &str, job: &str, start: [f64; 3]) -> Result<Summary, SimError> {
-    std::fs::create_dir_all(dir).expect("temp dir");
-    std::fs::write(dir.join("printer.cfg"), text).expect("write printer.cfg");
-    std::fs::write(dir.join("job.gcode"), job).expect("write job");
+    sd_folder::write(dir, text, Some(job));
     let options = Options {
         start: Start::At(start),
         board_pins: false,

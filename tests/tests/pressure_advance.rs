@@ -5,19 +5,14 @@
 
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start};
-use std::path::PathBuf;
+use onechip_tests::sd_folder;
 
 #[test]
 fn set_pressure_advance_reports_changes_and_refuses_as_klipper() {
-    let dir = std::env::temp_dir().join(format!("onechip-pa-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let cfg = sd_folder::shipped_cfg();
     // Extruding cold, as the simulated hot end is not heated here.
     let cfg = cfg.replace("[extruder]\n", "[extruder]\nmin_extrude_temp: 0\n");
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
+    let dir = sd_folder::new("pa", &cfg, None);
     let options = Options {
         start: Start::At([50.0, 80.0, 30.0]),
         ..Options::default()

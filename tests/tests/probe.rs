@@ -12,7 +12,7 @@ use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::probe_physics::BltouchFault;
 use onechip_host::{Options, Start};
 use onechip_planner::bltouch::Command;
-use std::path::PathBuf;
+use onechip_tests::sd_folder;
 
 /// Z mm per step of the shipped printer.
 const Z_STEP: f64 = 0.0025;
@@ -74,15 +74,11 @@ fn shipped_with_options(
     sections: &str,
     options: Options,
 ) -> ConsolePrinter {
-    let dir = std::env::temp_dir().join(format!("onechip-probe-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let cfg = sd_folder::shipped_cfg();
     assert!(cfg.contains(replace.0), "the shipped config changed");
     let cfg = cfg.replace(replace.0, replace.1);
     let cfg = format!("{cfg}\n{sections}\n");
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("write cfg");
+    let dir = sd_folder::new(&format!("probe-{name}"), &cfg, None);
     ConsolePrinter::new(&dir, &options).expect("loads")
 }
 

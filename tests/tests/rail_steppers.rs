@@ -5,7 +5,7 @@
 //! stops with the rail's endstop.
 
 use onechip_host::{Options, Start, Summary};
-use std::path::PathBuf;
+use onechip_tests::sd_folder;
 
 /// mm per Z step on the shipped machine.
 const Z_STEP: f64 = 0.0025;
@@ -16,11 +16,7 @@ const RACKED: f64 = 1.0;
 /// Octopus Pro's stock `[stepper_z1]` pins) and `endstop` lines, homed and
 /// moved from a racked gantry.
 fn racked_run(name: &str, endstop: &str) -> Summary {
-    let dir = std::env::temp_dir().join(format!("onechip-rail-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let text = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let text = sd_folder::shipped_cfg();
     let z = text.find("[stepper_z]").expect("a Z rail");
     let z_steps = "step_pin: PF11";
     let rotation = text[z..]
@@ -36,12 +32,11 @@ fn racked_run(name: &str, endstop: &str) -> Summary {
         "\n[stepper_z1]\nstep_pin: PG4\ndir_pin: PC1\nenable_pin: !PA2\n{microsteps}\n\
          {rotation}\n{endstop}\n"
     );
-    std::fs::write(dir.join("printer.cfg"), text + &extra).expect("write cfg");
-    std::fs::write(
-        dir.join("job.gcode"),
-        "G28\nM114\nG1 Z10 F600\nM114\nM400\nM119\n",
-    )
-    .expect("gcode");
+    let dir = sd_folder::new(
+        &format!("rail-{name}"),
+        &(text + &extra),
+        Some("G28\nM114\nG1 Z10 F600\nM114\nM400\nM119\n"),
+    );
     let s = onechip_host::run_with(
         &dir,
         &Options {
@@ -114,15 +109,13 @@ fn an_extra_stepper_without_an_endstop_moves_with_its_rail() {
 #[test]
 fn a_dead_endstop_on_an_extra_stepper_fails_g28_with_klippers_message() {
     let dir_summary = {
-        let dir = std::env::temp_dir().join(format!("onechip-rail-dead-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        let shipped =
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-        let text = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
         let extra = "\n[stepper_z1]\nstep_pin: PG4\ndir_pin: PC1\nenable_pin: !PA2\n\
                      microsteps: 16\nrotation_distance: 8\nendstop_pin: PG11\n";
-        std::fs::write(dir.join("printer.cfg"), text + extra).expect("write cfg");
-        std::fs::write(dir.join("job.gcode"), "G28 Z\n").expect("gcode");
+        let dir = sd_folder::new(
+            "rail-dead",
+            &(sd_folder::shipped_cfg() + extra),
+            Some("G28 Z\n"),
+        );
         let s = onechip_host::run_with(
             &dir,
             &Options {

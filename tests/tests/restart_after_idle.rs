@@ -7,21 +7,16 @@
 
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, Start};
-use std::path::PathBuf;
+use onechip_tests::sd_folder;
 
 #[test]
 fn a_move_after_the_queue_went_idle_starts_after_the_generated_steps() {
-    let dir = std::env::temp_dir().join(format!("onechip-restart-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let cfg = sd_folder::shipped_cfg();
     let shaped = format!(
         "{cfg}\n[input_shaper]\nshaper_type_x: mzv\nshaper_freq_x: 40\n\
          shaper_type_y: ei\nshaper_freq_y: 35\n"
     );
-    std::fs::write(dir.join("printer.cfg"), shaped).expect("cfg");
+    let dir = sd_folder::new("restart", &shaped, None);
     let options = Options {
         start: Start::At([50.0, 80.0, 30.0]),
         ..Options::default()

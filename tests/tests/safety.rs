@@ -5,21 +5,17 @@
 //! without XY motion, with Klipper's messages.
 
 use onechip_host::{Options, Summary};
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
-
-fn shipped_default() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
-}
 
 /// A throw-away SD folder with the shipped printer.cfg plus `extra` and
 /// `gcode`.
 fn sd_with(name: &str, extra: &str, gcode: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-safety-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    std::fs::write(dir.join("printer.cfg"), text + extra).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("write gcode");
-    dir
+    sd_folder::new(
+        &format!("safety-{name}"),
+        &(sd_folder::shipped_cfg() + extra),
+        Some(gcode),
+    )
 }
 
 /// Runs `gcode` on the shipped printer (plus `extra` config) with heater
@@ -115,7 +111,7 @@ fn a_weak_heater_that_stalls_below_its_target_shuts_the_printer_down() {
 #[test]
 fn a_normal_heat_up_never_trips_verify_heater() {
     // The shipped job: bed and hot end heat while homing, then print.
-    let s = onechip_host::run(&shipped_default(), None).expect("runs");
+    let s = onechip_host::run(&sd_folder::shipped_dir(), None).expect("runs");
     assert_eq!(s.shutdown, None);
     assert_eq!(s.errors, []);
     // Hotter, and held for five minutes: the bed to 110 °C (its simulated

@@ -13,6 +13,7 @@ use onechip_config::ConfigFile;
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_host::{Options, SimError, Start};
 use onechip_planner::tmc::config::TSTEP_MAX;
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
 
 fn corpus() -> PathBuf {
@@ -21,11 +22,7 @@ fn corpus() -> PathBuf {
 
 /// A fresh SD folder named `name` holding `cfg` as printer.cfg.
 fn sd(name: &str, cfg: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("onechip-sensorless-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    std::fs::write(dir.join("printer.cfg"), cfg).expect("write");
-    dir
+    sd_folder::new(&format!("sensorless-{name}"), cfg, None)
 }
 
 /// Stock config `file`'s text with `edits` (`from`, `to`) made.
@@ -219,9 +216,7 @@ fn a_driver_that_never_stalls_ends_with_no_trigger_after_full_movement() {
 /// hardware SPI), homing on its DIAG1 output wired to `diag` (the X
 /// endstop input, PG6, pulled up), written as `endstop`.
 fn octopus_5160(endstop: &str, diag: Option<&str>) -> String {
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
+    let cfg = sd_folder::shipped_cfg();
     let x = cfg.find("[stepper_x]").expect("[stepper_x]");
     let line = cfg[x..].find("endstop_pin:").expect("endstop_pin") + x;
     let end = cfg[line..].find('\n').expect("line end") + line;

@@ -2,28 +2,17 @@
 //! input, end to end through the host build.
 
 use onechip_planner::machine::Kinematics;
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
-
-fn shipped_default() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
-}
 
 /// A throw-away SD folder with the shipped printer.cfg and `gcode`.
 fn sd_with(name: &str, gcode: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    std::fs::copy(
-        shipped_default().join("printer.cfg"),
-        dir.join("printer.cfg"),
-    )
-    .expect("copy cfg");
-    std::fs::write(dir.join("job.gcode"), gcode).expect("write gcode");
-    dir
+    sd_folder::new(name, &sd_folder::shipped_cfg(), Some(gcode))
 }
 
 #[test]
 fn the_shipped_default_plans_cleanly() {
-    let s = onechip_host::run(&shipped_default(), None).expect("runs");
+    let s = onechip_host::run(&sd_folder::shipped_dir(), None).expect("runs");
     assert!(s.gcode_path.ends_with("first-layer-square.gcode"));
     assert_eq!(s.kinematics, Kinematics::Cartesian);
     assert_eq!(s.errors, []);
@@ -175,7 +164,7 @@ fn a_plot_of_a_window_is_written_as_svg() {
         to: 104.5,
     };
     let s = onechip_host::run_with(
-        &shipped_default(),
+        &sd_folder::shipped_dir(),
         &onechip_host::Options {
             plot: Some((out.clone(), window)),
             ..onechip_host::Options::default()

@@ -5,11 +5,7 @@
 //! both agree; the MCU's fault and range checks shut everything down with
 //! Klipper's messages.
 
-use std::path::PathBuf;
-
-fn shipped_default() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
-}
+use onechip_tests::sd_folder;
 
 /// The shipped printer.cfg with the hot end's sensor replaced by `sensor`
 /// (chip select PA4 on the board's SPI1) and `extra` appended, running
@@ -21,10 +17,7 @@ fn run(
     job: &str,
     options: &onechip_host::Options,
 ) -> onechip_host::Summary {
-    let dir = std::env::temp_dir().join(format!("onechip-spi-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    let text = text.replace(
+    let text = sd_folder::shipped_cfg().replace(
         "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F",
         &format!("sensor_pin: PA4\nspi_bus: spi1\n{sensor}"),
     );
@@ -38,8 +31,7 @@ fn run(
     } else {
         text
     };
-    std::fs::write(dir.join("printer.cfg"), text + "\n" + extra).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), job).expect("write gcode");
+    let dir = sd_folder::new(&format!("spi-{name}"), &(text + "\n" + extra), Some(job));
     let s = onechip_host::run_with(&dir, options).expect("runs");
     std::fs::remove_dir_all(&dir).ok();
     s
@@ -147,8 +139,7 @@ fn the_chips_configuration_is_written_at_start_and_a_max31865_fault_clears_it() 
     use onechip_host::thermal_plant::{Plant, mcu_sensor};
     // A MAX31856 (J type, 8 samples) on the hot end, a 3-wire MAX31865
     // sensor beside it.
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    let text = text.replace(
+    let text = sd_folder::shipped_cfg().replace(
         "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F",
         "sensor_pin: PA4\nsensor_type: MAX31856\ntc_type: J\ntc_averaging_count: 8",
     ) + "\n[temperature_sensor rtd]\nsensor_type: MAX31865\nsensor_pin: PG12\n\
@@ -207,9 +198,7 @@ fn the_chips_configuration_is_written_at_start_and_a_max31865_fault_clears_it() 
 
 #[test]
 fn a_bus_the_board_lacks_is_a_config_error_naming_file_line_and_option() {
-    let dir = std::env::temp_dir().join(format!("onechip-spi-bus-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
+    let text = sd_folder::shipped_cfg();
     let at = text
         .lines()
         .position(|l| l == "sensor_pin: PF4")
@@ -219,8 +208,7 @@ fn a_bus_the_board_lacks_is_a_config_error_naming_file_line_and_option() {
         "sensor_pin: PF4\nsensor_type: EPCOS 100K B57560G104F",
         "sensor_pin: PA4\nsensor_type: MAX31855\nspi_bus: spi2b",
     );
-    std::fs::write(dir.join("printer.cfg"), text).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), "M105\n").expect("write gcode");
+    let dir = sd_folder::new("spi-bus", &text, Some("M105\n"));
     let s = onechip_host::run(&dir, None);
     std::fs::remove_dir_all(&dir).ok();
     let text = match s {

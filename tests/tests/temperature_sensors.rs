@@ -5,22 +5,16 @@
 //! MCU's range check (from min_temp and max_temp) must hold whichever way
 //! the sensor's reading runs with temperature.
 
-use std::path::PathBuf;
-
-fn shipped_default() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723")
-}
+use onechip_tests::sd_folder;
 
 /// The shipped printer.cfg with the hot end's sensor lines replaced by
 /// `sensor` and `extra` sections appended, heating the hot end to 200 °C
 /// and waiting for it.
 fn heat_with(name: &str, sensor: &str, extra: &str) -> onechip_host::Summary {
-    let dir = std::env::temp_dir().join(format!("onechip-sensor-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    let text = text.replace("sensor_type: EPCOS 100K B57560G104F", sensor) + "\n" + extra;
-    std::fs::write(dir.join("printer.cfg"), text).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), "M109 S200\nM105\n").expect("write gcode");
+    let text = sd_folder::shipped_cfg().replace("sensor_type: EPCOS 100K B57560G104F", sensor)
+        + "\n"
+        + extra;
+    let dir = sd_folder::new(&format!("sensor-{name}"), &text, Some("M109 S200\nM105\n"));
     let s = onechip_host::run(&dir, None).expect("runs");
     std::fs::remove_dir_all(&dir).ok();
     s
@@ -58,15 +52,11 @@ fn a_rising_sensor_read_past_max_temp_shuts_everything_down() {
     // An AD595 on a 3.3 V ADC: a reading stuck at full scale (3.3 V, some
     // 327 °C) is past max_temp (250 °C), so the MCU's range check, whose
     // limits run the other way than a thermistor's, must trip.
-    let dir = std::env::temp_dir().join(format!("onechip-sensor-open-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    let text = text.replace(
+    let text = sd_folder::shipped_cfg().replace(
         "sensor_type: EPCOS 100K B57560G104F",
         "sensor_type: AD595\nadc_voltage: 3.3",
     );
-    std::fs::write(dir.join("printer.cfg"), text).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), "M104 S200\nG4 P60000\n").expect("write gcode");
+    let dir = sd_folder::new("sensor-open", &text, Some("M104 S200\nG4 P60000\n"));
     let options = onechip_host::Options {
         open_sensor: Some((30.0, 0)),
         ..onechip_host::Options::default()
@@ -79,11 +69,11 @@ fn a_rising_sensor_read_past_max_temp_shuts_everything_down() {
 
 /// The shipped printer.cfg with `extra` appended, running `job`.
 fn run_with_sections(name: &str, extra: &str, job: &str) -> onechip_host::Summary {
-    let dir = std::env::temp_dir().join(format!("onechip-tsensor-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let text = std::fs::read_to_string(shipped_default().join("printer.cfg")).expect("cfg");
-    std::fs::write(dir.join("printer.cfg"), text + "\n" + extra).expect("write cfg");
-    std::fs::write(dir.join("job.gcode"), job).expect("write gcode");
+    let dir = sd_folder::new(
+        &format!("tsensor-{name}"),
+        &(sd_folder::shipped_cfg() + "\n" + extra),
+        Some(job),
+    );
     let s = onechip_host::run(&dir, None).expect("runs");
     std::fs::remove_dir_all(&dir).ok();
     s

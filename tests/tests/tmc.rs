@@ -11,6 +11,7 @@ use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
 use onechip_planner::machine::Machine;
 use onechip_planner::tmc::config::{Bus, TmcDriver};
+use onechip_tests::sd_folder;
 use std::path::PathBuf;
 
 fn corpus() -> PathBuf {
@@ -552,13 +553,11 @@ fn stock_tmc_sections_load_or_say_why() {
 
 /// The shipped printer.cfg with `extra` sections, in its own SD folder.
 fn shipped_plus(name: &str, extra: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("onechip-tmc-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let shipped =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sdcard-configs/octopus-pro-h723");
-    let cfg = std::fs::read_to_string(shipped.join("printer.cfg")).expect("cfg");
-    std::fs::write(dir.join("printer.cfg"), cfg + extra).expect("write");
-    dir
+    sd_folder::new(
+        &format!("tmc-{name}"),
+        &(sd_folder::shipped_cfg() + extra),
+        None,
+    )
 }
 
 #[test]
