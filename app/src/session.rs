@@ -13,6 +13,7 @@ use crate::heaters::{ThermalCommand, Wait};
 use crate::idle_timeout::{self, IdleState, IdleTimeout, ToolheadState};
 use crate::line::command_word;
 use crate::printer::{LineError, Printer};
+use crate::secondary::thermal::Reading;
 use crate::text::{ErrorText, error_text};
 use crate::tmc::{HomingDrivers, Tmc, TmcLink};
 use core::cell::RefCell;
@@ -150,6 +151,30 @@ pub trait Mcu {
     /// default: the drivers keep their power-on settings).
     fn tmc_link(&mut self) -> Option<&mut dyn TmcLink> {
         None
+    }
+    /// The next update the io queued for one of its outputs, if this MCU
+    /// role hands them on to another MCU (some outputs may be there):
+    /// the output (the io's order), the 64-bit clock, the value. None by
+    /// default: every output is here.
+    fn take_queued_output(&mut self) -> Option<(usize, u64, u32)> {
+        None
+    }
+    /// A reading of an io input sampled on another MCU (a thermistor on a
+    /// secondary): the heater control and temperature sensors take it as
+    /// one of their own. Ignored by default.
+    fn remote_reading(&mut self, reading: Reading) {
+        let _ = reading;
+    }
+    /// For simulators that report: `cmd` for stepper `stepper`, its first
+    /// step at 64-bit `clock` on that MCU's clock, went to another MCU.
+    fn sent_elsewhere(&mut self, stepper: usize, cmd: StepCommand, clock: u64) {
+        let _ = (stepper, cmd, clock);
+    }
+    /// For simulators that report: another MCU's trigger ended a homing
+    /// across MCUs at this MCU's 64-bit `clock`, homing stepper
+    /// `stepper`'s rail.
+    fn triggered_elsewhere(&mut self, stepper: usize, clock: u64) {
+        let _ = (stepper, clock);
     }
 }
 

@@ -5,11 +5,11 @@
 //! the console polled at the board's 10 ms tick.
 
 use crate::files::Folder;
+use crate::host_mcu::{HostMcu, RunMcu};
 use crate::step_log::StepLog;
 use crate::thermal_plant::{ADC_MAX, mcu_sensor};
-use crate::virtual_mcu::VirtualMcu;
 use crate::{
-    HostSession, Options, SimError, attach_secondaries, load_setup, restart_if_asked, virtual_mcu,
+    HostSession, Options, SimError, load_setup, restart_if_asked, virtual_mcu, with_secondaries,
 };
 use onechip_app::console::Console;
 use onechip_app::emergency::EmergencyParser;
@@ -29,7 +29,7 @@ const TICK: f64 = 0.010;
 pub struct ConsolePrinter {
     machine: &'static Machine<'static>,
     session: Box<HostSession<'static>>,
-    mcu: VirtualMcu,
+    mcu: HostMcu,
     console: Console,
     card: Folder,
     lines: LineAssembler<{ profile::MAX_LINE }>,
@@ -54,13 +54,11 @@ impl ConsolePrinter {
             profile::MAX_STEP_ERROR,
             options.clock_origin,
         ));
-        let mut mcu = virtual_mcu(machine, options)?;
-        if !machine.secondaries.is_empty() {
-            attach_secondaries(setup, options, &mut mcu)?;
-        }
+        let mcu = virtual_mcu(machine, options)?;
         // Without simulated switches a homing move runs to its end, as in
         // klippy's batch mode.
         session.set_endstops_modelled(mcu.real_position().is_some());
+        let mcu = with_secondaries(setup, options, mcu)?;
         Ok(Self {
             machine,
             session,
@@ -113,7 +111,7 @@ impl ConsolePrinter {
     pub fn run_for(&mut self, seconds: f64) -> String {
         let end = self.mcu.now() + (seconds * self.freq) as u64;
         let mut out = String::new();
-        while self.mcu.now() < end && self.mcu.shutdown().is_none() {
+        while self.mcu.now() < end && self.mcu.shutdown_reason().is_none() {
             let _ = self.console.poll(
                 Some(&mut *self.session),
                 &mut self.card,
@@ -160,42 +158,45 @@ impl ConsolePrinter {
 
     /// Every stepper's step log.
     pub fn steps(&self) -> impl Iterator<Item = &StepLog> {
-        self.mcu.logs()
+        self.mcu.main().logs()
     }
 
     /// Whether each heater's output is on now.
     pub fn heaters_on(&mut self) -> Vec<bool> {
-        self.mcu.thermal().map_or_else(Vec::new, |(_, plant)| {
-            plant
-                .outputs
-                .iter()
-                .take(self.machine.heaters.len())
-                .map(|o| matches!(o.drive, Some(Drive::Level(true))))
-                .collect()
-        })
+        self.mcu
+            .main_mut()
+            .thermal()
+            .map_or_else(Vec::new, |(_, plant)| {
+                plant
+                    .outputs
+                    .iter()
+                    .take(self.machine.heaters.len())
+                    .map(|o| matches!(o.drive, Some(Drive::Level(true))))
+                    .collect()
+            })
     }
 
     /// The probe's control pin so far: each change's clock and pulse
     /// width (s; 0: off).
     pub fn probe_servo_log(&self) -> &[(u64, f64)] {
-        self.mcu.probe_servo_log()
+        self.mcu.main().probe_servo_log()
     }
 
     /// Every endstop trigger so far: axis, the toolhead's real position
     /// (mm) and the clock.
     pub fn triggers(&self) -> &[(usize, [f64; 3], u64)] {
-        self.mcu.triggers()
+        self.mcu.main().triggers()
     }
 
     /// The axes of the triggers so far that were a TMC driver's stall
     /// reported on its DIAG pin (sensorless homing), in order.
     pub fn stalls(&self) -> &[usize] {
-        self.mcu.stalls()
+        self.mcu.main().stalls()
     }
 
     /// The toolhead's real position now, mm.
     pub fn real_position(&self) -> Option<[f64; 3]> {
-        self.mcu.real_position()
+        self.mcu.main().real_position()
     }
 
     /// Every output the heaters' io drives (heaters, the fan, then the
@@ -204,7 +205,7 @@ impl ConsolePrinter {
     /// 1).
     pub fn outputs(&mut self) -> Vec<(&'static str, f64)> {
         let setup = McuSetup::new(self.machine, self.freq, ADC_MAX, mcu_sensor(), 0);
-        let Some((heaters, _)) = self.mcu.thermal() else {
+        let Some((heaters, _)) = self.mcu.main_mut().thermal() else {
             return Vec::new();
         };
         setup
@@ -225,12 +226,12 @@ impl ConsolePrinter {
     /// Filament switch sensor `sensor` reads filament `present` from now
     /// on.
     pub fn set_filament(&mut self, sensor: usize, present: bool) {
-        self.mcu.set_filament(sensor, present);
+        self.mcu.main_mut().set_filament(sensor, present);
     }
 
     /// The simulated TMC drivers.
     pub fn tmc_drivers(&mut self) -> &mut crate::tmc_sim::TmcSim {
-        self.mcu.tmc_sim()
+        self.mcu.main_mut().tmc_sim()
     }
 
     /// The TMC drivers as the session last wrote them.

@@ -11,6 +11,7 @@
 
 pub mod console_printer;
 pub mod files;
+pub mod host_mcu;
 pub mod pace;
 pub mod plot;
 pub mod probe_physics;
@@ -22,8 +23,10 @@ pub mod thermal_plant;
 pub mod tmc_sim;
 pub mod virtual_mcu;
 
+use host_mcu::{HostMcu, RunMcu};
 use onechip_app::console::Console;
 use onechip_app::line::{LineAssembler, LineEvent};
+use onechip_app::session::Mcu as _;
 use onechip_app::session::{Session, Timing, profile};
 use onechip_app::setup::PrinterSetup;
 use onechip_app::text::ErrorText;
@@ -452,11 +455,11 @@ pub fn run_replaying<const L: usize>(
                 ran = true;
             }
             if let Some(replay) = replay.as_deref_mut() {
-                replay.after_bytes(at + 1, run.session, run.mcu);
+                replay.after_bytes(at + 1, run.session, run.mcu.main_mut());
                 ran = true;
             }
             if ran {
-                if run.mcu.is_paced() {
+                if run.mcu.main().is_paced() {
                     keep_ahead(run, freq);
                 } else {
                     // The MCU runs the steps as far as they have all been sent.
@@ -485,7 +488,7 @@ fn keep_ahead<const L: usize>(run: &mut Run<'_, '_, L>, freq: f64) {
         let now = run.mcu.now();
         let ahead = run.session.sent_until() - onechip_planner::toolhead::BUFFER_TIME_HIGH;
         let until = clock_at(ahead, freq);
-        if now >= until || run.mcu.shutdown().is_some() {
+        if now >= until || run.mcu.shutdown_reason().is_some() {
             return;
         }
         run.mcu
@@ -499,7 +502,7 @@ fn keep_ahead<const L: usize>(run: &mut Run<'_, '_, L>, freq: f64) {
 pub(crate) struct Run<'r, 'm, const L: usize> {
     pub(crate) machine: &'r Machine<'m>,
     pub(crate) session: &'r mut HostSession<'m, L>,
-    pub(crate) mcu: &'r mut VirtualMcu,
+    pub(crate) mcu: &'r mut HostMcu,
     pub(crate) summary: &'r mut Summary,
     console: Console,
     card: files::Folder,
@@ -639,14 +642,18 @@ fn virtual_mcu(machine: &Machine<'_>, options: &Options) -> Result<VirtualMcu, S
     Ok(mcu)
 }
 
-/// Connects the secondary MCUs of `setup` and hands their steppers to
-/// them; from then on virtual time follows the wall clock, as theirs does.
-fn attach_secondaries(
+/// The session's MCU role: `mcu`, and the secondary MCUs of `setup`
+/// connected, if it has any; virtual time then follows the wall clock, as
+/// theirs does.
+fn with_secondaries(
     setup: &PrinterSetup<'_>,
     options: &Options,
-    mcu: &mut VirtualMcu,
-) -> Result<(), SimError> {
+    mut mcu: VirtualMcu,
+) -> Result<HostMcu, SimError> {
     let freq = options.mcu_freq;
+    if setup.machine().secondaries.is_empty() {
+        return Ok(HostMcu::new(mcu, None, freq));
+    }
     let pace = Pace::new(
         options.clock_origin,
         freq,
@@ -665,9 +672,10 @@ fn attach_secondaries(
     let secondaries = Secondaries::connect(machine, &names, &|i| pulses[i], main, links, &now)
         .map_err(|e| SimError::Secondary(e.to_string()))?;
     mcu.set_pace(pace);
-    mcu.attach(secondaries);
+    mcu.with_secondaries();
+    let mut mcu = HostMcu::new(mcu, Some(secondaries), freq);
     mcu.run_to_wall_clock();
-    Ok(())
+    Ok(mcu)
 }
 
 /// Carries out a restart `console` was asked for (FIRMWARE_RESTART,
@@ -675,7 +683,7 @@ fn attach_secondaries(
 fn restart_if_asked<'m, const L: usize>(
     console: &mut Console,
     machine: &Machine<'m>,
-    mcu: &mut VirtualMcu,
+    mcu: &mut HostMcu,
     session: &mut HostSession<'m, L>,
     freq: f64,
 ) {
@@ -706,13 +714,11 @@ pub(crate) fn with_session<const L: usize>(
         profile::MAX_STEP_ERROR,
         options.clock_origin,
     ));
-    let mut mcu = virtual_mcu(machine, options)?;
+    let mcu = virtual_mcu(machine, options)?;
     // Without simulated switches a homing move runs to its end, as in
     // klippy's batch mode.
     session.set_endstops_modelled(mcu.real_position().is_some());
-    if !machine.secondaries.is_empty() {
-        attach_secondaries(&setup, options, &mut mcu)?;
-    }
+    let mut mcu = with_secondaries(&setup, options, mcu)?;
     let mut summary = Summary {
         config_path,
         kinematics: machine.kinematics,
@@ -770,9 +776,9 @@ pub(crate) fn with_session<const L: usize>(
     summary.heat_wait = session.heat_wait();
     summary.print_time = session.printer().print_time();
     summary.final_position = session.printer().position();
-    summary.real_position = mcu.real_position();
+    summary.real_position = mcu.main().real_position();
     let run_ticks = mcu.now().saturating_sub(options.clock_origin).max(1) as f64;
-    if let Some((heaters, plant)) = mcu.thermal() {
+    if let Some((heaters, plant)) = mcu.main_mut().thermal() {
         plant.finish();
         for (i, h) in machine.heaters.iter().enumerate() {
             let (temperature, target) = heaters.temperature(i).unwrap_or_default();
@@ -792,21 +798,22 @@ pub(crate) fn with_session<const L: usize>(
     }
     let clock_origin = options.clock_origin;
     summary.endstops = mcu
+        .main()
         .triggers()
         .iter()
         .map(|&(axis, real, clock)| (axis, real, (clock - clock_origin) as f64 / freq))
         .collect();
-    summary.stalls = mcu.stalls().to_vec();
-    mcu.flush_steps().map_err(write_error)?;
+    summary.stalls = mcu.main().stalls().to_vec();
+    mcu.main_mut().flush_steps().map_err(write_error)?;
     if let Some(secondaries) = mcu.secondaries() {
-        summary.secondary_fault_at = mcu.secondary_fault_at();
+        summary.secondary_fault_at = mcu.main().secondary_fault_at();
         summary.homing_timeouts = secondaries.homing_timeouts();
         let links = secondaries
             .links()
             .map(|(name, stats)| (name.to_string(), stats));
         summary.secondary_links = links.collect();
     }
-    for (i, (stepper, log)) in machine.steppers.iter().zip(mcu.logs()).enumerate() {
+    for (i, (stepper, log)) in machine.steppers.iter().zip(mcu.main().logs()).enumerate() {
         let sent = mcu
             .secondaries()
             .filter(|s| s.routes(i))
@@ -814,7 +821,7 @@ pub(crate) fn with_session<const L: usize>(
         let (steps, position) = match sent {
             Some(sent) => {
                 let name = stepper.name.to_string();
-                let clocks = mcu.secondary_steps(i).unwrap_or_default().to_vec();
+                let clocks = mcu.main().secondary_steps(i).unwrap_or_default().to_vec();
                 summary.secondary_steps.push((name, clocks));
                 (sent.count as usize, sent.position)
             }
@@ -833,7 +840,7 @@ pub(crate) fn with_session<const L: usize>(
         let steppers: Vec<(&str, Vec<f64>)> = machine
             .steppers
             .iter()
-            .zip(mcu.logs())
+            .zip(mcu.main().logs())
             .map(|(st, log)| {
                 let times = log
                     .window_steps()
@@ -844,6 +851,7 @@ pub(crate) fn with_session<const L: usize>(
             })
             .collect();
         let moves: Vec<TrapqMove> = mcu
+            .main()
             .plan()
             .iter()
             .map(|m| TrapqMove {
@@ -986,14 +994,14 @@ fn clock_at(t: f64, freq: f64) -> u64 {
 /// must stop.
 fn stopped<const L: usize>(
     session: &HostSession<'_, L>,
-    mcu: &mut VirtualMcu,
+    mcu: &mut HostMcu,
     summary: &mut Summary,
 ) -> bool {
     if summary.shutdown.is_none() {
         summary.shutdown = session
             .motion_error()
             .map(|e| e.to_string())
-            .or_else(|| mcu.shutdown().map(|s| s.to_string()));
+            .or_else(|| mcu.shutdown_reason().map(|s| s.to_string()));
     }
     summary.shutdown.is_some()
 }

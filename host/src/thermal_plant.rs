@@ -159,6 +159,11 @@ pub struct Plant {
 }
 
 impl Plant {
+    /// The MCU's clock, Hz.
+    pub fn freq(&self) -> f64 {
+        self.freq
+    }
+
     /// The heaters and fan of `machine` at room temperature, on an MCU
     /// clock of `freq` Hz.
     pub fn new(machine: &Machine<'_>, freq: f64) -> Self {

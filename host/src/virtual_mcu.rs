@@ -6,21 +6,21 @@
 //! ([`Physics`]) through the step pins, as the board's interrupt reads its
 //! GPIOs. The heaters and fan ([`Heaters`], the io the board runs from its
 //! second timer) run in the same virtual time against simulated physics
-//! ([`Plant`]); a fault of either shuts both down. A sensor on a
-//! secondary MCU is sampled there: its reports reach the heaters through
-//! the secondaries' links ([`Heaters::remote_report`]), and the updates of
-//! an output there go out on them. It is the session's
-//! [`Mcu`]: a wait runs the next timer event, no earlier than its wall
-//! time when virtual time is paced ([`Pace`]).
+//! ([`Plant`]); a fault of either shuts both down. With secondary MCUs
+//! (the session then drives it through
+//! [`onechip_app::secondary::mcu::WithSecondaries`], as the firmware
+//! drives its own MCU role), a sensor's reports from there reach the
+//! heaters ([`Heaters::remote_report`]), and the io's output updates are
+//! kept for the outputs there. It is the session's [`Mcu`]: a wait runs
+//! the next timer event, no earlier than its wall time when virtual time
+//! is paced ([`Pace`]).
 
 use crate::pace::Pace;
 use crate::plot::Window;
-use crate::secondary::{Secondaries, SerialDevices};
 use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::{StallDetect, TmcSim};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand, Wait};
-use onechip_app::outputs::AccessoryCommand;
 use onechip_app::secondary::attached::each_step;
 use onechip_app::secondary::thermal::Reading;
 use onechip_app::session::Mcu;
@@ -38,7 +38,7 @@ use std::path::Path;
 use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// Moves each virtual stepper's queue holds, and commands its outbox holds.
 pub const MOVE_QUEUE: usize = 256;
@@ -211,13 +211,6 @@ impl StepPins for Recorder {
     }
 }
 
-/// Longest stretch of virtual time between two services of the secondary
-/// MCUs' links, s.
-const SECONDARY_SERVICE: f64 = 0.001;
-/// How long after a motor off's command its enable pins go inactive, s
-/// (klippy's DISABLE_STALL_TIME).
-const DISABLE_STALL_TIME: f64 = 0.100;
-
 /// The virtual MCU.
 pub struct VirtualMcu {
     engine: Box<Engine<Recorder, MAX_STEPPERS, MOVE_QUEUE, OUTBOX>>,
@@ -237,8 +230,6 @@ pub struct VirtualMcu {
     /// The axes of those triggers read on a TMC driver's DIAG pin (a
     /// stall), in order.
     stalls: Vec<usize>,
-    /// The endstop slot last armed and the axis its triggers count for.
-    watched: (usize, usize),
     /// The probe's control pin: each change's clock and pulse width (s).
     servo: Vec<(u64, f64)>,
     /// Planned moves kept for a plot, and the print-time window they
@@ -256,15 +247,13 @@ pub struct VirtualMcu {
     /// Filament switch sensors reading no filament (all others read
     /// filament present).
     no_filament: Vec<usize>,
-    /// The secondary MCUs and the steppers on them.
-    secondaries: Option<Secondaries>,
+    /// The io's output updates are kept for outputs on secondary MCUs.
+    forwards_outputs: bool,
     /// Each stepper's steps sent to a secondary: their clocks on its MCU,
     /// ticks (for comparing with what its pins did).
     secondary_steps: Vec<Vec<u64>>,
     /// When (wall clock) a secondary's fault was noticed, if one was.
     secondary_fault_at: Option<Instant>,
-    /// The last homing trigger taken was a trsync communication timeout.
-    comms_timeout: bool,
     /// The simulated TMC drivers.
     tmc: TmcSim,
 }
@@ -281,16 +270,14 @@ impl VirtualMcu {
             rails: None,
             triggers: Vec::new(),
             stalls: Vec::new(),
-            watched: (0, 0),
             servo: Vec::new(),
             plan: None,
             thermal: None,
             io_wake: None,
             pace: None,
-            secondaries: None,
+            forwards_outputs: false,
             secondary_steps: Vec::new(),
             secondary_fault_at: None,
-            comms_timeout: false,
             emergency: None,
             no_filament: Vec::new(),
             tmc: TmcSim::default(),
@@ -334,7 +321,7 @@ impl VirtualMcu {
     fn start_heaters(&mut self, machine: &Machine<'_>, freq: f64) {
         let mut plant = Plant::new(machine, freq);
         plant.now = self.now;
-        if self.secondaries.is_some() {
+        if self.forwards_outputs {
             plant.queued = Some(Vec::new());
         }
         let first = self.now + (FIRST_REPORT * freq) as u64;
@@ -352,32 +339,20 @@ impl VirtualMcu {
 
     /// Leaves a shutdown (FIRMWARE_RESTART): the engine idle and
     /// unfaulted, the heaters and fan rebuilt for `machine` (their physics
-    /// from ambient again) if they were simulated, the secondary MCUs
-    /// reset and configured again.
+    /// from ambient again) if they were simulated.
     pub fn restart(&mut self, machine: &Machine<'_>, freq: f64) {
         self.engine.restart();
         self.pushed = true;
         if self.thermal.is_some() {
             self.start_heaters(machine, freq);
         }
-        if let Some(now) = self.host_clock()
-            && let Some(secondaries) = &mut self.secondaries
-        {
-            match secondaries.restart(machine, &mut SerialDevices, &now) {
-                Ok(()) => {
-                    // What the steppers were sent counts from here.
-                    self.secondary_steps.iter_mut().for_each(Vec::clear);
-                    self.secondary_fault_at = None;
-                }
-                Err(e) => {
-                    // Klipper's message alone: the config loaded before.
-                    let message = crate::secondary::leak(&e.to_string());
-                    secondaries.fail(Shutdown::SecondaryNotReady { message });
-                }
-            }
-            // Time went on while they were brought back.
-            self.run_to_wall_clock();
-        }
+    }
+
+    /// The secondary MCUs were brought back: what their steppers were
+    /// sent, and their fault, count from here.
+    pub fn secondaries_restarted(&mut self) {
+        self.secondary_steps.iter_mut().for_each(Vec::clear);
+        self.secondary_fault_at = None;
     }
 
     /// The heaters and fan with their physics, if simulated.
@@ -391,12 +366,6 @@ impl VirtualMcu {
 
     /// Carries out a heater or fan command now.
     pub fn thermal_command(&mut self, command: ThermalCommand) {
-        if command == ThermalCommand::Accessory(AccessoryCommand::Motors(false)) {
-            let at = self.host_time() + DISABLE_STALL_TIME;
-            if let Some(s) = &mut self.secondaries {
-                s.motors_off(at);
-            }
-        }
         let now = self.now;
         if let Some((heaters, plant)) = &mut self.thermal {
             plant.now = now;
@@ -405,7 +374,6 @@ impl VirtualMcu {
             }
             self.update_io_wake();
         }
-        self.forward_outputs();
     }
 
     /// Filament switch sensor `sensor`'s switch reads filament `present`
@@ -495,32 +463,43 @@ impl VirtualMcu {
         self.pace.is_some()
     }
 
-    /// Drives the steppers on secondary MCUs through `secondaries` from
-    /// now on (virtual time must be paced: they run in real time).
-    pub fn attach(&mut self, secondaries: Secondaries) {
-        self.secondaries = Some(secondaries);
+    /// The wall clock virtual time follows, if it does.
+    pub fn pace(&self) -> Option<Pace> {
+        self.pace.clone()
+    }
+
+    /// Runs the steppers' next event if it comes before clock `limit`:
+    /// true; else only the heaters' events before `limit`, and virtual
+    /// time moves there (no earlier than its wall time when paced):
+    /// false, and the steppers are idle if they have no event at all
+    /// ([`Self::steppers_busy`]).
+    pub fn run_next_before(&mut self, limit: u64) -> bool {
+        self.refresh();
+        if let Some(at) = self.wake.filter(|&w| w < limit) {
+            self.run_at(at);
+            return true;
+        }
+        self.run_io_before(limit);
+        self.pace_to(limit);
+        self.now = self.now.max(limit);
+        false
+    }
+
+    /// True while the steppers here have steps to make.
+    pub fn steppers_busy(&mut self) -> bool {
+        self.refresh();
+        self.wake.is_some()
+    }
+
+    /// Some steppers and outputs are on secondary MCUs from now on
+    /// (virtual time must be paced: they run in real time): the steps
+    /// sent there are recorded, and the io's output updates kept.
+    pub fn with_secondaries(&mut self) {
+        self.forwards_outputs = true;
         self.secondary_steps = vec![Vec::new(); MAX_STEPPERS];
         if let Some((_, plant)) = &mut self.thermal {
             plant.queued = Some(Vec::new());
         }
-    }
-
-    /// Sends the output updates the heaters' io queued since last time to
-    /// the secondaries, for the outputs on them.
-    fn forward_outputs(&mut self) {
-        let now = self.host_time();
-        let (Some((_, plant)), Some(s)) = (&mut self.thermal, &mut self.secondaries) else {
-            return;
-        };
-        for (index, clock, value) in plant.queued.iter_mut().flat_map(|q| q.drain(..)) {
-            let clock = onechip_sched::clock::widen(clock, self.now);
-            s.queue_output(index, clock, value, now);
-        }
-    }
-
-    /// The secondary MCUs, if any.
-    pub fn secondaries(&self) -> Option<&Secondaries> {
-        self.secondaries.as_ref()
     }
 
     /// The clocks (on its MCU, ticks) of every step sent to stepper
@@ -534,92 +513,16 @@ impl VirtualMcu {
         self.secondary_fault_at
     }
 
-    /// Host time for the secondaries: the main clock in seconds, as the
-    /// wall clock has it (virtual time may lag it a little).
-    fn host_time(&self) -> f64 {
-        let clock = self.pace.as_ref().map_or(self.now, Pace::clock_now);
-        self.secondaries
-            .as_ref()
-            .map_or(0.0, |s| clock as f64 / s.freq())
-    }
-
-    /// [`Self::host_time`] as a clock the secondaries read while they
-    /// wait on their links (the wall clock's); None without secondaries
-    /// or a pace.
-    fn host_clock(&self) -> Option<impl Fn() -> f64 + 'static> {
-        let (pace, freq) = (self.pace.clone()?, self.secondaries.as_ref()?.freq());
-        Some(move || pace.clock_now() as f64 / freq)
-    }
-
-    /// Runs the secondaries' links; a fault on either side stops both:
-    /// a secondary's shutdown or silence stops this MCU, this MCU's
-    /// shutdown sends every secondary `emergency_stop`.
-    fn service_secondaries(&mut self) {
-        let now = self.host_time();
-        let Some(secondaries) = &mut self.secondaries else {
-            return;
-        };
-        // Another MCU's trigger stops this one's steppers of the homing
-        // move at once (the engine has run up to now).
-        let engine = &mut self.engine;
-        let mut stopped = false;
-        secondaries.service(now, &mut |stops| {
-            engine.stop_steppers(stops);
-            stopped = true;
-        });
-        if stopped {
-            self.pushed = true;
-        }
-        let readings: Vec<Reading> = std::iter::from_fn(|| secondaries.take_reading()).collect();
-        self.remote_readings(&readings);
-        let Some(secondaries) = &mut self.secondaries else {
-            return;
-        };
-        if secondaries.failure().is_some() {
-            self.secondary_fault_at.get_or_insert_with(Instant::now);
-        }
-        let main_down = self.engine.shutdown_reason().is_some();
-        match secondaries.failure() {
-            Some(reason) if !main_down => self.stop_all(reason),
-            None if main_down => secondaries.emergency_stop(now),
-            _ => {}
-        }
-    }
-
-    /// The ADC inputs on secondaries reported `readings`: each goes to
-    /// the heater control (or temperature sensor) as this MCU's own
-    /// reports do, and the updates it queues go out; a fault stops
-    /// everything.
-    fn remote_readings(&mut self, readings: &[Reading]) {
-        let Some(freq) = self.secondaries.as_ref().map(Secondaries::freq) else {
-            return;
-        };
-        if readings.is_empty() {
-            return;
-        }
-        let now = self.now;
-        let Some((heaters, plant)) = &mut self.thermal else {
-            return;
-        };
-        plant.now = now;
-        let mut fault = None;
-        for r in readings {
-            // Host time is the main clock in seconds.
-            let clock = (r.at * freq).max(0.0) as u64 as u32;
-            if let Err(reason) = heaters.remote_report(r.input, clock, r.value, now as u32, plant) {
-                fault = Some(reason);
-                break;
-            }
-        }
-        match fault {
-            Some(reason) => self.stop_all(reason),
-            None => self.update_io_wake(),
-        }
-        self.forward_outputs();
-    }
-
     /// Every stepper stops and every heater goes off, for `reason`.
     fn stop_all(&mut self, reason: Shutdown) {
+        if matches!(
+            reason,
+            Shutdown::Secondary { .. }
+                | Shutdown::LostCommunication { .. }
+                | Shutdown::SecondaryNotReady { .. }
+        ) {
+            self.secondary_fault_at.get_or_insert_with(Instant::now);
+        }
         self.engine.stop(reason);
         let now = self.now;
         if let Some((heaters, plant)) = &mut self.thermal {
@@ -641,25 +544,8 @@ impl VirtualMcu {
     /// Sleeps until the wall time of clock `at`, if paced; an M112 seen
     /// meanwhile stops everything before the event.
     fn pace_to(&mut self, at: u64) {
-        match (&self.pace, &self.secondaries) {
-            (Some(pace), None) => pace.sleep_until(at),
-            (Some(pace), Some(s)) => {
-                // The secondaries' links are served while time passes,
-                // asleep in between (they run in real time: speed 1).
-                let (pace, freq) = (pace.clone(), s.freq());
-                loop {
-                    self.service_secondaries();
-                    let wall = pace.clock_now();
-                    if wall >= at || pace.released() {
-                        break;
-                    }
-                    let ahead = (at - wall) as f64 / freq;
-                    std::thread::sleep(std::time::Duration::from_secs_f64(
-                        ahead.min(SECONDARY_SERVICE),
-                    ));
-                }
-            }
-            (None, _) => {}
+        if let Some(pace) = &self.pace {
+            pace.sleep_until(at);
         }
         self.check_emergency();
     }
@@ -724,13 +610,11 @@ impl VirtualMcu {
             self.wake = None;
         }
         self.update_io_wake();
-        self.forward_outputs();
     }
 
     /// Why the MCU shut down, if it did.
     pub fn shutdown(&self) -> Option<Shutdown> {
-        let secondary = self.secondaries.as_ref().and_then(Secondaries::failure);
-        self.engine.shutdown_reason().or(secondary).or_else(|| {
+        self.engine.shutdown_reason().or_else(|| {
             self.thermal
                 .as_ref()
                 .and_then(|(heaters, _)| heaters.shutdown_reason())
@@ -778,17 +662,6 @@ impl VirtualMcu {
         let next = self.engine.run(at as u32);
         self.wake = next.map(|n| at + u64::from(n.wrapping_sub(at as u32)));
         self.pushed = false;
-        if let Some(s) = &mut self.secondaries
-            && s.is_homing()
-            && let Some((_, trigger)) = self.engine.take_trigger()
-        {
-            // This MCU's endstop ended a homing across MCUs: the others
-            // are triggered at once.
-            let freq = s.freq();
-            let clock = onechip_sched::clock::widen(trigger, self.now);
-            let now = self.pace.as_ref().map_or(self.now, Pace::clock_now) as f64 / freq;
-            s.main_triggered(clock as f64 / freq, now);
-        }
         if let Some(reason) = self.engine.shutdown_reason()
             && let Some((heaters, plant)) = &mut self.thermal
             && heaters.shutdown_reason().is_none()
@@ -838,23 +711,6 @@ impl Mcu for VirtualMcu {
         Some(&mut self.tmc)
     }
     fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
-        if let Some(secondaries) = &mut self.secondaries
-            && secondaries.routes(stepper)
-        {
-            secondaries.push(stepper, cmd, clock)?;
-            if let (
-                StepCommand::Steps {
-                    interval,
-                    count,
-                    add,
-                },
-                Some(steps),
-            ) = (cmd, self.secondary_steps.get_mut(stepper))
-            {
-                each_step(clock, interval, count, add, |at| steps.push(at));
-            }
-            return Ok(());
-        }
         if stepper >= self.steppers {
             // A stepper the engine does not drive here: dropped.
             return Ok(());
@@ -865,15 +721,8 @@ impl Mcu for VirtualMcu {
     }
 
     /// Runs the next timer event (the engine's or the heaters'), if it
-    /// comes before `until`; else moves time to `until`. With secondaries,
-    /// at most [`SECONDARY_SERVICE`] passes before their links are served.
+    /// comes before `until`; else moves time to `until`.
     fn wait(&mut self, until: u64) {
-        // With secondaries, time moves at most SECONDARY_SERVICE, so that
-        // their links are served (by `pace_to`) at least that often.
-        let until = match &self.secondaries {
-            Some(s) => until.min(self.now + (s.freq() * SECONDARY_SERVICE) as u64),
-            None => until,
-        };
         self.refresh();
         let next = match (self.wake, self.io_wake) {
             (Some(a), Some(b)) => Some(a.min(b)),
@@ -887,59 +736,21 @@ impl Mcu for VirtualMcu {
         }
     }
 
-    fn stepper_clocks(&mut self, print_time: f64, set: &mut dyn FnMut(usize, f64, f64)) {
-        let now = self.host_time();
-        if let Some(s) = &mut self.secondaries {
-            s.calibrate(print_time, now, set);
-        }
-    }
-
     fn now(&mut self) -> u64 {
         self.now
     }
 
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
-        self.watched = (stepper, self.axis_of(stepper));
         self.pushed = true;
-        if let Some(s) = &mut self.secondaries {
-            // Steppers or the endstop on a secondary: a homing across MCUs.
-            let start = onechip_sched::clock::widen(endstop.next(), self.now) as f64 / s.freq();
-            if let Some((main_stops, main_endstop)) =
-                s.start_homing(stepper, endstop.sampling(), stops, start)
-            {
-                if main_endstop {
-                    self.engine.watch_endstop(stepper, endstop, main_stops);
-                }
-                return;
-            }
-        }
         self.engine.watch_endstop(stepper, endstop, stops);
     }
 
     fn stop_watching(&mut self) {
         self.engine.stop_watching();
         self.pushed = true;
-        let now = self.host_time();
-        if let Some(s) = &mut self.secondaries {
-            s.end_homing(now);
-        }
     }
 
     fn take_trigger(&mut self) -> Option<(usize, u32)> {
-        let now = self.host_time();
-        if let Some(s) = &mut self.secondaries
-            && s.is_homing()
-        {
-            // The homing across MCUs: its first trigger, on any of them.
-            let (at, reason) = s.take_homing_trigger()?;
-            self.comms_timeout = reason == onechip_secondary_mcu::trsync::reason::COMMS_TIMEOUT;
-            s.end_homing(now);
-            let clock = (at * s.freq()).max(0.0) as u64;
-            self.engine.stop_watching();
-            let real = self.real_position().unwrap_or_default();
-            self.triggers.push((self.watched.1, real, clock));
-            return Some((self.watched.0, clock as u32));
-        }
         let (stepper, trigger) = self.engine.take_trigger()?;
         let axis = self.axis_of(stepper);
         if self
@@ -957,21 +768,9 @@ impl Mcu for VirtualMcu {
     }
 
     fn moved_since(&mut self, stepper: usize, clock: u64) -> i64 {
-        if let Some(now) = self.host_clock()
-            && let Some(s) = &mut self.secondaries
-            && s.routes(stepper)
-        {
-            let at = clock as f64 / s.freq();
-            let mut sleep = |s: f64| std::thread::sleep(Duration::from_secs_f64(s));
-            return s.moved_since(stepper, at, &now, &mut sleep).unwrap_or(0);
-        }
         self.logs()
             .nth(stepper)
             .map_or(0, |log| log.moved_since(clock))
-    }
-
-    fn homing_comms_timeout(&mut self) -> bool {
-        core::mem::take(&mut self.comms_timeout)
     }
 
     fn stop_steppers(&mut self, stops: u32) {
@@ -1021,7 +820,6 @@ impl Mcu for VirtualMcu {
 
     fn shutdown(&mut self, reason: Shutdown) {
         self.stop_all(reason);
-        self.service_secondaries();
     }
 
     fn can_extrude(&mut self) -> bool {
@@ -1041,5 +839,45 @@ impl Mcu for VirtualMcu {
                 moves.push(*m);
             }
         }
+    }
+
+    fn take_queued_output(&mut self) -> Option<(usize, u64, u32)> {
+        let (_, plant) = self.thermal.as_mut()?;
+        let queued = plant.queued.as_mut().filter(|q| !q.is_empty())?;
+        let (index, clock, value) = queued.remove(0);
+        Some((index, onechip_sched::clock::widen(clock, self.now), value))
+    }
+
+    fn remote_reading(&mut self, reading: Reading) {
+        let now = self.now;
+        let Some((heaters, plant)) = &mut self.thermal else {
+            return;
+        };
+        plant.now = now;
+        // Host time is the main clock in seconds.
+        let clock = (reading.at * plant.freq()).max(0.0) as u64 as u32;
+        match heaters.remote_report(reading.input, clock, reading.value, now as u32, plant) {
+            Err(reason) => self.stop_all(reason),
+            Ok(()) => self.update_io_wake(),
+        }
+    }
+
+    fn sent_elsewhere(&mut self, stepper: usize, cmd: StepCommand, clock: u64) {
+        if let (
+            StepCommand::Steps {
+                interval,
+                count,
+                add,
+            },
+            Some(steps),
+        ) = (cmd, self.secondary_steps.get_mut(stepper))
+        {
+            each_step(clock, interval, count, add, |at| steps.push(at));
+        }
+    }
+
+    fn triggered_elsewhere(&mut self, stepper: usize, clock: u64) {
+        let real = self.real_position().unwrap_or_default();
+        self.triggers.push((self.axis_of(stepper), real, clock));
     }
 }

@@ -44,6 +44,9 @@ pub struct WithSecondaries<M, L> {
     /// The last trigger taken ended a homing across MCUs by a
     /// communication timeout.
     comms_timeout: bool,
+    /// This MCU's own endstop triggered the homing across MCUs running
+    /// (taken from it to relay).
+    triggered_here: bool,
 }
 
 impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
@@ -56,11 +59,17 @@ impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
             freq,
             watched: 0,
             comms_timeout: false,
+            triggered_here: false,
         }
     }
 
     /// This board's MCU role.
-    pub fn main(&mut self) -> &mut M {
+    pub fn main(&self) -> &M {
+        &self.main
+    }
+
+    /// This board's MCU role, to act on.
+    pub fn main_mut(&mut self) -> &mut M {
         &mut self.main
     }
 
@@ -69,15 +78,21 @@ impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
         self.secondaries.as_ref()
     }
 
+    /// The secondaries, if any, to restart them.
+    pub fn secondaries_mut(&mut self) -> Option<&mut Secondaries<L>> {
+        self.secondaries.as_mut()
+    }
+
     /// Host time now, s.
     fn host_time(&mut self) -> f64 {
         self.main.now() as f64 / self.freq
     }
 
-    /// Serves the links: what the secondaries said is taken in, a
-    /// trigger of this MCU's endstop is relayed to them, and a fault on
-    /// either side stops both.
-    fn serve(&mut self) {
+    /// Serves the links: what the secondaries said is taken in (their
+    /// inputs' readings go to this MCU role's io), a trigger of this
+    /// MCU's endstop is relayed to them, and a fault on either side stops
+    /// both.
+    pub fn serve(&mut self) {
         let now = self.host_time();
         let Some(s) = &mut self.secondaries else {
             return;
@@ -89,14 +104,34 @@ impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
             // are triggered at once (its own steppers stopped already).
             let clock = widen(trigger, self.main.now());
             s.main_triggered(clock as f64 / self.freq, now);
+            self.triggered_here = true;
         }
         let main = &mut self.main;
         s.service(now, &mut |stops| main.stop_steppers(stops));
+        while let Some(reading) = s.take_reading() {
+            self.main.remote_reading(reading);
+        }
+        self.forward_outputs();
+        let Some(s) = &mut self.secondaries else {
+            return;
+        };
         let main_down = self.main.shutdown_reason().is_some();
         match s.failure() {
             Some(reason) if !main_down => self.main.shutdown(reason),
             None if main_down => s.emergency_stop(now),
             _ => {}
+        }
+    }
+
+    /// Sends the updates this MCU role's io queued for outputs on
+    /// secondaries there.
+    fn forward_outputs(&mut self) {
+        let now = self.host_time();
+        let Some(s) = &mut self.secondaries else {
+            return;
+        };
+        while let Some((index, clock, value)) = self.main.take_queued_output() {
+            s.queue_output(index, clock, value, now);
         }
     }
 }
@@ -108,7 +143,11 @@ impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
 
     fn push(&mut self, stepper: usize, cmd: StepCommand, clock: u64) -> Result<(), Full> {
         match &mut self.secondaries {
-            Some(s) if s.routes(stepper) => s.push(stepper, cmd, clock),
+            Some(s) if s.routes(stepper) => {
+                s.push(stepper, cmd, clock)?;
+                self.main.sent_elsewhere(stepper, cmd, clock);
+                Ok(())
+            }
             _ => self.main.push(stepper, cmd, clock),
         }
     }
@@ -124,6 +163,7 @@ impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
 
     fn watch_endstop(&mut self, stepper: usize, endstop: Endstop, stops: u32) {
         self.watched = stepper;
+        self.triggered_here = false;
         let now = self.main.now();
         if let Some(s) = &mut self.secondaries {
             // Steppers or the endstop on a secondary: a homing across MCUs.
@@ -165,6 +205,9 @@ impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
         s.end_homing(now);
         self.main.stop_watching();
         let clock = (at * self.freq).max(0.0) as u64;
+        if !core::mem::take(&mut self.triggered_here) {
+            self.main.triggered_elsewhere(self.watched, clock);
+        }
         Some((self.watched, clock as u32))
     }
 
@@ -202,6 +245,7 @@ impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
             }
         }
         self.main.thermal(command);
+        self.forward_outputs();
     }
 
     fn thermal_waiting(&mut self, wait: Wait) -> bool {

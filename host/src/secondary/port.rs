@@ -10,6 +10,11 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
 use std::time::Duration;
 
+/// How long a write waits for a full device to take bytes again.
+const WRITE_STALL: Duration = Duration::from_secs(1);
+/// How long one wait for room lasts.
+const WRITE_POLL: Duration = Duration::from_millis(10);
+
 /// An open serial device.
 pub struct Port {
     file: File,
@@ -42,13 +47,26 @@ impl Port {
         }
     }
 
-    /// Writes all of `bytes`, waiting while the device's buffer is full.
+    /// Writes all of `bytes`, waiting while the device's buffer is full;
+    /// an error if it stays full for [`WRITE_STALL`] (the other side no
+    /// longer reads).
     pub fn write_all(&mut self, mut bytes: &[u8]) -> io::Result<()> {
+        let mut stalled = Duration::ZERO;
         while !bytes.is_empty() {
             match self.file.write(bytes) {
-                Ok(n) => bytes = &bytes[n..],
+                Ok(n) => {
+                    bytes = &bytes[n..];
+                    stalled = Duration::ZERO;
+                }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    self.wait(libc::POLLOUT, Duration::from_millis(10))?;
+                    if stalled >= WRITE_STALL {
+                        return Err(io::Error::new(
+                            io::ErrorKind::TimedOut,
+                            "the device takes no more bytes",
+                        ));
+                    }
+                    self.wait(libc::POLLOUT, WRITE_POLL)?;
+                    stalled += WRITE_POLL;
                 }
                 Err(e) => return Err(e),
             }

@@ -13,6 +13,7 @@
 pub mod pty;
 pub mod reader;
 
+use crate::host_mcu::RunMcu;
 use crate::pace::Pace;
 use crate::{Options, SimError, Summary, with_session};
 use onechip_app::printer::PRIMING_TIME;
@@ -53,9 +54,9 @@ pub fn serve(
         let master = pty.try_clone().map_err(serial_error)?;
         let emergency = Arc::new(AtomicBool::new(false));
         let (lines, reader) = reader::spawn(master, Arc::clone(ending), Arc::clone(&emergency));
-        run.mcu.set_emergency(emergency);
+        run.mcu.main_mut().set_emergency(emergency);
         let now = onechip_app::session::Mcu::now(run.mcu);
-        run.mcu.set_pace(Pace::new(
+        run.mcu.main_mut().set_pace(Pace::new(
             now,
             options.mcu_freq,
             port.speed,
