@@ -17,8 +17,10 @@
 #![no_main]
 
 mod card;
+mod cmsdk_uart;
 mod handler_cell;
 mod heater_io;
+mod links;
 mod machine;
 mod mcu;
 mod pins;
@@ -26,6 +28,7 @@ mod probe;
 mod stats;
 mod step_timer;
 mod uart_console;
+mod uart_link;
 mod vectors;
 
 use cortex_m_rt::{ExceptionFrame, entry, exception};
