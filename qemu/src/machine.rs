@@ -173,7 +173,8 @@ pub fn start_real_time() {
         p.SCB
             .set_priority(cortex_m::peripheral::scb::SystemHandler::SysTick, 0xe0);
     }
-    p.SYST.set_clock_source(cortex_m::peripheral::syst::SystClkSource::Core);
+    p.SYST
+        .set_clock_source(cortex_m::peripheral::syst::SystClkSource::Core);
     p.SYST.set_reload(TICK_RELOAD);
     p.SYST.clear_current();
     p.SYST.enable_interrupt();

@@ -69,7 +69,10 @@ impl SecondaryLink for Uart1Link {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, LinkError> {
         let n = RX.with(|rx| {
             let mut n = 0;
-            for (slot, byte) in buf.iter_mut().zip(core::iter::from_fn(|| rx.ring.pop_front())) {
+            for (slot, byte) in buf
+                .iter_mut()
+                .zip(core::iter::from_fn(|| rx.ring.pop_front()))
+            {
                 *slot = byte;
                 n += 1;
             }
