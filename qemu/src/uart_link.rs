@@ -9,16 +9,30 @@
 //! ([`overruns`]), and Klipper's transport retransmits. Thread code writes
 //! byte by byte; while the transmitter is full it sleeps until the
 //! transmit interrupt (or the real-time tick) wakes it.
+//!
+//! A board's UART always empties at its baud rate; QEMU's holds a byte
+//! while nothing on the host takes it (the peer's pseudo-terminal closed:
+//! the MCU is gone). A byte held [`TX_STALL`] s breaks the link: this
+//! write and every later one until the next [`open`] are errors, which
+//! the host role takes as lost communication.
 
 use crate::cmsdk_uart as reg;
 use crate::handler_cell::HandlerCell;
 use crate::machine::{Irq, UART1, interrupt_ran, priority, read, write};
 use crate::step_timer;
+use core::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use onechip_app::secondary::{LinkError, SecondaryLink, text};
 
 /// Bytes the receive ring holds: 4 ms of a 250 kbaud link, far more than
 /// one of Klipper's message blocks (64 bytes) times its receive window.
 pub const RX_RING: usize = 2048;
+
+/// Longest the transmitter may stay full before the link counts as
+/// broken, s (a byte takes 40 µs at 250 kbaud).
+pub const TX_STALL: f64 = 0.25;
+
+/// The transmitter stalled ([`TX_STALL`]) since the last [`open`].
+static BROKEN: AtomicBool = AtomicBool::new(false);
 
 /// The receive side, owned by UART 1's receive interrupt.
 struct Rx {
@@ -45,6 +59,7 @@ pub fn open() -> Uart1Link {
     crate::machine::enable(Irq::Uart1Tx, priority::LINK);
     // Bytes that came before the ring was there.
     crate::machine::pend(Irq::Uart1Rx);
+    BROKEN.store(false, Relaxed);
     Uart1Link
 }
 
@@ -55,9 +70,19 @@ pub fn overruns() -> u32 {
 
 impl SecondaryLink for Uart1Link {
     fn write_all(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        let stall = (TX_STALL * step_timer::CLOCK_HZ) as u64;
         for &byte in bytes {
-            while read(UART1 + reg::STATE) & reg::TX_FULL != 0 {
-                crate::machine::sleep();
+            if read(UART1 + reg::STATE) & reg::TX_FULL != 0 {
+                let give_up = step_timer::now64().saturating_add(stall);
+                while read(UART1 + reg::STATE) & reg::TX_FULL != 0 {
+                    if BROKEN.load(Relaxed) || step_timer::now64() > give_up {
+                        BROKEN.store(true, Relaxed);
+                        return Err(LinkError(text(format_args!(
+                            "uart1: nothing took a byte for {TX_STALL} s"
+                        ))));
+                    }
+                    crate::machine::sleep();
+                }
             }
             write(UART1 + reg::DATA, u32::from(byte));
         }
