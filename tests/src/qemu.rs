@@ -138,8 +138,15 @@ impl Qemu {
     ///
     /// As [`Self::start`], or if `serial` does not resolve to a device.
     pub fn start_linked(elf: &Path, name: &str, serial: &Path) -> Self {
-        let device =
-            std::fs::canonicalize(serial).unwrap_or_else(|e| panic!("{}: {e}", serial.display()));
+        // Once seen a link to nothing, for a moment after the peer made it.
+        let deadline = Instant::now() + Duration::from_secs(5);
+        let device = loop {
+            match std::fs::canonicalize(serial) {
+                Ok(device) => break device,
+                Err(e) if Instant::now() > deadline => panic!("{}: {e}", serial.display()),
+                Err(_) => std::thread::sleep(Duration::from_millis(20)),
+            }
+        };
         Self::launch(elf, name, Some(&device))
     }
 

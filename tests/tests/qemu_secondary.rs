@@ -44,20 +44,15 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
-/// The straight line through the cruise's step edges (the edges whose
-/// intervals are within 5 % of `interval`, s, in the longest such run):
-/// its interval (s), and each edge's distance from it (s).
+/// The straight line through the cruise's step edges (from the first
+/// interval within 5 % of `interval`, s, to the last: the ramps left out,
+/// a late edge between kept): its interval (s), and each edge's distance
+/// from it (s).
 fn cruise_line(edges: &[f64], interval: f64) -> (f64, Vec<f64>) {
-    let mut best = (0, 0);
-    let mut start = 0;
-    for k in 1..edges.len() {
-        let gap = edges[k] - edges[k - 1];
-        if (gap - interval).abs() > 0.05 * interval {
-            start = k;
-        } else if k + 1 - start > best.1 - best.0 {
-            best = (start, k + 1);
-        }
-    }
+    let cruising = |k: &usize| (edges[*k] - edges[*k - 1] - interval).abs() <= 0.05 * interval;
+    let first = (1..edges.len()).find(cruising).unwrap_or(1);
+    let last = (1..edges.len()).rev().find(cruising).unwrap_or(0);
+    let best = (first - 1, (last + 1).max(first));
     let run = &edges[best.0..best.1];
     let n = run.len() as f64;
     let (mean_k, mean_t) = ((n - 1.0) / 2.0, run.iter().sum::<f64>() / n);
@@ -154,7 +149,9 @@ fn the_firmware_extrudes_on_a_stock_linux_mcu_over_uart1() {
         (rate - 1.0).abs() < 0.02,
         "the firmware's clock ran at {rate:.4} wall s per its s"
     );
-    assert!(max < 1000.0, "a step {max:.0} µs off the cruise's line");
+    // The Linux MCU is as punctual as the host's scheduler lets it be:
+    // the odd edge comes late (tests/secondary_peers.rs).
+    assert!(p99 < 500.0, "p99 {p99:.0} µs off the cruise's line");
 }
 
 #[test]
