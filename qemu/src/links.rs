@@ -35,7 +35,7 @@ impl Links for UartLinks {
     fn open(&mut self, serial: &str, _baud: u32) -> Result<Uart1Link, LinkError> {
         if serial != UART1 {
             return Err(LinkError(text(format_args!(
-                "'{serial}' is not a link of this machine (its one link is '{UART1}')"
+                "'{serial}': only {UART1} here"
             ))));
         }
         Ok(uart_link::open())

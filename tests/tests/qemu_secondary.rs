@@ -175,3 +175,20 @@ fn killing_the_peer_mid_move_is_lost_communication_on_the_console() {
     );
     assert!(lines.is_ok(), "console: {lines:?}");
 }
+
+#[test]
+#[ignore = "needs qemu-system-arm and gcc (CI: .ci/run)"]
+fn a_serial_other_than_uart1_is_refused_naming_it() {
+    let config = config().replace("serial: uart1", "serial: /dev/ttyUSB0");
+    let elf = qemu::build_firmware("qemu_ext_serial", &config);
+    let mut machine = Qemu::start(&elf, "qemu_ext_serial");
+    machine.send("M110 N0");
+    let replies = machine.send("G1 X1");
+    let out = std::fs::read_to_string(&machine.stdout).unwrap_or_default();
+    let why = "option 'serial' in section 'mcu ext': '/dev/ttyUSB0': only uart1 here";
+    assert!(out.contains(why), "firmware: {out}");
+    assert!(
+        replies.iter().any(|r| r.contains(why)),
+        "console: {replies:?}"
+    );
+}
