@@ -30,6 +30,8 @@ pub const TIMER1: usize = 0x4000_1000;
 pub const DUALTIMER: usize = 0x4000_2000;
 /// CMSDK APB UART 0: the console (RX IRQ 0).
 pub const UART0: usize = 0x4000_4000;
+/// CMSDK APB UART 1: the link to a secondary MCU (RX IRQ 2, TX IRQ 3).
+pub const UART1: usize = 0x4000_5000;
 
 /// Where this machine's pin ports start: QEMU models no GPIO here (the
 /// CMSDK AHB GPIO and peripheral region at 0x4001_0000 is an
@@ -52,6 +54,10 @@ pub const PROBE: usize = 0x4001_F000;
 pub enum Irq {
     /// UART 0 received a byte.
     Uart0Rx = 0,
+    /// UART 1 received a byte.
+    Uart1Rx = 2,
+    /// UART 1's transmitter emptied.
+    Uart1Tx = 3,
     /// Timer 0 reached 0: the stepper engine's wake.
     Timer0 = 8,
     /// The dual timer: the heaters' wake.
@@ -73,6 +79,9 @@ pub mod priority {
     pub const STEPPER: u8 = 0x00;
     /// The heaters' and fan's timer.
     pub const HEATERS: u8 = 0x20;
+    /// The secondary MCU's UART (its bytes are not held back as the
+    /// console's: a full ring drops them).
+    pub const LINK: u8 = 0x30;
     /// The console's UART.
     pub const CONSOLE: u8 = 0x40;
 }
@@ -122,11 +131,59 @@ pub fn interrupt_ran() {
 /// handler has run. QEMU runs `wfe` as a hint without sleeping (and
 /// leaves its translated code at each one, which is slow), so the wait
 /// spins on the count of handler runs, marked idle for the plugin; its
-/// instructions are the time the board would sleep.
+/// instructions are the time the board would sleep. In real time
+/// ([`start_real_time`]) it halts the CPU with `wfi` instead.
 pub fn sleep() {
     use core::sync::atomic::Ordering::Relaxed;
     crate::probe::within(crate::probe::Context::Idle, || {
         let before = EVENTS.load(Relaxed);
-        while EVENTS.load(Relaxed) == before {}
+        if REAL_TIME.load(Relaxed) {
+            // An interrupt between the load and the `wfi` is waited out
+            // by the next one: the tick's 1 ms at most.
+            if EVENTS.load(Relaxed) == before {
+                cortex_m::asm::wfi();
+            }
+        } else {
+            while EVENTS.load(Relaxed) == before {}
+        }
     });
+}
+
+/// Thread code sleeps with `wfi` ([`sleep`]).
+static REAL_TIME: core::sync::atomic::AtomicBool = core::sync::atomic::AtomicBool::new(false);
+
+/// SysTick's reload for its tick: 1 ms of the processor clock
+/// ([`TIMER_HZ`] on this machine), ticks.
+const TICK_RELOAD: u32 = TIMER_HZ / 1000 - 1;
+
+/// Real-time mode, for a printer with secondary MCUs (they keep the wall
+/// clock's time, and the harness runs QEMU without `-icount`, the
+/// virtual clock following the host's): thread code sleeps with `wfi`
+/// (QEMU halts the CPU and its host thread) instead of spinning, and
+/// SysTick wakes it every millisecond, so that a wait with a deadline
+/// (a link's [`SecondaryLink::wait_readable`]) ends on time without a
+/// timer of its own.
+///
+/// [`SecondaryLink::wait_readable`]: onechip_app::secondary::SecondaryLink::wait_readable
+pub fn start_real_time() {
+    // SAFETY: SysTick is used by nothing else; its handler only counts.
+    let mut p = unsafe { cortex_m::Peripherals::steal() };
+    // SAFETY: the lowest priority; its handler touches no shared state.
+    unsafe {
+        p.SCB
+            .set_priority(cortex_m::peripheral::scb::SystemHandler::SysTick, 0xe0);
+    }
+    p.SYST
+        .set_clock_source(cortex_m::peripheral::syst::SystClkSource::Core);
+    p.SYST.set_reload(TICK_RELOAD);
+    p.SYST.clear_current();
+    p.SYST.enable_interrupt();
+    p.SYST.enable_counter();
+    REAL_TIME.store(true, core::sync::atomic::Ordering::Relaxed);
+}
+
+/// SysTick's tick: wakes thread code ([`start_real_time`]).
+#[cortex_m_rt::exception]
+fn SysTick() {
+    interrupt_ran();
 }

@@ -17,8 +17,10 @@
 #![no_main]
 
 mod card;
+mod cmsdk_uart;
 mod handler_cell;
 mod heater_io;
+mod links;
 mod machine;
 mod mcu;
 mod pins;
@@ -26,6 +28,7 @@ mod probe;
 mod stats;
 mod step_timer;
 mod uart_console;
+mod uart_link;
 mod vectors;
 
 use cortex_m_rt::{ExceptionFrame, entry, exception};
@@ -35,7 +38,10 @@ use onechip_app::console::Console;
 use onechip_app::heaters::{
     FIRST_REPORT, Heaters, LinearConversion, McuSetup, TYPICAL_STM32H7_CAL,
 };
+use onechip_app::mcu_config::{MAIN, pin_ref};
 use onechip_app::pin_check;
+use onechip_app::secondary::attached::Secondaries;
+use onechip_app::secondary::mcu::WithSecondaries;
 use onechip_app::session::{BoardSession, profile};
 use onechip_app::setup::{Config, PrinterSetup};
 use onechip_app::text::{ErrorText, error_text};
@@ -44,6 +50,13 @@ use static_cell::{ConstStaticCell, StaticCell};
 
 /// Bytes of config text (printer.cfg with its name), as the board.
 const CONFIG_BUFFER: usize = 32 * 1024;
+
+/// The MCU role the session drives: this machine's, with the secondary
+/// MCUs on UART 1 if printer.cfg has any.
+type QemuRole = WithSecondaries<mcu::QemuMcu, uart_link::Uart1Link>;
+
+/// The printer's session and its MCU role.
+type Loaded = (&'static mut BoardSession<'static>, &'static mut QemuRole);
 
 #[entry]
 fn main() -> ! {
@@ -57,17 +70,18 @@ fn main() -> ! {
 /// Thread code: answers console lines through the session forever,
 /// waiting for an interrupt whenever there is nothing to do (as the
 /// board's `serve`, with its figures reported once a second).
-fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
+fn serve(loaded: Result<Loaded, ErrorText>) -> ! {
+    static NO_PRINTER: StaticCell<QemuRole> = StaticCell::new();
     let mut reporter = stats::Reporter::new();
-    let (mut session, no_printer) = match session {
-        Ok(session) => (Some(session), ErrorText::new()),
+    let (mut session, mcu, no_printer) = match loaded {
+        Ok((session, mcu)) => (Some(session), mcu, ErrorText::new()),
         Err(e) => {
             reporter.print(format_args!("onechip-qemu: no printer: {}", e.as_str()));
-            (None, e)
+            let bare = WithSecondaries::new(mcu::QemuMcu, None, step_timer::CLOCK_HZ);
+            (None, NO_PRINTER.init(bare), e)
         }
     };
     let mut card = Some(card::BuiltIn);
-    let mut mcu = mcu::QemuMcu;
     let mut out = uart_console::ConsoleOut;
     let mut console = Console::new(step_timer::CLOCK_HZ);
     loop {
@@ -79,7 +93,7 @@ fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
                 &no_printer,
                 &event,
                 &mut card,
-                &mut mcu,
+                mcu,
                 &mut out,
             );
             if console.take_restart() {
@@ -90,48 +104,89 @@ fn serve(session: Result<&'static mut BoardSession<'static>, ErrorText>) -> ! {
         let _ = console.poll(
             session.as_deref_mut().map(BoardSession::console),
             &mut card,
-            &mut mcu,
+            mcu,
             &mut out,
         );
         if !console.is_printing() {
-            onechip_app::session::Mcu::wait(&mut mcu, u64::MAX);
+            onechip_app::session::Mcu::wait(mcu, u64::MAX);
         }
     }
 }
 
-/// Reads the built-in printer.cfg, configures the pins it names and
-/// builds the session (in place, in a static).
-fn load_printer() -> Result<&'static mut BoardSession<'static>, ErrorText> {
+/// Reads the built-in printer.cfg, configures the pins it names,
+/// connects the secondary MCUs and builds the session (in place, in a
+/// static) with its MCU role.
+fn load_printer() -> Result<Loaded, ErrorText> {
     static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     static SESSION: StaticCell<BoardSession<'static>> = StaticCell::new();
     static SCRATCH: StaticCell<Config<'static>> = StaticCell::new();
+    static ROLE: StaticCell<QemuRole> = StaticCell::new();
     let texts = config_files::load(&mut card::BuiltIn, TEXT.take()).map_err(|e| error_text(&e))?;
     let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
         .map_err(|e| error_text(&e))?;
-    setup.without_secondaries().map_err(|e| error_text(&e))?;
+    setup
+        .only_steppers_on_secondaries()
+        .map_err(|e| error_text(&e))?;
     install_engine(&setup)?;
     install_heaters(&mut setup)?;
-    Ok(BoardSession::init_in(
+    let secondaries = connect_secondaries(&setup)?;
+    let role = WithSecondaries::new(mcu::QemuMcu, secondaries, step_timer::CLOCK_HZ);
+    let session = BoardSession::init_in(
         SESSION.uninit(),
         setup.machine(),
         step_timer::CLOCK_HZ,
         profile::MAX_STEP_ERROR,
         step_timer::now64(),
-    ))
+    );
+    Ok((session, ROLE.init(role)))
+}
+
+/// The printer's secondary MCUs on UART 1, identified and configured
+/// (None without any); from then on the machine runs in real time
+/// ([`machine::start_real_time`]), as they do.
+fn connect_secondaries(
+    setup: &PrinterSetup<'static>,
+) -> Result<Option<Secondaries<uart_link::Uart1Link>>, ErrorText> {
+    let machine = setup.machine();
+    if machine.secondaries.is_empty() {
+        return Ok(None);
+    }
+    machine::start_real_time();
+    let mut names =
+        heapless::Vec::<&'static str, { onechip_planner::mcu_section::MAX_SECONDARIES }>::new();
+    for s in &machine.secondaries {
+        let _ = names.push(s.name);
+    }
+    let mut pulses = [0.0; onechip_planner::machine::MAX_STEPPERS];
+    for (p, s) in pulses.iter_mut().zip(setup.steppers()) {
+        *p = s.step_pulse;
+    }
+    let pulse = |i: usize| pulses.get(i).copied().unwrap_or(0.0);
+    let mcu_sensor = LinearConversion::stm32h7(TYPICAL_STM32H7_CAL);
+    let now = || step_timer::now64() as f64 / step_timer::CLOCK_HZ;
+    let main = (step_timer::CLOCK_HZ, mcu_sensor);
+    Secondaries::connect(machine, &names, &pulse, main, &mut links::UartLinks, &now)
+        .map(Some)
+        .map_err(|e| error_text(&e))
 }
 
 /// Every stepper's step, direction and enable pins (drivers enabled) and
-/// endstop, handed to the stepper engine.
+/// endstop, handed to the stepper engine; a stepper, enable pin or
+/// endstop on a secondary MCU is left to it (its slot stays idle).
 fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [pins::StepperPins::default(); step_timer::STEPPERS];
+    let here = |pin: &&str| pin_ref(pin).mcu == MAIN;
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
+        if !here(&stepper.step_pin) {
+            continue;
+        }
         let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
         *slot = pins::StepperPins::new(stepper.step_pin, stepper.dir_pin, stepper.step_pulse)
             .map_err(|e| fail(&e))?;
-        if let Some(pin) = stepper.enable_pin {
+        if let Some(pin) = stepper.enable_pin.filter(here) {
             pins::OutPin::new(pin).map_err(|e| fail(&e))?.set(true);
         }
-        if let Some(pin) = stepper.endstop_pin {
+        if let Some(pin) = stepper.endstop_pin.filter(here) {
             *slot = slot.with_endstop(pins::InPin::new(pin).map_err(|e| fail(&e))?);
         }
     }

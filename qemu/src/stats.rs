@@ -90,8 +90,9 @@ impl Reporter {
         let (stack, touched) = stack_used();
         self.print(format_args!(
             "stats clock={now} latency_max_ticks={max} latency_mean_ticks={mean:.2} \
-             stack_used={stack} guard={}",
-            if touched { "touched" } else { "intact" }
+             stack_used={stack} guard={} uart1_overruns={}",
+            if touched { "touched" } else { "intact" },
+            crate::uart_link::overruns()
         ));
     }
 

@@ -9,6 +9,7 @@
 //! thread code, byte by byte, waiting (`wfe`) while the transmitter is
 //! full.
 
+use crate::cmsdk_uart as reg;
 use crate::handler_cell::HandlerCell;
 use crate::machine::{Irq, UART0, priority, read, write};
 use crate::probe::{self, Context};
@@ -16,28 +17,6 @@ use onechip_app::emergency::EmergencyParser;
 use onechip_app::line::{LineAssembler, LineEvent};
 use onechip_app::session::profile::MAX_LINE;
 use onechip_sched::shutdown::Shutdown;
-
-/// CMSDK APB UART registers (byte offsets) and bits.
-mod reg {
-    /// A byte in or out.
-    pub const DATA: usize = 0x00;
-    /// Bit 0: transmitter full; bit 1: a byte received.
-    pub const STATE: usize = 0x04;
-    /// Bit 0 TX on, bit 1 RX on, bit 3 RX interrupt.
-    pub const CTRL: usize = 0x08;
-    /// Write 1s to clear interrupts (bit 1: RX).
-    pub const INTCLEAR: usize = 0x0c;
-    /// Clock divider (QEMU needs at least 16).
-    pub const BAUDDIV: usize = 0x10;
-    /// STATE: transmitter full.
-    pub const TX_FULL: u32 = 1 << 0;
-    /// STATE: a byte is waiting.
-    pub const RX_FULL: u32 = 1 << 1;
-    /// CTRL: transmitter and receiver on.
-    pub const ON: u32 = 1 << 0 | 1 << 1;
-    /// CTRL: receive interrupt.
-    pub const RX_IRQ: u32 = 1 << 3;
-}
 
 /// One console line as thread code receives it.
 pub struct Incoming {
@@ -111,7 +90,7 @@ impl core::fmt::Write for ConsoleOut {
 /// room.
 pub extern "C" fn uart0_rx() {
     probe::within(Context::Console, || {
-        write(UART0 + reg::INTCLEAR, 1 << 1);
+        write(UART0 + reg::INTCLEAR, reg::INT_RX);
         // SAFETY: this is the UART's receive handler, which owns `RX`.
         let Some(rx) = (unsafe { RX.in_handler() }) else {
             return;

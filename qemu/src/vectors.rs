@@ -1,6 +1,6 @@
 //! The interrupt part of the vector table (cortex-m-rt's `device`
 //! feature: this crate provides `__INTERRUPTS`): mps2-an500's 32 lines,
-//! the three this firmware uses wired to their handlers.
+//! the five this firmware uses wired to their handlers.
 
 /// One vector: a handler, or a line no handler is installed for.
 #[derive(Clone, Copy)]
@@ -20,6 +20,12 @@ pub static __INTERRUPTS: [Vector; 32] = {
     let mut table = [UNUSED; 32];
     table[crate::machine::Irq::Uart0Rx as usize] = Vector {
         handler: crate::uart_console::uart0_rx,
+    };
+    table[crate::machine::Irq::Uart1Rx as usize] = Vector {
+        handler: crate::uart_link::uart1_rx,
+    };
+    table[crate::machine::Irq::Uart1Tx as usize] = Vector {
+        handler: crate::uart_link::uart1_tx,
     };
     table[crate::machine::Irq::Timer0 as usize] = Vector {
         handler: crate::step_timer::timer0,

@@ -8,6 +8,15 @@
 //! per guest instruction (500 M instructions per second, about a 520 MHz
 //! STM32H723); the firmware never sleeps, so a pin write's instruction
 //! count is its virtual time ([`NS_PER_INSN`]).
+//!
+//! A run with a secondary MCU ([`Qemu::start_linked`]: UART 1 on a stock
+//! Klipper peer's serial device) is in real time instead, as the peer
+//! is: QEMU runs without `-icount`, its virtual clock (the timers') is
+//! the host's, and the firmware sleeps with `wfi` (see
+//! qemu/src/machine.rs). Pin writes are then not timed by their
+//! instruction counts; the peer's own pin log times its steps.
+//! `ONECHIP_QEMU_REALTIME_ICOUNT` (e.g. `shift=1,sleep=on`) runs such a
+//! run with that `-icount` instead, to compare.
 
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
@@ -118,17 +127,50 @@ impl Qemu {
     ///
     /// If QEMU does not start or its console does not open.
     pub fn start(elf: &Path, name: &str) -> Self {
+        Self::launch(elf, name, None)
+    }
+
+    /// [`Self::start`] with UART 1 on the host serial device `serial` (a
+    /// peer's pseudo-terminal, or the symlink to it), in real time (see
+    /// the module's doc).
+    ///
+    /// # Panics
+    ///
+    /// As [`Self::start`], or if `serial` does not resolve to a device.
+    pub fn start_linked(elf: &Path, name: &str, serial: &Path) -> Self {
+        // Once seen a link to nothing, for a moment after the peer made it.
+        let deadline = Instant::now() + Duration::from_secs(5);
+        let device = loop {
+            match std::fs::canonicalize(serial) {
+                Ok(device) => break device,
+                Err(e) if Instant::now() > deadline => panic!("{}: {e}", serial.display()),
+                Err(_) => std::thread::sleep(Duration::from_millis(20)),
+            }
+        };
+        Self::launch(elf, name, Some(&device))
+    }
+
+    fn launch(elf: &Path, name: &str, uart1: Option<&Path>) -> Self {
         let dir = target_dir().join("qemu");
         let socket = dir.join(format!("{name}.sock"));
         let pin_log = dir.join(format!("{name}.pins"));
         let stdout = dir.join(format!("{name}.out"));
         let _ = std::fs::remove_file(&socket);
         let plugin = build_plugin();
-        let child = Command::new("qemu-system-arm")
-            .args(["-M", "mps2-an500", "-nographic", "-monitor", "none"])
-            .args(["-semihosting-config", "enable=on,target=native"])
-            .args(["-icount", "shift=1,sleep=off"])
-            .arg("-plugin")
+        let mut qemu = Command::new("qemu-system-arm");
+        qemu.args(["-M", "mps2-an500", "-nographic", "-monitor", "none"])
+            .args(["-semihosting-config", "enable=on,target=native"]);
+        match uart1 {
+            None => {
+                qemu.args(["-icount", "shift=1,sleep=off"]);
+            }
+            Some(_) => {
+                if let Ok(icount) = std::env::var("ONECHIP_QEMU_REALTIME_ICOUNT") {
+                    qemu.arg("-icount").arg(icount);
+                }
+            }
+        }
+        qemu.arg("-plugin")
             .arg(format!(
                 "{},out={}{}",
                 plugin.display(),
@@ -141,7 +183,12 @@ impl Qemu {
                 }
             ))
             .arg("-serial")
-            .arg(format!("unix:{},server=on,wait=on", socket.display()))
+            .arg(format!("unix:{},server=on,wait=on", socket.display()));
+        if let Some(device) = uart1 {
+            // A path under /dev/: QEMU's tty backend (raw mode).
+            qemu.arg("-serial").arg(device);
+        }
+        let child = qemu
             .arg("-kernel")
             .arg(elf)
             .stdin(Stdio::null())
@@ -199,6 +246,42 @@ impl Qemu {
                 replies.push(reply.to_string());
             }
         }
+    }
+
+    /// Reads the console's lines (sent without a command: a shutdown's
+    /// `!!` line) until one contains `needle`, for up to `timeout`: every
+    /// line read, Ok if the last one has it.
+    ///
+    /// # Errors
+    ///
+    /// The lines read if none had it in time.
+    pub fn wait_for(
+        &mut self,
+        needle: &str,
+        timeout: Duration,
+    ) -> Result<Vec<String>, Vec<String>> {
+        let deadline = Instant::now() + timeout;
+        let mut lines = Vec::new();
+        let stream = self.console.get_ref();
+        let _ = stream.set_read_timeout(Some(Duration::from_millis(100)));
+        let found = loop {
+            let mut line = String::new();
+            match self.console.read_line(&mut line) {
+                Ok(0) => break false,
+                Ok(_) => {
+                    let line = line.trim_end().to_string();
+                    let has = line.contains(needle);
+                    lines.push(line);
+                    if has {
+                        break true;
+                    }
+                }
+                Err(_) if Instant::now() < deadline => {}
+                Err(_) => break false,
+            }
+        };
+        let _ = self.console.get_ref().set_read_timeout(Some(LINE_TIMEOUT));
+        if found { Ok(lines) } else { Err(lines) }
     }
 
     /// Streams `gcode` line by line (comments and blank lines left out,
