@@ -220,7 +220,7 @@ pub fn check<'a>(
 }
 
 /// Every pin option of `machine`, in printer.cfg's order.
-fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 'm {
+pub(crate) fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = PinUse<'a>> + 'm {
     let steppers = machine.steppers.iter().flat_map(|s| {
         let pins = [
             ("step_pin", Some(s.step_pin)),

@@ -4,6 +4,7 @@
 //! planner's types.
 
 use crate::config_files::ConfigFiles;
+use crate::mcu_config::pin_ref;
 use crate::pin_check;
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
 use crate::text::cut_text;
@@ -127,6 +128,29 @@ impl<'a> PrinterSetup<'a> {
                     mcu.name
                 )))
             }
+            None => Ok(()),
+        }
+    }
+
+    /// For the firmware builds, which drive steppers, their endstops and
+    /// enable pins on secondary MCUs but not yet the rest: a heater, fan,
+    /// sensor or other pin on an `[mcu NAME]` is refused, naming the
+    /// section, option and pin.
+    #[allow(clippy::result_large_err)]
+    pub fn only_steppers_on_secondaries(&self) -> Result<(), SetupError> {
+        let on_secondary = |pin: &str| {
+            let chip = pin_ref(pin).mcu;
+            (self.machine.secondaries.iter()).any(|s| s.name == chip)
+        };
+        let stepper_pin = ["step_pin", "dir_pin", "enable_pin", "endstop_pin"];
+        let refused = pin_check::uses(&self.machine)
+            .find(|used| on_secondary(used.pin) && !stepper_pin.contains(&used.option));
+        match refused {
+            Some(used) => Err(cut_text(&format_args!(
+                "{used}: pin '{}' is on a secondary MCU, where this board drives only \
+                 steppers, endstops and enable pins so far",
+                used.pin.trim()
+            ))),
             None => Ok(()),
         }
     }
@@ -255,6 +279,27 @@ mod tests {
             assert_eq!(
                 setup.without_secondaries().map_err(|e| e.to_string()),
                 Err(expected)
+            );
+        });
+    }
+
+    #[test]
+    fn the_firmware_takes_steppers_on_a_secondary_and_refuses_its_other_pins_by_option() {
+        let ext = "\n[mcu ext]\nserial: usart2\n";
+        with_shipped(ext, |setup| {
+            assert_eq!(setup.only_steppers_on_secondaries(), Ok(()));
+        });
+        let fan = "\n[fan_generic exhaust]\npin: ext:PB1\n";
+        with_shipped(&(ext.to_string() + fan), |setup| {
+            assert_eq!(
+                setup
+                    .only_steppers_on_secondaries()
+                    .map_err(|e| e.to_string()),
+                Err(
+                    "[fan_generic exhaust] pin: pin 'ext:PB1' is on a secondary MCU, where this \
+                     board drives only steppers, endstops and enable pins so far"
+                        .to_string()
+                )
             );
         });
     }

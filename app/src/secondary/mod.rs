@@ -11,6 +11,7 @@
 //! - [`attached::Secondaries`]: every MCU of the printer, its steppers,
 //!   outputs, heaters and homing;
 //! - [`homing`]: homing across MCUs with trsync;
+//! - [`mcu`]: one MCU role over this board's own and the secondaries';
 //! - [`thermal`]: heater and sensor inputs on a secondary.
 
 // Errors carry their words in bounded buffers (there is no heap to box
@@ -19,6 +20,7 @@
 
 pub mod attached;
 pub mod homing;
+pub mod mcu;
 pub mod thermal;
 
 use core::fmt::{self, Write as _};
