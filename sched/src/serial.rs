@@ -232,7 +232,7 @@ pub fn divisor(kernel_hz: u32, baud: u32) -> Result<Divisor, BaudError> {
     }
     let (k, b) = (u64::from(kernel_hz), u64::from(baud));
     let div16 = (k + b / 2) / b;
-    let (brr, over8, actual) = if div16 >= 16 && div16 <= 0xffff {
+    let (brr, over8, actual) = if (16..=0xffff).contains(&div16) {
         (div16 as u16, false, k / div16)
     } else if div16 > 0xffff {
         return Err(BaudError::OutOfRange);
