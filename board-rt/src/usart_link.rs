@@ -113,6 +113,8 @@ struct Usart {
     port: &'static Port,
     /// Clocks and resets the USART (RCC).
     enable: fn(),
+    /// Transmit and receive pins by name, and what for, for the pin check.
+    pins: [(&'static str, &'static str); 2],
     /// Transmit and receive pins: GPIO port index (0 = A) and number.
     tx: (u8, usize),
     rx: (u8, usize),
@@ -129,6 +131,10 @@ const USARTS: [Usart; 1] = [Usart {
     irq: interrupt::Interrupt::USART2,
     port: &USART2_PORT,
     enable: embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::USART2>,
+    pins: [
+        ("PD5", "USART2 TX, the link to a secondary MCU"),
+        ("PD6", "USART2 RX, the link to a secondary MCU"),
+    ],
     tx: (3, 5),
     rx: (3, 6),
 }];
@@ -169,6 +175,13 @@ pub fn check(serial: &str, baud: u32) -> Result<u16, LinkError> {
             usart.name, USART2_KERNEL_HZ
         )))),
     }
+}
+
+/// The pins (transmit, receive) of the USART `serial` names, each with
+/// what it is for, if this board has that USART: printer.cfg may not use
+/// them for anything else.
+pub fn pins(serial: &str) -> Option<[(&'static str, &'static str); 2]> {
+    find(serial).map(|u| u.pins)
 }
 
 /// Counts of a link's line errors since boot (wrapping).
