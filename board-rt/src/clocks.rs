@@ -119,6 +119,20 @@ const _: () = assert!(is(sysclk_hz(&RCC), SYSCLK_HZ), "SYSCLK_HZ is wrong");
 /// makes it.
 pub const APB1_TIMER_HZ: u32 = apb1_timer_hz(&RCC);
 
+/// USART2's kernel clock, Hz: `rcc_pclk1` (RM0468, RCC_D2CCIP2R's
+/// USART234578SEL at its reset value 0, which embassy's zeroed mux keeps),
+/// 520 MHz / 2 (HPRE) / 2 (D2PPRE1) = 130 MHz. The link to the secondary
+/// MCUs divides it (`onechip_sched::serial::divisor`): 250,000 bit/s is
+/// BRR 520 at 16× oversampling, exact.
+pub const USART2_KERNEL_HZ: u32 = apb1_hz(&RCC);
+
+// USART2 runs from PCLK1, at the rate the link divides.
+const _: () = assert!(
+    RCC.mux.usart234578sel.to_bits() == mux::Usart234578sel::PCLK1.to_bits()
+        && USART2_KERNEL_HZ == 130_000_000,
+    "USART2's kernel clock is not PCLK1 at 130 MHz"
+);
+
 /// The embassy configuration for this board: clocks, and every DMA interrupt
 /// below the stepper timer's priority.
 pub fn config() -> Config {
@@ -216,6 +230,14 @@ const fn apb_div(pre: APBPrescaler) -> u32 {
         0..=3 => 1,
         bits => 1 << (bits - 3),
     }
+}
+
+/// The APB1 clock (`rcc_pclk1`), Hz; 0 if the system clock is off.
+const fn apb1_hz(rcc: &rcc::Config) -> u32 {
+    let Some(sys) = sysclk_hz(rcc) else {
+        return 0;
+    };
+    sys / ahb_div(rcc.d1c_pre) / ahb_div(rcc.ahb_pre) / apb_div(rcc.apb1_pre)
 }
 
 /// The APB1 timers' clock (TIM2..TIM7): twice the APB1 clock, at most the

@@ -11,6 +11,7 @@
 //!   [`spi_sensors`] the SPI temperature chips it reads;
 //! - [`probe_servo`]: a BLTouch's servo signal from TIM23;
 //! - [`tmc_link`]: the TMC drivers' UART (TIM24) and SPI;
+//! - [`usart_link`]: the USART link to secondary MCUs (USART2);
 //! - [`safety`]: the watchdog and the fault handlers that turn every
 //!   registered output off;
 //! - [`clocks`], [`priority`], [`gpio`], [`handler_cell`], [`timer32`]:
@@ -31,3 +32,4 @@ pub mod step_timer;
 pub mod tcm;
 pub mod timer32;
 pub mod tmc_link;
+pub mod usart_link;

@@ -23,6 +23,16 @@ pub const TMC_UART: Priority = Priority::P1;
 pub const HEATERS: Priority = Priority::P2;
 /// A BLTouch's servo signal (TIM23): its pulse edges.
 pub const PROBE_SERVO: Priority = Priority::P3;
+/// The USART link to secondary MCUs (USART2): it moves bytes between the
+/// USART's 16-byte FIFOs and the link's rings. Below the steppers, the
+/// TMC UART and the heaters (their timing is tighter), above USB, SDMMC
+/// and the executors, whose handlers can run long: at 250,000 bit/s a
+/// byte arrives every 40 µs, and the receive FIFO holds 16 (with the shift
+/// register, 680 µs before an overrun), which only the three interrupts
+/// above could take from it. Its handler is short (a few register reads
+/// and ring stores per byte), so the servo's edges at the same level wait
+/// at most that.
+pub const SECONDARY_LINK: Priority = Priority::P3;
 /// embassy-time's timer (TIM4): wakes async tasks.
 pub const TIME_DRIVER: Priority = Priority::P3;
 /// USB, SDMMC and DMA.

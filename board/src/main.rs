@@ -16,6 +16,8 @@ mod boot;
 mod cache;
 mod octopus_pro_v1_1;
 mod sd_card;
+#[cfg(feature = "secondaries")]
+mod secondary_links;
 mod usb_console;
 
 use core::mem::{ManuallyDrop, MaybeUninit};
@@ -29,9 +31,17 @@ use onechip_app::config_files;
 use onechip_app::console::Console;
 use onechip_app::pin_check;
 use onechip_app::sdcard::SdFiles;
+#[cfg(feature = "secondaries")]
+use onechip_app::secondary::attached::Secondaries;
+#[cfg(feature = "secondaries")]
+use onechip_app::secondary::mcu::WithSecondaries;
+#[cfg(feature = "secondaries")]
+use onechip_app::secondary::{ConnectError, McuError};
 use onechip_app::session::{BoardSession, Mcu, profile};
 use onechip_app::setup::{Config, PrinterSetup};
 use onechip_app::text::{ErrorText, error_text};
+#[cfg(feature = "secondaries")]
+use onechip_board_rt::usart_link;
 use onechip_board_rt::{
     clocks, heater_io, priority, probe_servo, safety, spi_sensors, step_pins, step_timer, tcm,
     tmc_link,
@@ -42,6 +52,23 @@ const _: () = assert!(
     safety::MAX_SAFE_PINS >= step_timer::STEPPERS + onechip_app::heaters::OUTPUTS,
     "room for every enable pin and every heater and fan output"
 );
+
+/// The MCU role the session drives: this board's, with the secondary MCUs
+/// on its USART if printer.cfg has any (feature `secondaries`).
+#[cfg(feature = "secondaries")]
+type BoardRole = WithSecondaries<board_mcu::BoardMcu, usart_link::UsartLink>;
+/// The MCU role the session drives: this board's (without the feature
+/// `secondaries`, an `[mcu NAME]` is refused).
+#[cfg(not(feature = "secondaries"))]
+type BoardRole = board_mcu::BoardMcu;
+
+/// The MCU role without a printer (no valid printer.cfg).
+fn role_alone() -> BoardRole {
+    #[cfg(feature = "secondaries")]
+    return WithSecondaries::new(board_mcu::BoardMcu::default(), None, step_timer::TIMER_HZ);
+    #[cfg(not(feature = "secondaries"))]
+    board_mcu::BoardMcu::default()
+}
 
 /// Bytes of config text (printer.cfg and its includes, with their names).
 const CONFIG_BUFFER: usize = 32 * 1024;
@@ -128,11 +155,11 @@ async fn start_io(usb: octopus_pro_v1_1::UsbPins) {
 /// sent and the board restarted with M999.
 fn serve(
     mut card: Option<BoardCard>,
-    session: Result<(&'static mut BoardSession<'static>, board_mcu::BoardMcu), ErrorText>,
+    session: Result<(&'static mut BoardSession<'static>, BoardRole), ErrorText>,
 ) -> ! {
     let (mut session, mut mcu, no_printer) = match session {
         Ok((session, mcu)) => (Some(session), mcu, ErrorText::new()),
-        Err(e) => (None, board_mcu::BoardMcu::default(), e),
+        Err(e) => (None, role_alone(), e),
     };
     let mut out = usb_console::ConsoleOut;
     let mut console = Console::new(step_timer::TIMER_HZ);
@@ -187,7 +214,7 @@ const RESTART_DELAY: f64 = 0.05;
 fn load_printer(
     card: &mut Result<BoardCard, ErrorText>,
     thermistors: octopus_pro_v1_1::ThermistorPins,
-) -> Result<(&'static mut BoardSession<'static>, board_mcu::BoardMcu), ErrorText> {
+) -> Result<(&'static mut BoardSession<'static>, BoardRole), ErrorText> {
     static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     static AREA: StaticCell<LoadArea> = StaticCell::new();
     // The printer read from it (several KB: kept out of the stack).
@@ -202,7 +229,15 @@ fn load_printer(
         LoadArea::scratch(area),
     )
     .map_err(|e| error_text(&e))?;
+    #[cfg(not(feature = "secondaries"))]
     setup.without_secondaries().map_err(|e| error_text(&e))?;
+    #[cfg(feature = "secondaries")]
+    {
+        setup
+            .only_steppers_on_secondaries()
+            .map_err(|e| error_text(&e))?;
+        check_links(setup)?;
+    }
     for section in setup.unsupported() {
         defmt::info!("[{}] is not supported yet, ignored", section);
     }
@@ -231,6 +266,8 @@ fn load_printer(
             .map_err(|e| error_text(&format_args!("[{}] {e}", sensor.section)))?;
         let _ = mcu.filament.push(input);
     }
+    #[cfg(feature = "secondaries")]
+    let mcu = WithSecondaries::new(mcu, connect_secondaries(setup)?, step_timer::TIMER_HZ);
     let session = BoardSession::init_board_in(
         LoadArea::session(area),
         setup.machine(),
@@ -274,17 +311,22 @@ impl LoadArea {
 fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
+        // A stepper on a secondary runs there (its slot here stays
+        // empty); so do an enable pin or endstop written `NAME:PIN`.
+        if !on_main(stepper.step_pin) {
+            continue;
+        }
         let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
         let pin = |written| setup.resolve_pin(written).map_err(|e| fail(&e));
         let (step, dir) = (pin(stepper.step_pin)?, pin(stepper.dir_pin)?);
         let pins = step_pins::StepperPins::new(&step, &dir).map_err(|e| fail(&e))?;
-        if let Some(enable) = stepper.enable_pin {
+        if let Some(enable) = stepper.enable_pin.filter(|p| on_main(p)) {
             step_pins::OutPin::new_safe_off(&pin(enable)?)
                 .map_err(|e| fail(&e))?
                 .set(true);
         }
         *slot = pins.with_step_pulse(stepper.step_pulse);
-        if let Some(endstop) = stepper.endstop_pin {
+        if let Some(endstop) = stepper.endstop_pin.filter(|p| on_main(p)) {
             let endstop = step_pins::InPin::new(&pin(endstop)?).map_err(|e| fail(&e))?;
             *slot = slot.with_endstop(endstop);
         }
@@ -299,6 +341,87 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     }
     step_timer::install(step_timer::BoardEngine::new(slots));
     Ok(())
+}
+
+/// True if the pin as written is on this board's MCU (not `NAME:PIN`).
+fn on_main(pin: &str) -> bool {
+    onechip_app::mcu_config::pin_ref(pin).mcu == onechip_app::mcu_config::MAIN
+}
+
+#[cfg(feature = "secondaries")]
+/// Checks, before any secondary is connected, that each `[mcu NAME]`'s
+/// `serial` is a USART of this board with a `baud` it can make, and that
+/// printer.cfg uses that USART's pins for nothing else: an error names the
+/// option (as a connect failure does).
+fn check_links(setup: &PrinterSetup<'static>) -> Result<(), ErrorText> {
+    let machine = setup.machine();
+    for mcu in &machine.secondaries {
+        let fail = |error| {
+            error_text(&mcu_error(
+                mcu.name,
+                mcu.serial_at,
+                ConnectError::Link(error),
+            ))
+        };
+        usart_link::check(mcu.serial, mcu.baud).map_err(fail)?;
+        if let Some(link_pins) = usart_link::pins(mcu.serial) {
+            onechip_app::pin_check::check(machine, &link_pins).map_err(|e| error_text(&e))?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(feature = "secondaries")]
+/// A secondary's error as the session reports it: printer.cfg's file and
+/// line of its `serial` option, the MCU, why.
+fn mcu_error(mcu: &'static str, (file, line): (&str, usize), error: ConnectError) -> McuError {
+    let mut name = heapless::String::new();
+    for c in file.chars() {
+        if name.push(c).is_err() {
+            break;
+        }
+    }
+    McuError {
+        mcu,
+        file: name,
+        line,
+        error,
+    }
+}
+
+#[cfg(feature = "secondaries")]
+/// Connects printer.cfg's secondary MCUs over their USARTs and configures
+/// their steppers (up to 15 s each, as klippy's connect): None if there
+/// are none; a failure is reported as a config error is.
+#[inline(never)]
+fn connect_secondaries(
+    setup: &PrinterSetup<'static>,
+) -> Result<Option<Secondaries<usart_link::UsartLink>>, ErrorText> {
+    let machine = setup.machine();
+    if machine.secondaries.is_empty() {
+        return Ok(None);
+    }
+    let names: heapless::Vec<&'static str, { onechip_planner::mcu_section::MAX_SECONDARIES }> =
+        machine.secondaries.iter().map(|s| s.name).collect();
+    let mut pulses = [0.0; step_timer::STEPPERS];
+    for (p, stepper) in pulses.iter_mut().zip(setup.steppers()) {
+        *p = stepper.step_pulse;
+    }
+    let now = || step_timer::now64() as f64 / step_timer::TIMER_HZ;
+    let pulse = |i: usize| pulses.get(i).copied().unwrap_or(0.0);
+    for name in &names {
+        defmt::info!("connecting MCU '{}'", name);
+    }
+    Secondaries::connect(
+        machine,
+        &names,
+        &pulse,
+        (step_timer::TIMER_HZ, heater_io::mcu_sensor()),
+        &mut secondary_links::BoardLinks,
+        &now,
+    )
+    .map(Some)
+    .map_err(|e| error_text(&e))
 }
 
 /// Configures the heaters' and fan's output pins and the thermistors'

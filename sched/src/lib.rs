@@ -17,6 +17,7 @@
 //!   [`io::Peripherals`] hardware trait;
 //! - [`tmc_uart`]: the TMC2208/TMC2209 single-wire UART, bit-banged from
 //!   a timer;
+//! - [`serial`]: a USART link's byte rings and baud-rate divisor;
 //! - [`shutdown`]: why everything stopped, in Klipper's words;
 //! - [`step_command`]: the step command, as step generation produces it
 //!   and the engine executes it.
@@ -28,6 +29,7 @@ pub mod endstop;
 pub mod engine;
 pub mod io;
 pub mod outputs;
+pub mod serial;
 pub mod shutdown;
 pub mod step_command;
 pub mod stepper;

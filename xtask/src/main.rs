@@ -93,7 +93,14 @@ fn image(elf_path: &Path) -> Result<(), String> {
     let image = elf_image::Image::parse(&data)?;
 
     let flash = image.flash_bytes();
-    let ram = image.static_ram_bytes();
+    // DTCM has a budget of its own (dtcm_kib, the linker's region): the
+    // RAM budget is the AXI SRAM's, whose statics share it with the stack.
+    let dtcm = budget.dtcm_base..budget.dtcm_base + budget.dtcm_kib * 1024;
+    let in_dtcm: u64 = (image.ram_sections().iter())
+        .filter(|s| dtcm.contains(&s.addr))
+        .map(|s| s.size)
+        .sum();
+    let ram = image.static_ram_bytes() - in_dtcm;
     println!("firmware: {}", elf_path.display());
     println!(
         "flash: {:>7} bytes ({:.1} KiB of {} KiB budget)",
@@ -102,10 +109,16 @@ fn image(elf_path: &Path) -> Result<(), String> {
         budget.flash_kib
     );
     println!(
-        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: every RAM and DTCM section)",
+        "ram:   {:>7} bytes ({:.1} KiB of {} KiB budget, static: every RAM section but DTCM's)",
         ram,
         kib(ram),
         budget.ram_kib
+    );
+    println!(
+        "dtcm:  {:>7} bytes ({:.1} KiB of {} KiB)",
+        in_dtcm,
+        kib(in_dtcm),
+        budget.dtcm_kib
     );
 
     let mut problems = Vec::new();
@@ -119,6 +132,12 @@ fn image(elf_path: &Path) -> Result<(), String> {
         problems.push(format!(
             "static RAM {ram} bytes exceeds {} KiB",
             budget.ram_kib
+        ));
+    }
+    if in_dtcm > budget.dtcm_kib * 1024 {
+        problems.push(format!(
+            "DTCM statics {in_dtcm} bytes exceed {} KiB",
+            budget.dtcm_kib
         ));
     }
     match image.interrupt_handler(budget.stepper_irq_number) {
