@@ -59,18 +59,7 @@ pub fn connect(
     now: &dyn Fn() -> f64,
     timeout: Duration,
 ) -> Result<Secondary, ConnectError> {
-    let (name, serial) = (leak(name), path.to_string_lossy());
-    let (links, timeout) = (&mut SerialDevices, timeout.as_secs_f64());
-    let config = lines(config);
-    Secondary::connect(
-        name,
-        (&serial, 0),
-        links,
-        &config,
-        now,
-        timeout,
-        Start::Fresh,
-    )
+    connect_on(name, path, None, config, now, timeout)
 }
 
 /// [`connect`], and as klippy's automated firmware restart: an MCU that
@@ -83,10 +72,26 @@ pub fn connect_or_restart(
     now: &dyn Fn() -> f64,
     timeout: Duration,
 ) -> Result<Secondary, ConnectError> {
+    connect_on(name, path, Some(restart), config, now, timeout)
+}
+
+/// [`connect`], resetting by `restart` an MCU that holds another config
+/// if given.
+fn connect_on(
+    name: &str,
+    path: &Path,
+    restart: Option<RestartMethod>,
+    config: &dyn Fn(f64) -> Vec<String>,
+    now: &dyn Fn() -> f64,
+    timeout: Duration,
+) -> Result<Secondary, ConnectError> {
     let (name, serial) = (leak(name), path.to_string_lossy());
-    let (links, timeout) = (&mut SerialDevices, timeout.as_secs_f64());
+    let (serial, links, timeout) = ((&*serial, 0), &mut SerialDevices, timeout.as_secs_f64());
     let config = lines(config);
-    Secondary::connect_or_restart(name, (&serial, 0), links, restart, &config, now, timeout)
+    match restart {
+        Some(how) => Secondary::connect_or_restart(name, serial, links, how, &config, now, timeout),
+        None => Secondary::connect(name, serial, links, &config, now, timeout, Start::Fresh),
+    }
 }
 
 /// `config`'s lines as the host role takes them, one call each.
