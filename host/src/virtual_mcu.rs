@@ -21,7 +21,7 @@ use crate::step_log::{FileError, StepLog};
 use crate::thermal_plant::{ADC_MAX, Plant, mcu_sensor};
 use crate::tmc_sim::{StallDetect, TmcSim};
 use onechip_app::heaters::{FIRST_REPORT, Heaters, ThermalCommand, Wait};
-use onechip_app::secondary::attached::each_step;
+use onechip_app::secondary::sent_steps::each_step;
 use onechip_app::secondary::thermal::Reading;
 use onechip_app::session::Mcu;
 use onechip_planner::kinematics::{StepperKinematics, calc_position};

@@ -23,10 +23,11 @@
 //! the PWM updates the control queues go out as the fans' do.
 
 use super::homing::{Homing, TrsyncState};
+use super::remote_output::{RemoteEnable, RemoteOutput, level};
+use super::sent_steps::{SentCommand, SentSteps, each_step};
 use super::thermal::{self, Reading, RemoteInput};
 use super::{
-    CommandLine, ConnectError, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text,
-    command, text,
+    ConnectError, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text, command, text,
 };
 use crate::heaters::{INPUTS, LinearConversion, McuSetup, OUTPUTS, full_scale};
 use crate::mcu_config::{Oids, pin_ref, write_config};
@@ -63,114 +64,8 @@ const OUTPUT_LEAD: f64 = 0.050;
 /// many wait in its move queue (the Linux MCU's queue is far longer, an
 /// AVR's shorter), `min(move_count, MOVE_SLOTS)` less its outputs' slots.
 pub const MOVE_SLOTS: usize = 512;
-/// Output updates waiting for the one before them to take effect, per
-/// output (a fan's kick and its speed, a heater's updates).
-const PENDING_UPDATES: usize = 8;
-/// Step commands of one stepper remembered to place a homing's trigger
-/// among its steps (those that end before the trigger count whole).
-const RECENT_COMMANDS: usize = 32;
 /// Responses kept from one service round, for a `stepper_position` asked.
 const RESPONSES: usize = 8;
-
-/// Calls `step(clock)` for each step of a `queue_step` whose first step
-/// is at `clock` (64-bit, ticks): step k+1 comes `interval + (k+1) × add`
-/// ticks after step k, as the MCU runs it.
-pub fn each_step(clock: u64, interval: u32, count: u16, add: i16, mut step: impl FnMut(u64)) {
-    let mut at = clock;
-    let mut gap = i64::from(interval);
-    for _ in 0..count {
-        step(at);
-        gap += i64::from(add);
-        at = at.saturating_add_signed(gap);
-    }
-}
-
-/// A fan's, output pin's or enable pin's output on a secondary, driven as
-/// klippy's `MCU_digital_out` and `MCU_pwm` drive theirs: one update at
-/// a time on the MCU (each output has one slot of its move queue), the
-/// next one sent once the MCU's clock has reached the one before.
-#[derive(Debug, Clone)]
-struct RemoteOutput {
-    /// Its MCU (index into `attached`).
-    mcu: usize,
-    /// Its oid there.
-    oid: u8,
-    /// Software PWM cycle on that MCU, ticks (0: steady on/off).
-    cycle_ticks: u32,
-    /// Active low (`!`): klippy inverts the level on the host.
-    inverted: bool,
-    /// The clock (that MCU's, 64-bit) of the last update sent.
-    last_clock: u64,
-    /// Updates not sent yet: clock, level (0..1 of full scale). When full,
-    /// the newest is replaced (only the latest level matters).
-    pending: heapless::Deque<(u64, f64), PENDING_UPDATES>,
-    /// How late (s) the updates queued while the last one was still to
-    /// come are sent, so that they keep their spacing (a fan's kick).
-    delay: f64,
-    /// Host time of the last update queued (its delay included), s.
-    last_at: f64,
-}
-
-impl RemoteOutput {
-    /// Output `oid` on MCU `mcu` (index into `attached`), software PWM of
-    /// `cycle_ticks` (0: steady), active low if `inverted`; nothing sent
-    /// yet.
-    fn new(mcu: usize, oid: u8, cycle_ticks: u32, inverted: bool) -> Self {
-        Self {
-            mcu,
-            oid,
-            cycle_ticks,
-            inverted,
-            last_clock: 0,
-            pending: heapless::Deque::new(),
-            delay: 0.0,
-            last_at: 0.0,
-        }
-    }
-
-    /// The update to `level` (0..1) at `clock` as the MCU takes it: on
-    /// ticks of its cycle, or on/off.
-    fn update(&self, clock: u64, level: f64) -> CommandLine {
-        let level = if self.inverted { 1.0 - level } else { level };
-        let on_ticks = match self.cycle_ticks {
-            0 => u32::from(level != 0.0),
-            cycle => (level.clamp(0.0, 1.0) * f64::from(cycle) + 0.5) as u32,
-        };
-        command(format_args!(
-            "queue_digital_out oid={} clock={} on_ticks={on_ticks}",
-            self.oid,
-            clock & 0xffff_ffff
-        ))
-    }
-
-    /// Queues `level` at `clock`, never before an update queued earlier.
-    fn queue(&mut self, clock: u64, level: f64) {
-        let after = self.pending.back().map_or(self.last_clock, |p| p.0);
-        if self.pending.is_full() {
-            self.pending.pop_back();
-        }
-        let _ = self.pending.push_back((clock.max(after), level));
-    }
-}
-
-/// A stepper's enable pin on a secondary: shared by the steppers that
-/// name the same pin, active while any of them is (klippy's enable
-/// count).
-#[derive(Debug, Clone)]
-struct RemoteEnable {
-    output: RemoteOutput,
-    /// Steppers enabled on it.
-    count: usize,
-}
-
-/// An io output's `value` as a level, 0..1 of its `full` scale (0: a
-/// steady output, off or on).
-fn level(value: u32, full: u32) -> f64 {
-    match full {
-        0 => f64::from(u8::from(value != 0)),
-        full => f64::from(value) / f64::from(full),
-    }
-}
 
 /// The move queue slots an MCU with objects `oids` keeps for its outputs:
 /// one for each enable pin, heater, fan and pin output.
@@ -229,72 +124,6 @@ struct ActiveHoming {
     endstop: Option<(usize, u8)>,
     /// The trigger was taken by the session.
     taken: bool,
-}
-
-/// A `queue_step` sent, as its steps fall: first step's clock (64-bit,
-/// ticks), interval, count, add, direction (true: forward).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct SentCommand {
-    clock: u64,
-    interval: u32,
-    count: u16,
-    add: i16,
-    forward: bool,
-}
-
-/// What a stepper on a secondary was sent, and what it adds up to.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct SentSteps {
-    /// Steps sent.
-    pub count: u64,
-    /// Their sum, +1 forward and −1 back.
-    pub position: i64,
-    /// The direction of the next steps.
-    forward: bool,
-    /// The MCU's position when it last halted (a homing's stop), steps.
-    halt: i64,
-    /// The sum of the steps sent since.
-    since_halt: i64,
-    /// The last step commands sent since, oldest first.
-    recent: heapless::Deque<SentCommand, RECENT_COMMANDS>,
-}
-
-impl SentSteps {
-    /// The stepper's position at MCU clock `clock` (ticks, after its last
-    /// halt), in steps: the halt's, moved by the steps sent since, less
-    /// those of the remembered commands after `clock`.
-    fn position_at(&self, clock: u64) -> i64 {
-        let mut after = 0;
-        for c in &self.recent {
-            let sign = if c.forward { 1 } else { -1 };
-            each_step(c.clock, c.interval, c.count, c.add, |at| {
-                if at > clock {
-                    after += sign;
-                }
-            });
-        }
-        self.halt + self.since_halt - after
-    }
-
-    /// A `queue_step` was sent.
-    fn sent(&mut self, command: SentCommand) {
-        if self.recent.is_full() {
-            self.recent.pop_front();
-        }
-        let _ = self.recent.push_back(command);
-        let steps = i64::from(command.count) * if command.forward { 1 } else { -1 };
-        self.count += u64::from(command.count);
-        self.position += steps;
-        self.since_halt += steps;
-    }
-
-    /// The MCU halted at position `halt` (steps, as it reports it): what
-    /// it was sent so far but did not make is forgotten.
-    fn halted_at(&mut self, halt: i64) {
-        self.halt = halt;
-        self.since_halt = 0;
-        self.recent.clear();
-    }
 }
 
 /// A stepper on a secondary.

@@ -21,6 +21,8 @@
 pub mod attached;
 pub mod homing;
 pub mod mcu;
+mod remote_output;
+pub mod sent_steps;
 pub mod thermal;
 
 use core::fmt::{self, Write as _};
