@@ -734,7 +734,7 @@ impl Heaters {
                 InputQuery::Adc(q) => {
                     // One on another MCU is sampled there: its reports
                     // come through `remote_report`.
-                    let here = crate::mcu_config::pin_ref(pin).mcu == crate::mcu_config::MAIN;
+                    let here = crate::mcu_config::on_main(pin);
                     if let Ok(index) = io.add_input()
                         && here
                     {

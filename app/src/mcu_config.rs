@@ -53,6 +53,12 @@ pub struct PinRef<'a> {
     pub pull_up: bool,
 }
 
+/// True if `pin` (as printer.cfg writes it) is on the main MCU: not
+/// written `NAME:PIN`.
+pub fn on_main(pin: &str) -> bool {
+    pin_ref(pin).mcu == MAIN
+}
+
 /// Splits `text` (`[!][^|~]` modifiers, then `[MCU:]PIN`).
 pub fn pin_ref(text: &str) -> PinRef<'_> {
     let (mut inverted, mut pull_up) = (false, false);

@@ -29,6 +29,7 @@ use embassy_time::{Duration, Ticker};
 use octopus_pro_v1_1::Board;
 use onechip_app::config_files;
 use onechip_app::console::Console;
+use onechip_app::mcu_config::on_main;
 use onechip_app::pin_check;
 use onechip_app::sdcard::SdFiles;
 #[cfg(feature = "secondaries")]
@@ -343,11 +344,6 @@ fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     Ok(())
 }
 
-/// True if the pin as written is on this board's MCU (not `NAME:PIN`).
-fn on_main(pin: &str) -> bool {
-    onechip_app::mcu_config::pin_ref(pin).mcu == onechip_app::mcu_config::MAIN
-}
-
 #[cfg(feature = "secondaries")]
 /// Checks, before any secondary is connected, that each `[mcu NAME]`'s
 /// `serial` is a USART of this board with a `baud` it can make, and that
@@ -357,7 +353,7 @@ fn check_links(setup: &PrinterSetup<'static>) -> Result<(), ErrorText> {
     let machine = setup.machine();
     for mcu in &machine.secondaries {
         let fail = |error| {
-            error_text(&mcu_error(
+            error_text(&McuError::new(
                 mcu.name,
                 mcu.serial_at,
                 ConnectError::Link(error),
@@ -372,24 +368,6 @@ fn check_links(setup: &PrinterSetup<'static>) -> Result<(), ErrorText> {
 }
 
 #[cfg(feature = "secondaries")]
-/// A secondary's error as the session reports it: printer.cfg's file and
-/// line of its `serial` option, the MCU, why.
-fn mcu_error(mcu: &'static str, (file, line): (&str, usize), error: ConnectError) -> McuError {
-    let mut name = heapless::String::new();
-    for c in file.chars() {
-        if name.push(c).is_err() {
-            break;
-        }
-    }
-    McuError {
-        mcu,
-        file: name,
-        line,
-        error,
-    }
-}
-
-#[cfg(feature = "secondaries")]
 /// Connects printer.cfg's secondary MCUs over their USARTs and configures
 /// their steppers (up to 15 s each, as klippy's connect): None if there
 /// are none; a failure is reported as a config error is.
@@ -401,21 +379,13 @@ fn connect_secondaries(
     if machine.secondaries.is_empty() {
         return Ok(None);
     }
-    let names: heapless::Vec<&'static str, { onechip_planner::mcu_section::MAX_SECONDARIES }> =
-        machine.secondaries.iter().map(|s| s.name).collect();
-    let mut pulses = [0.0; step_timer::STEPPERS];
-    for (p, stepper) in pulses.iter_mut().zip(setup.steppers()) {
-        *p = stepper.step_pulse;
-    }
     let now = || step_timer::now64() as f64 / step_timer::TIMER_HZ;
-    let pulse = |i: usize| pulses.get(i).copied().unwrap_or(0.0);
-    for name in &names {
-        defmt::info!("connecting MCU '{}'", name);
+    for mcu in &machine.secondaries {
+        defmt::info!("connecting MCU '{}'", mcu.name);
     }
     Secondaries::connect(
-        machine,
-        &names,
-        &pulse,
+        setup,
+        &|name| name,
         (step_timer::TIMER_HZ, heater_io::mcu_sensor()),
         &mut secondary_links::BoardLinks,
         &now,

@@ -662,14 +662,9 @@ fn with_secondaries(
     );
     let wall = pace.clone();
     let now = move || wall.clock_now() as f64 / freq;
-    let pulses: Vec<f64> = setup.steppers().map(|w| w.step_pulse).collect();
-    let machine = setup.machine();
-    let names: Vec<&'static str> = (machine.secondaries.iter())
-        .map(|s| secondary::leak(s.name))
-        .collect();
     let main = (freq, crate::thermal_plant::mcu_sensor());
     let links = &mut secondary::SerialDevices;
-    let secondaries = Secondaries::connect(machine, &names, &|i| pulses[i], main, links, &now)
+    let secondaries = Secondaries::connect(setup, &secondary::leak, main, links, &now)
         .map_err(|e| SimError::Secondary(e.to_string()))?;
     mcu.set_pace(pace);
     mcu.with_secondaries();

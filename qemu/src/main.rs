@@ -38,7 +38,7 @@ use onechip_app::console::Console;
 use onechip_app::heaters::{
     FIRST_REPORT, Heaters, LinearConversion, McuSetup, TYPICAL_STM32H7_CAL,
 };
-use onechip_app::mcu_config::{MAIN, pin_ref};
+use onechip_app::mcu_config::on_main;
 use onechip_app::pin_check;
 use onechip_app::secondary::attached::Secondaries;
 use onechip_app::secondary::mcu::WithSecondaries;
@@ -152,20 +152,10 @@ fn connect_secondaries(
         return Ok(None);
     }
     machine::start_real_time();
-    let mut names =
-        heapless::Vec::<&'static str, { onechip_planner::mcu_section::MAX_SECONDARIES }>::new();
-    for s in &machine.secondaries {
-        let _ = names.push(s.name);
-    }
-    let mut pulses = [0.0; onechip_planner::machine::MAX_STEPPERS];
-    for (p, s) in pulses.iter_mut().zip(setup.steppers()) {
-        *p = s.step_pulse;
-    }
-    let pulse = |i: usize| pulses.get(i).copied().unwrap_or(0.0);
     let mcu_sensor = LinearConversion::stm32h7(TYPICAL_STM32H7_CAL);
     let now = || step_timer::now64() as f64 / step_timer::CLOCK_HZ;
     let main = (step_timer::CLOCK_HZ, mcu_sensor);
-    Secondaries::connect(machine, &names, &pulse, main, &mut links::UartLinks, &now)
+    Secondaries::connect(setup, &|name| name, main, &mut links::UartLinks, &now)
         .map(Some)
         .map_err(|e| error_text(&e))
 }
@@ -175,18 +165,17 @@ fn connect_secondaries(
 /// endstop on a secondary MCU is left to it (its slot stays idle).
 fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [pins::StepperPins::default(); step_timer::STEPPERS];
-    let here = |pin: &&str| pin_ref(pin).mcu == MAIN;
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
-        if !here(&stepper.step_pin) {
+        if !on_main(stepper.step_pin) {
             continue;
         }
         let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
         *slot = pins::StepperPins::new(stepper.step_pin, stepper.dir_pin, stepper.step_pulse)
             .map_err(|e| fail(&e))?;
-        if let Some(pin) = stepper.enable_pin.filter(here) {
+        if let Some(pin) = stepper.enable_pin.filter(|p| on_main(p)) {
             pins::OutPin::new(pin).map_err(|e| fail(&e))?.set(true);
         }
-        if let Some(pin) = stepper.endstop_pin.filter(here) {
+        if let Some(pin) = stepper.endstop_pin.filter(|p| on_main(p)) {
             *slot = slot.with_endstop(pins::InPin::new(pin).map_err(|e| fail(&e))?);
         }
     }

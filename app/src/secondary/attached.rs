@@ -31,6 +31,7 @@ use super::{
 };
 use crate::heaters::{INPUTS, LinearConversion, McuSetup, OUTPUTS, full_scale};
 use crate::mcu_config::{Oids, pin_ref, write_config};
+use crate::setup::PrinterSetup;
 use crate::step_pulse::pulse_ticks;
 use core::cell::Cell;
 use heapless::binary_heap::{BinaryHeap, Min};
@@ -180,39 +181,39 @@ pub struct Secondaries<L> {
 }
 
 impl<L: SecondaryLink> Secondaries<L> {
-    /// Connects every `[mcu NAME]` of `machine` (`names`: their names, in
-    /// that order, as long as the printer runs) over `links` and
-    /// configures its steppers (`pulse(i)`: stepper `i`'s step pulse, s);
-    /// `now` is host time (s) on the main clock of `freq` Hz, whose
-    /// internal temperature sensor is calibrated as `mcu_sensor`. One
-    /// holding another config is reset and configured anew, as klippy's
-    /// automated firmware restart.
-    pub fn connect<O: Links<Link = L>>(
-        machine: &Machine<'_>,
-        names: &[&'static str],
-        pulse: &dyn Fn(usize) -> f64,
+    /// Connects every `[mcu NAME]` of `setup`'s printer over `links` and
+    /// configures its steppers (with their step pulses); `keep(name)`
+    /// gives each MCU's name as long as the printer runs (the config's
+    /// own if it lives that long). `now` is host time (s) on the main
+    /// clock of `freq` Hz, whose internal temperature sensor is
+    /// calibrated as `mcu_sensor`. One holding another config is reset
+    /// and configured anew, as klippy's automated firmware restart.
+    pub fn connect<'m, O: Links<Link = L>>(
+        setup: &PrinterSetup<'m>,
+        keep: &dyn Fn(&'m str) -> &'static str,
         (freq, mcu_sensor): (f64, LinearConversion),
         links: &mut O,
         now: &dyn Fn() -> f64,
     ) -> Result<Self, McuError> {
+        let machine = setup.machine();
         let mut pulses = [0.0; MAX_STEPPERS];
-        for (i, p) in pulses.iter_mut().enumerate().take(machine.steppers.len()) {
-            *p = pulse(i);
+        for (p, stepper) in pulses.iter_mut().zip(setup.steppers()) {
+            *p = stepper.step_pulse;
+        }
+        let mut names = heapless::Vec::<&'static str, MAX_SECONDARIES>::new();
+        for secondary in &machine.secondaries {
+            // machine.secondaries holds at most MAX_SECONDARIES.
+            let _ = names.push(keep(secondary.name));
         }
         Self::connect_all(
             machine,
-            names,
+            &names,
             pulses,
             (freq, mcu_sensor),
             links,
             now,
             Start::Fresh,
         )
-    }
-
-    /// The names of the secondaries, in printer.cfg's order.
-    pub fn names(&self) -> impl Iterator<Item = &'static str> + '_ {
-        self.attached.iter().map(|a| a.mcu.name)
     }
 
     /// FIRMWARE_RESTART: every secondary is reset as its
@@ -300,17 +301,7 @@ impl<L: SecondaryLink> Secondaries<L> {
         let io = McuSetup::new(machine, freq, 0, mcu_sensor, 0);
         for (k, secondary) in machine.secondaries.iter().enumerate() {
             let name = names.get(k).copied().unwrap_or("?");
-            let error = |error: ConnectError| {
-                let (file, line) = secondary.serial_at;
-                let mut at = heapless::String::new();
-                let _ = at.push_str(file);
-                McuError {
-                    mcu: name,
-                    file: at,
-                    line,
-                    error,
-                }
-            };
+            let error = |error| McuError::new(name, secondary.serial_at, error);
             let unsupported = |why: Text| error(ConnectError::Unsupported(why));
             let hard = (io.outputs.iter().skip(machine.heaters.len())).find(|(pin, c)| {
                 pin_ref(pin).mcu == secondary.name && c.kind == OutputKind::HardPwm

@@ -303,24 +303,6 @@ impl Homing {
         Ok(())
     }
 
-    /// Takes response `msg` of `mcus[i]`, heard at host time `now` (s):
-    /// false if it is not a trsync report. A trigger stops the main MCU's
-    /// steppers (`stop_main(stops)`) and is relayed to the others.
-    pub fn on_response<L: SecondaryLink>(
-        &mut self,
-        mcus: &mut [&mut Secondary<L>],
-        i: usize,
-        msg: &Decoded<'_, '_, '_>,
-        now: f64,
-        stop_main: &mut dyn FnMut(u32),
-    ) -> Result<bool, HomingError> {
-        let Some(state) = TrsyncState::from_message(msg) else {
-            return Ok(false);
-        };
-        self.on_state(mcus, i, state, now, stop_main)?;
-        Ok(true)
-    }
-
     /// Takes `mcus[i]`'s trsync report `state`, heard at host time `now`
     /// (s).
     pub fn on_state<L: SecondaryLink>(

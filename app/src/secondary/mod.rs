@@ -184,6 +184,26 @@ pub struct McuError {
     pub error: ConnectError,
 }
 
+impl McuError {
+    /// Why MCU `mcu` could not be brought up, its `serial` option at
+    /// `(file, line)` of printer.cfg (a file name longer than the report
+    /// holds is cut short at a character).
+    pub fn new(mcu: &'static str, (file, line): (&str, usize), error: ConnectError) -> Self {
+        let mut name = heapless::String::new();
+        for c in file.chars() {
+            if name.push(c).is_err() {
+                break;
+            }
+        }
+        Self {
+            mcu,
+            file: name,
+            line,
+            error,
+        }
+    }
+}
+
 impl fmt::Display for McuError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
