@@ -33,8 +33,6 @@ use onechip_app::mcu_config::on_main;
 use onechip_app::pin_check;
 use onechip_app::sdcard::SdFiles;
 #[cfg(feature = "secondaries")]
-use onechip_app::secondary::attached::Secondaries;
-#[cfg(feature = "secondaries")]
 use onechip_app::secondary::mcu::WithSecondaries;
 #[cfg(feature = "secondaries")]
 use onechip_app::secondary::{ConnectError, McuError};
@@ -57,7 +55,8 @@ const _: () = assert!(
 /// The MCU role the session drives: this board's, with the secondary MCUs
 /// on its USART if printer.cfg has any (feature `secondaries`).
 #[cfg(feature = "secondaries")]
-type BoardRole = WithSecondaries<board_mcu::BoardMcu, usart_link::UsartLink>;
+type BoardRole =
+    WithSecondaries<board_mcu::BoardMcu, usart_link::UsartLink, { secondary_links::SECONDARIES }>;
 /// The MCU role the session drives: this board's (without the feature
 /// `secondaries`, an `[mcu NAME]` is refused).
 #[cfg(not(feature = "secondaries"))]
@@ -368,13 +367,13 @@ fn check_links(setup: &PrinterSetup<'static>) -> Result<(), ErrorText> {
 }
 
 #[cfg(feature = "secondaries")]
-/// Connects printer.cfg's secondary MCUs over their USARTs and configures
-/// their steppers (up to 15 s each, as klippy's connect): None if there
-/// are none; a failure is reported as a config error is.
+/// Connects printer.cfg's secondary MCU over its USART and configures
+/// its steppers (up to 15 s, as klippy's connect), in a static: None if
+/// there is none; a failure is reported as a config error is.
 #[inline(never)]
 fn connect_secondaries(
     setup: &PrinterSetup<'static>,
-) -> Result<Option<Secondaries<usart_link::UsartLink>>, ErrorText> {
+) -> Result<Option<&'static mut secondary_links::BoardSecondaries>, ErrorText> {
     let machine = setup.machine();
     if machine.secondaries.is_empty() {
         return Ok(None);
@@ -383,15 +382,11 @@ fn connect_secondaries(
     for mcu in &machine.secondaries {
         defmt::info!("connecting MCU '{}'", mcu.name);
     }
-    Secondaries::connect(
-        setup,
-        &|name| name,
-        (step_timer::TIMER_HZ, heater_io::mcu_sensor()),
-        &mut secondary_links::BoardLinks,
-        &now,
-    )
-    .map(Some)
-    .map_err(|e| error_text(&e))
+    let secondaries = secondary_links::secondaries(heater_io::mcu_sensor())
+        .ok_or_else(|| error_text(&"secondary MCUs connected once already"))?;
+    let links = &mut secondary_links::BoardLinks;
+    (secondaries.connect(setup, &|name| name, links, &now)).map_err(|e| error_text(&e))?;
+    Ok(Some(secondaries))
 }
 
 /// Configures the heaters' and fan's output pins and the thermistors'

@@ -1,6 +1,7 @@
 //! What the board supplies to reach its secondary MCUs ([`Links`]): their
-//! USART links ([`UsartLink`]), room for their data dictionaries, and
-//! sleeps on the stepper clock.
+//! USART links ([`UsartLink`]), room for their data dictionaries, sleeps
+//! on the stepper clock, and the static the host role for them lives in
+//! ([`secondaries`]).
 //!
 //! The board has one USART for secondaries (USART2), so at most one
 //! secondary is attached; it takes a dictionary buffer each time it is
@@ -14,17 +15,38 @@
 //! leaves room for builds with every option.
 //!
 //! They live in DTCM, zeroed at boot with the stepper engine
-//! (`.dtcm_bss`, [`onechip_board_rt::tcm`]): AXI SRAM holds the stack and
-//! the session, and only the CPU touches these (no DMA, which could not
-//! reach DTCM).
+//! (`.dtcm_bss`, [`onechip_board_rt::tcm`]), as does the host role
+//! ([`BoardSecondaries`], about 28 KB): AXI SRAM holds the stack and the
+//! session, and only the CPU touches these (no DMA, which could not reach
+//! DTCM).
 
 use core::cell::UnsafeCell;
 use core::mem::MaybeUninit;
 use core::sync::atomic::{AtomicUsize, Ordering};
+use onechip_app::heaters::LinearConversion;
+use onechip_app::secondary::attached::Secondaries;
 use onechip_app::secondary::{LinkError, Links};
 use onechip_board_rt::step_timer;
 use onechip_board_rt::usart_link::UsartLink;
 use onechip_protocol::dictionary::Dictionary;
+use static_cell::StaticCell;
+
+/// Secondary MCUs at most: USART2 is the one link.
+pub const SECONDARIES: usize = 1;
+
+/// The host role for the board's secondary MCUs.
+pub type BoardSecondaries = Secondaries<UsartLink, SECONDARIES>;
+
+/// The host role, empty, on the stepper clock (the board's internal
+/// temperature sensor calibrated as `mcu_sensor`), in its static: once
+/// (None after).
+pub fn secondaries(mcu_sensor: LinearConversion) -> Option<&'static mut BoardSecondaries> {
+    /// In DTCM, zeroed at boot: a cell not taken yet.
+    #[unsafe(link_section = ".dtcm_bss.secondaries")]
+    static CELL: StaticCell<BoardSecondaries> = StaticCell::new();
+    let slot = CELL.try_uninit()?;
+    Some(Secondaries::init_in(slot, step_timer::TIMER_HZ, mcu_sensor))
+}
 
 /// Dictionary buffers and parsed-dictionary slots.
 pub const DICTIONARIES: usize = 2;

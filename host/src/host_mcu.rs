@@ -10,10 +10,11 @@ use crate::virtual_mcu::VirtualMcu;
 use onechip_app::secondary::mcu::{SERVICE_PERIOD, WithSecondaries};
 use onechip_app::session::Mcu;
 use onechip_planner::machine::Machine;
+use onechip_planner::mcu_section::MAX_SECONDARIES;
 use onechip_sched::shutdown::Shutdown;
 
 /// The session's MCU role in the simulator.
-pub type HostMcu = WithSecondaries<VirtualMcu, Port>;
+pub type HostMcu = WithSecondaries<VirtualMcu, Port, MAX_SECONDARIES>;
 
 /// Running the simulator's MCU role outside the session's waits.
 pub trait RunMcu {

@@ -662,9 +662,14 @@ fn with_secondaries(
     );
     let wall = pace.clone();
     let now = move || wall.clock_now() as f64 / freq;
-    let main = (freq, crate::thermal_plant::mcu_sensor());
+    // Kept for the life of the process, as the firmware keeps its own in
+    // a static.
+    let secondaries = Box::leak(Box::new(Secondaries::new(
+        freq,
+        crate::thermal_plant::mcu_sensor(),
+    )));
     let links = &mut secondary::SerialDevices;
-    let secondaries = Secondaries::connect(setup, &secondary::leak, main, links, &now)
+    (secondaries.connect(setup, &secondary::leak, links, &now))
         .map_err(|e| SimError::Secondary(e.to_string()))?;
     mcu.set_pace(pace);
     mcu.with_secondaries();

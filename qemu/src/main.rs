@@ -51,9 +51,12 @@ use static_cell::{ConstStaticCell, StaticCell};
 /// Bytes of config text (printer.cfg with its name), as the board.
 const CONFIG_BUFFER: usize = 32 * 1024;
 
+/// Secondary MCUs at most: UART 1 is the one link, as the board has one.
+const SECONDARIES: usize = 1;
+
 /// The MCU role the session drives: this machine's, with the secondary
-/// MCUs on UART 1 if printer.cfg has any.
-type QemuRole = WithSecondaries<mcu::QemuMcu, uart_link::Uart1Link>;
+/// MCU on UART 1 if printer.cfg has one.
+type QemuRole = WithSecondaries<mcu::QemuMcu, uart_link::Uart1Link, SECONDARIES>;
 
 /// The printer's session and its MCU role.
 type Loaded = (&'static mut BoardSession<'static>, &'static mut QemuRole);
@@ -141,12 +144,14 @@ fn load_printer() -> Result<Loaded, ErrorText> {
     Ok((session, ROLE.init(role)))
 }
 
-/// The printer's secondary MCUs on UART 1, identified and configured
-/// (None without any); from then on the machine runs in real time
-/// ([`machine::start_real_time`]), as they do.
+/// The printer's secondary MCU on UART 1, identified and configured
+/// (None without one), in a static; from then on the machine runs in real
+/// time ([`machine::start_real_time`]), as it does.
 fn connect_secondaries(
     setup: &PrinterSetup<'static>,
-) -> Result<Option<Secondaries<uart_link::Uart1Link>>, ErrorText> {
+) -> Result<Option<&'static mut Secondaries<uart_link::Uart1Link, SECONDARIES>>, ErrorText> {
+    static CONNECTED: StaticCell<Secondaries<uart_link::Uart1Link, SECONDARIES>> =
+        StaticCell::new();
     let machine = setup.machine();
     if machine.secondaries.is_empty() {
         return Ok(None);
@@ -154,10 +159,10 @@ fn connect_secondaries(
     machine::start_real_time();
     let mcu_sensor = LinearConversion::stm32h7(TYPICAL_STM32H7_CAL);
     let now = || step_timer::now64() as f64 / step_timer::CLOCK_HZ;
-    let main = (step_timer::CLOCK_HZ, mcu_sensor);
-    Secondaries::connect(setup, &|name| name, main, &mut links::UartLinks, &now)
-        .map(Some)
-        .map_err(|e| error_text(&e))
+    let secondaries = Secondaries::init_in(CONNECTED.uninit(), step_timer::CLOCK_HZ, mcu_sensor);
+    (secondaries.connect(setup, &|name| name, &mut links::UartLinks, &now))
+        .map_err(|e| error_text(&e))?;
+    Ok(Some(secondaries))
 }
 
 /// Every stepper's step, direction and enable pins (drivers enabled) and

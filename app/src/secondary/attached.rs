@@ -34,6 +34,8 @@ use crate::mcu_config::{Oids, pin_ref, write_config};
 use crate::setup::PrinterSetup;
 use crate::step_pulse::pulse_ticks;
 use core::cell::Cell;
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use heapless::binary_heap::{BinaryHeap, Min};
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::mcu_section::{MAX_SECONDARIES, RestartMethod};
@@ -69,13 +71,13 @@ pub const MOVE_SLOTS: usize = 512;
 const RESPONSES: usize = 8;
 
 /// The move queue slots an MCU with objects `oids` keeps for its outputs:
-/// one for each enable pin, heater, fan and pin output.
+/// one for each enable pin (steppers may share one), heater, fan and pin
+/// output.
 fn reserved_slots(oids: &Oids) -> usize {
-    let mut enables: heapless::Vec<u8, MAX_STEPPERS> =
-        oids.enables.iter().flatten().copied().collect();
-    enables.sort_unstable();
-    let distinct =
-        enables.windows(2).filter(|w| w[0] != w[1]).count() + usize::from(!enables.is_empty());
+    let enables = || oids.enables.iter().flatten();
+    let distinct = (enables().enumerate())
+        .filter(|&(i, oid)| enables().take(i).all(|other| other != oid))
+        .count();
     let heaters = oids.heaters.iter().filter(|h| h.1.is_some()).count();
     distinct + heaters + oids.outputs.iter().flatten().count()
 }
@@ -136,9 +138,17 @@ struct Route {
     encoder: StepCommandEncoder<'static>,
 }
 
-/// Every secondary of the printer.
-pub struct Secondaries<L> {
-    attached: heapless::Vec<Attached<L>, MAX_SECONDARIES>,
+/// Every secondary of the printer, at most `N` (at most
+/// [`MAX_SECONDARIES`]). Large (tens of KB: each MCU's record of its move
+/// queue, each stepper's encoder and steps sent), so it is made once and
+/// connected in place: a firmware keeps it in a static.
+pub struct Secondaries<L, const N: usize> {
+    /// Each `[mcu NAME]`'s name, in printer.cfg's order, as
+    /// [`Self::connect`] kept them.
+    names: heapless::Vec<&'static str, N>,
+    /// The secondaries connected, in the order of `names` (all of them
+    /// unless the last connect or restart failed).
+    attached: heapless::Vec<Attached<L>, N>,
     /// For each stepper on a secondary: where, and its encoder.
     routes: [Option<Route>; MAX_STEPPERS],
     /// What each stepper on a secondary was sent.
@@ -180,49 +190,106 @@ pub struct Secondaries<L> {
     readings: heapless::Deque<Reading, 32>,
 }
 
-impl<L: SecondaryLink> Secondaries<L> {
+impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
+    /// No secondaries yet, on a main clock of `freq` Hz whose internal
+    /// temperature sensor is calibrated as `mcu_sensor` ([`Self::init_in`]
+    /// through the stack).
+    pub fn new(freq: f64, mcu_sensor: LinearConversion) -> Self {
+        let mut slot = MaybeUninit::uninit();
+        Self::init_in(&mut slot, freq, mcu_sensor);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`Self::new`] built in place in `slot` (a static of the firmware):
+    /// it is too large to pass through a microcontroller's stack.
+    pub fn init_in(
+        slot: &mut MaybeUninit<Self>,
+        freq: f64,
+        mcu_sensor: LinearConversion,
+    ) -> &mut Self {
+        const {
+            assert!(
+                N <= MAX_SECONDARIES,
+                "trsync homing spans at most MAX_SECONDARIES"
+            )
+        };
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; every field is written exactly
+        // once (the arrays element by element, not through the stack)
+        // before the slot is taken as initialised.
+        unsafe {
+            addr_of_mut!((*p).names).write(heapless::Vec::new());
+            addr_of_mut!((*p).attached).write(heapless::Vec::new());
+            let routes = &mut *addr_of_mut!((*p).routes)
+                .cast::<[MaybeUninit<Option<Route>>; MAX_STEPPERS]>();
+            routes.iter_mut().for_each(|r| _ = r.write(None));
+            let sent =
+                &mut *addr_of_mut!((*p).sent).cast::<[MaybeUninit<SentSteps>; MAX_STEPPERS]>();
+            sent.iter_mut()
+                .for_each(|s| _ = s.write(SentSteps::default()));
+            addr_of_mut!((*p).dir_inverted).write([false; MAX_STEPPERS]);
+            addr_of_mut!((*p).endstops).write([None; MAX_STEPPERS]);
+            addr_of_mut!((*p).homing).write(None);
+            addr_of_mut!((*p).homing_timeouts).write(0);
+            addr_of_mut!((*p).freq).write(freq);
+            addr_of_mut!((*p).next_calibrate).write(0.0);
+            addr_of_mut!((*p).failure).write(None);
+            addr_of_mut!((*p).stopped).write(false);
+            addr_of_mut!((*p).positions).write(heapless::Vec::new());
+            addr_of_mut!((*p).pulses).write([0.0; MAX_STEPPERS]);
+            addr_of_mut!((*p).mcu_sensor).write(mcu_sensor);
+            addr_of_mut!((*p).outputs).write([const { None }; OUTPUTS]);
+            addr_of_mut!((*p).enables).write(heapless::Vec::new());
+            addr_of_mut!((*p).stepper_enables).write([None; MAX_STEPPERS]);
+            addr_of_mut!((*p).inputs).write(heapless::Vec::new());
+            addr_of_mut!((*p).readings).write(heapless::Deque::new());
+            slot.assume_init_mut()
+        }
+    }
+
     /// Connects every `[mcu NAME]` of `setup`'s printer over `links` and
     /// configures its steppers (with their step pulses); `keep(name)`
     /// gives each MCU's name as long as the printer runs (the config's
     /// own if it lives that long). `now` is host time (s) on the main
-    /// clock of `freq` Hz, whose internal temperature sensor is
-    /// calibrated as `mcu_sensor`. One holding another config is reset
-    /// and configured anew, as klippy's automated firmware restart.
+    /// clock. One holding another config is reset and configured anew, as
+    /// klippy's automated firmware restart. Made for one connect: a
+    /// printer connects again with [`Self::restart`].
     pub fn connect<'m, O: Links<Link = L>>(
+        &mut self,
         setup: &PrinterSetup<'m>,
         keep: &dyn Fn(&'m str) -> &'static str,
-        (freq, mcu_sensor): (f64, LinearConversion),
         links: &mut O,
         now: &dyn Fn() -> f64,
-    ) -> Result<Self, McuError> {
+    ) -> Result<(), McuError> {
         let machine = setup.machine();
-        let mut pulses = [0.0; MAX_STEPPERS];
-        for (p, stepper) in pulses.iter_mut().zip(setup.steppers()) {
+        for (p, stepper) in self.pulses.iter_mut().zip(setup.steppers()) {
             *p = stepper.step_pulse;
         }
-        let mut names = heapless::Vec::<&'static str, MAX_SECONDARIES>::new();
+        self.names.clear();
         for secondary in &machine.secondaries {
-            // machine.secondaries holds at most MAX_SECONDARIES.
-            let _ = names.push(keep(secondary.name));
+            if self.names.push(keep(secondary.name)).is_err() {
+                let error = ConnectError::Unsupported(text(format_args!(
+                    "more than {N} secondary MCUs on this board"
+                )));
+                return Err(McuError::new(
+                    keep(secondary.name),
+                    secondary.serial_at,
+                    error,
+                ));
+            }
         }
-        Self::connect_all(
-            machine,
-            &names,
-            pulses,
-            (freq, mcu_sensor),
-            links,
-            now,
-            Start::Fresh,
-        )
+        self.connect_all(machine, &mut |_| Start::Fresh, links, now)
     }
 
-    /// FIRMWARE_RESTART: every secondary is reset as its
-    /// `restart_method` says, then connected over `links` and configured
-    /// again (one still configured is `Failed automated reset of MCU
-    /// 'NAME'`); what the steppers were sent counts from there, as their
-    /// MCU positions do. On an error the secondaries are left as they
-    /// were, with no homing: the caller shuts the printer down with it
-    /// ([`Self::fail`]).
+    /// FIRMWARE_RESTART: every secondary connected is reset as its
+    /// `restart_method` says, then each is connected over `links` and
+    /// configured again (one reset and still configured is `Failed
+    /// automated reset of MCU 'NAME'`; one that was not connected is
+    /// connected as at start); what the steppers were sent counts from
+    /// there, as their MCU positions do. On an error the printer has no
+    /// homing and only the secondaries before the failed one: the caller
+    /// shuts the printer down with it ([`Self::fail`]).
     pub fn restart<O: Links<Link = L>>(
         &mut self,
         machine: &Machine<'_>,
@@ -230,28 +297,20 @@ impl<L: SecondaryLink> Secondaries<L> {
         now: &dyn Fn() -> f64,
     ) -> Result<(), ConnectError> {
         self.homing = None;
+        let mut reset: heapless::Vec<&'static str, N> = heapless::Vec::new();
         for a in &mut self.attached {
             a.mcu.reset(a.restart, now)?;
+            let _ = reset.push(a.mcu.name);
         }
-        let mut names = heapless::Vec::<&'static str, MAX_SECONDARIES>::new();
-        for a in &self.attached {
-            let _ = names.push(a.mcu.name);
-        }
-        let setup = (self.freq, self.mcu_sensor);
-        let fresh = Self::connect_all(
-            machine,
-            &names,
-            self.pulses,
-            setup,
-            links,
-            now,
-            Start::Restarted,
-        );
-        let fresh = fresh.map_err(|e| e.error)?;
-        let timeouts = self.homing_timeouts;
-        *self = fresh;
-        self.homing_timeouts = timeouts;
-        Ok(())
+        let mut start = |name| {
+            if reset.contains(&name) {
+                Start::Restarted
+            } else {
+                Start::Fresh
+            }
+        };
+        let connected = self.connect_all(machine, &mut start, links, now);
+        connected.map_err(|e| e.error)
     }
 
     /// The printer stays shut down for `reason` (a secondary that could
@@ -262,45 +321,40 @@ impl<L: SecondaryLink> Secondaries<L> {
         self.homing = None;
     }
 
+    /// Connects and configures each of `machine.secondaries` anew (named
+    /// `self.names`), `start(name)` telling whether it was just reset,
+    /// after dropping what the secondaries held before (their links
+    /// first, which frees them to be opened again).
     #[allow(clippy::too_many_lines)]
     fn connect_all<O: Links<Link = L>>(
+        &mut self,
         machine: &Machine<'_>,
-        names: &[&'static str],
-        pulses: [f64; MAX_STEPPERS],
-        (freq, mcu_sensor): (f64, LinearConversion),
+        start: &mut dyn FnMut(&'static str) -> Start,
         links: &mut O,
         now: &dyn Fn() -> f64,
-        start: Start,
-    ) -> Result<Self, McuError> {
-        let mut dir_inverted = [false; MAX_STEPPERS];
-        for (inverted, s) in dir_inverted.iter_mut().zip(&machine.steppers) {
+    ) -> Result<(), McuError> {
+        self.attached.clear();
+        self.routes.iter_mut().for_each(|r| *r = None);
+        self.sent.iter_mut().for_each(|s| *s = SentSteps::default());
+        for (inverted, s) in self.dir_inverted.iter_mut().zip(&machine.steppers) {
             *inverted = pin_ref(s.dir_pin).inverted;
         }
-        let mut all = Self {
-            attached: heapless::Vec::new(),
-            routes: Default::default(),
-            sent: Default::default(),
-            dir_inverted,
-            endstops: [None; MAX_STEPPERS],
-            homing: None,
-            homing_timeouts: 0,
-            freq,
-            next_calibrate: 0.0,
-            failure: None,
-            stopped: false,
-            positions: heapless::Vec::new(),
-            pulses,
-            mcu_sensor,
-            outputs: core::array::from_fn(|_| None),
-            enables: heapless::Vec::new(),
-            stepper_enables: [None; MAX_STEPPERS],
-            inputs: heapless::Vec::new(),
-            readings: heapless::Deque::new(),
-        };
+        self.endstops = [None; MAX_STEPPERS];
+        self.homing = None;
+        self.next_calibrate = 0.0;
+        self.failure = None;
+        self.stopped = false;
+        self.positions.clear();
+        self.outputs.iter_mut().for_each(|o| *o = None);
+        self.enables.clear();
+        self.stepper_enables = [None; MAX_STEPPERS];
+        self.inputs.clear();
+        self.readings.clear();
+        let (freq, mcu_sensor, pulses) = (self.freq, self.mcu_sensor, self.pulses);
         // The io's outputs, at the main clock.
         let io = McuSetup::new(machine, freq, 0, mcu_sensor, 0);
         for (k, secondary) in machine.secondaries.iter().enumerate() {
-            let name = names.get(k).copied().unwrap_or("?");
+            let name = self.names.get(k).copied().unwrap_or("?");
             let error = |error| McuError::new(name, secondary.serial_at, error);
             let unsupported = |why: Text| error(ConnectError::Unsupported(why));
             let hard = (io.outputs.iter().skip(machine.heaters.len())).find(|(pin, c)| {
@@ -336,7 +390,7 @@ impl<L: SecondaryLink> Secondaries<L> {
             };
             let serial = (secondary.serial, secondary.baud);
             let method = secondary.restart_method;
-            let mcu = match start {
+            let mcu = match start(name) {
                 Start::Fresh => Secondary::connect_or_restart(
                     name,
                     serial,
@@ -346,24 +400,24 @@ impl<L: SecondaryLink> Secondaries<L> {
                     now,
                     CONNECT_TIMEOUT,
                 ),
-                Start::Restarted => {
+                start @ Start::Restarted => {
                     Secondary::connect(name, serial, links, &config, now, CONNECT_TIMEOUT, start)
                 }
             };
             let mut mcu = mcu.map_err(error)?;
             let dict = mcu.dictionary();
             let oids = oids.get();
-            let k = all.attached.len();
+            let k = self.attached.len();
             let sync = mcu.connection().clock().copied();
             let start = sync.map_or(0, |s| s.clock_at(now() + START_LEAD));
-            all.add_outputs(machine, &io, &oids, k, mcu.clock_freq(), start);
-            all.add_inputs(machine, &oids, &mut mcu, k, now())
+            self.add_outputs(machine, &io, &oids, k, mcu.clock_freq(), start);
+            self.add_inputs(machine, &oids, &mut mcu, k, now())
                 .map_err(unsupported)?;
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
-                let encoder = StepCommandEncoder::new(dict, oid, all.dir_inverted[i])
+                let encoder = StepCommandEncoder::new(dict, oid, self.dir_inverted[i])
                     .map_err(|e| error(ConnectError::Dictionary(text(format_args!("{e}")))))?;
-                all.routes[i] = Some(Route {
+                self.routes[i] = Some(Route {
                     mcu: k,
                     oid,
                     encoder,
@@ -376,7 +430,7 @@ impl<L: SecondaryLink> Secondaries<L> {
                 ) else {
                     continue;
                 };
-                all.endstops[i] = Some(RemoteEndstop {
+                self.endstops[i] = Some(RemoteEndstop {
                     mcu: k,
                     oid,
                     inverted: pin_ref(pin).inverted,
@@ -389,14 +443,10 @@ impl<L: SecondaryLink> Secondaries<L> {
                 restart: secondary.restart_method,
                 reserved: reserved_slots(&oids),
             };
-            // machine.secondaries holds at most MAX_SECONDARIES.
-            if all.attached.push(attached).is_err() {
-                return Err(unsupported(text(format_args!(
-                    "more than {MAX_SECONDARIES} secondary MCUs"
-                ))));
-            }
+            // As many as names, at most N.
+            let _ = self.attached.push(attached);
         }
-        Ok(all)
+        Ok(())
     }
 
     /// Takes the fan, pin and enable outputs of MCU `k` (index into
@@ -792,23 +842,19 @@ impl<L: SecondaryLink> Secondaries<L> {
     ) -> Option<(u32, bool)> {
         self.homing = None;
         let remote = self.endstops.get(endstop_of).copied().flatten();
-        let mut main_stops = 0;
-        let mut taking_part = heapless::Vec::<usize, MAX_SECONDARIES>::new();
-        let mut add = |k: usize| {
-            if !taking_part.contains(&k) {
-                let _ = taking_part.push(k);
-            }
-        };
-        if let Some(e) = remote {
-            add(e.mcu);
-        }
-        for i in (0..32).filter(|i| stops & (1 << i) != 0) {
-            match self.routes.get(i) {
-                Some(Some(route)) => add(route.mcu),
-                _ => main_stops |= 1 << i,
-            }
-        }
-        taking_part.sort_unstable();
+        let stopping = |i: usize| i < 32 && stops & (1 << i) != 0;
+        let routed = (self.routes.iter().enumerate())
+            .filter(|(i, r)| *i < 32 && r.is_some())
+            .fold(0u32, |m, (i, _)| m | 1 << i);
+        let main_stops = stops & !routed;
+        // Ascending, as `members` gives them.
+        let taking_part: heapless::Vec<usize, MAX_SECONDARIES> = (0..self.attached.len())
+            .filter(|&k| {
+                remote.is_some_and(|e| e.mcu == k)
+                    || (self.routes.iter().enumerate())
+                        .any(|(i, r)| stopping(i) && r.as_ref().is_some_and(|r| r.mcu == k))
+            })
+            .collect();
         if taking_part.is_empty() {
             return None;
         }
@@ -946,7 +992,7 @@ impl<L: SecondaryLink> Secondaries<L> {
             return;
         }
         self.next_calibrate = now + CALIBRATE_PERIOD;
-        let mut lines = [None; MAX_SECONDARIES];
+        let mut lines = [None; N];
         for (line, a) in lines.iter_mut().zip(&mut self.attached) {
             *line = (a.mcu.connection().clock_mut()).map(|c| c.calibrate(print_time, now));
         }

@@ -32,11 +32,12 @@ pub const SERVICE_PERIOD: f64 = 0.001;
 /// inactive, s (klippy's DISABLE_STALL_TIME).
 const DISABLE_STALL_TIME: f64 = 0.100;
 
-/// This board's MCU role `main` with the secondary MCUs, if printer.cfg
-/// has any.
-pub struct WithSecondaries<M, L> {
+/// This board's MCU role `main` with the secondary MCUs (at most `N`), if
+/// printer.cfg has any.
+pub struct WithSecondaries<M, L: 'static, const N: usize> {
     main: M,
-    secondaries: Option<Secondaries<L>>,
+    /// Made once where the firmware keeps it (a static): it is large.
+    secondaries: Option<&'static mut Secondaries<L, N>>,
     /// The main clock, Hz: host time is that clock in seconds.
     freq: f64,
     /// The stepper whose endstop the homing across MCUs watches.
@@ -49,10 +50,10 @@ pub struct WithSecondaries<M, L> {
     triggered_here: bool,
 }
 
-impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
+impl<M: Mcu, L: SecondaryLink, const N: usize> WithSecondaries<M, L, N> {
     /// `main` (this board's MCU role, its clock `freq` Hz) with
     /// `secondaries`, if printer.cfg has any.
-    pub fn new(main: M, secondaries: Option<Secondaries<L>>, freq: f64) -> Self {
+    pub fn new(main: M, secondaries: Option<&'static mut Secondaries<L, N>>, freq: f64) -> Self {
         Self {
             main,
             secondaries,
@@ -74,13 +75,13 @@ impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
     }
 
     /// The secondaries, if any.
-    pub fn secondaries(&self) -> Option<&Secondaries<L>> {
-        self.secondaries.as_ref()
+    pub fn secondaries(&self) -> Option<&Secondaries<L, N>> {
+        self.secondaries.as_deref()
     }
 
     /// The secondaries, if any, to restart them.
-    pub fn secondaries_mut(&mut self) -> Option<&mut Secondaries<L>> {
-        self.secondaries.as_mut()
+    pub fn secondaries_mut(&mut self) -> Option<&mut Secondaries<L, N>> {
+        self.secondaries.as_deref_mut()
     }
 
     /// Host time now, s.
@@ -136,7 +137,7 @@ impl<M: Mcu, L: SecondaryLink> WithSecondaries<M, L> {
     }
 }
 
-impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
+impl<M: Mcu, L: SecondaryLink, const N: usize> Mcu for WithSecondaries<M, L, N> {
     fn now(&mut self) -> u64 {
         self.main.now()
     }
@@ -189,16 +190,12 @@ impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
     }
 
     fn take_trigger(&mut self) -> Option<(usize, u32)> {
-        if !self
-            .secondaries
-            .as_ref()
-            .is_some_and(Secondaries::is_homing)
-        {
+        if !self.secondaries().is_some_and(Secondaries::is_homing) {
             return self.main.take_trigger();
         }
         self.serve();
         let now = self.host_time();
-        let s = self.secondaries.as_mut()?;
+        let s = self.secondaries.as_deref_mut()?;
         // The homing across MCUs: its first trigger, on any of them.
         let (at, why) = s.take_homing_trigger()?;
         self.comms_timeout = why == reason::COMMS_TIMEOUT;
@@ -257,7 +254,7 @@ impl<M: Mcu, L: SecondaryLink> Mcu for WithSecondaries<M, L> {
     }
 
     fn shutdown_reason(&mut self) -> Option<Shutdown> {
-        let secondary = self.secondaries.as_ref().and_then(Secondaries::failure);
+        let secondary = self.secondaries.as_deref().and_then(Secondaries::failure);
         self.main.shutdown_reason().or(secondary)
     }
 

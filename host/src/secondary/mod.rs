@@ -9,7 +9,7 @@
 pub mod port;
 
 use onechip_app::secondary::{self, AnalogReport, ConnectError, Heard, LinkError, Links, Start};
-use onechip_planner::mcu_section::RestartMethod;
+use onechip_planner::mcu_section::{MAX_SECONDARIES, RestartMethod};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_secondary_mcu::connection::Failure;
 use port::Port;
@@ -18,8 +18,9 @@ use std::time::Duration;
 
 /// One secondary MCU on a serial device.
 pub type Secondary = secondary::Secondary<Port>;
-/// Every secondary MCU of a printer, on serial devices.
-pub type Secondaries = secondary::attached::Secondaries<Port>;
+/// Every secondary MCU of a printer, on serial devices (as many as a
+/// printer.cfg may have).
+pub type Secondaries = secondary::attached::Secondaries<Port, MAX_SECONDARIES>;
 
 /// Largest inflated data dictionary accepted, bytes (Klipper's are 10–15 KB).
 const DICTIONARY_MAX: usize = 64 * 1024;
