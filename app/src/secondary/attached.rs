@@ -389,29 +389,39 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                 oids.set(o);
             };
             let serial = (secondary.serial, secondary.baud);
-            let method = secondary.restart_method;
-            let mcu = match start(name) {
-                Start::Fresh => Secondary::connect_or_restart(
-                    name,
-                    serial,
-                    links,
-                    method,
-                    &config,
-                    now,
-                    CONNECT_TIMEOUT,
-                ),
-                start @ Start::Restarted => {
-                    Secondary::connect(name, serial, links, &config, now, CONNECT_TIMEOUT, start)
-                }
+            let how = match start(name) {
+                Start::Fresh => (Start::Fresh, Some(secondary.restart_method)),
+                start @ Start::Restarted => (start, None),
             };
-            let mut mcu = mcu.map_err(error)?;
-            let dict = mcu.dictionary();
-            let oids = oids.get();
             let k = self.attached.len();
+            // Built in place, in `attached`'s next slot (as many slots as
+            // names).
+            let Some(slot) = self.attached.spare_capacity_mut().first_mut() else {
+                return Err(unsupported(text(format_args!(
+                    "more than {N} secondary MCUs"
+                ))));
+            };
+            let p = slot.as_mut_ptr();
+            // SAFETY: `p` is valid for writes. The MCU is written by
+            // `connect_in` (which leaves it empty on an error), then each
+            // other field once; only then is the slot counted in.
+            unsafe {
+                let mcu = &mut *addr_of_mut!((*p).mcu).cast::<MaybeUninit<Secondary<L>>>();
+                Secondary::connect_in(mcu, name, serial, links, &config, now, CONNECT_TIMEOUT, how)
+                    .map_err(error)?;
+                addr_of_mut!((*p).slots).write(BinaryHeap::new());
+                addr_of_mut!((*p).trsync).write(oids.get().count);
+                addr_of_mut!((*p).restart).write(secondary.restart_method);
+                addr_of_mut!((*p).reserved).write(reserved_slots(&oids.get()));
+                self.attached.set_len(k + 1);
+            }
+            let oids = oids.get();
+            let mcu = &mut self.attached[k].mcu;
+            let (dict, mcu_freq) = (mcu.dictionary(), mcu.clock_freq());
             let sync = mcu.connection().clock().copied();
             let start = sync.map_or(0, |s| s.clock_at(now() + START_LEAD));
-            self.add_outputs(machine, &io, &oids, k, mcu.clock_freq(), start);
-            self.add_inputs(machine, &oids, &mut mcu, k, now())
+            self.add_outputs(machine, &io, &oids, k, mcu_freq, start);
+            self.add_inputs(machine, &oids, k, now())
                 .map_err(unsupported)?;
             for (i, oid) in oids.steppers.iter().enumerate() {
                 let Some(oid) = *oid else { continue };
@@ -436,15 +446,6 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                     inverted: pin_ref(pin).inverted,
                 });
             }
-            let attached = Attached {
-                mcu,
-                slots: BinaryHeap::new(),
-                trsync: oids.count,
-                restart: secondary.restart_method,
-                reserved: reserved_slots(&oids),
-            };
-            // As many as names, at most N.
-            let _ = self.attached.push(attached);
         }
         Ok(())
     }
@@ -511,7 +512,7 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
     }
 
     /// Starts sampling the heaters' and temperature sensors' ADC inputs
-    /// on MCU `k` (index into `attached`, not yet pushed: `mcu`), whose
+    /// on MCU `k` (index into `attached`), whose
     /// object ids are `oids`, as klippy's init commands do at host time
     /// `now` (s). An MCU without a usable ADC_MAX is refused if it has
     /// any.
@@ -519,7 +520,6 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
         &mut self,
         machine: &Machine<'_>,
         oids: &Oids,
-        mcu: &mut Secondary<L>,
         k: usize,
         now: f64,
     ) -> Result<(), Text> {
@@ -530,6 +530,9 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             .enumerate()
             .filter_map(|(index, oid)| Some((index, oid?)))
             .peekable();
+        let Some(Attached { mcu, .. }) = self.attached.get_mut(k) else {
+            return Ok(());
+        };
         if sensors.peek().is_none() {
             return Ok(());
         }

@@ -26,6 +26,8 @@ pub mod sent_steps;
 pub mod thermal;
 
 use core::fmt::{self, Write as _};
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use onechip_planner::mcu_section::RestartMethod;
 use onechip_protocol::codec::{Decoded, Field};
 use onechip_protocol::dictionary::Dictionary;
@@ -306,35 +308,18 @@ impl<L: SecondaryLink> Secondary<L> {
     #[allow(clippy::too_many_arguments)]
     pub fn connect_or_restart<O: Links<Link = L>>(
         name: &'static str,
-        (serial, baud): (&str, u32),
+        serial: (&str, u32),
         links: &mut O,
         restart: RestartMethod,
         config: ConfigWriter<'_>,
         now: &dyn Fn() -> f64,
         timeout: f64,
     ) -> Result<Self, ConnectError> {
-        let deadline = now() + timeout;
-        let mut secondary = Self::identified(name, (serial, baud), links, now, deadline)?;
-        match secondary.configure(config, now, deadline, Start::Fresh) {
-            Err(ConnectError::Failed {
-                why: Failure::CrcMismatch,
-                ..
-            }) => {
-                secondary.reset(restart, now)?;
-                drop(secondary);
-                Self::connect(
-                    name,
-                    (serial, baud),
-                    links,
-                    config,
-                    now,
-                    timeout,
-                    Start::Restarted,
-                )
-            }
-            Err(e) => Err(e),
-            Ok(()) => Ok(secondary),
-        }
+        let mut slot = MaybeUninit::uninit();
+        let how = (Start::Fresh, Some(restart));
+        Self::connect_in(&mut slot, name, serial, links, config, now, timeout, how)?;
+        // SAFETY: `connect_in` initialised it.
+        Ok(unsafe { slot.assume_init() })
     }
 
     /// Opens `serial` at `baud`, fetches the dictionary, synchronises the
@@ -343,28 +328,77 @@ impl<L: SecondaryLink> Secondary<L> {
     /// is still configured is [`Failure::NotReset`].
     pub fn connect<O: Links<Link = L>>(
         name: &'static str,
-        (serial, baud): (&str, u32),
+        serial: (&str, u32),
         links: &mut O,
         config: ConfigWriter<'_>,
         now: &dyn Fn() -> f64,
         timeout: f64,
         start: Start,
     ) -> Result<Self, ConnectError> {
-        let deadline = now() + timeout;
-        let mut secondary = Self::identified(name, (serial, baud), links, now, deadline)?;
-        secondary.configure(config, now, deadline, start)?;
-        Ok(secondary)
+        let mut slot = MaybeUninit::uninit();
+        let how = (start, None);
+        Self::connect_in(&mut slot, name, serial, links, config, now, timeout, how)?;
+        // SAFETY: `connect_in` initialised it.
+        Ok(unsafe { slot.assume_init() })
+    }
+
+    /// [`Self::connect`] (`start`), or with `reset_other`
+    /// [`Self::connect_or_restart`], built in place in `slot`: a
+    /// [`Secondary`] is several KB, which a microcontroller's stack should
+    /// not carry copies of. On an error the slot is left empty (what was
+    /// made of it dropped, its link closed).
+    #[allow(clippy::too_many_arguments)]
+    pub fn connect_in<'s, O: Links<Link = L>>(
+        slot: &'s mut MaybeUninit<Self>,
+        name: &'static str,
+        serial: (&str, u32),
+        links: &mut O,
+        config: ConfigWriter<'_>,
+        now: &dyn Fn() -> f64,
+        timeout: f64,
+        (start, reset_other): (Start, Option<RestartMethod>),
+    ) -> Result<&'s mut Self, ConnectError> {
+        let (mut start, mut reset_other) = (start, reset_other);
+        loop {
+            let deadline = now() + timeout;
+            Self::identified_in(slot, name, serial, links, now, deadline)?;
+            // SAFETY: `identified_in` initialised it.
+            let secondary = unsafe { slot.assume_init_mut() };
+            let error = match secondary.configure(config, now, deadline, start) {
+                Ok(()) => break,
+                Err(error) => error,
+            };
+            let reset = match (&error, reset_other) {
+                (
+                    ConnectError::Failed {
+                        why: Failure::CrcMismatch,
+                        ..
+                    },
+                    Some(method),
+                ) => secondary.reset(method, now),
+                _ => Err(error),
+            };
+            // SAFETY: initialised above and dropped once: the slot is
+            // empty again.
+            unsafe { slot.assume_init_drop() };
+            reset?;
+            (start, reset_other) = (Start::Restarted, None);
+        }
+        // SAFETY: initialised by the last `identified_in`, not dropped.
+        Ok(unsafe { slot.assume_init_mut() })
     }
 
     /// Opens the link and fetches the dictionary, by host time `deadline`
-    /// (s): the MCU before its config phase.
-    fn identified<O: Links<Link = L>>(
+    /// (s): the MCU before its config phase, written into `slot`
+    /// (initialised if and only if this succeeds).
+    fn identified_in<O: Links<Link = L>>(
+        slot: &mut MaybeUninit<Self>,
         name: &'static str,
         (serial, baud): (&str, u32),
         links: &mut O,
         now: &dyn Fn() -> f64,
         deadline: f64,
-    ) -> Result<Self, ConnectError> {
+    ) -> Result<(), ConnectError> {
         let no_room = || ConnectError::Dictionary(text(format_args!("no room for it")));
         let buffer = links.dictionary_buffer().ok_or_else(no_room)?;
         let mut fetch = Identify::new(buffer, DEFAULT_RECEIVE_WINDOW);
@@ -394,12 +428,16 @@ impl<L: SecondaryLink> Secondary<L> {
         let dict_text = core::str::from_utf8(text_bytes).map_err(|e| invalid(&e))?;
         let dict = Dictionary::parse(dict_text).map_err(|e| invalid(&e))?;
         let dict = links.keep(dict).ok_or_else(no_room)?;
-        Ok(Self {
-            name,
-            link,
-            conn: Connection::new(dict, host_link),
-            move_count: 0,
-        })
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; each field is written once, in
+        // place.
+        unsafe {
+            addr_of_mut!((*p).name).write(name);
+            addr_of_mut!((*p).link).write(link);
+            addr_of_mut!((*p).conn).write(Connection::new(dict, host_link));
+            addr_of_mut!((*p).move_count).write(0);
+        }
+        Ok(())
     }
 
     /// Resets the MCU as klippy's `microcontroller_restart` does for
