@@ -10,7 +10,11 @@ use std::path::Path;
 /// The firmware's limits and layout.
 #[derive(Debug, PartialEq, Eq)]
 pub struct Budget {
-    /// Flash budget, KiB.
+    /// The layouts an image may be linked for: where its vector table
+    /// (the application) starts and the flash it may fill, KiB.
+    pub layouts: Vec<(u64, u64)>,
+    /// The layout's flash budget, KiB (the first layout's until
+    /// [`Self::select_layout`]).
     pub flash_kib: u64,
     /// Static RAM budget, KiB.
     pub ram_kib: u64,
@@ -25,7 +29,7 @@ pub struct Budget {
     /// firmware gives each (0 highest): handlers of one level do not
     /// preempt each other.
     pub irq_priorities: Vec<(String, u64)>,
-    /// Address at which the bootloader places the application.
+    /// The layout's application address (its vector table's).
     pub app_base: u64,
     /// Symbol name of the stepper timer's interrupt handler.
     pub stepper_irq: String,
@@ -88,12 +92,7 @@ impl Budget {
             Some(Value::Str(_)) => Err(format!("`{key}` must be a number")),
             None => Err(format!("`{key}` is missing")),
         };
-        let (flash_kib, ram_kib, app_base, stepper_irq_number) = (
-            int("flash_kib")?,
-            int("ram_kib")?,
-            int("app_base")?,
-            int("stepper_irq_number")?,
-        );
+        let (ram_kib, stepper_irq_number) = (int("ram_kib")?, int("stepper_irq_number")?);
         let (ram_base, stack_kib) = (int("ram_base")?, int("stack_kib")?);
         let stack_margin_kib = int("stack_margin_kib")?;
         let (itcm_base, itcm_kib) = (int("itcm_base")?, int("itcm_kib")?);
@@ -113,6 +112,18 @@ impl Budget {
         let dtcm_data = list(string("dtcm_data")?);
         let dma_data = list(string("dma_data")?);
         let boot_calls = list(string("boot_calls")?);
+        let layouts = list(string("layouts")?)
+            .into_iter()
+            .map(|pair: String| {
+                let fail = || format!("`layouts`: `{pair}` is not APP_BASE:FLASH_KIB");
+                let (base, kib) = pair.split_once(':').ok_or_else(fail)?;
+                match (parse_value(base.trim()), parse_value(kib.trim())) {
+                    (Ok(Value::Int(base)), Ok(Value::Int(kib))) => Ok((base, kib)),
+                    _ => Err(fail()),
+                }
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        let &(app_base, flash_kib) = layouts.first().ok_or("`layouts` is empty")?;
         let irq_priorities = list(string("irq_priorities")?)
             .into_iter()
             .map(|pair: String| {
@@ -128,6 +139,7 @@ impl Budget {
             return Err(format!("unknown key `{key}`"));
         }
         Ok(Self {
+            layouts,
             flash_kib,
             ram_kib,
             ram_base,
@@ -151,6 +163,20 @@ impl Budget {
     }
 }
 
+impl Budget {
+    /// Takes the layout whose application starts at `vector_table` (the
+    /// image's): its address and flash budget.
+    pub fn select_layout(&mut self, vector_table: u64) -> Result<(), String> {
+        let &(app_base, flash_kib) = (self.layouts.iter())
+            .find(|(base, _)| *base == vector_table)
+            .ok_or_else(|| {
+                format!("the vector table is at {vector_table:#010x}, where no layout of the budget starts")
+            })?;
+        (self.app_base, self.flash_kib) = (app_base, flash_kib);
+        Ok(())
+    }
+}
+
 fn parse_value(text: &str) -> Result<Value, String> {
     if let Some(s) = text.strip_prefix('"').and_then(|t| t.strip_suffix('"')) {
         return Ok(Value::Str(s.to_string()));
@@ -169,7 +195,7 @@ fn parse_value(text: &str) -> Result<Value, String> {
 mod tests {
     use super::*;
 
-    const GOOD: &str = "flash_kib = 384 # comment\nram_kib = 256\napp_base = 0x0802_0000\n\
+    const GOOD: &str = "layouts = \"0x0802_0000:384, 0x0800_0000:512\" # comment\nram_kib = 256\n\
                         ram_base = 0x2400_0000\nstack_kib = 64\nstack_margin_kib = 8\n\
                         irq_priorities = \"TIM5:0, SPI6:4\"\n\
                         stepper_irq = \"TIM5\"\nstepper_irq_number = 50\n\
@@ -205,6 +231,7 @@ mod tests {
             b.irq_priorities,
             [("TIM5".to_string(), 0), ("SPI6".to_string(), 4)]
         );
+        assert_eq!(b.layouts, [(0x0802_0000, 384), (0x0800_0000, 512)]);
         let bad = GOOD.replace("SPI6:4", "SPI6");
         assert_eq!(
             Budget::parse(&bad),
@@ -215,10 +242,18 @@ mod tests {
     #[test]
     fn the_repository_budget_file_is_valid() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../board/budget.toml");
-        let b = Budget::load(&path).expect("board/budget.toml parses");
-        // The STM32H723ZE's 512 KiB less the bootloader's 128 KiB.
+        let mut b = Budget::load(&path).expect("board/budget.toml parses");
+        // The STM32H723ZE's 512 KiB less the bootloader's 128 KiB first.
         assert_eq!((b.flash_kib, b.ram_kib), (384, 256));
         assert_eq!(b.app_base, 0x0802_0000);
+        // Without the bootloader: all of it.
+        b.select_layout(0x0800_0000)
+            .expect("a layout without bootloader");
+        assert_eq!((b.app_base, b.flash_kib), (0x0800_0000, 512));
+        assert_eq!(
+            b.select_layout(0x0801_0000),
+            Err("the vector table is at 0x08010000, where no layout of the budget starts".into())
+        );
     }
 
     #[test]

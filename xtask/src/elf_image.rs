@@ -157,6 +157,13 @@ impl<'a> Image<'a> {
             .collect()
     }
 
+    /// Where the vector table (the application) starts.
+    pub fn vector_table_address(&self) -> Result<u64, String> {
+        let table =
+            (self.elf.section_by_name(".vector_table")).ok_or("no .vector_table section")?;
+        Ok(table.address())
+    }
+
     /// Word `index` of the vector table (0: initial stack pointer, 1:
     /// reset, 2: NMI, 3: HardFault, ...), Thumb bit included.
     pub fn vector(&self, index: u64) -> Result<u64, String> {

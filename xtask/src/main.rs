@@ -86,11 +86,12 @@ fn sim_memory() -> Result<(), String> {
 /// Checks the firmware image and writes firmware.bin beside the ELF.
 fn image(elf_path: &Path) -> Result<(), String> {
     let root = workspace_root();
-    let budget = budget::Budget::load(&root.join(BUDGET))?;
+    let mut budget = budget::Budget::load(&root.join(BUDGET))?;
     let elf_path = root.join(elf_path);
     let data = std::fs::read(&elf_path)
         .map_err(|e| format!("{}: {e} (build it with `cargo fw`)", elf_path.display()))?;
     let image = elf_image::Image::parse(&data)?;
+    budget.select_layout(image.vector_table_address()?)?;
 
     let flash = image.flash_bytes();
     // DTCM has a budget of its own (dtcm_kib, the linker's region): the
