@@ -132,23 +132,37 @@ impl<'a> PrinterSetup<'a> {
         }
     }
 
-    /// For the firmware builds, which drive steppers, their endstops and
-    /// enable pins on secondary MCUs but not yet the rest: a heater, fan,
-    /// sensor or other pin on an `[mcu NAME]` is refused, naming the
-    /// section, option and pin.
+    /// What every build drives on secondary MCUs: steppers, their
+    /// endstops and enable pins, heaters, temperature sensors on ADC pins,
+    /// fans, output pins and static pins. Any other pin on an `[mcu NAME]`
+    /// (a probe, a TMC driver's wires, a filament sensor, ...) is refused,
+    /// naming the section, option and pin. (An SPI sensor's chip select
+    /// there is refused when the secondary connects.)
     #[allow(clippy::result_large_err)]
-    pub fn only_steppers_on_secondaries(&self) -> Result<(), SetupError> {
+    pub fn only_supported_on_secondaries(&self) -> Result<(), SetupError> {
+        const SUPPORTED: [&str; 8] = [
+            "step_pin",
+            "dir_pin",
+            "enable_pin",
+            "endstop_pin",
+            "heater_pin",
+            "sensor_pin",
+            "pin",
+            "pins",
+        ];
         let on_secondary = |pin: &str| {
             let chip = pin_ref(pin).mcu;
             (self.machine.secondaries.iter()).any(|s| s.name == chip)
         };
-        let stepper_pin = ["step_pin", "dir_pin", "enable_pin", "endstop_pin"];
-        let refused = pin_check::uses(&self.machine)
-            .find(|used| on_secondary(used.pin) && !stepper_pin.contains(&used.option));
+        let probe = self.machine.probe.as_ref().map(|p| p.section);
+        let refused = pin_check::uses(&self.machine).find(|used| {
+            on_secondary(used.pin)
+                && (!SUPPORTED.contains(&used.option) || Some(used.section) == probe)
+        });
         match refused {
             Some(used) => Err(cut_text(&format_args!(
-                "{used}: pin '{}' is on a secondary MCU, where this board drives only \
-                 steppers, endstops and enable pins so far",
+                "{used}: pin '{}' is on a secondary MCU, where onechip drives only steppers, \
+                 endstops, heaters, temperature sensors, fans and output pins so far",
                 used.pin.trim()
             ))),
             None => Ok(()),
@@ -284,23 +298,32 @@ mod tests {
     }
 
     #[test]
-    fn the_firmware_takes_steppers_on_a_secondary_and_refuses_its_other_pins_by_option() {
+    fn steppers_heaters_and_fans_may_be_on_a_secondary_and_other_pins_are_refused_by_option() {
         let ext = "\n[mcu ext]\nserial: usart2\n";
-        with_shipped(ext, |setup| {
-            assert_eq!(setup.only_steppers_on_secondaries(), Ok(()));
-        });
         let fan = "\n[fan_generic exhaust]\npin: ext:PB1\n";
         with_shipped(&(ext.to_string() + fan), |setup| {
+            assert_eq!(setup.only_supported_on_secondaries(), Ok(()));
+        });
+        let sensor = "\n[filament_switch_sensor runout]\nswitch_pin: ext:PB2\n";
+        with_shipped(&(ext.to_string() + sensor), |setup| {
             assert_eq!(
                 setup
-                    .only_steppers_on_secondaries()
+                    .only_supported_on_secondaries()
                     .map_err(|e| e.to_string()),
                 Err(
-                    "[fan_generic exhaust] pin: pin 'ext:PB1' is on a secondary MCU, where this \
-                     board drives only steppers, endstops and enable pins so far"
+                    "[filament_switch_sensor runout] switch_pin: pin 'ext:PB2' is on a secondary \
+                     MCU, where onechip drives only steppers, endstops, heaters, temperature \
+                     sensors, fans and output pins so far"
                         .to_string()
                 )
             );
+        });
+        let probe = "\n[probe]\npin: ext:PB3\nz_offset: 1\n";
+        with_shipped(&(ext.to_string() + probe), |setup| {
+            let refused = setup
+                .only_supported_on_secondaries()
+                .map_err(|e| e.to_string());
+            assert!(refused.is_err_and(|e| e.starts_with("[probe] pin: pin 'ext:PB3'")));
         });
     }
 }

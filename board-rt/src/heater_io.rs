@@ -14,6 +14,11 @@
 //! Thread code reaches the io with TIM2's priority masked (BASEPRI), not
 //! every interrupt: the stepper interrupt keeps running. The M105 report
 //! copies the heaters under that lock and formats the copy after it.
+//!
+//! A heater, fan or pin output on a secondary MCU has no pin here: the io
+//! runs it as its own and keeps its updates ([`ForwardedOutputs`]) for
+//! thread code to send there ([`take_forwarded`]); a thermistor there is
+//! sampled there, and its reports come in through [`remote_report`].
 
 use crate::handler_cell::{HandlerCell, mask_of};
 use crate::step_pins::OutPin;
@@ -27,6 +32,8 @@ use embassy_stm32::peripherals::ADC3;
 use onechip_app::heaters::{
     Heaters, INPUTS, LinearConversion, OUTPUTS, TYPICAL_STM32H7_CAL, ThermalCommand, Wait,
 };
+use onechip_app::secondary::forwarded::ForwardedOutputs;
+use onechip_app::secondary::thermal::Reading;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 
@@ -41,8 +48,11 @@ const IDLE_WAKE: u32 = 2_600_000;
 
 /// The outputs and ADC inputs the io drives and reads.
 pub struct BoardPeripherals {
-    /// Heaters, then the fan, as [`Heaters`] numbers them.
-    pub outputs: heapless::Vec<OutPin, OUTPUTS>,
+    /// Heaters, then the fan, as [`Heaters`] numbers them (None: on a
+    /// secondary MCU).
+    pub outputs: heapless::Vec<Option<OutPin>, OUTPUTS>,
+    /// The updates of the outputs on secondary MCUs.
+    pub forwarded: ForwardedOutputs,
     /// ADC3.
     pub adc: Adc3,
     /// Each heater's thermistor, then each temperature sensor's input.
@@ -58,13 +68,15 @@ pub enum AdcInput {
     /// The internal temperature sensor (ADC3 channel 18, RM0468; Klipper's
     /// `ADC_TEMPERATURE` on the H7).
     Temperature,
+    /// An input on a secondary MCU, sampled there (never read here).
+    Elsewhere,
 }
 
 impl AdcInput {
     /// Its ADC3 channel (none for an SPI chip).
     fn channel(&self) -> u8 {
         match self {
-            Self::Spi(_) => u8::MAX,
+            Self::Spi(_) | Self::Elsewhere => u8::MAX,
             Self::Pin(channel) => channel.get_hw_channel(),
             Self::Temperature => adc3::TEMPERATURE_CHANNEL,
         }
@@ -215,9 +227,13 @@ impl Peripherals for BoardPeripherals {
     fn drive(&mut self, index: usize, drive: Drive) {
         // Only software PWM and steady outputs are configured here (see
         // `install`), so a duty never comes.
-        if let (Some(pin), Drive::Level(on)) = (self.outputs.get(index), drive) {
+        if let (Some(Some(pin)), Drive::Level(on)) = (self.outputs.get(index), drive) {
             pin.set(on);
         }
+    }
+
+    fn queued(&mut self, index: usize, clock: u32, value: u32) {
+        self.forwarded.queued(index, clock, value);
     }
 
     fn read_adc(&mut self, index: usize) -> u16 {
@@ -259,7 +275,7 @@ fn with_io<R>(f: impl FnOnce(&mut Io) -> R) -> Option<R> {
 /// handlers, and the watchdog from now on resets the chip if TIM2's
 /// interrupt stops running.
 pub fn install(heaters: Heaters, hw: BoardPeripherals) {
-    for pin in &hw.outputs {
+    for pin in hw.outputs.iter().flatten() {
         if let Err(e) = pin.register_safe_off() {
             defmt::error!("heater/fan output not turned off on a fault: {}", e);
         }
@@ -281,6 +297,31 @@ pub fn command(command: ThermalCommand) {
             step_timer::stop(reason);
         }
     });
+}
+
+/// The oldest update of an output on a secondary MCU not taken yet:
+/// (output, clock, value), the clock 32-bit on the stepper timer.
+pub fn take_forwarded() -> Option<(usize, u32, u32)> {
+    with_io(|io| io.hw.forwarded.take()).flatten()
+}
+
+/// A report of an input on a secondary MCU, for the heaters' control and
+/// checks as this board's own (a fault stops everything). TIM2's
+/// interrupt is then pended, to arm its next wake for what the report
+/// queued.
+pub fn remote_report(reading: Reading) {
+    with_io(|io| {
+        let clock = reading.clock(step_timer::TIMER_HZ);
+        let (input, value) = (reading.input, reading.value);
+        let now = step_timer::now();
+        if let Err(reason) = io
+            .heaters
+            .remote_report(input, clock, value, now, &mut io.hw)
+        {
+            step_timer::stop(reason);
+        }
+    });
+    cortex_m::peripheral::NVIC::pend(interrupt::TIM2);
 }
 
 /// Every heater and fan output off at once, for `reason` (M112); they stay

@@ -6,8 +6,10 @@
 //! tick every 10 ms, so a wait never spins and never oversleeps long.
 
 use onechip_app::heaters::{ThermalCommand, Wait};
+use onechip_app::secondary::thermal::Reading;
 use onechip_app::session::Mcu;
 use onechip_board_rt::{heater_io, step_timer};
+use onechip_sched::clock::widen;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
@@ -77,6 +79,15 @@ impl Mcu for BoardMcu {
     fn report_temperatures(&mut self, mut out: &mut dyn core::fmt::Write) -> core::fmt::Result {
         heater_io::report(&mut out);
         Ok(())
+    }
+
+    fn take_queued_output(&mut self) -> Option<(usize, u64, u32)> {
+        let (index, clock, value) = heater_io::take_forwarded()?;
+        Some((index, widen(clock, step_timer::now64()), value))
+    }
+
+    fn remote_reading(&mut self, reading: Reading) {
+        heater_io::remote_report(reading);
     }
 
     fn shutdown_reason(&mut self) -> Option<Shutdown> {

@@ -32,6 +32,7 @@ use onechip_app::console::Console;
 use onechip_app::mcu_config::on_main;
 use onechip_app::pin_check;
 use onechip_app::sdcard::SdFiles;
+use onechip_app::secondary::forwarded::ForwardedOutputs;
 #[cfg(feature = "secondaries")]
 use onechip_app::secondary::mcu::WithSecondaries;
 #[cfg(feature = "secondaries")]
@@ -234,7 +235,7 @@ fn load_printer(
     #[cfg(feature = "secondaries")]
     {
         setup
-            .only_steppers_on_secondaries()
+            .only_supported_on_secondaries()
             .map_err(|e| error_text(&e))?;
         check_links(setup)?;
     }
@@ -418,13 +419,20 @@ fn install_heaters(
     );
     let (mut outputs, mut inputs) = (heapless::Vec::new(), heapless::Vec::new());
     for (pin, _) in &mcu_setup.outputs {
-        let pin = setup.resolve_pin(pin).map_err(|e| error_text(&e))?;
-        let out = step_pins::OutPin::new(&pin).map_err(|e| error_text(&e))?;
+        // One on a secondary MCU is driven there (its updates forwarded).
+        let out = if on_main(pin) {
+            let pin = setup.resolve_pin(pin).map_err(|e| error_text(&e))?;
+            Some(step_pins::OutPin::new(&pin).map_err(|e| error_text(&e))?)
+        } else {
+            None
+        };
         let _ = outputs.push(out);
     }
     let buses = onechip_app::heaters::input_buses(machine);
     for ((pin, _), bus) in mcu_setup.inputs.iter().zip(buses) {
-        let input = if let Some(bus) = bus {
+        let input = if !on_main(pin) {
+            heater_io::AdcInput::Elsewhere
+        } else if let Some(bus) = bus {
             let owner = format_args!("SPI sensor on {}", bus.cs_pin);
             heater_io::AdcInput::Spi(spi_sensors::SpiDevice::configured(setup, &bus, &owner)?)
         } else if *pin == onechip_app::heaters::MCU_TEMPERATURE_PIN {
@@ -440,6 +448,7 @@ fn install_heaters(
     }
     let mut hw = heater_io::BoardPeripherals {
         outputs,
+        forwarded: ForwardedOutputs::new(&mcu_setup),
         adc: heater_io::Adc3::new(thermistors.adc),
         inputs,
     };

@@ -854,8 +854,7 @@ impl Mcu for VirtualMcu {
             return;
         };
         plant.now = now;
-        // Host time is the main clock in seconds.
-        let clock = (reading.at * plant.freq()).max(0.0) as u64 as u32;
+        let clock = reading.clock(plant.freq());
         match heaters.remote_report(reading.input, clock, reading.value, now as u32, plant) {
             Err(reason) => self.stop_all(reason),
             Ok(()) => self.update_io_wake(),

@@ -6,7 +6,10 @@
 //! its sensor would read at [`ROOM`] °C (an SPI chip answers with its raw
 //! value there), so the heaters' control, reports and safety checks run
 //! (and cost what they cost) but nothing heats.
-//! Outputs are pins ([`OutPin`]) the plugin logs like the steppers'.
+//! Outputs are pins ([`OutPin`]) the plugin logs like the steppers'. As on
+//! the board, an output on a secondary MCU has no pin here (its updates
+//! are forwarded, [`take_forwarded`]) and an input there is sampled there
+//! ([`remote_report`]).
 
 use crate::handler_cell::HandlerCell;
 use crate::machine::{DUALTIMER, Irq, priority, write};
@@ -14,6 +17,8 @@ use crate::pins::OutPin;
 use crate::probe::{self, Context};
 use crate::step_timer;
 use onechip_app::heaters::{Heaters, INPUTS, OUTPUTS, SpiSensor, ThermalCommand, Wait};
+use onechip_app::secondary::forwarded::ForwardedOutputs;
+use onechip_app::secondary::thermal::Reading;
 use onechip_sched::io::Peripherals;
 use onechip_sched::outputs::Drive;
 use onechip_sched::shutdown::Shutdown;
@@ -43,8 +48,11 @@ mod reg {
 
 /// The outputs and thermistor readings the heaters use.
 pub struct QemuPeripherals {
-    /// Heaters, then the fan, as [`Heaters`] numbers them.
-    pub outputs: heapless::Vec<OutPin, OUTPUTS>,
+    /// Heaters, then the fan, as [`Heaters`] numbers them (None: on a
+    /// secondary MCU).
+    pub outputs: heapless::Vec<Option<OutPin>, OUTPUTS>,
+    /// The updates of the outputs on secondary MCUs.
+    pub forwarded: ForwardedOutputs,
     /// What each heater's ADC input reads.
     pub readings: heapless::Vec<u16, INPUTS>,
     /// Each input's SPI chip, if it is one.
@@ -54,9 +62,13 @@ pub struct QemuPeripherals {
 impl Peripherals for QemuPeripherals {
     fn drive(&mut self, index: usize, drive: Drive) {
         // Software PWM and steady outputs only, as the board.
-        if let (Some(pin), Drive::Level(on)) = (self.outputs.get(index), drive) {
+        if let (Some(Some(pin)), Drive::Level(on)) = (self.outputs.get(index), drive) {
             pin.set(on);
         }
+    }
+
+    fn queued(&mut self, index: usize, clock: u32, value: u32) {
+        self.forwarded.queued(index, clock, value);
     }
 
     fn read_adc(&mut self, index: usize) -> u16 {
@@ -104,6 +116,31 @@ pub fn command(command: ThermalCommand) {
         if let Err(reason) = io.heaters.command(command, step_timer::now(), &mut io.hw) {
             step_timer::stop(reason);
         }
+    });
+}
+
+/// The oldest update of an output on a secondary MCU not taken yet:
+/// (output, clock, value), the clock 32-bit on the step clock.
+pub fn take_forwarded() -> Option<(usize, u32, u32)> {
+    IO.with(|io| io.hw.forwarded.take()).flatten()
+}
+
+/// A report of an input on a secondary MCU, for the heaters' control and
+/// checks as this machine's own (a fault stops everything); the timer
+/// then runs the heaters at once, to wake next for what the report
+/// queued.
+pub fn remote_report(reading: Reading) {
+    IO.with(|io| {
+        let clock = reading.clock(step_timer::CLOCK_HZ);
+        let (input, value) = (reading.input, reading.value);
+        let now = step_timer::now();
+        if let Err(reason) = io
+            .heaters
+            .remote_report(input, clock, value, now, &mut io.hw)
+        {
+            step_timer::stop(reason);
+        }
+        arm(MIN_AHEAD);
     });
 }
 

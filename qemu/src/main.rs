@@ -41,6 +41,7 @@ use onechip_app::heaters::{
 use onechip_app::mcu_config::on_main;
 use onechip_app::pin_check;
 use onechip_app::secondary::attached::Secondaries;
+use onechip_app::secondary::forwarded::ForwardedOutputs;
 use onechip_app::secondary::mcu::WithSecondaries;
 use onechip_app::session::{BoardSession, profile};
 use onechip_app::setup::{Config, PrinterSetup};
@@ -128,7 +129,7 @@ fn load_printer() -> Result<Loaded, ErrorText> {
     let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
         .map_err(|e| error_text(&e))?;
     setup
-        .only_steppers_on_secondaries()
+        .only_supported_on_secondaries()
         .map_err(|e| error_text(&e))?;
     install_engine(&setup)?;
     install_heaters(&mut setup)?;
@@ -205,15 +206,20 @@ fn install_heaters(setup: &mut PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mcu_setup = McuSetup::new(machine, freq, heater_io::ADC_MAX, mcu_sensor, start);
     let mut hw = heater_io::QemuPeripherals {
         outputs: heapless::Vec::new(),
+        forwarded: ForwardedOutputs::new(&mcu_setup),
         readings: heapless::Vec::new(),
         chips: onechip_app::heaters::input_chips(machine)
             .take(onechip_app::heaters::INPUTS)
             .collect(),
     };
     for (pin, _) in &mcu_setup.outputs {
-        let _ = hw
-            .outputs
-            .push(pins::OutPin::new(pin).map_err(|e| error_text(&e))?);
+        // One on a secondary MCU is driven there (its updates forwarded).
+        let out = if on_main(pin) {
+            Some(pins::OutPin::new(pin).map_err(|e| error_text(&e))?)
+        } else {
+            None
+        };
+        let _ = hw.outputs.push(out);
     }
     let heaters = machine
         .heaters

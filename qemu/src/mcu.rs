@@ -5,7 +5,9 @@
 
 use crate::{heater_io, step_timer};
 use onechip_app::heaters::{ThermalCommand, Wait};
+use onechip_app::secondary::thermal::Reading;
 use onechip_app::session::Mcu;
+use onechip_sched::clock::widen;
 use onechip_sched::endstop::Endstop;
 use onechip_sched::engine::Full;
 use onechip_sched::shutdown::Shutdown;
@@ -61,6 +63,15 @@ impl Mcu for QemuMcu {
     fn report_temperatures(&mut self, mut out: &mut dyn core::fmt::Write) -> core::fmt::Result {
         heater_io::report(&mut out);
         Ok(())
+    }
+
+    fn take_queued_output(&mut self) -> Option<(usize, u64, u32)> {
+        let (index, clock, value) = heater_io::take_forwarded()?;
+        Some((index, widen(clock, step_timer::now64()), value))
+    }
+
+    fn remote_reading(&mut self, reading: Reading) {
+        heater_io::remote_report(reading);
     }
 
     fn shutdown_reason(&mut self) -> Option<Shutdown> {

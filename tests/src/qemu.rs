@@ -217,7 +217,9 @@ impl Qemu {
     }
 
     /// Sends `line` as Marlin hosts do (`N<n> <line>*<checksum>`) and
-    /// returns the replies before its `ok` (`busy` keepalives left out).
+    /// returns the replies before its `ok` (`busy` keepalives left out),
+    /// and what the `ok` line carries after it, if anything (M105's
+    /// `ok T:…`).
     ///
     /// # Panics
     ///
@@ -239,7 +241,12 @@ impl Qemu {
                 .unwrap_or_else(|e| panic!("no reply to {line:?}: {e}"));
             assert!(n > 0, "console closed after {line:?}");
             let reply = reply.trim_end();
-            if reply == "ok" || reply.starts_with("ok ") {
+            if reply == "ok" {
+                return replies;
+            }
+            // An answer on the ok line (M105's `ok T:…`) is one too.
+            if let Some(answer) = reply.strip_prefix("ok ") {
+                replies.push(answer.to_string());
                 return replies;
             }
             if reply != "echo:busy: processing" {

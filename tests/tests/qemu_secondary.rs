@@ -9,12 +9,20 @@
 //! The run is in real time (tests/src/qemu.rs: no `-icount`, the firmware
 //! sleeping with `wfi`), as the peer's clock is the host's.
 //!
+//! The extruder's heater and thermistor may be on the peer too: the
+//! firmware's heater control runs on the peer's ADC reports, and its
+//! output updates go to the peer's pin.
+//!
 //! Figures (printed, `--nocapture`): how long the firmware took from
 //! QEMU's start to its first answer (the connection inside), and how
 //! evenly the peer stepped while the extruder cruised: each step edge's
 //! distance from the straight line fitted through the cruise's edges.
 
-use onechip_tests::peers::{Firmware, Peer, extruder_pins};
+use onechip_config::Config;
+use onechip_host::thermal_plant::adc_raw;
+use onechip_planner::machine::Machine;
+use onechip_planner::sensor_section::Conversion;
+use onechip_tests::peers::{Firmware, Peer, extruder_pins, monotonic_now};
 use onechip_tests::qemu::{self, Qemu};
 use std::time::{Duration, Instant};
 
@@ -70,11 +78,30 @@ fn cruise_line(edges: &[f64], interval: f64) -> (f64, Vec<f64>) {
     (slope, errors)
 }
 
+/// The extruder's heater pin on the Linux peer.
+const HEATER: &str = "gpiochip0/gpio30";
+/// Its thermistor's ADC channel there (pin `analog0`), 12 bits.
+const SENSOR_CHANNEL: u8 = 0;
+/// The Linux MCU's ADC full scale (its dictionary's ADC_MAX).
+const LINUX_ADC_MAX: u16 = 4095;
+
+/// [`config`] with the extruder's heater and thermistor on the peer too.
+fn heater_config() -> String {
+    format!(
+        "{}heater_pin: ext:{HEATER}\nsensor_pin: ext:analog{SENSOR_CHANNEL}\n",
+        config()
+    )
+}
+
 /// Starts the peer and the firmware linked to it; returns them with the
 /// time from QEMU's start to the console's first answer, s.
 fn linked(test: &str) -> (Peer, Qemu, f64) {
-    let peer = Peer::start(Firmware::Linux, test);
-    let elf = qemu::build_firmware(test, &config());
+    linked_with(test, &config(), Peer::start(Firmware::Linux, test))
+}
+
+/// [`linked`] with printer.cfg `config`, to `peer`.
+fn linked_with(test: &str, config: &str, peer: Peer) -> (Peer, Qemu, f64) {
+    let elf = qemu::build_firmware(test, config);
     let started = Instant::now();
     let mut machine = Qemu::start_linked(&elf, test, &peer.path);
     machine.send("M110 N0");
@@ -191,4 +218,63 @@ fn a_serial_other_than_uart1_is_refused_naming_it() {
         replies.iter().any(|r| r.contains(why)),
         "console: {replies:?}"
     );
+}
+
+/// `T:temp /target` of an M105 reply.
+fn m105_extruder(replies: &[String]) -> Option<(f64, f64)> {
+    let rest = replies.iter().find_map(|r| r.split("T:").nth(1))?;
+    let mut words = rest.split_whitespace();
+    let temp = words.next()?.parse().ok()?;
+    let target = words.next()?.strip_prefix('/')?.parse().ok()?;
+    Some((temp, target))
+}
+
+#[test]
+#[ignore = "needs qemu-system-arm and gcc (CI: .ci/run)"]
+fn the_firmware_heats_with_a_heater_and_thermistor_on_a_stock_linux_mcu() {
+    let config = heater_config();
+    let parsed = Config::parse("printer.cfg", &config).expect("config");
+    let machine = Machine::from_config(&parsed).expect("machine");
+    let sensor = Conversion::Sensor(machine.heaters[0].sensor);
+    // The thermistor reads 30 °C throughout: far below any target, the
+    // heater's control asks for full power.
+    let raw = adc_raw(&sensor, 30.0, LINUX_ADC_MAX);
+    let test = "qemu_ext_heater";
+    let peer = Peer::start_driven(test);
+    peer.adc(SENSOR_CHANNEL).set(raw).expect("ADC file");
+    let (peer, mut machine, _) = linked_with(test, &config, peer);
+    // Its reports come over the link: M105 shows the peer's reading.
+    std::thread::sleep(Duration::from_secs(1));
+    let cold = machine.send("M105");
+    let out = std::fs::read_to_string(&machine.stdout).unwrap_or_default();
+    let (t, target) =
+        m105_extruder(&cold).unwrap_or_else(|| panic!("M105: {cold:?}; firmware: {out}"));
+    assert!((t - 30.0).abs() < 0.5 && target == 0.0, "{cold:?}");
+    let asked = monotonic_now();
+    machine.send("M104 S200");
+    std::thread::sleep(Duration::from_secs(2));
+    let heating = machine.send("M105");
+    let levels = peer.levels(HEATER);
+    let on = levels.iter().find(|l| l.1).map(|l| l.0);
+    println!(
+        "heater on the peer under the QEMU firmware: {heating:?}; its pin went on {:.0} ms after M104 was sent",
+        on.map_or(f64::NAN, |t| (t - asked) * 1e3)
+    );
+    assert_eq!(
+        m105_extruder(&heating).map(|m| m.1),
+        Some(200.0),
+        "{heating:?}"
+    );
+    // Full power: on, and refreshed before the peer's max_duration
+    // (Klipper's 3 s) would shut it down.
+    assert_eq!(levels.last().map(|l| l.1), Some(true), "{levels:?}");
+    let out = std::fs::read_to_string(&machine.stdout).unwrap_or_default();
+    assert!(!out.contains("shutdown"), "firmware: {out}");
+    std::thread::sleep(Duration::from_secs(4));
+    let still = machine.send("M105");
+    assert!(!still.iter().any(|r| r.contains("!!")), "{still:?}");
+    assert_eq!(peer.levels(HEATER).last().map(|l| l.1), Some(true));
+    machine.send("M104 S0");
+    std::thread::sleep(Duration::from_secs(1));
+    assert_eq!(peer.levels(HEATER).last().map(|l| l.1), Some(false));
 }

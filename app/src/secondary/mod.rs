@@ -12,13 +12,15 @@
 //!   outputs, heaters and homing;
 //! - [`homing`]: homing across MCUs with trsync;
 //! - [`mcu`]: one MCU role over this board's own and the secondaries';
-//! - [`thermal`]: heater and sensor inputs on a secondary.
+//! - [`thermal`]: heater and sensor inputs on a secondary;
+//! - [`forwarded`]: a firmware's io outputs on secondaries.
 
 // Errors carry their words in bounded buffers (there is no heap to box
 // them in); they come once per connection or homing, not per step.
 #![allow(clippy::result_large_err)]
 
 pub mod attached;
+pub mod forwarded;
 pub mod homing;
 pub mod mcu;
 mod remote_output;

@@ -41,6 +41,14 @@ pub struct Reading {
     pub value: f64,
 }
 
+impl Reading {
+    /// Its first sample's clock on the main MCU of `freq` Hz (host time
+    /// is that clock in seconds), 32-bit as the io counts.
+    pub fn clock(&self, freq: f64) -> u32 {
+        (self.at * freq).max(0.0) as u64 as u32
+    }
+}
+
 /// A heater's or temperature sensor's ADC input on a secondary.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RemoteInput {

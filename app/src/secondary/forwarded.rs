@@ -1,0 +1,119 @@
+//! The MCU role's outputs that are on secondary MCUs, as a firmware's
+//! heater io holds them: the io runs such an output as its own (the
+//! heaters' control and max_duration refresh, in the heaters' interrupt)
+//! with no pin behind it, and each update it queues for one is kept here
+//! until thread code takes it ([`crate::session::Mcu::take_queued_output`])
+//! and [`super::mcu::WithSecondaries`] sends it on, on that MCU's clock.
+//! The simulator's plant keeps every output's updates instead (it has
+//! room); the queue here is bounded.
+
+use crate::heaters::{McuSetup, OUTPUTS};
+use crate::mcu_config::on_main;
+
+/// Updates kept until thread code takes them: it takes them within a
+/// millisecond or so, and the io queues one per heater every 0.3 s (a
+/// fan's or pin's on a command), so this holds several seconds' worth.
+pub const QUEUED: usize = 32;
+
+/// Which outputs are on secondaries, and their updates not taken yet.
+#[derive(Debug, Clone)]
+pub struct ForwardedOutputs {
+    /// Output `i` (the io's numbering: heaters, the fan, the other fans
+    /// and pins) is on a secondary.
+    elsewhere: [bool; OUTPUTS],
+    /// (output, clock, value) as the io queued them (clock: this MCU's,
+    /// 32-bit), oldest first.
+    queued: heapless::Deque<(usize, u32, u32), QUEUED>,
+    /// Updates dropped because the queue was full (the oldest went): the
+    /// secondary then misses one and its max_duration shuts it down.
+    dropped: u32,
+}
+
+impl ForwardedOutputs {
+    /// The outputs of `setup` (the io's configuration) whose pins are on
+    /// a secondary (`NAME:PIN`).
+    pub fn new(setup: &McuSetup<'_>) -> Self {
+        let mut elsewhere = [false; OUTPUTS];
+        for (flag, (pin, _)) in elsewhere.iter_mut().zip(&setup.outputs) {
+            *flag = !on_main(pin);
+        }
+        Self {
+            elsewhere,
+            queued: heapless::Deque::new(),
+            dropped: 0,
+        }
+    }
+
+    /// True if output `index` is on a secondary (it has no pin here).
+    pub fn is_elsewhere(&self, index: usize) -> bool {
+        self.elsewhere.get(index).copied().unwrap_or(false)
+    }
+
+    /// The io queued `value` for output `index` from clock `clock` on
+    /// (`Peripherals::queued`): kept if that output is on a secondary.
+    pub fn queued(&mut self, index: usize, clock: u32, value: u32) {
+        if !self.is_elsewhere(index) {
+            return;
+        }
+        if self.queued.is_full() {
+            self.queued.pop_front();
+            self.dropped = self.dropped.saturating_add(1);
+        }
+        let _ = self.queued.push_back((index, clock, value));
+    }
+
+    /// The oldest update not taken yet: (output, clock, value).
+    pub fn take(&mut self) -> Option<(usize, u32, u32)> {
+        self.queued.pop_front()
+    }
+
+    /// Updates dropped so far.
+    pub fn dropped(&self) -> u32 {
+        self.dropped
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use onechip_planner::machine::Machine;
+
+    /// A printer whose bed heater and part fan are on `ext`, a named fan
+    /// on this MCU.
+    const CONFIG: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
+        position_endstop: 0\nposition_max: 200\n\
+        [mcu ext]\nserial: /dev/null\n\
+        [heater_bed]\nheater_pin: ext:PA1\nsensor_type: EPCOS 100K B57560G104F\n\
+        sensor_pin: ext:analog0\ncontrol: watermark\nmin_temp: 0\nmax_temp: 130\n\
+        [fan]\npin: ext:PA2\n\
+        [fan_generic exhaust]\npin: PA8\n";
+
+    fn with_machine(f: impl FnOnce(&Machine<'_>)) {
+        let config = onechip_config::Config::parse("printer.cfg", CONFIG).expect("config");
+        let machine = Machine::from_config(&config).expect("machine");
+        f(&machine);
+    }
+
+    #[test]
+    fn only_updates_of_outputs_elsewhere_are_kept_oldest_first_and_bounded() {
+        with_machine(|machine| {
+            let mcu_sensor = crate::heaters::tests::typical_mcu();
+            let setup = McuSetup::new(machine, 1e6, 4095, mcu_sensor, 0);
+            let mut forwarded = ForwardedOutputs::new(&setup);
+            assert!(forwarded.is_elsewhere(0) && forwarded.is_elsewhere(1));
+            assert!(!forwarded.is_elsewhere(2));
+            forwarded.queued(2, 5, 1);
+            assert_eq!(forwarded.take(), None);
+            for k in 0..QUEUED as u32 + 3 {
+                forwarded.queued(0, k, k);
+            }
+            assert_eq!(forwarded.dropped(), 3);
+            assert_eq!(forwarded.take(), Some((0, 3, 3)));
+        });
+    }
+}
