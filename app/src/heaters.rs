@@ -32,6 +32,7 @@ pub use onechip_planner::sensor_section::{
 };
 use onechip_planner::spi_temperature::Chip;
 // An SPI sensor's chip and bus, for the shells that wire or simulate it.
+use crate::secondary::thermal::Reading;
 pub use onechip_planner::spi_temperature::{SpiBus, SpiBusPins, SpiSensor};
 use onechip_planner::temperature_sensor::TemperatureSensor;
 use onechip_planner::thermal::{Control, PWM_DELAY, VerifyHeater};
@@ -888,6 +889,19 @@ impl Heaters {
         self.on_temperature(index, clock, temp, now, hw)
     }
 
+    /// [`Self::remote_report`] of `reading` (as the secondaries hand it
+    /// over, in host time), on this MCU's clock of `freq` Hz.
+    pub fn remote_reading(
+        &mut self,
+        reading: &Reading,
+        freq: f64,
+        now: u32,
+        hw: &mut impl Peripherals,
+    ) -> Result<(), Shutdown> {
+        let clock = reading.clock(freq);
+        self.remote_report(reading.input, clock, reading.value, now, hw)
+    }
+
     /// Input `index`'s conversion (the heaters', then the temperature
     /// sensors').
     fn conversion(&self, index: usize) -> Option<Conversion> {
@@ -1187,7 +1201,7 @@ pub(crate) mod tests {
     const FREQ: f64 = 1_000_000.0;
     /// A printer with the part-cooling fan only (software PWM, 0.010 s
     /// cycle: full scale 10 000 ticks; kick_start_time 0.1 s).
-    const FAN_ONLY: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+    pub(crate) const FAN_ONLY: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
         [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
         position_endstop: 0\nposition_max: 200\n\
         [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\

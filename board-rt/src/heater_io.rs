@@ -311,13 +311,9 @@ pub fn take_forwarded() -> Option<(usize, u32, u32)> {
 /// queued.
 pub fn remote_report(reading: Reading) {
     with_io(|io| {
-        let clock = reading.clock(step_timer::TIMER_HZ);
-        let (input, value) = (reading.input, reading.value);
         let now = step_timer::now();
-        if let Err(reason) = io
-            .heaters
-            .remote_report(input, clock, value, now, &mut io.hw)
-        {
+        let hz = step_timer::TIMER_HZ;
+        if let Err(reason) = io.heaters.remote_reading(&reading, hz, now, &mut io.hw) {
             step_timer::stop(reason);
         }
     });

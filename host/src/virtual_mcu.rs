@@ -854,8 +854,8 @@ impl Mcu for VirtualMcu {
             return;
         };
         plant.now = now;
-        let clock = reading.clock(plant.freq());
-        match heaters.remote_report(reading.input, clock, reading.value, now as u32, plant) {
+        let freq = plant.freq();
+        match heaters.remote_reading(&reading, freq, now as u32, plant) {
             Err(reason) => self.stop_all(reason),
             Ok(()) => self.update_io_wake(),
         }

@@ -131,13 +131,9 @@ pub fn take_forwarded() -> Option<(usize, u32, u32)> {
 /// queued.
 pub fn remote_report(reading: Reading) {
     IO.with(|io| {
-        let clock = reading.clock(step_timer::CLOCK_HZ);
-        let (input, value) = (reading.input, reading.value);
         let now = step_timer::now();
-        if let Err(reason) = io
-            .heaters
-            .remote_report(input, clock, value, now, &mut io.hw)
-        {
+        let hz = step_timer::CLOCK_HZ;
+        if let Err(reason) = io.heaters.remote_reading(&reading, hz, now, &mut io.hw) {
             step_timer::stop(reason);
         }
         arm(MIN_AHEAD);

@@ -78,23 +78,17 @@ mod tests {
     use super::*;
     use onechip_planner::machine::Machine;
 
-    /// A printer whose bed heater and part fan are on `ext`, a named fan
-    /// on this MCU.
-    const CONFIG: &str = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-        [stepper_x]\nstep_pin: PF13\ndir_pin: PF12\nmicrosteps: 16\nrotation_distance: 40\n\
-        position_endstop: 0\nposition_max: 200\n\
-        [stepper_y]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 40\n\
-        position_endstop: 0\nposition_max: 200\n\
-        [stepper_z]\nstep_pin: PF11\ndir_pin: PG3\nmicrosteps: 16\nrotation_distance: 8\n\
-        position_endstop: 0\nposition_max: 200\n\
-        [mcu ext]\nserial: /dev/null\n\
+    /// The heaters' test printer with its part fan, a bed heater and its
+    /// thermistor on `ext` and a named fan on this MCU.
+    const ON_EXT: &str = "[mcu ext]\nserial: /dev/null\n\
         [heater_bed]\nheater_pin: ext:PA1\nsensor_type: EPCOS 100K B57560G104F\n\
         sensor_pin: ext:analog0\ncontrol: watermark\nmin_temp: 0\nmax_temp: 130\n\
-        [fan]\npin: ext:PA2\n\
-        [fan_generic exhaust]\npin: PA8\n";
+        [fan]\npin: ext:PA2\n[fan_generic exhaust]\npin: PA9\n";
 
     fn with_machine(f: impl FnOnce(&Machine<'_>)) {
-        let config = onechip_config::Config::parse("printer.cfg", CONFIG).expect("config");
+        extern crate std;
+        let text = std::format!("{}{ON_EXT}", crate::heaters::tests::FAN_ONLY);
+        let config = onechip_config::Config::parse("printer.cfg", &text).expect("config");
         let machine = Machine::from_config(&config).expect("machine");
         f(&machine);
     }

@@ -303,31 +303,12 @@ pub struct Secondary<L> {
 impl<L: SecondaryLink> Secondary<L> {
     /// Opens `serial` at `baud`, fetches the dictionary, synchronises the
     /// clock and sends `config`'s commands for the MCU's clock (nothing
-    /// more if the MCU holds that config already); `now` gives host time
-    /// in seconds. Gives up after `timeout` s. As klippy's automated
-    /// firmware restart, an MCU that holds another config (its CRC
-    /// differs) is reset by `restart` and configured anew.
-    #[allow(clippy::too_many_arguments)]
-    pub fn connect_or_restart<O: Links<Link = L>>(
-        name: &'static str,
-        serial: (&str, u32),
-        links: &mut O,
-        restart: RestartMethod,
-        config: ConfigWriter<'_>,
-        now: &dyn Fn() -> f64,
-        timeout: f64,
-    ) -> Result<Self, ConnectError> {
-        let mut slot = MaybeUninit::uninit();
-        let how = (Start::Fresh, Some(restart));
-        Self::connect_in(&mut slot, name, serial, links, config, now, timeout, how)?;
-        // SAFETY: `connect_in` initialised it.
-        Ok(unsafe { slot.assume_init() })
-    }
-
-    /// Opens `serial` at `baud`, fetches the dictionary, synchronises the
-    /// clock and sends `config`'s commands for the MCU's clock, within
-    /// `timeout` s of host time `now()`; an MCU just reset (`start`) that
-    /// is still configured is [`Failure::NotReset`].
+    /// more if the MCU holds that config already), within `timeout` s of
+    /// host time `now()`. `how`: whether the MCU was just reset (then one
+    /// still configured is [`Failure::NotReset`]), and, as klippy's
+    /// automated firmware restart, how to reset one that holds another
+    /// config (its CRC differs) to configure it anew (None: it is an
+    /// error).
     pub fn connect<O: Links<Link = L>>(
         name: &'static str,
         serial: (&str, u32),
@@ -335,17 +316,15 @@ impl<L: SecondaryLink> Secondary<L> {
         config: ConfigWriter<'_>,
         now: &dyn Fn() -> f64,
         timeout: f64,
-        start: Start,
+        how: (Start, Option<RestartMethod>),
     ) -> Result<Self, ConnectError> {
         let mut slot = MaybeUninit::uninit();
-        let how = (start, None);
         Self::connect_in(&mut slot, name, serial, links, config, now, timeout, how)?;
         // SAFETY: `connect_in` initialised it.
         Ok(unsafe { slot.assume_init() })
     }
 
-    /// [`Self::connect`] (`start`), or with `reset_other`
-    /// [`Self::connect_or_restart`], built in place in `slot`: a
+    /// [`Self::connect`] built in place in `slot`: a
     /// [`Secondary`] is several KB, which a microcontroller's stack should
     /// not carry copies of. On an error the slot is left empty (what was
     /// made of it dropped, its link closed).

@@ -89,10 +89,8 @@ fn connect_on(
     let (name, serial) = (leak(name), path.to_string_lossy());
     let (serial, links, timeout) = ((&*serial, 0), &mut SerialDevices, timeout.as_secs_f64());
     let config = lines(config);
-    match restart {
-        Some(how) => Secondary::connect_or_restart(name, serial, links, how, &config, now, timeout),
-        None => Secondary::connect(name, serial, links, &config, now, timeout, Start::Fresh),
-    }
+    let how = (Start::Fresh, restart);
+    Secondary::connect(name, serial, links, &config, now, timeout, how)
 }
 
 /// `config`'s lines as the host role takes them, one call each.
