@@ -278,6 +278,12 @@ impl HostLink {
     /// Feeds bytes from the MCU; calls `on_payload` with the payload of each
     /// data block (responses), in arrival order.
     pub fn receive(&mut self, bytes: &[u8], now_us: u64, mut on_payload: impl FnMut(&[u8])) {
+        self.receive_dyn(bytes, now_us, &mut on_payload);
+    }
+
+    /// [`Self::receive`]'s body, compiled once for every caller's
+    /// `on_payload` (the deframer and the ack handling are not small).
+    fn receive_dyn(&mut self, bytes: &[u8], now_us: u64, on_payload: &mut dyn FnMut(&[u8])) {
         let mut deframer = core::mem::take(&mut self.deframer);
         deframer.push(bytes, |frame| match frame {
             Frame::Garbage(n) => self.stats.bytes_invalid += n as u64,
