@@ -287,29 +287,30 @@ impl<'a> Dictionary<'a> {
         let message = self
             .by_name(name)
             .ok_or(EncodeError::UnknownMessage(name))?;
-        // Every given argument must name a parameter, once.
-        for (i, word) in line.split_ascii_whitespace().skip(1).enumerate() {
-            let key = word.split_once('=').map_or(word, |(k, _)| k);
-            if !message.params().any(|(p, _)| p == key) {
-                return Err(EncodeError::UnknownParam(key));
-            }
-            if line
-                .split_ascii_whitespace()
-                .skip(1)
-                .take(i)
-                .any(|w| w.split_once('=').is_some_and(|(k, _)| k == key))
-            {
+        // One pass over the arguments, in order: each must name a
+        // parameter, and none may follow a `name=value` of the same name.
+        let mut values: [Option<&str>; MAX_PARAMS] = [None; MAX_PARAMS];
+        for word in words {
+            let (key, value) = match word.split_once('=') {
+                Some((key, value)) => (key, Some(value)),
+                None => (word, None),
+            };
+            let slot = message
+                .params()
+                .position(|(p, _)| p == key)
+                .and_then(|i| values.get_mut(i))
+                .ok_or(EncodeError::UnknownParam(key))?;
+            if slot.is_some() {
                 return Err(EncodeError::DuplicateParam(key));
+            }
+            if value.is_some() {
+                *slot = value;
             }
         }
         let mut w = Writer { out, len: 0 };
         w.int(i64::from(message.id))?;
-        for (param, ty) in message.params() {
-            let text = line
-                .split_ascii_whitespace()
-                .skip(1)
-                .find_map(|word| word.strip_prefix(param)?.strip_prefix('='))
-                .ok_or(EncodeError::MissingParam(param))?;
+        for ((param, ty), text) in message.params().zip(values) {
+            let text = text.ok_or(EncodeError::MissingParam(param))?;
             if ty.is_bytes() {
                 write_hex_buffer(&mut w, param, text)?;
                 continue;
@@ -625,6 +626,22 @@ mod tests {
                 EncodeError::BadValue("PZ9"),
             ),
             ("spi_send oid=1 data=abc", EncodeError::BadValue("abc")),
+            // A bare parameter name after its `name=value` repeats it; one
+            // before it is ignored.
+            (
+                "queue_step oid=1 interval=1 count=1 add=0 oid",
+                EncodeError::DuplicateParam("oid"),
+            ),
+            (
+                "queue_step oid oid=1 count=1",
+                EncodeError::MissingParam("interval"),
+            ),
+            // The first unknown or repeated parameter is the one named.
+            ("queue_step x=1 oid=1 oid=2", EncodeError::UnknownParam("x")),
+            (
+                "queue_step oid=1 oid=2 x=1",
+                EncodeError::DuplicateParam("oid"),
+            ),
         ];
         for (line, expected) in cases {
             assert_eq!(d.encode_text(line, &mut buf), Err(*expected), "{line}");
