@@ -20,7 +20,9 @@ pub const RETRY_TIME: f64 = 0.25;
 /// [`RETRY_TIME`], as klippy's retried commands wait.
 const LOST_ANSWER_RETRY: f64 = 0.010;
 
-/// Host seconds as the link's microseconds.
+/// Host seconds as the link's microseconds. Not inlined: a soft-float
+/// conversion, with several callers.
+#[inline(never)]
 pub(crate) fn micros(now: f64) -> u64 {
     (now.max(0.0) * 1e6) as u64
 }
