@@ -167,8 +167,9 @@ pub struct HostLink {
     /// A nak behind a retransmission may still cut the timeout short
     /// (once per acknowledgement that makes progress).
     early_retry: bool,
-    /// Unacknowledged blocks, oldest first, with their send times.
-    sent: heapless::Deque<(heapless::Vec<u8, MAX_LEN>, u64), MAX_PENDING_BLOCKS>,
+    /// Unacknowledged blocks, oldest first, with their send times; each
+    /// block is as long as its first byte says (see [`framed`]).
+    sent: heapless::Deque<([u8; MAX_LEN], u64), MAX_PENDING_BLOCKS>,
     sent_bytes: usize,
     last_ack_bytes: usize,
     receive_window: usize,
@@ -259,7 +260,11 @@ impl HostLink {
         let mut frame = [0u8; MAX_LEN];
         let n = block::encode(self.send_seq as u8, payload, &mut frame)
             .map_err(|_| SendError::TooLarge)?;
-        if self.sent.is_empty() {
+        let first = self.sent.is_empty();
+        self.sent
+            .push_back((frame, now_us))
+            .map_err(|_| SendError::WindowFull)?;
+        if first {
             self.retransmit_at = Some(now_us.saturating_add(u64::from(self.rto_us)));
         }
         if self.rtt_sample_seq == 0 {
@@ -268,11 +273,7 @@ impl HostLink {
         self.send_seq += 1;
         self.sent_bytes += n;
         self.stats.bytes_written += n as u64;
-        let stored = heapless::Vec::from_slice(&frame[..n]).map_err(|_| SendError::TooLarge)?;
-        self.sent
-            .push_back((stored, now_us))
-            .map_err(|_| SendError::WindowFull)?;
-        Ok(self.sent.back().map_or(&[], |(f, _)| f.as_slice()))
+        Ok(self.sent.back().map_or(&[], |(f, _)| framed(f)))
     }
 
     /// Feeds bytes from the MCU; calls `on_payload` with the payload of each
@@ -356,8 +357,9 @@ impl HostLink {
                 self.send_seq = rseq;
                 break;
             };
-            self.sent_bytes -= frame.len();
-            self.last_ack_bytes = frame.len();
+            let len = framed(&frame).len();
+            self.sent_bytes -= len;
+            self.last_ack_bytes = len;
             self.receive_seq += 1;
             acked_sent_at = Some(sent_at);
         }
@@ -417,7 +419,7 @@ impl HostLink {
         };
         put(&[SYNC])?;
         for (frame, _) in &self.sent {
-            put(frame)?;
+            put(framed(frame))?;
         }
         if due == 0 {
             // After a nak: a second nak for this retransmission is honoured,
@@ -440,6 +442,11 @@ impl HostLink {
         self.retransmit_at = Some(now_us.saturating_add(u64::from(self.rto_us)));
         Some(n)
     }
+}
+
+/// The block stored in `frame` (its length is its first byte).
+fn framed(frame: &[u8; MAX_LEN]) -> &[u8] {
+    frame.get(..usize::from(frame[0])).unwrap_or(frame)
 }
 
 /// The MCU side of a link: in-order delivery, acks and naks.
