@@ -76,10 +76,9 @@ impl<'b> Identify<'b> {
             i64::from(self.fetcher.offset()),
             i64::from(CHUNK),
         ] {
-            let mut buf = [0u8; vlq::MAX_LEN];
-            let n = vlq::encode(value, &mut buf);
-            payload[len..len + n].copy_from_slice(&buf[..n]);
-            len += n;
+            if let Some(room) = payload.get_mut(len..).and_then(|r| r.first_chunk_mut()) {
+                len += vlq::encode(value, room);
+            }
         }
         self.ask_at = now + RETRY_TIME;
         self.questions += 1;
