@@ -249,8 +249,9 @@ impl<'d> Encoder<'d> {
             .ok_or(EncodeError::NoSpace)? = self.id;
         let mut len = usize::from(self.id_len);
         for &value in args {
-            let room = out[len..]
-                .first_chunk_mut::<{ vlq::MAX_LEN }>()
+            let room = out
+                .get_mut(len..)
+                .and_then(<[u8]>::first_chunk_mut::<{ vlq::MAX_LEN }>)
                 .ok_or(EncodeError::NoSpace)?;
             len += vlq::encode(value, room);
         }
@@ -402,9 +403,9 @@ fn write_hex_buffer<'x>(
     }
     let len = u8::try_from(hex.len() / 2).map_err(|_| EncodeError::BufferTooLong(param))?;
     w.bytes(&[len])?;
-    for pair in hex.as_bytes().chunks(2) {
-        let digit = |b: u8| (b as char).to_digit(16).unwrap_or(0) as u8;
-        w.bytes(&[digit(pair[0]) << 4 | digit(pair[1])])?;
+    let digit = |b: u8| (b as char).to_digit(16).unwrap_or(0) as u8;
+    for &[high, low] in hex.as_bytes().as_chunks::<2>().0 {
+        w.bytes(&[digit(high) << 4 | digit(low)])?;
     }
     Ok(())
 }

@@ -79,9 +79,17 @@ impl Deframer {
             on_frame(Frame::Garbage(1));
             return;
         }
-        self.buf[self.len] = byte;
-        self.len += 1;
+        // `check` leaves less than a block buffered, so there is room.
+        if let Some(slot) = self.buf.get_mut(self.len) {
+            *slot = byte;
+            self.len += 1;
+        }
         self.check(on_frame);
+    }
+
+    /// The bytes buffered.
+    fn buffered(&self) -> &[u8] {
+        self.buf.get(..self.len).unwrap_or_default()
     }
 
     /// Examines the buffered bytes after each arrival: every complete
@@ -90,7 +98,7 @@ impl Deframer {
     /// the next byte from the peer, which may never come).
     fn check(&mut self, on_frame: &mut impl FnMut(Frame<'_>)) {
         loop {
-            match block::parse(&self.buf[..self.len]) {
+            match block::parse(self.buffered()) {
                 Ok(found) => {
                     let n = found.wire_len();
                     on_frame(Frame::Block {
@@ -115,7 +123,7 @@ impl Deframer {
             // Framing error: drop through the first sync byte in the buffer
             // (a lone sync before a block, as retransmissions send, costs one
             // byte), then look at what remains.
-            match self.buf[..self.len].iter().position(|&b| b == SYNC) {
+            match self.buffered().iter().position(|&b| b == SYNC) {
                 Some(at) => {
                     on_frame(Frame::Garbage(at + 1));
                     self.buf.copy_within(at + 1..self.len, 0);
