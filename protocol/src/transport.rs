@@ -343,7 +343,9 @@ impl HostLink {
     /// waits for acks before it counts, µs: the smoothed round trip (it
     /// includes the blocks' time on the wire), at least a millisecond.
     fn nak_hold_off_us(&self) -> u32 {
-        (self.srtt_us / 8 * 8).clamp(1_000, self.rto_us)
+        // (Not `clamp`, which would bring a panic path for a timeout
+        // below a millisecond, which MIN_RTO_US rules out.)
+        (self.srtt_us / 8 * 8).max(1_000).min(self.rto_us)
     }
 
     /// True until the MCU has acknowledged anything: its sequence number
