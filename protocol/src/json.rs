@@ -38,7 +38,16 @@ impl<'a> Str<'a> {
 
     /// True if the decoded string equals `s`.
     pub fn eq_str(&self, s: &str) -> bool {
-        self.chars().eq(s.chars().map(Some))
+        // Each decoded character against the front of the rest of `s`
+        // (no decoding of `s` to characters).
+        let mut rest = s;
+        for c in self.chars() {
+            match c.and_then(|c| rest.strip_prefix(c)) {
+                Some(after) => rest = after,
+                None => return false,
+            }
+        }
+        rest.is_empty()
     }
 
     /// The decoded characters; `None` items stand for malformed escapes.
@@ -392,6 +401,20 @@ mod tests {
         };
         assert!(s.eq_str("d\"e"));
         assert_eq!(s.plain(), None);
+    }
+
+    #[test]
+    fn eq_str_compares_whole_decoded_strings() {
+        let s = |raw| Str { raw };
+        assert!(s("").eq_str(""));
+        assert!(s("ab").eq_str("ab"));
+        assert!(!s("ab").eq_str("abc"));
+        assert!(!s("abc").eq_str("ab"));
+        assert!(!s("").eq_str("a"));
+        assert!(s(r"a\tb\u00e9").eq_str("a\tbé"));
+        assert!(!s(r"a\u00e").eq_str("a"));
+        assert!(!s(r"\q").eq_str("q"));
+        assert!(!s("é").eq_str("e"));
     }
 
     #[test]
