@@ -135,7 +135,13 @@ pub fn is_absolute_clock(param: &str) -> bool {
 
 /// The values a parameter accepts.
 fn value_range(param: &str, ty: ParamType) -> core::ops::RangeInclusive<i64> {
-    if ty == ParamType::U32 && is_absolute_clock(param) {
+    int_range(ty, is_absolute_clock(param))
+}
+
+/// The values an integer parameter of type `ty` accepts; `clock`: it
+/// carries an absolute clock.
+fn int_range(ty: ParamType, clock: bool) -> core::ops::RangeInclusive<i64> {
+    if ty == ParamType::U32 && clock {
         0..=i64::MAX
     } else {
         ty.range()
@@ -155,12 +161,13 @@ fn check_range(param: &str, ty: ParamType, value: i64) -> Result<(), EncodeError
 pub struct Encoder<'d> {
     message: &'d Message<'d>,
     types: [ParamType; MAX_PARAMS],
-    /// Accepted values of each integer parameter (bytes parameters: empty).
-    bounds: [(i64, i64); MAX_PARAMS],
-    count: usize,
+    /// Bit `i` set: parameter `i` carries an absolute clock (see
+    /// [`is_absolute_clock`]).
+    clocks: u16,
+    count: u8,
     /// The message id, already encoded.
     id: [u8; vlq::MAX_LEN],
-    id_len: usize,
+    id_len: u8,
 }
 
 impl<'d> Encoder<'d> {
@@ -170,22 +177,21 @@ impl<'d> Encoder<'d> {
             .by_name(name)
             .ok_or(EncodeError::UnknownMessage(name))?;
         let mut types = [ParamType::U8; MAX_PARAMS];
-        let mut bounds = [(1, 0); MAX_PARAMS];
+        let mut clocks = 0;
         let mut count = 0;
-        for (i, (param, ty)) in message.params().enumerate().take(MAX_PARAMS) {
-            types[i] = ty;
-            if !ty.is_bytes() {
-                let range = value_range(param, ty);
-                bounds[i] = (*range.start(), *range.end());
+        for ((param, ty), slot) in message.params().zip(&mut types) {
+            *slot = ty;
+            if is_absolute_clock(param) {
+                clocks |= 1 << count;
             }
             count += 1;
         }
         let mut id = [0u8; vlq::MAX_LEN];
-        let id_len = vlq::encode(i64::from(message.id), &mut id);
+        let id_len = vlq::encode(i64::from(message.id), &mut id) as u8;
         Ok(Self {
             message,
             types,
-            bounds,
+            clocks,
             count,
             id,
             id_len,
@@ -200,12 +206,7 @@ impl<'d> Encoder<'d> {
     /// Encodes the message with `args` in format order into `out`; returns
     /// the number of bytes written.
     pub fn encode(&self, args: &[Arg<'_>], out: &mut [u8]) -> Result<usize, EncodeError<'d>> {
-        if args.len() != self.count {
-            return Err(EncodeError::ArgCount {
-                expected: self.count,
-                given: args.len(),
-            });
-        }
+        self.check_count(args.len())?;
         let mut w = Writer { out, len: 0 };
         w.int(i64::from(self.message.id))?;
         for ((name, ty), arg) in self.message.params().zip(args) {
@@ -228,21 +229,16 @@ impl<'d> Encoder<'d> {
 
     /// Encodes integer arguments only (the step-command hot path).
     pub fn encode_ints(&self, args: &[i64], out: &mut [u8]) -> Result<usize, EncodeError<'d>> {
-        if args.len() != self.count {
-            return Err(EncodeError::ArgCount {
-                expected: self.count,
-                given: args.len(),
-            });
-        }
-        for (i, (&value, &(low, high))) in args.iter().zip(&self.bounds).enumerate() {
-            if value < low || value > high {
+        self.check_count(args.len())?;
+        for (i, (&value, &ty)) in args.iter().zip(&self.types).enumerate() {
+            if ty.is_bytes() || !int_range(ty, self.clocks & (1 << i) != 0).contains(&value) {
                 return Err(self.int_error(i, value));
             }
         }
         if out.len() < (args.len() + 1) * vlq::MAX_LEN {
             // Little room left: the checked path.
             let mut w = Writer { out, len: 0 };
-            w.bytes(&self.id[..self.id_len])?;
+            w.bytes(&self.id[..usize::from(self.id_len)])?;
             for &value in args {
                 w.int(value)?;
             }
@@ -251,21 +247,32 @@ impl<'d> Encoder<'d> {
         // Room for the longest encoding of every value: write in place.
         *out.first_chunk_mut::<{ vlq::MAX_LEN }>()
             .ok_or(EncodeError::NoSpace)? = self.id;
-        let mut len = self.id_len;
+        let mut len = usize::from(self.id_len);
         for &value in args {
-            let room = out[len..]
-                .first_chunk_mut::<{ vlq::MAX_LEN }>()
+            let room = out
+                .get_mut(len..)
+                .and_then(<[u8]>::first_chunk_mut::<{ vlq::MAX_LEN }>)
                 .ok_or(EncodeError::NoSpace)?;
             len += vlq::encode(value, room);
         }
         Ok(len)
     }
 
+    /// An error unless `given` arguments are one per parameter.
+    fn check_count(&self, given: usize) -> Result<(), EncodeError<'d>> {
+        let expected = usize::from(self.count);
+        if given == expected {
+            Ok(())
+        } else {
+            Err(EncodeError::ArgCount { expected, given })
+        }
+    }
+
     /// The error for a bad integer argument `i` (off the hot path).
     #[cold]
     fn int_error(&self, i: usize, value: i64) -> EncodeError<'d> {
         let name = self.message.params().nth(i).map_or("?", |(n, _)| n);
-        if self.types[i].is_bytes() {
+        if self.types.get(i).is_some_and(|ty| ty.is_bytes()) {
             EncodeError::BadValue(name)
         } else {
             EncodeError::OutOfRange { param: name, value }
@@ -287,29 +294,30 @@ impl<'a> Dictionary<'a> {
         let message = self
             .by_name(name)
             .ok_or(EncodeError::UnknownMessage(name))?;
-        // Every given argument must name a parameter, once.
-        for (i, word) in line.split_ascii_whitespace().skip(1).enumerate() {
-            let key = word.split_once('=').map_or(word, |(k, _)| k);
-            if !message.params().any(|(p, _)| p == key) {
-                return Err(EncodeError::UnknownParam(key));
-            }
-            if line
-                .split_ascii_whitespace()
-                .skip(1)
-                .take(i)
-                .any(|w| w.split_once('=').is_some_and(|(k, _)| k == key))
-            {
+        // One pass over the arguments, in order: each must name a
+        // parameter, and none may follow a `name=value` of the same name.
+        let mut values: [Option<&str>; MAX_PARAMS] = [None; MAX_PARAMS];
+        for word in words {
+            let (key, value) = match word.split_once('=') {
+                Some((key, value)) => (key, Some(value)),
+                None => (word, None),
+            };
+            let slot = message
+                .params()
+                .position(|(p, _)| p == key)
+                .and_then(|i| values.get_mut(i))
+                .ok_or(EncodeError::UnknownParam(key))?;
+            if slot.is_some() {
                 return Err(EncodeError::DuplicateParam(key));
+            }
+            if value.is_some() {
+                *slot = value;
             }
         }
         let mut w = Writer { out, len: 0 };
         w.int(i64::from(message.id))?;
-        for (param, ty) in message.params() {
-            let text = line
-                .split_ascii_whitespace()
-                .skip(1)
-                .find_map(|word| word.strip_prefix(param)?.strip_prefix('='))
-                .ok_or(EncodeError::MissingParam(param))?;
+        for ((param, ty), text) in message.params().zip(values) {
+            let text = text.ok_or(EncodeError::MissingParam(param))?;
             if ty.is_bytes() {
                 write_hex_buffer(&mut w, param, text)?;
                 continue;
@@ -395,9 +403,9 @@ fn write_hex_buffer<'x>(
     }
     let len = u8::try_from(hex.len() / 2).map_err(|_| EncodeError::BufferTooLong(param))?;
     w.bytes(&[len])?;
-    for pair in hex.as_bytes().chunks(2) {
-        let digit = |b: u8| (b as char).to_digit(16).unwrap_or(0) as u8;
-        w.bytes(&[digit(pair[0]) << 4 | digit(pair[1])])?;
+    let digit = |b: u8| (b as char).to_digit(16).unwrap_or(0) as u8;
+    for &[high, low] in hex.as_bytes().as_chunks::<2>().0 {
+        w.bytes(&[digit(high) << 4 | digit(low)])?;
     }
     Ok(())
 }
@@ -571,6 +579,47 @@ mod tests {
     }
 
     #[test]
+    fn encode_ints_checks_each_argument_against_its_parameter() {
+        let d = dict();
+        let mut buf = [0u8; 64];
+        let step = Encoder::new(&d, "queue_step").expect("known");
+        assert_eq!(
+            step.encode_ints(&[1, 2, 65_536, 0], &mut buf),
+            Err(EncodeError::OutOfRange {
+                param: "count",
+                value: 65_536
+            })
+        );
+        assert_eq!(
+            step.encode_ints(&[1, 2, 3], &mut buf),
+            Err(EncodeError::ArgCount {
+                expected: 4,
+                given: 3
+            })
+        );
+        let clock = Encoder::new(&d, "set_clock").expect("known");
+        assert_eq!(
+            clock.encode_ints(&[1 << 40, 1 << 31], &mut buf),
+            Err(EncodeError::OutOfRange {
+                param: "offset",
+                value: 1 << 31
+            })
+        );
+        assert_eq!(
+            clock.encode_ints(&[-1, 0], &mut buf),
+            Err(EncodeError::OutOfRange {
+                param: "clock",
+                value: -1
+            })
+        );
+        let spi = Encoder::new(&d, "spi_send").expect("known");
+        assert_eq!(
+            spi.encode_ints(&[1, 0], &mut buf),
+            Err(EncodeError::BadValue("data"))
+        );
+    }
+
+    #[test]
     fn bad_input_is_an_error_naming_the_problem() {
         let d = dict();
         let mut buf = [0u8; 64];
@@ -625,6 +674,22 @@ mod tests {
                 EncodeError::BadValue("PZ9"),
             ),
             ("spi_send oid=1 data=abc", EncodeError::BadValue("abc")),
+            // A bare parameter name after its `name=value` repeats it; one
+            // before it is ignored.
+            (
+                "queue_step oid=1 interval=1 count=1 add=0 oid",
+                EncodeError::DuplicateParam("oid"),
+            ),
+            (
+                "queue_step oid oid=1 count=1",
+                EncodeError::MissingParam("interval"),
+            ),
+            // The first unknown or repeated parameter is the one named.
+            ("queue_step x=1 oid=1 oid=2", EncodeError::UnknownParam("x")),
+            (
+                "queue_step oid=1 oid=2 x=1",
+                EncodeError::DuplicateParam("oid"),
+            ),
         ];
         for (line, expected) in cases {
             assert_eq!(d.encode_text(line, &mut buf), Err(*expected), "{line}");

@@ -154,33 +154,45 @@ enum Entry<'a> {
     },
 }
 
+impl<'a> Entry<'a> {
+    /// The member `key: value` of an enumeration's body as an entry: a
+    /// number, or an array of exactly two numbers under a name without
+    /// escapes; None for anything else.
+    fn new(key: Str<'a>, value: Value<'a>) -> Option<Self> {
+        match value {
+            Value::Int(v) => Some(Entry::Single(key, v)),
+            Value::Array(pair) => {
+                let mut items = pair.items();
+                let (Some(Ok(Value::Int(first_value))), Some(Ok(Value::Int(count))), None) =
+                    (items.next(), items.next(), items.next())
+                else {
+                    return None;
+                };
+                let name = key.plain()?;
+                let root = name.trim_end_matches(|c: char| c.is_ascii_digit());
+                let first_number = name
+                    .get(root.len()..)
+                    .and_then(|digits| digits.parse().ok())
+                    .unwrap_or(0);
+                Some(Entry::Range {
+                    root,
+                    first_number,
+                    first_value,
+                    count,
+                })
+            }
+            _ => None,
+        }
+    }
+}
+
 impl<'a> Enumeration<'a> {
     fn entries(&self) -> impl Iterator<Item = Entry<'a>> + 'a {
         // Entries were validated by Dictionary::parse.
         self.entries
             .members()
             .filter_map(Result::ok)
-            .filter_map(|(key, value)| match value {
-                Value::Int(v) => Some(Entry::Single(key, v)),
-                Value::Array(pair) => {
-                    let mut items = pair.items().filter_map(Result::ok);
-                    let (Some(Value::Int(first_value)), Some(Value::Int(count))) =
-                        (items.next(), items.next())
-                    else {
-                        return None;
-                    };
-                    let name = key.plain()?;
-                    let root = name.trim_end_matches(|c: char| c.is_ascii_digit());
-                    let first_number = name[root.len()..].parse().unwrap_or(0);
-                    Some(Entry::Range {
-                        root,
-                        first_number,
-                        first_value,
-                        count,
-                    })
-                }
-                _ => None,
-            })
+            .filter_map(|(key, value)| Entry::new(key, value))
     }
 
     /// The value of the symbol `name`.
@@ -387,19 +399,14 @@ impl<'a> Dictionary<'a> {
                 return Err(DictError::WrongType("an enumeration"));
             };
             for entry in entries.members() {
-                match entry? {
-                    (_, Value::Int(_)) => {}
-                    (key, Value::Array(pair)) if key.plain().is_some() => {
-                        let mut items = pair.items();
-                        let valid = matches!(
-                            (items.next(), items.next(), items.next()),
-                            (Some(Ok(Value::Int(_))), Some(Ok(Value::Int(_))), None)
-                        );
-                        if !valid {
-                            return Err(DictError::WrongType("an enumeration range"));
-                        }
-                    }
-                    _ => return Err(DictError::WrongType("an enumeration entry")),
+                let (key, value) = entry?;
+                if Entry::new(key, value).is_none() {
+                    let range = matches!(value, Value::Array(_)) && key.plain().is_some();
+                    return Err(DictError::WrongType(if range {
+                        "an enumeration range"
+                    } else {
+                        "an enumeration entry"
+                    }));
                 }
             }
             let name = name
@@ -571,6 +578,22 @@ mod tests {
             (
                 r#"{"commands": {}, "enumerations": {"e": {"x": [1]}}}"#,
                 DictError::WrongType("an enumeration range"),
+            ),
+            (
+                r#"{"commands": {}, "enumerations": {"e": {"x": [1, 2, 3]}}}"#,
+                DictError::WrongType("an enumeration range"),
+            ),
+            (
+                r#"{"commands": {}, "enumerations": {"e": {"x": [1, "2"]}}}"#,
+                DictError::WrongType("an enumeration range"),
+            ),
+            (
+                r#"{"commands": {}, "enumerations": {"e": {"x\u0030": [1, 2]}}}"#,
+                DictError::WrongType("an enumeration entry"),
+            ),
+            (
+                r#"{"commands": {}, "enumerations": {"e": {"x": "1"}}}"#,
+                DictError::WrongType("an enumeration entry"),
             ),
         ];
         for (text, expected) in cases {

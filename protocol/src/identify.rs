@@ -110,7 +110,7 @@ impl<'b> Fetcher<'b> {
         loop {
             let (status, used, written) =
                 decompress(&mut self.inflater, input, self.out, self.out_len, flags);
-            input = &input[used..];
+            input = input.get(used..).unwrap_or_default();
             self.out_len += written;
             match status {
                 TINFLStatus::Done => {
@@ -131,12 +131,13 @@ impl<'b> Fetcher<'b> {
 
     /// The dictionary text inflated so far.
     pub fn output(&self) -> &[u8] {
-        &self.out[..self.out_len]
+        self.out.get(..self.out_len).unwrap_or_default()
     }
 
     /// Ends the fetch, handing back the dictionary text inflated so far.
     pub fn into_output(self) -> &'b [u8] {
-        &self.out[..self.out_len]
+        let out: &'b [u8] = self.out;
+        out.get(..self.out_len).unwrap_or_default()
     }
 
     /// Gives up the fetch: the buffer it inflated into, for another.

@@ -38,7 +38,16 @@ impl<'a> Str<'a> {
 
     /// True if the decoded string equals `s`.
     pub fn eq_str(&self, s: &str) -> bool {
-        self.chars().eq(s.chars().map(Some))
+        // Each decoded character against the front of the rest of `s`
+        // (no decoding of `s` to characters).
+        let mut rest = s;
+        for c in self.chars() {
+            match c.and_then(|c| rest.strip_prefix(c)) {
+                Some(after) => rest = after,
+                None => return false,
+            }
+        }
+        rest.is_empty()
     }
 
     /// The decoded characters; `None` items stand for malformed escapes.
@@ -278,7 +287,8 @@ impl<'a> Parser<'a> {
     }
 
     fn literal(&mut self, word: &'static str, value: Value<'a>) -> Result<Value<'a>, JsonError> {
-        if self.text[self.pos..].starts_with(word) {
+        let rest = self.text.as_bytes().get(self.pos..).unwrap_or_default();
+        if rest.starts_with(word.as_bytes()) {
             self.pos += word.len();
             Ok(value)
         } else {
@@ -298,13 +308,14 @@ impl<'a> Parser<'a> {
         if let Ok(int) = text.parse::<i64>() {
             return Ok(Value::Int(int));
         }
-        // Validate the non-integer form without keeping the float.
-        text.parse::<f64>()
-            .map(|_| Value::Number(text))
-            .map_err(|_| JsonError {
+        if is_json_number(text.as_bytes()) {
+            Ok(Value::Number(text))
+        } else {
+            Err(JsonError {
                 offset: start,
                 reason: "malformed number",
             })
+        }
     }
 
     /// A string starting at the current `"`.
@@ -327,6 +338,38 @@ impl<'a> Parser<'a> {
         self.pos += 1;
         Ok(Str { raw })
     }
+}
+
+/// True if `text` is a whole JSON number,
+/// `-?(0|[1-9][0-9]*)(.[0-9]+)?([eE][+-]?[0-9]+)?` (checked by hand: the
+/// float parser would link 16 KB of tables and code only to validate).
+fn is_json_number(text: &[u8]) -> bool {
+    /// The rest of `text` after one or more leading digits; None if there
+    /// is no digit.
+    fn digits(text: &[u8]) -> Option<&[u8]> {
+        let n = text.iter().take_while(|b| b.is_ascii_digit()).count();
+        text.get(n..).filter(|_| n > 0)
+    }
+    let text = text.strip_prefix(b"-").unwrap_or(text);
+    let rest = match text {
+        [b'0', rest @ ..] => Some(rest),
+        _ => digits(text),
+    };
+    let rest = match rest {
+        Some([b'.', fraction @ ..]) => digits(fraction),
+        rest => rest,
+    };
+    let rest = match rest {
+        Some([b'e' | b'E', exponent @ ..]) => {
+            let exponent = match exponent {
+                [b'+' | b'-', digits @ ..] => digits,
+                _ => exponent,
+            };
+            digits(exponent)
+        }
+        rest => rest,
+    };
+    rest == Some(&[])
 }
 
 #[cfg(test)]
@@ -361,6 +404,20 @@ mod tests {
     }
 
     #[test]
+    fn eq_str_compares_whole_decoded_strings() {
+        let s = |raw| Str { raw };
+        assert!(s("").eq_str(""));
+        assert!(s("ab").eq_str("ab"));
+        assert!(!s("ab").eq_str("abc"));
+        assert!(!s("abc").eq_str("ab"));
+        assert!(!s("").eq_str("a"));
+        assert!(s(r"a\tb\u00e9").eq_str("a\tbé"));
+        assert!(!s(r"a\u00e").eq_str("a"));
+        assert!(!s(r"\q").eq_str("q"));
+        assert!(!s("é").eq_str("e"));
+    }
+
+    #[test]
     fn unicode_escapes_decode() {
         let Ok(Value::Str(s)) = parse(r#""\u00e9t\u00E9""#) else {
             panic!("string expected")
@@ -384,6 +441,47 @@ mod tests {
             let err = parse(doc).expect_err(doc);
             assert_eq!(err.offset, offset, "{doc}: {err:?}");
         }
+    }
+
+    #[test]
+    fn numbers_follow_the_json_grammar() {
+        for text in [
+            "0",
+            "-0",
+            "12",
+            "1.5",
+            "-0.25",
+            "1e5",
+            "1E+5",
+            "1e-05",
+            "-12.5e3",
+            "0.0",
+            "99999999999999999999",
+            "-1.0E-0",
+        ] {
+            assert!(is_json_number(text.as_bytes()), "{text}");
+            assert!(parse(text).is_ok(), "{text}");
+        }
+        for text in [
+            "", "-", "+1", "01", "-01", "00.5", "1.", ".5", "-.5", "1.e3", "1e", "1e+", "1E-",
+            "1e5.5", "1.5.5", "1-2", "1e+-5", "--1", "1ee5", "0x10",
+        ] {
+            assert!(!is_json_number(text.as_bytes()), "{text}");
+        }
+        // The reader takes every byte that may be part of a number, then
+        // refuses the whole run if it is not one.
+        for text in ["1.", "1.e3", "1-2", "1e", "-.5", "00.5"] {
+            assert_eq!(
+                parse(text),
+                Err(JsonError {
+                    offset: 0,
+                    reason: "malformed number"
+                }),
+                "{text}"
+            );
+        }
+        assert_eq!(parse("[1.5e3]").map(|_| ()), Ok(()));
+        assert_eq!(parse("-1e-2"), Ok(Value::Number("-1e-2")));
     }
 
     #[test]

@@ -79,9 +79,17 @@ impl Deframer {
             on_frame(Frame::Garbage(1));
             return;
         }
-        self.buf[self.len] = byte;
-        self.len += 1;
+        // `check` leaves less than a block buffered, so there is room.
+        if let Some(slot) = self.buf.get_mut(self.len) {
+            *slot = byte;
+            self.len += 1;
+        }
         self.check(on_frame);
+    }
+
+    /// The bytes buffered.
+    fn buffered(&self) -> &[u8] {
+        self.buf.get(..self.len).unwrap_or_default()
     }
 
     /// Examines the buffered bytes after each arrival: every complete
@@ -90,7 +98,7 @@ impl Deframer {
     /// the next byte from the peer, which may never come).
     fn check(&mut self, on_frame: &mut impl FnMut(Frame<'_>)) {
         loop {
-            match block::parse(&self.buf[..self.len]) {
+            match block::parse(self.buffered()) {
                 Ok(found) => {
                     let n = found.wire_len();
                     on_frame(Frame::Block {
@@ -115,7 +123,7 @@ impl Deframer {
             // Framing error: drop through the first sync byte in the buffer
             // (a lone sync before a block, as retransmissions send, costs one
             // byte), then look at what remains.
-            match self.buf[..self.len].iter().position(|&b| b == SYNC) {
+            match self.buffered().iter().position(|&b| b == SYNC) {
                 Some(at) => {
                     on_frame(Frame::Garbage(at + 1));
                     self.buf.copy_within(at + 1..self.len, 0);
@@ -167,8 +175,9 @@ pub struct HostLink {
     /// A nak behind a retransmission may still cut the timeout short
     /// (once per acknowledgement that makes progress).
     early_retry: bool,
-    /// Unacknowledged blocks, oldest first, with their send times.
-    sent: heapless::Deque<(heapless::Vec<u8, MAX_LEN>, u64), MAX_PENDING_BLOCKS>,
+    /// Unacknowledged blocks, oldest first, with their send times; each
+    /// block is as long as its first byte says (see [`framed`]).
+    sent: heapless::Deque<([u8; MAX_LEN], u64), MAX_PENDING_BLOCKS>,
     sent_bytes: usize,
     last_ack_bytes: usize,
     receive_window: usize,
@@ -259,7 +268,11 @@ impl HostLink {
         let mut frame = [0u8; MAX_LEN];
         let n = block::encode(self.send_seq as u8, payload, &mut frame)
             .map_err(|_| SendError::TooLarge)?;
-        if self.sent.is_empty() {
+        let first = self.sent.is_empty();
+        self.sent
+            .push_back((frame, now_us))
+            .map_err(|_| SendError::WindowFull)?;
+        if first {
             self.retransmit_at = Some(now_us.saturating_add(u64::from(self.rto_us)));
         }
         if self.rtt_sample_seq == 0 {
@@ -268,16 +281,18 @@ impl HostLink {
         self.send_seq += 1;
         self.sent_bytes += n;
         self.stats.bytes_written += n as u64;
-        let stored = heapless::Vec::from_slice(&frame[..n]).map_err(|_| SendError::TooLarge)?;
-        self.sent
-            .push_back((stored, now_us))
-            .map_err(|_| SendError::WindowFull)?;
-        Ok(self.sent.back().map_or(&[], |(f, _)| f.as_slice()))
+        Ok(self.sent.back().map_or(&[], |(f, _)| framed(f)))
     }
 
     /// Feeds bytes from the MCU; calls `on_payload` with the payload of each
     /// data block (responses), in arrival order.
     pub fn receive(&mut self, bytes: &[u8], now_us: u64, mut on_payload: impl FnMut(&[u8])) {
+        self.receive_dyn(bytes, now_us, &mut on_payload);
+    }
+
+    /// [`Self::receive`]'s body, compiled once for every caller's
+    /// `on_payload` (the deframer and the ack handling are not small).
+    fn receive_dyn(&mut self, bytes: &[u8], now_us: u64, on_payload: &mut dyn FnMut(&[u8])) {
         let mut deframer = core::mem::take(&mut self.deframer);
         deframer.push(bytes, |frame| match frame {
             Frame::Garbage(n) => self.stats.bytes_invalid += n as u64,
@@ -328,7 +343,9 @@ impl HostLink {
     /// waits for acks before it counts, µs: the smoothed round trip (it
     /// includes the blocks' time on the wire), at least a millisecond.
     fn nak_hold_off_us(&self) -> u32 {
-        (self.srtt_us / 8 * 8).clamp(1_000, self.rto_us)
+        // (Not `clamp`, which would bring a panic path for a timeout
+        // below a millisecond, which MIN_RTO_US rules out.)
+        (self.srtt_us / 8 * 8).max(1_000).min(self.rto_us)
     }
 
     /// True until the MCU has acknowledged anything: its sequence number
@@ -350,8 +367,9 @@ impl HostLink {
                 self.send_seq = rseq;
                 break;
             };
-            self.sent_bytes -= frame.len();
-            self.last_ack_bytes = frame.len();
+            let len = framed(&frame).len();
+            self.sent_bytes -= len;
+            self.last_ack_bytes = len;
             self.receive_seq += 1;
             acked_sent_at = Some(sent_at);
         }
@@ -411,7 +429,7 @@ impl HostLink {
         };
         put(&[SYNC])?;
         for (frame, _) in &self.sent {
-            put(frame)?;
+            put(framed(frame))?;
         }
         if due == 0 {
             // After a nak: a second nak for this retransmission is honoured,
@@ -434,6 +452,11 @@ impl HostLink {
         self.retransmit_at = Some(now_us.saturating_add(u64::from(self.rto_us)));
         Some(n)
     }
+}
+
+/// The block stored in `frame` (its length is its first byte).
+fn framed(frame: &[u8; MAX_LEN]) -> &[u8] {
+    frame.get(..usize::from(frame[0])).unwrap_or(frame)
 }
 
 /// The MCU side of a link: in-order delivery, acks and naks.

@@ -24,8 +24,9 @@ pub struct Truncated;
 
 /// Encodes `value` into `out`, returning the number of bytes used. Values
 /// outside `-2^31 ..= 2^32 - 1` keep only the bits a 5-byte VLQ carries, as
-/// in Klipper's host (callers check their parameters' ranges).
-#[inline]
+/// in Klipper's host (callers check their parameters' ranges). Not
+/// inlined: its callers are many and it is not short.
+#[inline(never)]
 pub fn encode(value: i64, out: &mut [u8; MAX_LEN]) -> usize {
     if (-0x0400_0000..0x0c00_0000).contains(&value) {
         // Fits 4 bytes: 32-bit arithmetic, which the Cortex-M does natively.

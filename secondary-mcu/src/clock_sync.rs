@@ -139,7 +139,9 @@ impl ClockSync {
         }
     }
 
-    /// The estimated MCU clock at host time `time` (s), ticks.
+    /// The estimated MCU clock at host time `time` (s), ticks. Not inlined:
+    /// it has many callers, and its soft-float arithmetic is not short.
+    #[inline(never)]
     pub fn clock_at(&self, time: f64) -> u64 {
         let (t0, c0, freq) = self.estimate;
         (c0 + (time - t0) * freq).max(0.0) as u64

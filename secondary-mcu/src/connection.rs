@@ -142,8 +142,21 @@ impl Queued {
         })
     }
 
+    /// `line`, a message of `dict` as text, encoded and held until clock
+    /// `min_clock`; None if it is not a message of `dict` or is longer
+    /// than [`MAX_MESSAGE`].
+    fn encode(dict: &Dictionary<'_>, line: &str, min_clock: u64) -> Option<Self> {
+        let mut bytes = [0; MAX_MESSAGE];
+        let len = dict.encode_text(line, &mut bytes).ok()?;
+        Some(Self {
+            min_clock,
+            len: len as u8,
+            bytes,
+        })
+    }
+
     fn message(&self) -> &[u8] {
-        &self.bytes[..usize::from(self.len)]
+        self.bytes.get(..usize::from(self.len)).unwrap_or_default()
     }
 }
 
@@ -209,13 +222,10 @@ impl<'d> Connection<'d> {
     /// Queues a message written as text (`name param=value …`), to go out
     /// once the MCU's clock reaches `min_clock`.
     pub fn send_text(&mut self, line: &str, min_clock: u64) -> Result<(), SendTextError> {
-        let mut bytes = [0u8; MAX_MESSAGE];
-        let len = self
-            .dict
-            .encode_text(line, &mut bytes)
-            .map_err(|_| SendTextError::Encode)?;
-        self.send(&bytes[..len], min_clock)
-            .map_err(|Full| SendTextError::Full)
+        let queued = Queued::encode(self.dict, line, min_clock).ok_or(SendTextError::Encode)?;
+        self.outbox
+            .push_back(queued)
+            .map_err(|_| SendTextError::Full)
     }
 
     /// Queues an encoded message, to go out once the MCU's clock reaches
@@ -322,9 +332,7 @@ impl<'d> Connection<'d> {
     /// queued (the config commands before it must run first), or at the
     /// front for a clock query (its round trip should be short).
     fn ask(&mut self, name: &str, front: bool) -> Result<(), Full> {
-        let mut bytes = [0u8; MAX_MESSAGE];
-        let len = self.dict.encode_text(name, &mut bytes).map_err(|_| Full)?;
-        let queued = Queued::new(&bytes[..len], 0).ok_or(Full)?;
+        let queued = Queued::encode(self.dict, name, 0).ok_or(Full)?;
         if front {
             self.outbox.push_front(queued)
         } else {
@@ -359,13 +367,21 @@ impl<'d> Connection<'d> {
             let mut payload = [0u8; MAX_PAYLOAD];
             let mut at = 0;
             for q in self.outbox.iter().take(count) {
-                payload[at..at + q.message().len()].copy_from_slice(q.message());
-                at += q.message().len();
+                let message = q.message();
+                if let Some(dest) = payload.get_mut(at..at + message.len()) {
+                    dest.copy_from_slice(message);
+                }
+                at += message.len();
             }
-            let Ok(block) = self.link.send(&payload[..len], micros(now)) else {
+            let payload = payload.get(..len).unwrap_or_default();
+            let Ok(block) = self.link.send(payload, micros(now)) else {
                 return written;
             };
-            out[written..written + block.len()].copy_from_slice(block);
+            // The room for it was checked above.
+            let Some(dest) = out.get_mut(written..written + block.len()) else {
+                return written;
+            };
+            dest.copy_from_slice(block);
             written += block.len();
             for _ in 0..count {
                 self.outbox.pop_front();

@@ -20,7 +20,9 @@ pub const RETRY_TIME: f64 = 0.25;
 /// [`RETRY_TIME`], as klippy's retried commands wait.
 const LOST_ANSWER_RETRY: f64 = 0.010;
 
-/// Host seconds as the link's microseconds.
+/// Host seconds as the link's microseconds. Not inlined: a soft-float
+/// conversion, with several callers.
+#[inline(never)]
 pub(crate) fn micros(now: f64) -> u64 {
     (now.max(0.0) * 1e6) as u64
 }
@@ -74,10 +76,9 @@ impl<'b> Identify<'b> {
             i64::from(self.fetcher.offset()),
             i64::from(CHUNK),
         ] {
-            let mut buf = [0u8; vlq::MAX_LEN];
-            let n = vlq::encode(value, &mut buf);
-            payload[len..len + n].copy_from_slice(&buf[..n]);
-            len += n;
+            if let Some(room) = payload.get_mut(len..).and_then(|r| r.first_chunk_mut()) {
+                len += vlq::encode(value, room);
+            }
         }
         self.ask_at = now + RETRY_TIME;
         self.questions += 1;

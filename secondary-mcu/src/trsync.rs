@@ -190,8 +190,15 @@ impl Dispatch {
             return Relay::None;
         }
         self.triggered = Some((at, reason::HOST_REQUEST));
+        Relay::Triggered(at, reason::HOST_REQUEST, self.trigger_lines(None))
+    }
+
+    /// `trsync_trigger` ([`reason::HOST_REQUEST`]) for every secondary but
+    /// member `except`, `(member, line)` each.
+    fn trigger_lines(&self, except: Option<usize>) -> heapless::Vec<(usize, Line), MAX_MCUS> {
         let mut lines = heapless::Vec::new();
-        for (j, m) in self.members.iter().enumerate().filter(|(_, m)| !m.local) {
+        let others = self.members.iter().enumerate();
+        for (j, m) in others.filter(|(j, m)| Some(*j) != except && !m.local) {
             let mut line = Line::new();
             let _ = write!(
                 line,
@@ -201,7 +208,7 @@ impl Dispatch {
             );
             let _ = lines.push((j, line));
         }
-        Relay::Triggered(at, reason::HOST_REQUEST, lines)
+        lines
     }
 
     /// Host time (s) member `index`'s trsync expires at, as last set: the
@@ -252,19 +259,7 @@ impl Dispatch {
                 return Relay::None;
             }
             self.triggered = Some((at, why));
-            let mut lines = heapless::Vec::new();
-            let others = self.members.iter().enumerate();
-            for (j, other) in others.filter(|(j, m)| *j != index && !m.local) {
-                let mut line = Line::new();
-                let _ = write!(
-                    line,
-                    "trsync_trigger oid={} reason={}",
-                    other.trsync,
-                    reason::HOST_REQUEST
-                );
-                let _ = lines.push((j, line));
-            }
-            return Relay::Triggered(at, why, lines);
+            return Relay::Triggered(at, why, self.trigger_lines(Some(index)));
         }
         if self.triggered.is_some() {
             return Relay::None;
