@@ -116,12 +116,11 @@ impl Links for BoardLinks {
         Some(unsafe { &mut *first.add(i) })
     }
 
-    fn keep(&mut self, dict: Dictionary<'static>) -> Option<&'static Dictionary<'static>> {
+    fn dictionary_slot(&mut self) -> Option<&'static mut MaybeUninit<Dictionary<'static>>> {
         let i = take(&NEXT_SLOT)?;
         let first = POOL.slots.get().cast::<MaybeUninit<Dictionary<'static>>>();
         // SAFETY: as for the buffers: in the array, and slot `i`'s only
         // reference.
-        let slot = unsafe { &mut *first.add(i) };
-        Some(&*slot.write(dict))
+        Some(unsafe { &mut *first.add(i) })
     }
 }

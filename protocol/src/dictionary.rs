@@ -13,6 +13,8 @@
 
 use crate::json::{self, JsonError, Object, Str, Value};
 use core::fmt;
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 
 /// Most messages (commands, responses, built-ins) one dictionary may hold.
 pub const MAX_MESSAGES: usize = 320;
@@ -311,16 +313,33 @@ pub struct Dictionary<'a> {
 impl<'a> Dictionary<'a> {
     /// Parses and indexes a dictionary's JSON text.
     pub fn parse(text: &'a str) -> Result<Self, DictError<'a>> {
+        let mut slot = MaybeUninit::uninit();
+        Self::parse_in(&mut slot, text)?;
+        // SAFETY: `parse_in` initialised it.
+        Ok(unsafe { slot.assume_init() })
+    }
+
+    /// [`Self::parse`] into `slot` (a dictionary is about 10 KB, which a
+    /// microcontroller's stack should not carry): on an error the slot
+    /// holds an empty or partial dictionary, which owns nothing.
+    pub fn parse_in<'s>(
+        slot: &'s mut MaybeUninit<Self>,
+        text: &'a str,
+    ) -> Result<&'s mut Self, DictError<'a>> {
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; each field is written once, in
+        // place, before the slot is taken as initialised.
+        let dict = unsafe {
+            addr_of_mut!((*p).messages).write(heapless::Vec::new());
+            addr_of_mut!((*p).short_ids).write([0; 128]);
+            addr_of_mut!((*p).enumerations).write(heapless::Vec::new());
+            addr_of_mut!((*p).config).write(None);
+            addr_of_mut!((*p).version).write(None);
+            addr_of_mut!((*p).build_versions).write(None);
+            slot.assume_init_mut()
+        };
         let Value::Object(root) = json::parse(text)? else {
             return Err(DictError::WrongType("the document"));
-        };
-        let mut dict = Self {
-            messages: heapless::Vec::new(),
-            short_ids: [0; 128],
-            enumerations: heapless::Vec::new(),
-            config: None,
-            version: None,
-            build_versions: None,
         };
         let mut saw_commands = false;
         for member in root.members() {

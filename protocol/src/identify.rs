@@ -7,6 +7,8 @@
 //! buffer (no heap, no copy of the compressed data), checking the zlib
 //! checksum at the end.
 
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use miniz_oxide::inflate::TINFLStatus;
 use miniz_oxide::inflate::core::inflate_flags::{
     TINFL_FLAG_COMPUTE_ADLER32, TINFL_FLAG_HAS_MORE_INPUT, TINFL_FLAG_PARSE_ZLIB_HEADER,
@@ -69,13 +71,33 @@ pub struct Fetcher<'b> {
 impl<'b> Fetcher<'b> {
     /// Starts a fetch that inflates into `out`.
     pub fn new(out: &'b mut [u8]) -> Self {
-        Self {
-            inflater: DecompressorOxide::new(),
-            out,
-            out_len: 0,
-            offset: 0,
-            stream_ended: false,
+        let mut slot = MaybeUninit::uninit();
+        Self::init_in(&mut slot, out);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`Self::new`] built in place in `slot`: the inflate state is about
+    /// 11 KB, which a microcontroller's stack should not carry twice.
+    pub fn init_in<'s>(slot: &'s mut MaybeUninit<Self>, out: &'b mut [u8]) -> &'s mut Self {
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; each field is written once, in
+        // place (the inflate state's default is all zeros: a memset),
+        // before the slot is taken as initialised.
+        unsafe {
+            addr_of_mut!((*p).inflater).write(DecompressorOxide::default());
+            addr_of_mut!((*p).out).write(out);
+            addr_of_mut!((*p).out_len).write(0);
+            addr_of_mut!((*p).offset).write(0);
+            addr_of_mut!((*p).stream_ended).write(false);
+            slot.assume_init_mut()
         }
+    }
+
+    /// The same fetch from its start, into the same buffer.
+    pub fn restart(&mut self) {
+        self.inflater.init();
+        (self.out_len, self.offset, self.stream_ended) = (0, 0, false);
     }
 
     /// The offset to ask for next (`identify offset=… count=CHUNK`).
@@ -134,15 +156,13 @@ impl<'b> Fetcher<'b> {
         self.out.get(..self.out_len).unwrap_or_default()
     }
 
-    /// Ends the fetch, handing back the dictionary text inflated so far.
-    pub fn into_output(self) -> &'b [u8] {
-        let out: &'b [u8] = self.out;
-        out.get(..self.out_len).unwrap_or_default()
-    }
-
-    /// Gives up the fetch: the buffer it inflated into, for another.
-    pub fn into_buffer(self) -> &'b mut [u8] {
-        self.out
+    /// Ends the fetch, handing back the dictionary text inflated so far
+    /// (the fetcher keeps no buffer after).
+    pub fn take_output(&mut self) -> &'b [u8] {
+        let out: &'b mut [u8] = core::mem::take(&mut self.out);
+        let out: &'b [u8] = out;
+        out.get(..core::mem::take(&mut self.out_len))
+            .unwrap_or_default()
     }
 }
 
@@ -224,5 +244,31 @@ mod tests {
                 got: 40
             })
         );
+    }
+
+    #[test]
+    fn a_fetch_restarted_midway_starts_over_and_hands_over_the_whole_text() {
+        let server = Server::new(crate::mcu::DICTIONARY_ZLIB);
+        let mut out = vec![0u8; 8192];
+        let mut fetcher = Fetcher::new(&mut out);
+        // Half of it, then the link goes: the fetch starts over.
+        for _ in 0..3 {
+            let offset = fetcher.offset();
+            fetcher.on_response(offset, server.chunk(offset, CHUNK)).expect("more");
+        }
+        fetcher.restart();
+        assert_eq!((fetcher.offset(), fetcher.output().len()), (0, 0));
+        let n = loop {
+            let offset = fetcher.offset();
+            match fetcher.on_response(offset, server.chunk(offset, CHUNK)) {
+                Ok(Progress::Done(n)) => break n,
+                Ok(Progress::More) => {}
+                Err(e) => panic!("{e:?}"),
+            }
+        };
+        let text = fetcher.take_output();
+        assert_eq!(text.len(), n);
+        assert_eq!(text, crate::mcu::DICTIONARY_JSON.as_bytes());
+        assert!(fetcher.take_output().is_empty(), "handed over once");
     }
 }

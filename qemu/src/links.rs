@@ -9,6 +9,7 @@
 //! error says so.
 
 use crate::uart_link::{self, Uart1Link};
+use core::mem::MaybeUninit;
 use onechip_app::secondary::{LinkError, Links, text};
 use onechip_protocol::dictionary::Dictionary;
 use static_cell::{ConstStaticCell, StaticCell};
@@ -55,8 +56,7 @@ impl Links for UartLinks {
         Some(buffer.as_mut_slice())
     }
 
-    fn keep(&mut self, dict: Dictionary<'static>) -> Option<&'static Dictionary<'static>> {
-        let slot = DICTIONARIES.iter().find_map(StaticCell::try_uninit)?;
-        Some(slot.write(dict))
+    fn dictionary_slot(&mut self) -> Option<&'static mut MaybeUninit<Dictionary<'static>>> {
+        DICTIONARIES.iter().find_map(StaticCell::try_uninit)
     }
 }

@@ -3,6 +3,8 @@
 //! [`Identify::poll`] returns and feeds what it reads to
 //! [`Identify::receive`]; times are host seconds.
 
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use onechip_protocol::identify::{CHUNK, Fetcher, IdentifyError, Progress};
 use onechip_protocol::transport::HostLink;
 use onechip_protocol::vlq;
@@ -48,14 +50,31 @@ impl<'b> Identify<'b> {
     /// Starts fetching into `out` (the inflated JSON; Klipper's are 10–15
     /// KB), over a link to an MCU that buffers `receive_window` bytes.
     pub fn new(out: &'b mut [u8], receive_window: usize) -> Self {
-        Self {
-            link: HostLink::new(receive_window),
-            fetcher: Fetcher::new(out),
-            ask_at: 0.0,
-            questions: 0,
-            waiting: false,
-            lost_retry: LOST_ANSWER_RETRY,
-            receive_window,
+        let mut slot = MaybeUninit::uninit();
+        Self::init_in(&mut slot, out, receive_window);
+        // SAFETY: `init_in` initialised it.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`Self::new`] built in place in `slot`: the fetcher's inflate state
+    /// is about 11 KB, which a microcontroller's stack should not carry.
+    pub fn init_in<'s>(
+        slot: &'s mut MaybeUninit<Self>,
+        out: &'b mut [u8],
+        receive_window: usize,
+    ) -> &'s mut Self {
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; each field is written once, in
+        // place, before the slot is taken as initialised.
+        unsafe {
+            addr_of_mut!((*p).link).write(HostLink::new(receive_window));
+            Fetcher::init_in(&mut *addr_of_mut!((*p).fetcher).cast(), out);
+            addr_of_mut!((*p).ask_at).write(0.0);
+            addr_of_mut!((*p).questions).write(0);
+            addr_of_mut!((*p).waiting).write(false);
+            addr_of_mut!((*p).lost_retry).write(LOST_ANSWER_RETRY);
+            addr_of_mut!((*p).receive_window).write(receive_window);
+            slot.assume_init_mut()
         }
     }
 
@@ -130,14 +149,18 @@ impl<'b> Identify<'b> {
 
     /// The same fetch from its start, into the same buffer, for a link
     /// opened anew (the old one went before the dictionary was in).
-    pub fn restart(self) -> Self {
-        Self::new(self.fetcher.into_buffer(), self.receive_window)
+    pub fn restart(&mut self) {
+        self.link = HostLink::new(self.receive_window);
+        self.fetcher.restart();
+        (self.ask_at, self.questions) = (0.0, 0);
+        (self.waiting, self.lost_retry) = (false, LOST_ANSWER_RETRY);
     }
 
     /// Once the dictionary is in: the link to go on with, and the
-    /// dictionary's text.
-    pub fn finish(self) -> (HostLink, &'b [u8]) {
-        (self.link, self.fetcher.into_output())
+    /// dictionary's text (the fetch is spent after).
+    pub fn finish(&mut self) -> (HostLink, &'b [u8]) {
+        let link = core::mem::replace(&mut self.link, HostLink::new(self.receive_window));
+        (link, self.fetcher.take_output())
     }
 }
 

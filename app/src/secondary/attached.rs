@@ -27,7 +27,8 @@ use super::remote_output::{RemoteEnable, RemoteOutput, level};
 use super::sent_steps::{SentCommand, SentSteps, each_step};
 use super::thermal::{self, Reading, RemoteInput};
 use super::{
-    ConnectError, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text, command, text,
+    ConnectError, FetchRoom, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text,
+    command, text,
 };
 use crate::heaters::{INPUTS, LinearConversion, McuSetup, OUTPUTS, full_scale};
 use crate::mcu_config::{Oids, pin_ref, write_config};
@@ -188,6 +189,8 @@ pub struct Secondaries<L, const N: usize> {
     /// Their readings heard and not taken yet (the oldest dropped if the
     /// MCU role does not take them).
     readings: heapless::Deque<Reading, 32>,
+    /// Room for the dictionary fetch while one connects.
+    fetch_room: FetchRoom,
 }
 
 impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
@@ -244,6 +247,7 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             addr_of_mut!((*p).stepper_enables).write([None; MAX_STEPPERS]);
             addr_of_mut!((*p).inputs).write(heapless::Vec::new());
             addr_of_mut!((*p).readings).write(heapless::Deque::new());
+            // `fetch_room` is MaybeUninit: nothing to write.
             slot.assume_init_mut()
         }
     }
@@ -407,8 +411,18 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             // other field once; only then is the slot counted in.
             unsafe {
                 let mcu = &mut *addr_of_mut!((*p).mcu).cast::<MaybeUninit<Secondary<L>>>();
-                Secondary::connect_in(mcu, name, serial, links, &config, now, CONNECT_TIMEOUT, how)
-                    .map_err(error)?;
+                let rooms = (mcu, &mut self.fetch_room);
+                Secondary::connect_in(
+                    rooms,
+                    name,
+                    serial,
+                    links,
+                    &config,
+                    now,
+                    CONNECT_TIMEOUT,
+                    how,
+                )
+                .map_err(error)?;
                 addr_of_mut!((*p).slots).write(BinaryHeap::new());
                 addr_of_mut!((*p).trsync).write(oids.get().count);
                 addr_of_mut!((*p).restart).write(secondary.restart_method);

@@ -135,8 +135,9 @@ pub trait Links {
     /// A buffer for one MCU's inflated data dictionary, as long as the
     /// printer runs (Klipper's are 10–15 KB); None if none is left.
     fn dictionary_buffer(&mut self) -> Option<&'static mut [u8]>;
-    /// Keeps `dict` as long as the printer runs; None if there is no room.
-    fn keep(&mut self, dict: Dictionary<'static>) -> Option<&'static Dictionary<'static>>;
+    /// Room for one MCU's parsed data dictionary (about 10 KB), as long
+    /// as the printer runs; None if none is left.
+    fn dictionary_slot(&mut self) -> Option<&'static mut MaybeUninit<Dictionary<'static>>>;
 }
 
 /// Why a secondary could not be brought up.
@@ -290,6 +291,11 @@ impl AnalogReport {
 /// calls `out` once per line, `allocate_oids` first.
 pub type ConfigWriter<'a> = &'a dyn Fn(f64, &mut dyn FnMut(&str));
 
+/// Room for a dictionary fetch while an MCU connects (about 12 KB, most
+/// of it the inflate state): a firmware keeps it in a static, beside the
+/// secondaries, instead of on its stack.
+pub type FetchRoom = MaybeUninit<Identify<'static>>;
+
 /// A configured secondary MCU on its link.
 pub struct Secondary<L> {
     /// Its name in printer.cfg (`[mcu NAME]`).
@@ -318,19 +324,21 @@ impl<L: SecondaryLink> Secondary<L> {
         timeout: f64,
         how: (Start, Option<RestartMethod>),
     ) -> Result<Self, ConnectError> {
-        let mut slot = MaybeUninit::uninit();
-        Self::connect_in(&mut slot, name, serial, links, config, now, timeout, how)?;
+        let (mut slot, mut room) = (MaybeUninit::uninit(), MaybeUninit::uninit());
+        let rooms = (&mut slot, &mut room);
+        Self::connect_in(rooms, name, serial, links, config, now, timeout, how)?;
         // SAFETY: `connect_in` initialised it.
         Ok(unsafe { slot.assume_init() })
     }
 
-    /// [`Self::connect`] built in place in `slot`: a
+    /// [`Self::connect`] built in place in `slot`, fetching the dictionary
+    /// in `room`: a
     /// [`Secondary`] is several KB, which a microcontroller's stack should
     /// not carry copies of. On an error the slot is left empty (what was
     /// made of it dropped, its link closed).
     #[allow(clippy::too_many_arguments)]
     pub fn connect_in<'s, O: Links<Link = L>>(
-        slot: &'s mut MaybeUninit<Self>,
+        (slot, room): (&'s mut MaybeUninit<Self>, &mut FetchRoom),
         name: &'static str,
         serial: (&str, u32),
         links: &mut O,
@@ -342,7 +350,7 @@ impl<L: SecondaryLink> Secondary<L> {
         let (mut start, mut reset_other) = (start, reset_other);
         loop {
             let deadline = now() + timeout;
-            Self::identified_in(slot, name, serial, links, now, deadline)?;
+            Self::identified_in((&mut *slot, &mut *room), name, serial, links, now, deadline)?;
             // SAFETY: `identified_in` initialised it.
             let secondary = unsafe { slot.assume_init_mut() };
             let error = match secondary.configure(config, now, deadline, start) {
@@ -369,11 +377,11 @@ impl<L: SecondaryLink> Secondary<L> {
         Ok(unsafe { slot.assume_init_mut() })
     }
 
-    /// Opens the link and fetches the dictionary, by host time `deadline`
-    /// (s): the MCU before its config phase, written into `slot`
-    /// (initialised if and only if this succeeds).
+    /// Opens the link and fetches the dictionary (in `room`), by host time
+    /// `deadline` (s): the MCU before its config phase, written into
+    /// `slot` (initialised if and only if this succeeds).
     fn identified_in<O: Links<Link = L>>(
-        slot: &mut MaybeUninit<Self>,
+        (slot, room): (&mut MaybeUninit<Self>, &mut FetchRoom),
         name: &'static str,
         (serial, baud): (&str, u32),
         links: &mut O,
@@ -382,7 +390,7 @@ impl<L: SecondaryLink> Secondary<L> {
     ) -> Result<(), ConnectError> {
         let no_room = || ConnectError::Dictionary(text(format_args!("no room for it")));
         let buffer = links.dictionary_buffer().ok_or_else(no_room)?;
-        let mut fetch = Identify::new(buffer, DEFAULT_RECEIVE_WINDOW);
+        let fetch = Identify::init_in(room, buffer, DEFAULT_RECEIVE_WINDOW);
         // As klippy's serial connect: a device that is not there yet, or
         // goes before it answered (the old one of an MCU being reset), is
         // tried again until the deadline.
@@ -395,10 +403,10 @@ impl<L: SecondaryLink> Secondary<L> {
                     continue;
                 }
             };
-            match identify(&mut link, &mut fetch, now, deadline) {
+            match identify(&mut link, fetch, now, deadline) {
                 Ok(()) => break link,
                 Err(ConnectError::Link(_)) if now() < deadline => {
-                    fetch = fetch.restart();
+                    fetch.restart();
                     links.pause(REOPEN_PAUSE);
                 }
                 Err(e) => return Err(e),
@@ -407,8 +415,9 @@ impl<L: SecondaryLink> Secondary<L> {
         let (host_link, text_bytes) = fetch.finish();
         let invalid = |e: &dyn fmt::Display| ConnectError::Dictionary(text(format_args!("{e}")));
         let dict_text = core::str::from_utf8(text_bytes).map_err(|e| invalid(&e))?;
-        let dict = Dictionary::parse(dict_text).map_err(|e| invalid(&e))?;
-        let dict = links.keep(dict).ok_or_else(no_room)?;
+        let dict_slot = links.dictionary_slot().ok_or_else(no_room)?;
+        let dict: &'static Dictionary<'static> =
+            Dictionary::parse_in(dict_slot, dict_text).map_err(|e| invalid(&e))?;
         let p = slot.as_mut_ptr();
         // SAFETY: `p` is valid for writes; each field is written once, in
         // place.

@@ -13,6 +13,7 @@ use onechip_planner::mcu_section::{MAX_SECONDARIES, RestartMethod};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_secondary_mcu::connection::Failure;
 use port::Port;
+use std::mem::MaybeUninit;
 use std::path::Path;
 use std::time::Duration;
 
@@ -45,8 +46,8 @@ impl Links for SerialDevices {
         Some(Box::leak(vec![0u8; DICTIONARY_MAX].into_boxed_slice()))
     }
 
-    fn keep(&mut self, dict: Dictionary<'static>) -> Option<&'static Dictionary<'static>> {
-        Some(Box::leak(Box::new(dict)))
+    fn dictionary_slot(&mut self) -> Option<&'static mut MaybeUninit<Dictionary<'static>>> {
+        Some(Box::leak(Box::new(MaybeUninit::uninit())))
     }
 }
 
