@@ -254,7 +254,9 @@ mod tests {
         // Half of it, then the link goes: the fetch starts over.
         for _ in 0..3 {
             let offset = fetcher.offset();
-            fetcher.on_response(offset, server.chunk(offset, CHUNK)).expect("more");
+            fetcher
+                .on_response(offset, server.chunk(offset, CHUNK))
+                .expect("more");
         }
         fetcher.restart();
         assert_eq!((fetcher.offset(), fetcher.output().len()), (0, 0));
