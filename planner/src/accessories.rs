@@ -45,6 +45,8 @@ impl<'a> Accessories<'a> {
     /// machine's heater and stepper names, in order; temperature fans'
     /// sensors join `sensors`. A section past a table's size is an error
     /// naming it.
+    // Out of line: see `Machine::from_config_in`.
+    #[inline(never)]
     pub fn read<'c>(
         config: &'c Config<'a>,
         heaters: &[&str],

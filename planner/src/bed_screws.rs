@@ -29,6 +29,8 @@ pub struct BedScrews<'a> {
 }
 
 /// Reads `[bed_screws]`, if present.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<BedScrews<'a>>, ConfigError<'c>> {
     let Some(s) = config.section("bed_screws") else {
         return Ok(None);

@@ -130,6 +130,8 @@ pub fn read_extruder<'c, 'a>(
 /// stepper joins `steppers` (`read_stepper` reads its stepper options)
 /// and its entry `out`. `has_extruder`: an `[extruder]` is configured
 /// (else `extruder: extruder` names nothing).
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read_all<'c, 'a>(
     config: &'c Config<'a>,
     has_extruder: bool,

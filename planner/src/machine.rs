@@ -205,6 +205,11 @@ impl<'a> Machine<'a> {
     /// [`Self::from_config`] written into `slot` (a machine is several KB:
     /// on a microcontroller it goes where it stays, not through the
     /// stack).
+    ///
+    /// Out of line, as are the section readers it calls: inlined into
+    /// one function, every `?` of theirs copies its error through a frame
+    /// of tens of KB (5 KiB more flash).
+    #[inline(never)]
     pub fn from_config_in<'c, 's>(
         slot: &'s mut core::mem::MaybeUninit<Self>,
         config: &'c Config<'a>,
@@ -358,7 +363,7 @@ impl<'a> Machine<'a> {
             steppers.iter().map(|s| s.name).collect();
         let mut sensors = sensor_section::read_all(config)?;
         let accessories = Accessories::read(config, &heater_names, &stepper_names, &mut sensors)?;
-        let tmc = tmc::config::read_all(config, step_distance)?;
+        let tmc = read_tmc(config)?;
         let stall_homing = virtual_endstops(config, &steppers, &tmc)?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
@@ -604,6 +609,15 @@ fn read_extra_steppers<'c, 'a>(
     Ok(())
 }
 
+/// The TMC drivers of `config` ([`tmc::config::read_all`]), out of line
+/// (see [`Machine::from_config_in`]).
+#[inline(never)]
+fn read_tmc<'c, 'a>(
+    config: &'c Config<'a>,
+) -> Result<heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>, ConfigError<'c>> {
+    tmc::config::read_all(config, step_distance)
+}
+
 /// For each of `steppers`, the driver of `drivers` (its index) whose
 /// virtual endstop its endstop pin names
 /// (`tmc2209_stepper_x:virtual_endstop`); an endstop pin naming one no
@@ -721,6 +735,8 @@ fn read_homing_from<'c>(
 }
 
 /// Reads a linear delta's towers and derives its travel limits.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 fn read_delta<'c, 'a>(
     config: &'c Config<'a>,
     printer: &Section<'c, 'a>,
@@ -809,6 +825,8 @@ fn read_delta<'c, 'a>(
     Ok((Travel::Delta(travel), kinematics))
 }
 
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 fn read_extruder<'c>(
     section: &Section<'c, '_>,
     limits: &Limits,

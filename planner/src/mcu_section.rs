@@ -36,6 +36,8 @@ pub struct SecondaryMcu<'a> {
 }
 
 /// Reads every `[mcu NAME]` section of `config`, and accepts `[mcu]`.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read_all<'c, 'a>(
     config: &'c Config<'a>,
 ) -> Result<heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>, ConfigError<'c>> {

@@ -71,6 +71,8 @@ pub struct ProbeConfig<'a> {
 
 /// Reads `[probe]` or `[bltouch]`, if present (both: an error, as in
 /// Klipper where each registers the `probe` object).
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, ConfigError<'c>> {
     let (section, bltouch) = match (config.section("probe"), config.section("bltouch")) {
         (Some(_), Some(b)) => {

@@ -58,6 +58,8 @@ pub enum G28<'a> {
 
 /// Reads `[safe_z_home]` and `[homing_override]` (not both: Klipper's
 /// error).
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<G28<'a>, ConfigError<'c>> {
     match (
         config.section("safe_z_home"),

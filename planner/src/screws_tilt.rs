@@ -105,6 +105,8 @@ pub struct ScrewsTilt<'a> {
 }
 
 /// Reads `[screws_tilt_adjust]`, if present.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, ConfigError<'c>> {
     let Some(s) = config.section("screws_tilt_adjust") else {
         return Ok(None);

@@ -204,6 +204,8 @@ pub fn is_section(name: &str) -> bool {
 }
 
 /// Reads every `[temperature_sensor NAME]`.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read_all<'c, 'a>(
     config: &'c Config<'a>,
 ) -> Result<heapless::Vec<SensorSection<'a>, MAX_SENSORS>, ConfigError<'c>> {

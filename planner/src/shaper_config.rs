@@ -224,6 +224,8 @@ fn expansion<const N: usize>(
 }
 
 /// Reads `[input_shaper]`.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read<'c>(section: &Section<'c, '_>) -> Result<InputShaperConfig, ConfigError<'c>> {
     let names: [&str; 6] = ShaperType::NAMES.map(|(n, _)| n);
     let default_type = section.get_choice("shaper_type", &names, Some("mzv"))?;

@@ -95,6 +95,8 @@ impl VerifyHeater {
 
 /// Reads `[verify_heater NAME]` for the heater `heater` from `section`,
 /// with Klipper's defaults and bounds.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read_verify_heater<'c>(
     section: &Section<'c, '_>,
     heater: &str,
@@ -159,6 +161,8 @@ impl Default for IdleTimeoutConfig<'_> {
 
 /// Reads `[idle_timeout]`. G-code templates (`{ }`, `{% %}`) cannot run
 /// here, so a `gcode` using one is refused rather than run half-understood.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 pub fn read_idle_timeout<'c, 'a>(
     section: &Section<'c, 'a>,
 ) -> Result<IdleTimeoutConfig<'a>, ConfigError<'c>> {
