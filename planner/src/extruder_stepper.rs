@@ -9,6 +9,7 @@ use crate::gcode::Extended;
 use crate::gcode_move::CommandError;
 use crate::machine::{MAX_STEPPERS, Stepper};
 use crate::move_sink::{ExtruderStepperMotion, MoveSink};
+use crate::reader::{Errors, Reader};
 use crate::toolhead::Toolhead;
 use core::fmt::Write;
 use onechip_config::decimal::Fixed;
@@ -94,7 +95,8 @@ fn read_one<'c, 'a>(
     index: usize,
     synced: bool,
 ) -> Result<ExtruderStepper<'a>, ConfigError<'c>> {
-    let (rotation_distance, steps_per_rotation) = crate::machine::rotation(section)?;
+    let (rotation_distance, steps_per_rotation) =
+        Errors::run(|errors| crate::machine::rotation(&Reader::new(*section, errors)))?;
     let pressure_advance =
         section.get_float("pressure_advance", Some(0.0), Bounds::NON_NEGATIVE)?;
     let smooth_time = section.get_float(

@@ -5,6 +5,7 @@
 //! SPEED=…`). Each has every `[fan]` option ([`crate::thermal::Fan`]).
 
 use crate::output_pin::named;
+use crate::reader::{Errors, Read, Reader};
 use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::thermal::{self, Fan};
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -134,11 +135,11 @@ pub fn is_section(section: &str) -> bool {
 /// yet, itself reported unsupported): it has no bit.
 fn bits<'c>(
     config: &Config<'_>,
-    section: &Section<'c, '_>,
+    section: &Reader<'_, 'c, '_>,
     option: &'c str,
     list: &str,
     names: &[&str],
-) -> Result<u32, ConfigError<'c>> {
+) -> Read<u32> {
     let mut mask = 0;
     for item in crate::output_pin::list_items(list) {
         match names.iter().position(|n| *n == item) {
@@ -171,12 +172,26 @@ pub fn read<'c, 'a>(
     steppers: &[&str],
     tables: CoolingTables<'_, 'a>,
 ) -> Result<NamedFan<'a>, ConfigError<'c>> {
+    Errors::run(|errors| {
+        let section = &Reader::new(*section, errors);
+        named_fan(config, section, heaters, steppers, tables)
+    })
+}
+
+/// [`read`] into a reading's errors.
+fn named_fan<'c, 'a>(
+    config: &'c Config<'a>,
+    section: &Reader<'_, 'c, 'a>,
+    heaters: &[&str],
+    steppers: &[&str],
+    tables: CoolingTables<'_, 'a>,
+) -> Read<NamedFan<'a>> {
     let written = section.name_in_file();
     let (kind, name) = PREFIXES
         .iter()
         .find_map(|p| named(written, p).map(|n| (*p, n)))
         .unwrap_or(("fan_generic", written));
-    let heater_list = |section: &Section<'c, 'a>| {
+    let heater_list = |section: &Reader<'_, 'c, 'a>| {
         let list = section.get_opt("heater").unwrap_or("extruder");
         bits(config, section, "heater", list, heaters).map(|m| m as u8)
     };
@@ -231,10 +246,12 @@ pub fn read<'c, 'a>(
 /// control, with Klipper's defaults.
 fn read_temperature_fan<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
+    section: &Reader<'_, 'c, 'a>,
     sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
-) -> Result<TemperatureFan, ConfigError<'c>> {
-    let sensor = sensor_section::read(config, section, (None, None))?;
+) -> Read<TemperatureFan> {
+    let sensor = section
+        .errors()
+        .check(sensor_section::read(config, section, (None, None)))?;
     let (min_temp, max_temp) = (sensor.min_temp, sensor.max_temp);
     let index = sensors.len();
     sensors

@@ -8,6 +8,7 @@ use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
 use crate::probe::{self, ProbeConfig};
+use crate::reader::{Errors, Read, Reader};
 use crate::safe_home::{self, G28};
 use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::shaper_config::{self, InputShaperConfig};
@@ -214,7 +215,17 @@ impl<'a> Machine<'a> {
         slot: &'s mut core::mem::MaybeUninit<Self>,
         config: &'c Config<'a>,
     ) -> Result<&'s mut Self, ConfigError<'c>> {
-        let printer = config.require("printer")?;
+        Errors::run(|errors| Self::read_in(slot, config, errors))
+    }
+
+    /// [`Self::from_config_in`] into a reading's errors.
+    fn read_in<'c, 's>(
+        slot: &'s mut core::mem::MaybeUninit<Self>,
+        config: &'c Config<'a>,
+        errors: &Errors<'c>,
+    ) -> Read<&'s mut Self> {
+        let section = |section| Reader::new(section, errors);
+        let printer = section(errors.check(config.require("printer"))?);
         let kinematics = match printer.get_choice(
             "kinematics",
             &["cartesian", "corexy", "corexz", "delta"],
@@ -257,10 +268,10 @@ impl<'a> Machine<'a> {
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
         let mut steppers = heapless::Vec::new();
         let mut extra_rails = heapless::Vec::new();
-        let probe = probe::read(config)?;
-        let g28 = safe_home::read(config)?;
-        let screws_tilt = crate::screws_tilt::read(config)?;
-        let bed_screws = crate::bed_screws::read(config)?;
+        let probe = errors.check(probe::read(config))?;
+        let g28 = errors.check(safe_home::read(config))?;
+        let screws_tilt = errors.check(crate::screws_tilt::read(config))?;
+        let bed_screws = errors.check(crate::bed_screws::read(config))?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
@@ -276,7 +287,7 @@ impl<'a> Machine<'a> {
             let mut ranges = [(0.0, 0.0); 3];
             let mut homing = [None; 3];
             for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
-                let section = config.require(name)?;
+                let section = section(errors.check(config.require(name))?);
                 let stepper = read_stepper(&section, StepperKind::Rail)?;
                 ranges[i] = (stepper.position_min, stepper.position_max);
                 homing[i] = Some(read_homing(
@@ -286,7 +297,7 @@ impl<'a> Machine<'a> {
                 )?);
                 let _ = steppers.push(stepper);
             }
-            read_extra_steppers(config, &mut steppers, &mut extra_rails)?;
+            read_extra_steppers(config, errors, &mut steppers, &mut extra_rails)?;
             let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
             travel.homing = homing;
             for (named, stepper) in travel.extra_steppers.iter_mut().zip(&steppers[3..]) {
@@ -304,32 +315,36 @@ impl<'a> Machine<'a> {
         let mut extruder = None;
         let mut extruder_steppers = heapless::Vec::new();
         let mut heaters = heapless::Vec::new();
-        if let Some(section) = config.section("extruder") {
+        if let Some(section) = config.section("extruder").map(section) {
             extruder = Some(read_extruder(&section, &limits)?);
-            let _ =
-                extruder_steppers.push(extruder_stepper::read_extruder(&section, steppers.len())?);
+            let read = extruder_stepper::read_extruder(&section, steppers.len());
+            let _ = extruder_steppers.push(errors.check(read)?);
             if section.get_opt("heater_pin").is_some() {
                 let _ = heaters.push(thermal::read_heater(config, &section)?);
             }
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
-        extruder_stepper::read_all(
+        errors.check(extruder_stepper::read_all(
             config,
             extruder.is_some(),
-            |section| read_stepper(section, StepperKind::Extruder),
+            |section| {
+                Errors::run(|errors| {
+                    read_stepper(&Reader::new(*section, errors), StepperKind::Extruder)
+                })
+            },
             &mut steppers,
             &mut extruder_steppers,
-        )?;
+        ))?;
         let input_shaper = match config.section("input_shaper") {
-            Some(section) => shaper_config::read(&section)?,
+            Some(section) => errors.check(shaper_config::read(&section))?,
             None => InputShaperConfig::default(),
         };
-        if let Some(section) = config.section("heater_bed") {
+        if let Some(section) = config.section("heater_bed").map(section) {
             let _ = heaters.push(thermal::read_heater(config, &section)?);
         }
         let fan = config
             .section("fan")
-            .map(|section| thermal::read_fan(&section))
+            .map(|s| thermal::read_fan(&section(s)))
             .transpose()?;
         // `[verify_heater NAME]` of a heater onechip drives; one naming
         // any other heater stays unsupported, as that heater is.
@@ -344,27 +359,32 @@ impl<'a> Machine<'a> {
             if let (Some(heater), Some(s)) = (heater, config.section(section))
                 && !verified.contains(&section)
             {
-                heater.verify = thermal::read_verify_heater(&s, heater.name)?;
+                heater.verify = thermal::read_verify_heater(&Reader::new(s, errors), heater.name)?;
                 let _ = verified.push(section);
             }
         }
-        let idle_timeout = match config.section("idle_timeout") {
+        let idle_timeout = match config.section("idle_timeout").map(section) {
             Some(section) => thermal::read_idle_timeout(&section)?,
             None => IdleTimeoutConfig::default(),
         };
-        if let Some(section) = config.section("force_move") {
+        if let Some(section) = config.section("force_move").map(section) {
             section.get_bool("enable_force_move", false)?;
         }
-        let secondaries = mcu_section::read_all(config)?;
+        let secondaries = errors.check(mcu_section::read_all(config))?;
         // Sensor types: Klipper reads every definition, used or not.
-        temperature_sensor::read_definitions(config)?;
+        errors.check(temperature_sensor::read_definitions(config))?;
         let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
         let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
             steppers.iter().map(|s| s.name).collect();
-        let mut sensors = sensor_section::read_all(config)?;
-        let accessories = Accessories::read(config, &heater_names, &stepper_names, &mut sensors)?;
-        let tmc = read_tmc(config)?;
-        let stall_homing = virtual_endstops(config, &steppers, &tmc)?;
+        let mut sensors = errors.check(sensor_section::read_all(config))?;
+        let accessories = errors.check(Accessories::read(
+            config,
+            &heater_names,
+            &stepper_names,
+            &mut sensors,
+        ))?;
+        let tmc = errors.check(read_tmc(config))?;
+        let stall_homing = errors.check(virtual_endstops(config, &steppers, &tmc))?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -384,7 +404,7 @@ impl<'a> Machine<'a> {
                 config.accept_section(name);
             }
         }
-        config.check_unused()?;
+        errors.check(config.check_unused())?;
         Ok(slot.write(Self {
             kinematics,
             limits,
@@ -489,29 +509,27 @@ enum StepperKind {
 /// `parse_step_distance`: rotation_distance over full_steps_per_rotation
 /// times microsteps times gear_ratio).
 pub fn step_distance<'c>(section: &Section<'c, '_>) -> Result<f64, ConfigError<'c>> {
+    Errors::run(|errors| read_step_distance(&Reader::new(*section, errors)))
+}
+
+/// [`step_distance`] into a reading's errors.
+fn read_step_distance(section: &Reader<'_, '_, '_>) -> Read<f64> {
     let (rotation_distance, steps_per_rotation) = rotation(section)?;
     Ok(rotation_distance / steps_per_rotation)
 }
 
 /// A stepper section's rotation_distance (mm per turn) and microsteps
 /// per turn (full_steps_per_rotation × microsteps × gear_ratio).
-pub fn rotation<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError<'c>> {
+pub(crate) fn rotation(section: &Reader<'_, '_, '_>) -> Read<(f64, f64)> {
     let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
     if full_steps % 4 != 0 {
-        return Err(bad(
-            section,
-            "full_steps_per_rotation",
-            "must be a multiple of 4",
-        ));
+        return Err(section.error_for("full_steps_per_rotation", "must be a multiple of 4"));
     }
     let gear_ratio = match section.get_opt("gear_ratio") {
-        Some(text) => parse_gear_ratio(text).ok_or(bad(
-            section,
-            "gear_ratio",
-            "is not a list of 'a:b' ratios",
-        ))?,
+        Some(text) => parse_gear_ratio(text)
+            .ok_or_else(|| section.error_for("gear_ratio", "is not a list of 'a:b' ratios"))?,
         None => 1.0,
     };
     Ok((
@@ -520,10 +538,7 @@ pub fn rotation<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError
     ))
 }
 
-fn read_stepper<'c, 'a>(
-    section: &Section<'c, 'a>,
-    kind: StepperKind,
-) -> Result<Stepper<'a>, ConfigError<'c>> {
+fn read_stepper<'a>(section: &Reader<'_, '_, 'a>, kind: StepperKind) -> Read<Stepper<'a>> {
     let step_pin = section.get("step_pin")?;
     let dir_pin = section.get("dir_pin")?;
     let enable_pin = section.get_opt("enable_pin");
@@ -531,7 +546,7 @@ fn read_stepper<'c, 'a>(
         StepperKind::Extruder => None,
         _ => section.get_opt("endstop_pin"),
     };
-    let step_dist = step_distance(section)?;
+    let step_dist = read_step_distance(section)?;
     let step_pulse_duration = section.get_float_opt(
         "step_pulse_duration",
         Bounds {
@@ -591,13 +606,15 @@ fn extra_stepper_name(section: &str) -> Option<(u8, u8)> {
 /// order) after the rails; `rails` gets each one's rail.
 fn read_extra_steppers<'c, 'a>(
     config: &'c Config<'a>,
+    errors: &Errors<'c>,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
     rails: &mut heapless::Vec<usize, MAX_STEPPERS>,
-) -> Result<(), ConfigError<'c>> {
+) -> Read<()> {
     for name in config.section_names() {
         let (Some(rail), Some(section)) = (extra_stepper_rail(name), config.section(name)) else {
             continue;
         };
+        let section = Reader::new(section, errors);
         let stepper = read_stepper(&section, StepperKind::Extra)?;
         // Room for the extruder after it.
         if steppers.len() + 1 >= MAX_STEPPERS {
@@ -672,12 +689,12 @@ fn probe_z(
 /// Reads how a rail homes, with Klipper's defaults; `probe_z` is the
 /// probe's z_offset if the rail homes on it (then position_endstop is not
 /// read).
-fn read_homing<'c>(
-    section: &Section<'c, '_>,
+fn read_homing(
+    section: &Reader<'_, '_, '_>,
     (min, max): (f64, f64),
     probe_z: Result<Option<f64>, &'static str>,
-) -> Result<HomingInfo, ConfigError<'c>> {
-    let probe_z = probe_z.map_err(|reason| bad(section, "endstop_pin", reason))?;
+) -> Read<HomingInfo> {
+    let probe_z = probe_z.map_err(|reason| section.error_for("endstop_pin", reason))?;
     let position_endstop = match probe_z {
         Some(z) => z,
         None => section.get_float("position_endstop", None, Bounds::NONE)?,
@@ -687,15 +704,14 @@ fn read_homing<'c>(
 
 /// [`read_homing`] with position_endstop known (mm): the speeds, the
 /// retract and the direction, checked against the travel `(min, max)`.
-fn read_homing_from<'c>(
-    section: &Section<'c, '_>,
+fn read_homing_from(
+    section: &Reader<'_, '_, '_>,
     position_endstop: f64,
     (min, max): (f64, f64),
     probe: bool,
-) -> Result<HomingInfo, ConfigError<'c>> {
+) -> Read<HomingInfo> {
     if position_endstop < min || position_endstop > max {
-        return Err(bad(
-            section,
+        return Err(section.error_for(
             "position_endstop",
             "must be between position_min and position_max",
         ));
@@ -714,11 +730,9 @@ fn read_homing_from<'c>(
             } else if position_endstop >= max - quarter {
                 true
             } else {
-                return Err(bad(
-                    section,
-                    "position_endstop",
-                    "is mid-travel: set homing_positive_dir",
-                ));
+                return Err(
+                    section.error_for("position_endstop", "is mid-travel: set homing_positive_dir")
+                );
             }
         }
     };
@@ -739,17 +753,19 @@ fn read_homing_from<'c>(
 #[inline(never)]
 fn read_delta<'c, 'a>(
     config: &'c Config<'a>,
-    printer: &Section<'c, 'a>,
+    printer: &Reader<'_, 'c, 'a>,
     limits: &Limits,
     max_z_velocity: f64,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
-) -> Result<(Travel, [StepperKinematics; 3]), ConfigError<'c>> {
+) -> Read<(Travel, [StepperKinematics; 3])> {
     let radius = printer.get_float("delta_radius", None, Bounds::POSITIVE)?;
     let print_radius = printer.get_float("print_radius", Some(radius), Bounds::POSITIVE)?;
+    let errors = printer.errors();
+    let tower = |name| Ok(Reader::new(errors.check(config.require(name))?, errors));
     let towers = [
-        config.require("stepper_a")?,
-        config.require("stepper_b")?,
-        config.require("stepper_c")?,
+        tower("stepper_a")?,
+        tower("stepper_b")?,
+        tower("stepper_c")?,
     ];
     let above_radius = Bounds {
         above: Some(radius),
@@ -827,10 +843,7 @@ fn read_delta<'c, 'a>(
 
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
-fn read_extruder<'c>(
-    section: &Section<'c, '_>,
-    limits: &Limits,
-) -> Result<ExtruderLimits, ConfigError<'c>> {
+fn read_extruder(section: &Reader<'_, '_, '_>, limits: &Limits) -> Read<ExtruderLimits> {
     let nozzle_diameter = section.get_float("nozzle_diameter", None, Bounds::POSITIVE)?;
     let filament_diameter = section.get_float(
         "filament_diameter",
@@ -874,10 +887,6 @@ fn read_extruder<'c>(
             Bounds::NON_NEGATIVE,
         )?,
     })
-}
-
-fn bad<'c>(section: &Section<'c, '_>, option: &'c str, reason: &'static str) -> ConfigError<'c> {
-    section.error_for(option, reason)
 }
 
 /// `"57:11, 2:1"` -> 57/11 * 2/1.

@@ -5,6 +5,7 @@
 //! turns the heaters off, with Klipper's option names, defaults and
 //! limits. A heater's sensor is [`crate::temperature_sensor`]'s.
 
+use crate::reader::{Errors, Read, Reader};
 use crate::temperature_sensor::{self, TemperatureSensor};
 use crate::thermistor::ZERO_CELSIUS;
 use onechip_config::{Bounds, Config, ConfigError, Section};
@@ -97,10 +98,7 @@ impl VerifyHeater {
 /// with Klipper's defaults and bounds.
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
-pub fn read_verify_heater<'c>(
-    section: &Section<'c, '_>,
-    heater: &str,
-) -> Result<VerifyHeater, ConfigError<'c>> {
+pub(crate) fn read_verify_heater(section: &Reader<'_, '_, '_>, heater: &str) -> Read<VerifyHeater> {
     let defaults = VerifyHeater::defaults(heater);
     Ok(VerifyHeater {
         hysteresis: section.get_float(
@@ -163,9 +161,7 @@ impl Default for IdleTimeoutConfig<'_> {
 /// here, so a `gcode` using one is refused rather than run half-understood.
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
-pub fn read_idle_timeout<'c, 'a>(
-    section: &Section<'c, 'a>,
-) -> Result<IdleTimeoutConfig<'a>, ConfigError<'c>> {
+pub(crate) fn read_idle_timeout<'a>(section: &Reader<'_, '_, 'a>) -> Read<IdleTimeoutConfig<'a>> {
     let timeout = section.get_float("timeout", Some(600.0), Bounds::POSITIVE)?;
     let gcode = section.get_opt("gcode").unwrap_or(DEFAULT_IDLE_GCODE);
     if gcode.contains('{') {
@@ -211,6 +207,17 @@ pub fn read_temperature_limits<'c>(
     min_default: Option<f64>,
     max_default: Option<f64>,
 ) -> Result<(f64, f64), ConfigError<'c>> {
+    Errors::run(|errors| {
+        temperature_limits(&Reader::new(*section, errors), min_default, max_default)
+    })
+}
+
+/// [`read_temperature_limits`] into a reading's errors.
+fn temperature_limits(
+    section: &Reader<'_, '_, '_>,
+    min_default: Option<f64>,
+    max_default: Option<f64>,
+) -> Read<(f64, f64)> {
     let min_temp = section.get_float(
         "min_temp",
         min_default,
@@ -232,12 +239,14 @@ pub fn read_temperature_limits<'c>(
 
 /// Reads a heater from `section` (`[extruder]` or `[heater_bed]`) of
 /// `config` (which holds the sensor types it may name).
-pub fn read_heater<'c, 'a>(
+pub(crate) fn read_heater<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
-) -> Result<Heater<'a>, ConfigError<'c>> {
-    let (sensor, spi) = temperature_sensor::read(config, section)?;
-    let (min_temp, max_temp) = read_temperature_limits(section, None, None)?;
+    section: &Reader<'_, 'c, 'a>,
+) -> Read<Heater<'a>> {
+    let (sensor, spi) = section
+        .errors()
+        .check(temperature_sensor::read(config, section))?;
+    let (min_temp, max_temp) = temperature_limits(section, None, None)?;
     let control = match section.get_choice("control", &["pid", "watermark"], None)? {
         "pid" => Control::Pid {
             kp: section.get_float("pid_kp", None, Bounds::NONE)?,
@@ -300,7 +309,7 @@ const UNIT: Bounds = Bounds {
 };
 
 /// Reads `[fan]`.
-pub fn read_fan<'c, 'a>(section: &Section<'c, 'a>) -> Result<Fan<'a>, ConfigError<'c>> {
+pub(crate) fn read_fan<'a>(section: &Reader<'_, '_, 'a>) -> Read<Fan<'a>> {
     read_fan_options(section, 0.0)
 }
 
@@ -310,10 +319,10 @@ pub fn read_fan<'c, 'a>(section: &Section<'c, 'a>) -> Result<Fan<'a>, ConfigErro
 /// is the section kind's default for `shutdown_speed`. A tachometer
 /// (`tachometer_pin`, `tachometer_ppr`, `tachometer_poll_interval`) is
 /// accepted but its speed is not measured yet.
-pub fn read_fan_options<'c, 'a>(
-    section: &Section<'c, 'a>,
+pub(crate) fn read_fan_options<'a>(
+    section: &Reader<'_, '_, 'a>,
     default_shutdown_speed: f64,
-) -> Result<Fan<'a>, ConfigError<'c>> {
+) -> Read<Fan<'a>> {
     let min_power = section.get_float(
         "min_power",
         Some(0.0),
