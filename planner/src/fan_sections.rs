@@ -5,10 +5,10 @@
 //! SPEED=…`). Each has every `[fan]` option ([`crate::thermal::Fan`]).
 
 use crate::output_pin::named;
-use crate::reader::{Errors, Read, Reader};
+use crate::reader::{Read, Reader};
 use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::thermal::{self, Fan};
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// Most named fans (all kinds together).
 pub const MAX_FANS: usize = 8;
@@ -165,21 +165,7 @@ pub struct CoolingTables<'t, 'a> {
 /// machine's heater and stepper names, in order; a temperature fan's
 /// sensor and control join `tables`.
 #[inline(never)]
-pub fn read<'c, 'a>(
-    config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
-    heaters: &[&str],
-    steppers: &[&str],
-    tables: CoolingTables<'_, 'a>,
-) -> Result<NamedFan<'a>, ConfigError<'c>> {
-    Errors::run(|errors| {
-        let section = &Reader::new(*section, errors);
-        named_fan(config, section, heaters, steppers, tables)
-    })
-}
-
-/// [`read`] into a reading's errors.
-fn named_fan<'c, 'a>(
+pub(crate) fn read<'c, 'a>(
     config: &'c Config<'a>,
     section: &Reader<'_, 'c, 'a>,
     heaters: &[&str],
@@ -306,6 +292,7 @@ const PID_PARAM_BASE: f64 = 255.0;
 mod tests {
     extern crate std;
     use super::*;
+    use crate::reader::Errors;
 
     const HEATERS: [&str; 2] = ["extruder", "heater_bed"];
 
@@ -328,8 +315,11 @@ mod tests {
             cooling: &mut cooling,
             fan: 0,
         };
-        let fan =
-            read(config, &section, &HEATERS, &STEPPERS, tables).map_err(|e| std::format!("{e}"))?;
+        let fan = Errors::run(|errors| {
+            let section = Reader::new(section, errors);
+            read(config, &section, &HEATERS, &STEPPERS, tables)
+        })
+        .map_err(|e| std::format!("{e}"))?;
         COOLING.with(|c| *c.borrow_mut() = cooling.first().copied());
         Ok(fan)
     }

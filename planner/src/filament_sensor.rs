@@ -4,7 +4,8 @@
 //! SET_FILAMENT_SENSOR name it `SENSOR=NAME`.
 
 use crate::output_pin::named;
-use onechip_config::{Bounds, ConfigError, Section};
+use crate::reader::{Read, Reader};
+use onechip_config::Bounds;
 
 /// Most filament switch sensors.
 pub const MAX_FILAMENT_SENSORS: usize = 2;
@@ -40,7 +41,7 @@ pub fn is_section(section: &str) -> bool {
 
 /// Reads a `[filament_switch_sensor NAME]`. G-code templates cannot run
 /// here, so a runout or insert G-code using one is refused.
-pub fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<FilamentSensor<'a>, ConfigError<'c>> {
+pub(crate) fn read<'c, 'a>(section: &Reader<'_, 'c, 'a>) -> Read<FilamentSensor<'a>> {
     let written = section.name_in_file();
     let gcode = |option: &'c str| match section.get_opt(option) {
         Some(text) if text.contains('{') => Err(section.error_for(

@@ -268,8 +268,8 @@ impl<'a> Machine<'a> {
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
         let mut steppers = heapless::Vec::new();
         let mut extra_rails = heapless::Vec::new();
-        let probe = errors.check(probe::read(config))?;
-        let g28 = errors.check(safe_home::read(config))?;
+        let probe = probe::read(config, errors)?;
+        let g28 = safe_home::read(config, errors)?;
         let screws_tilt = errors.check(crate::screws_tilt::read(config))?;
         let bed_screws = errors.check(crate::bed_screws::read(config))?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
@@ -377,12 +377,8 @@ impl<'a> Machine<'a> {
         let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
             steppers.iter().map(|s| s.name).collect();
         let mut sensors = errors.check(sensor_section::read_all(config))?;
-        let accessories = errors.check(Accessories::read(
-            config,
-            &heater_names,
-            &stepper_names,
-            &mut sensors,
-        ))?;
+        let accessories =
+            Accessories::read(config, errors, &heater_names, &stepper_names, &mut sensors)?;
         let tmc = errors.check(read_tmc(config))?;
         let stall_homing = errors.check(virtual_endstops(config, &steppers, &tmc))?;
         let mut unsupported = heapless::Vec::new();

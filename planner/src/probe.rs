@@ -13,9 +13,10 @@ use crate::bltouch::{self, Bltouch, BltouchConfig};
 use crate::homing::HomingHooks;
 use crate::homing::Rails;
 use crate::move_sink::MoveSink;
+use crate::reader::{Errors, Read, Reader};
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
 use onechip_config::decimal::Fixed;
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// The endstop pin a rail names to home on the probe.
 pub const VIRTUAL_ENDSTOP: &str = "probe:z_virtual_endstop";
@@ -73,8 +74,12 @@ pub struct ProbeConfig<'a> {
 /// Klipper where each registers the `probe` object).
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
-pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, ConfigError<'c>> {
-    let (section, bltouch) = match (config.section("probe"), config.section("bltouch")) {
+pub(crate) fn read<'c, 'a>(
+    config: &'c Config<'a>,
+    errors: &Errors<'c>,
+) -> Read<Option<ProbeConfig<'a>>> {
+    let section = |name| config.section(name).map(|s| Reader::new(s, errors));
+    let (section, bltouch) = match (section("probe"), section("bltouch")) {
         (Some(_), Some(b)) => {
             return Err(b.error_for("control_pin", "[probe] is already defined"));
         }
@@ -127,7 +132,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, C
         }
         section.get_bool("deactivate_on_each_sample", true)?;
     }
-    let z_position = match config.section("stepper_z") {
+    let z_position = match config.section("stepper_z").map(|s| Reader::new(s, errors)) {
         Some(z) => z.get_float("position_min", Some(0.0), Bounds::NONE)?,
         None => 0.0,
     };
@@ -148,12 +153,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, C
 }
 
 /// An integer option of at least `min`.
-pub(crate) fn count<'c>(
-    section: &Section<'c, '_>,
-    option: &'c str,
-    default: i64,
-    min: i64,
-) -> Result<u32, ConfigError<'c>> {
+fn count<'c>(section: &Reader<'_, 'c, '_>, option: &'c str, default: i64, min: i64) -> Read<u32> {
     let n = section.get_int(option, Some(default), Some(min))?;
     u32::try_from(n).map_err(|_| section.error_for(option, "is too large"))
 }

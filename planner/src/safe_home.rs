@@ -12,8 +12,9 @@
 
 use crate::homing::HomingHooks;
 use crate::move_sink::MoveSink;
+use crate::reader::{Errors, Read, Reader};
 use crate::toolhead::{Detail, MoveError, Toolhead};
-use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
+use onechip_config::{Bounds, Config, decimal};
 
 /// Klipper's error when Z would home before X and Y.
 pub const HOME_XY_FIRST: &str = "Must home X and Y axes first";
@@ -60,11 +61,9 @@ pub enum G28<'a> {
 /// error).
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
-pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<G28<'a>, ConfigError<'c>> {
-    match (
-        config.section("safe_z_home"),
-        config.section("homing_override"),
-    ) {
+pub(crate) fn read<'c, 'a>(config: &'c Config<'a>, errors: &Errors<'c>) -> Read<G28<'a>> {
+    let section = |name| config.section(name).map(|s| Reader::new(s, errors));
+    match (section("safe_z_home"), section("homing_override")) {
         (Some(s), Some(_)) => Err(s.error_for(
             "home_xy_position",
             "homing_override and safe_z_homing cannot be used simultaneously",
@@ -75,7 +74,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<G28<'a>, ConfigError<'c>> 
     }
 }
 
-fn read_safe_z_home<'c>(s: &Section<'c, '_>) -> Result<SafeZHome, ConfigError<'c>> {
+fn read_safe_z_home(s: &Reader<'_, '_, '_>) -> Read<SafeZHome> {
     let text = s.get("home_xy_position")?;
     let mut parts = text.split(',').map(|p| decimal::parse(p.trim()));
     let home_xy = match (parts.next(), parts.next(), parts.next()) {
@@ -93,7 +92,7 @@ fn read_safe_z_home<'c>(s: &Section<'c, '_>) -> Result<SafeZHome, ConfigError<'c
     })
 }
 
-fn read_override<'c, 'a>(s: &Section<'c, 'a>) -> Result<HomingOverride<'a>, ConfigError<'c>> {
+fn read_override<'a>(s: &Reader<'_, '_, 'a>) -> Read<HomingOverride<'a>> {
     let gcode = s.get("gcode")?;
     if gcode.contains('{') {
         return Err(s.error_for(
