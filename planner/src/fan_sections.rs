@@ -235,9 +235,7 @@ fn read_temperature_fan<'c, 'a>(
     section: &Reader<'_, 'c, 'a>,
     sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
 ) -> Read<TemperatureFan> {
-    let sensor = section
-        .errors()
-        .check(sensor_section::read(config, section, (None, None)))?;
+    let sensor = sensor_section::read(config, section, (None, None))?;
     let (min_temp, max_temp) = (sensor.min_temp, sensor.max_temp);
     let index = sensors.len();
     sensors

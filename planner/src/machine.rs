@@ -372,11 +372,11 @@ impl<'a> Machine<'a> {
         }
         let secondaries = errors.check(mcu_section::read_all(config))?;
         // Sensor types: Klipper reads every definition, used or not.
-        errors.check(temperature_sensor::read_definitions(config))?;
+        temperature_sensor::read_definitions(config, errors)?;
         let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
         let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
             steppers.iter().map(|s| s.name).collect();
-        let mut sensors = errors.check(sensor_section::read_all(config))?;
+        let mut sensors = sensor_section::read_all(config, errors)?;
         let accessories =
             Accessories::read(config, errors, &heater_names, &stepper_names, &mut sensors)?;
         let tmc = errors.check(read_tmc(config))?;

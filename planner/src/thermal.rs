@@ -5,10 +5,10 @@
 //! turns the heaters off, with Klipper's option names, defaults and
 //! limits. A heater's sensor is [`crate::temperature_sensor`]'s.
 
-use crate::reader::{Errors, Read, Reader};
+use crate::reader::{Read, Reader};
 use crate::temperature_sensor::{self, TemperatureSensor};
 use crate::thermistor::ZERO_CELSIUS;
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// The heater control (`control:`), with its options.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -202,18 +202,7 @@ pub const PWM_DELAY: f64 = 0.300 + 0.001 * 8.0;
 
 /// `min_temp` and `max_temp` (°C), with these defaults (None: required):
 /// not below absolute zero, max_temp above min_temp.
-pub fn read_temperature_limits<'c>(
-    section: &Section<'c, '_>,
-    min_default: Option<f64>,
-    max_default: Option<f64>,
-) -> Result<(f64, f64), ConfigError<'c>> {
-    Errors::run(|errors| {
-        temperature_limits(&Reader::new(*section, errors), min_default, max_default)
-    })
-}
-
-/// [`read_temperature_limits`] into a reading's errors.
-fn temperature_limits(
+pub(crate) fn read_temperature_limits(
     section: &Reader<'_, '_, '_>,
     min_default: Option<f64>,
     max_default: Option<f64>,
@@ -243,10 +232,8 @@ pub(crate) fn read_heater<'c, 'a>(
     config: &'c Config<'a>,
     section: &Reader<'_, 'c, 'a>,
 ) -> Read<Heater<'a>> {
-    let (sensor, spi) = section
-        .errors()
-        .check(temperature_sensor::read(config, section))?;
-    let (min_temp, max_temp) = temperature_limits(section, None, None)?;
+    let (sensor, spi) = temperature_sensor::read(config, section)?;
+    let (min_temp, max_temp) = read_temperature_limits(section, None, None)?;
     let control = match section.get_choice("control", &["pid", "watermark"], None)? {
         "pid" => Control::Pid {
             kp: section.get_float("pid_kp", None, Bounds::NONE)?,
