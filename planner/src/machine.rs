@@ -270,8 +270,8 @@ impl<'a> Machine<'a> {
         let mut extra_rails = heapless::Vec::new();
         let probe = probe::read(config, errors)?;
         let g28 = safe_home::read(config, errors)?;
-        let screws_tilt = errors.check(crate::screws_tilt::read(config))?;
-        let bed_screws = errors.check(crate::bed_screws::read(config))?;
+        let screws_tilt = crate::screws_tilt::read(config, errors)?;
+        let bed_screws = crate::bed_screws::read(config, errors)?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
@@ -335,8 +335,8 @@ impl<'a> Machine<'a> {
             &mut steppers,
             &mut extruder_steppers,
         ))?;
-        let input_shaper = match config.section("input_shaper") {
-            Some(section) => errors.check(shaper_config::read(&section))?,
+        let input_shaper = match config.section("input_shaper").map(section) {
+            Some(section) => shaper_config::read(&section)?,
             None => InputShaperConfig::default(),
         };
         if let Some(section) = config.section("heater_bed").map(section) {
@@ -370,7 +370,7 @@ impl<'a> Machine<'a> {
         if let Some(section) = config.section("force_move").map(section) {
             section.get_bool("enable_force_move", false)?;
         }
-        let secondaries = errors.check(mcu_section::read_all(config))?;
+        let secondaries = mcu_section::read_all(config, errors)?;
         // Sensor types: Klipper reads every definition, used or not.
         temperature_sensor::read_definitions(config, errors)?;
         let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
