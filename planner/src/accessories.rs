@@ -56,7 +56,7 @@ impl<'a> Accessories<'a> {
         sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
     ) -> Read<Self> {
         let mut this = Self {
-            board_pins: errors.check(BoardPins::read(config))?,
+            board_pins: BoardPins::read(config, errors)?,
             ..Self::default()
         };
         output_pin::read_static_outputs(config, errors, &mut this.static_pins)?;

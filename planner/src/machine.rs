@@ -317,24 +317,21 @@ impl<'a> Machine<'a> {
         let mut heaters = heapless::Vec::new();
         if let Some(section) = config.section("extruder").map(section) {
             extruder = Some(read_extruder(&section, &limits)?);
-            let read = extruder_stepper::read_extruder(&section, steppers.len());
-            let _ = extruder_steppers.push(errors.check(read)?);
+            let _ =
+                extruder_steppers.push(extruder_stepper::read_extruder(&section, steppers.len())?);
             if section.get_opt("heater_pin").is_some() {
                 let _ = heaters.push(thermal::read_heater(config, &section)?);
             }
             let _ = steppers.push(read_stepper(&section, StepperKind::Extruder)?);
         }
-        errors.check(extruder_stepper::read_all(
+        extruder_stepper::read_all(
             config,
+            errors,
             extruder.is_some(),
-            |section| {
-                Errors::run(|errors| {
-                    read_stepper(&Reader::new(*section, errors), StepperKind::Extruder)
-                })
-            },
+            |section| read_stepper(section, StepperKind::Extruder),
             &mut steppers,
             &mut extruder_steppers,
-        ))?;
+        )?;
         let input_shaper = match config.section("input_shaper").map(section) {
             Some(section) => shaper_config::read(&section)?,
             None => InputShaperConfig::default(),

@@ -104,12 +104,11 @@ fn read_definition<'c>(
     let Some(section) = config.section(name) else {
         return Ok(None);
     };
+    let section = Reader::new(section, errors);
     Ok(Some(match kind {
-        Kind::Thermistor => {
-            Definition::Thermistor(errors.check(thermistor::read_section(&section))?)
-        }
+        Kind::Thermistor => Definition::Thermistor(thermistor::read_section(&section)?),
         Kind::AdcTemperature => {
-            let (samples, column) = errors.check(adc_temperature::read_section(&section))?;
+            let (samples, column) = adc_temperature::read_section(&section)?;
             Definition::Table(samples, column)
         }
     }))
@@ -175,9 +174,7 @@ pub(crate) fn read<'c, 'a>(
     // thermistors.
     let definition = find(config, section.errors(), name)?;
     if let (None, Some(chip)) = (definition, Chip::from_name(name)) {
-        let (sensor, bus) = section
-            .errors()
-            .check(spi_temperature::read(section, chip))?;
+        let (sensor, bus) = spi_temperature::read(section, chip)?;
         return Ok((TemperatureSensor::Spi(sensor), Some(bus)));
     }
     let definition =
@@ -190,14 +187,13 @@ fn read_adc_sensor(
     section: &Reader<'_, '_, '_>,
     definition: Definition,
 ) -> Read<TemperatureSensor> {
-    let errors = section.errors();
     Ok(match definition {
         Definition::Thermistor(curve) => {
-            let (pullup, inline) = errors.check(thermistor::read_resistors(section))?;
+            let (pullup, inline) = thermistor::read_resistors(section)?;
             TemperatureSensor::Thermistor(Thermistor::new(curve, pullup, inline))
         }
         Definition::Table(samples, column) => {
-            let input = errors.check(adc_temperature::read_input(section, column))?;
+            let input = adc_temperature::read_input(section, column)?;
             let sensor = LinearSensor::new(samples, input)
                 .map_err(|e| section.error_for("sensor_type", e.reason()))?;
             TemperatureSensor::Linear(sensor)

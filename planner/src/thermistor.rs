@@ -10,8 +10,9 @@
 //! come from three (°C, Ω) points of a data sheet, or from one point and a
 //! beta (`c3 = 0`).
 
+use crate::reader::{Read, Reader};
 use crate::temperature_sensor::position;
-use onechip_config::{Bounds, ConfigError, Section};
+use onechip_config::Bounds;
 
 /// 0 °C in kelvin.
 pub const ZERO_CELSIUS: f64 = 273.15;
@@ -158,7 +159,7 @@ impl Thermistor {
 /// also reads `adc_ref`, `pullup_ref` and `vo_ref` (Recore's amplified
 /// input); a `vo_ref` above 0 selects that circuit, which onechip does not
 /// support.
-pub fn read_resistors<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError<'c>> {
+pub(crate) fn read_resistors(section: &Reader<'_, '_, '_>) -> Read<(f64, f64)> {
     let pullup = section.get_float("pullup_resistor", Some(4700.0), Bounds::POSITIVE)?;
     let inline = section.get_float("inline_resistor", Some(0.0), Bounds::NON_NEGATIVE)?;
     section.get_float("adc_ref", Some(3.3), Bounds::NONE)?;
@@ -177,10 +178,10 @@ pub fn read_resistors<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), Confi
 /// unrolled, the three points' reading would take three times the flash).
 #[inline(never)]
 fn read_point<'c>(
-    section: &Section<'c, '_>,
+    section: &Reader<'_, 'c, '_>,
     temperature: &'c str,
     resistance: &'c str,
-) -> Result<(f64, f64), ConfigError<'c>> {
+) -> Read<(f64, f64)> {
     let celsius = Bounds {
         minval: Some(-ZERO_CELSIUS),
         ..Bounds::NONE
@@ -195,7 +196,7 @@ fn read_point<'c>(
 /// `beta`, or three `temperatureN`/`resistanceN` points (any order), with
 /// Klipper's bounds.
 #[inline(never)]
-pub fn read_section<'c>(section: &Section<'c, '_>) -> Result<Curve, ConfigError<'c>> {
+pub(crate) fn read_section(section: &Reader<'_, '_, '_>) -> Read<Curve> {
     const NAMES: [(&str, &str); 3] = [
         ("temperature1", "resistance1"),
         ("temperature2", "resistance2"),
