@@ -275,41 +275,14 @@ impl<'a> Machine<'a> {
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
-            let max_z_accel = printer.get_float(
-                "max_z_accel",
-                Some(max_accel),
-                Bounds {
-                    above: Some(0.0),
-                    maxval: Some(max_accel),
-                    ..Bounds::NONE
-                },
-            )?;
-            let mut ranges = [(0.0, 0.0); 3];
-            let mut homing = [None; 3];
-            for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
-                let section = section(errors.check(config.require(name))?);
-                let stepper = read_stepper(&section, StepperKind::Rail)?;
-                ranges[i] = (stepper.position_min, stepper.position_max);
-                homing[i] = Some(read_homing(
-                    &section,
-                    ranges[i],
-                    probe_z(&stepper, i, &probe),
-                )?);
-                let _ = steppers.push(stepper);
-            }
-            read_extra_steppers(config, errors, &mut steppers, &mut extra_rails)?;
-            let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
-            travel.homing = homing;
-            for (named, stepper) in travel.extra_steppers.iter_mut().zip(&steppers[3..]) {
-                *named = extra_stepper_name(stepper.name);
-            }
-            use StepperKinematics::{Axis, Difference, Sum};
-            let kin = match kinematics {
-                Kinematics::CoreXY => [Sum(0, 1), Difference(0, 1), Axis(2)],
-                Kinematics::CoreXZ => [Sum(0, 2), Axis(1), Difference(0, 2)],
-                _ => [Axis(0), Axis(1), Axis(2)],
-            };
-            (Travel::Cartesian(travel), kin)
+            read_cartesian(
+                config,
+                &printer,
+                kinematics,
+                (max_accel, max_z_velocity),
+                &probe,
+                (&mut steppers, &mut extra_rails),
+            )?
         };
 
         let mut extruder = None;
@@ -739,6 +712,58 @@ fn read_homing_from(
         range: (min, max),
         probe,
     })
+}
+
+/// Reads a cartesian (or corexy, corexz) machine's rails, their extra
+/// steppers into `steppers` (and `extra_rails`), and its travel limits.
+#[inline(never)]
+fn read_cartesian<'c, 'a>(
+    config: &'c Config<'a>,
+    printer: &Reader<'_, 'c, 'a>,
+    kinematics: Kinematics,
+    (max_accel, max_z_velocity): (f64, f64),
+    probe: &Option<ProbeConfig<'_>>,
+    (steppers, extra_rails): (
+        &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+        &mut heapless::Vec<usize, MAX_STEPPERS>,
+    ),
+) -> Read<(Travel, [StepperKinematics; 3])> {
+    let errors = printer.errors();
+    let max_z_accel = printer.get_float(
+        "max_z_accel",
+        Some(max_accel),
+        Bounds {
+            above: Some(0.0),
+            maxval: Some(max_accel),
+            ..Bounds::NONE
+        },
+    )?;
+    let mut ranges = [(0.0, 0.0); 3];
+    let mut homing = [None; 3];
+    for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
+        let section = Reader::new(errors.check(config.require(name))?, errors);
+        let stepper = read_stepper(&section, StepperKind::Rail)?;
+        ranges[i] = (stepper.position_min, stepper.position_max);
+        homing[i] = Some(read_homing(
+            &section,
+            ranges[i],
+            probe_z(&stepper, i, probe),
+        )?);
+        let _ = steppers.push(stepper);
+    }
+    read_extra_steppers(config, errors, steppers, extra_rails)?;
+    let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
+    travel.homing = homing;
+    for (named, stepper) in travel.extra_steppers.iter_mut().zip(&steppers[3..]) {
+        *named = extra_stepper_name(stepper.name);
+    }
+    use StepperKinematics::{Axis, Difference, Sum};
+    let kin = match kinematics {
+        Kinematics::CoreXY => [Sum(0, 1), Difference(0, 1), Axis(2)],
+        Kinematics::CoreXZ => [Sum(0, 2), Axis(1), Difference(0, 2)],
+        _ => [Axis(0), Axis(1), Axis(2)],
+    };
+    Ok((Travel::Cartesian(travel), kin))
 }
 
 /// Reads a linear delta's towers and derives its travel limits.
