@@ -501,6 +501,27 @@ impl Bounds {
         above: None,
         below: None,
     };
+    /// `[0, 1]`.
+    pub const UNIT: Self = Self {
+        minval: Some(0.0),
+        maxval: Some(1.0),
+        above: None,
+        below: None,
+    };
+    /// `(0, 1]`.
+    pub const UNIT_ABOVE_ZERO: Self = Self {
+        minval: None,
+        maxval: Some(1.0),
+        above: Some(0.0),
+        below: None,
+    };
+    /// `[0, 1)`.
+    pub const UNIT_BELOW_ONE: Self = Self {
+        minval: Some(0.0),
+        maxval: None,
+        above: None,
+        below: Some(1.0),
+    };
 }
 
 /// One section of a config.

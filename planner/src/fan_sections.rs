@@ -13,14 +13,6 @@ use onechip_config::{Bounds, Config};
 /// Most named fans (all kinds together).
 pub const MAX_FANS: usize = 8;
 
-/// `[0, 1]`.
-const UNIT: Bounds = Bounds {
-    minval: Some(0.0),
-    maxval: Some(1.0),
-    above: None,
-    below: None,
-};
-
 /// What turns a named fan on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum FanRole {
@@ -186,12 +178,12 @@ pub(crate) fn read<'c, 'a>(
             FanRole::Heater {
                 heaters: heater_list(section)?,
                 heater_temp: section.get_float("heater_temp", Some(50.0), Bounds::NONE)?,
-                fan_speed: section.get_float("fan_speed", Some(1.0), UNIT)?,
+                fan_speed: section.get_float("fan_speed", Some(1.0), Bounds::UNIT)?,
             },
             1.0,
         ),
         "controller_fan" => {
-            let fan_speed = section.get_float("fan_speed", Some(1.0), UNIT)?;
+            let fan_speed = section.get_float("fan_speed", Some(1.0), Bounds::UNIT)?;
             let steppers = match section.get_opt("stepper") {
                 Some(list) => bits(config, section, "stepper", list, steppers)? as u16,
                 None => u16::MAX,
@@ -202,7 +194,7 @@ pub(crate) fn read<'c, 'a>(
                     heaters: heater_list(section)?,
                     steppers,
                     fan_speed,
-                    idle_speed: section.get_float("idle_speed", Some(fan_speed), UNIT)?,
+                    idle_speed: section.get_float("idle_speed", Some(fan_speed), Bounds::UNIT)?,
                     idle_timeout: u32::try_from(idle_timeout).unwrap_or(u32::MAX),
                 },
                 0.0,
@@ -241,16 +233,8 @@ fn read_temperature_fan<'c, 'a>(
     sensors
         .push(sensor)
         .map_err(|_| section.error_for("sensor_type", "too many temperature sensors"))?;
-    let max_speed = section.get_float(
-        "max_speed",
-        Some(1.0),
-        Bounds {
-            above: Some(0.0),
-            maxval: Some(1.0),
-            ..Bounds::NONE
-        },
-    )?;
-    let min_speed = section.get_float("min_speed", Some(0.3), UNIT)?;
+    let max_speed = section.get_float("max_speed", Some(1.0), Bounds::UNIT_ABOVE_ZERO)?;
+    let min_speed = section.get_float("min_speed", Some(0.3), Bounds::UNIT)?;
     let target = section.get_float(
         "target_temp",
         Some(if max_temp > 40.0 { 40.0 } else { max_temp }),

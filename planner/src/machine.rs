@@ -249,11 +249,7 @@ impl<'a> Machine<'a> {
         let min_cruise_ratio = printer.get_float(
             "minimum_cruise_ratio",
             Some(min_cruise_ratio),
-            Bounds {
-                minval: Some(0.0),
-                below: Some(1.0),
-                ..Bounds::NONE
-            },
+            Bounds::UNIT_BELOW_ONE,
         )?;
         let scv = printer.get_float("square_corner_velocity", Some(5.0), Bounds::NON_NEGATIVE)?;
         let max_z_velocity = printer.get_float(

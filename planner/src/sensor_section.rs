@@ -267,16 +267,11 @@ pub(crate) fn read<'c, 'a>(
 
 /// `sensor_temperature1`/`sensor_adc1` and `…2`.
 fn read_calibration(section: &Reader<'_, '_, '_>) -> Read<McuCalibration> {
-    let unit = Bounds {
-        minval: Some(0.0),
-        maxval: Some(1.0),
-        ..Bounds::NONE
-    };
     let mut cal = McuCalibration::default();
     if let Some(t1) = section.get_float_opt("sensor_temperature1", Bounds::NONE)? {
-        cal.point1 = Some((t1, section.get_float("sensor_adc1", None, unit)?));
+        cal.point1 = Some((t1, section.get_float("sensor_adc1", None, Bounds::UNIT)?));
         if let Some(t2) = section.get_float_opt("sensor_temperature2", Bounds::NONE)? {
-            cal.point2 = Some((t2, section.get_float("sensor_adc2", None, unit)?));
+            cal.point2 = Some((t2, section.get_float("sensor_adc2", None, Bounds::UNIT)?));
         }
     }
     Ok(cal)

@@ -237,15 +237,7 @@ pub(crate) fn read(section: &Reader<'_, '_, '_>) -> Read<InputShaperConfig> {
     ]) {
         let name = section.get_choice(type_key, &names, Some(default_type))?;
         let freq = section.get_float(freq_key, Some(0.0), Bounds::NON_NEGATIVE)?;
-        let damping_ratio = section.get_float(
-            damping_key,
-            Some(0.1),
-            Bounds {
-                minval: Some(0.0),
-                maxval: Some(1.0),
-                ..Bounds::NONE
-            },
-        )?;
+        let damping_ratio = section.get_float(damping_key, Some(0.1), Bounds::UNIT)?;
         let kind = ShaperType::NAMES
             .iter()
             .find(|(n, _)| *n == name)

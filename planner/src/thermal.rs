@@ -263,7 +263,7 @@ pub(crate) fn read_heater<'c, 'a>(
         control,
         min_temp,
         max_temp,
-        max_power: section.get_float("max_power", Some(1.0), UNIT_ABOVE_ZERO)?,
+        max_power: section.get_float("max_power", Some(1.0), Bounds::UNIT_ABOVE_ZERO)?,
         smooth_time: section.get_float("smooth_time", Some(1.0), Bounds::POSITIVE)?,
         pwm_cycle_time: section.get_float(
             "pwm_cycle_time",
@@ -278,22 +278,6 @@ pub(crate) fn read_heater<'c, 'a>(
         verify: VerifyHeater::defaults(name),
     })
 }
-
-/// `(0, 1]`.
-const UNIT_ABOVE_ZERO: Bounds = Bounds {
-    above: Some(0.0),
-    maxval: Some(1.0),
-    minval: None,
-    below: None,
-};
-
-/// `[0, 1]`.
-const UNIT: Bounds = Bounds {
-    minval: Some(0.0),
-    maxval: Some(1.0),
-    above: None,
-    below: None,
-};
 
 /// Reads `[fan]`.
 pub(crate) fn read_fan<'a>(section: &Reader<'_, '_, 'a>) -> Read<Fan<'a>> {
@@ -310,15 +294,7 @@ pub(crate) fn read_fan_options<'a>(
     section: &Reader<'_, '_, 'a>,
     default_shutdown_speed: f64,
 ) -> Read<Fan<'a>> {
-    let min_power = section.get_float(
-        "min_power",
-        Some(0.0),
-        Bounds {
-            minval: Some(0.0),
-            below: Some(1.0),
-            ..Bounds::NONE
-        },
-    )?;
+    let min_power = section.get_float("min_power", Some(0.0), Bounds::UNIT_BELOW_ONE)?;
     section.accept(&[
         "tachometer_pin",
         "tachometer_ppr",
@@ -326,13 +302,17 @@ pub(crate) fn read_fan_options<'a>(
     ]);
     Ok(Fan {
         pin: section.get("pin")?,
-        max_power: section.get_float("max_power", Some(1.0), UNIT_ABOVE_ZERO)?,
+        max_power: section.get_float("max_power", Some(1.0), Bounds::UNIT_ABOVE_ZERO)?,
         min_power,
         cycle_time: section.get_float("cycle_time", Some(0.010), Bounds::POSITIVE)?,
         hard_pwm: section.get_bool("hardware_pwm", false)?,
-        shutdown_speed: section.get_float("shutdown_speed", Some(default_shutdown_speed), UNIT)?,
+        shutdown_speed: section.get_float(
+            "shutdown_speed",
+            Some(default_shutdown_speed),
+            Bounds::UNIT,
+        )?,
         kick_start_time: section.get_float("kick_start_time", Some(0.1), Bounds::NON_NEGATIVE)?,
-        off_below: section.get_float("off_below", Some(0.0), UNIT)?,
+        off_below: section.get_float("off_below", Some(0.0), Bounds::UNIT)?,
     })
 }
 
