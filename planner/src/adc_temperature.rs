@@ -325,11 +325,11 @@ pub fn built_in(name: &str) -> Option<(Samples, Column)> {
 pub(crate) fn read_input(section: &Reader<'_, '_, '_>, column: Column) -> Read<Input> {
     Ok(match column {
         Column::Volts => Input::Voltage {
-            adc_voltage: section.get_float("adc_voltage", Some(5.0), Bounds::POSITIVE)?,
-            offset: section.get_float("voltage_offset", Some(0.0), Bounds::NONE)?,
+            adc_voltage: section.float("adc_voltage", 5.0, Bounds::POSITIVE)?,
+            offset: section.float("voltage_offset", 0.0, Bounds::NONE)?,
         },
         Column::Ohms => Input::Resistance {
-            pullup: section.get_float("pullup_resistor", Some(4700.0), Bounds::POSITIVE)?,
+            pullup: section.float("pullup_resistor", 4700.0, Bounds::POSITIVE)?,
         },
     })
 }
@@ -399,7 +399,7 @@ pub(crate) fn read_section(section: &Reader<'_, '_, '_>) -> Read<(Samples, Colum
             return Err(section.error_for(temperature, "is past the 16 points onechip holds"));
         };
         let column_name = names.name(n);
-        let raw = section.get_float(column_name, None, Bounds::NONE)? as f32;
+        let raw = section.required_float(column_name, Bounds::NONE)? as f32;
         if !raw.is_finite() || !(celsius as f32).is_finite() {
             return Err(section.error_for(column_name, "is too large"));
         }

@@ -44,10 +44,10 @@ pub(crate) fn read<'c, 'a>(
     Ok(Some(BedScrews {
         screws,
         fine: read_fine_points(&s, &screws)?,
-        speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
-        probe_speed: s.get_float("probe_speed", Some(5.0), Bounds::POSITIVE)?,
-        horizontal_move_z: s.get_float("horizontal_move_z", Some(5.0), Bounds::NONE)?,
-        probe_height: s.get_float("probe_height", Some(0.0), Bounds::NONE)?,
+        speed: s.float("speed", 50.0, Bounds::POSITIVE)?,
+        probe_speed: s.float("probe_speed", 5.0, Bounds::POSITIVE)?,
+        horizontal_move_z: s.float("horizontal_move_z", 5.0, Bounds::NONE)?,
+        probe_height: s.float("probe_height", 0.0, Bounds::NONE)?,
     }))
 }
 

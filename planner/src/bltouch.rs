@@ -135,7 +135,7 @@ pub(crate) fn read<'a>(section: &Reader<'_, '_, 'a>) -> Read<BltouchConfig<'a>> 
     };
     Ok(BltouchConfig {
         control_pin: section.get("control_pin")?,
-        pin_move_time: section.get_float("pin_move_time", Some(0.680), Bounds::POSITIVE)?,
+        pin_move_time: section.float("pin_move_time", 0.680, Bounds::POSITIVE)?,
         stow_on_each_sample: section.get_bool("stow_on_each_sample", true)?,
         probe_with_touch_mode: section.get_bool("probe_with_touch_mode", false)?,
         pin_up_reports_not_triggered: section.get_bool("pin_up_reports_not_triggered", true)?,

@@ -96,11 +96,10 @@ fn read_one<'a>(
     synced: bool,
 ) -> Read<ExtruderStepper<'a>> {
     let (rotation_distance, steps_per_rotation) = crate::machine::rotation(section)?;
-    let pressure_advance =
-        section.get_float("pressure_advance", Some(0.0), Bounds::NON_NEGATIVE)?;
-    let smooth_time = section.get_float(
+    let pressure_advance = section.float("pressure_advance", 0.0, Bounds::NON_NEGATIVE)?;
+    let smooth_time = section.float(
         "pressure_advance_smooth_time",
-        Some(0.040),
+        0.040,
         Bounds {
             above: Some(0.0),
             maxval: Some(0.200),

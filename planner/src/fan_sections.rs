@@ -177,13 +177,13 @@ pub(crate) fn read<'c, 'a>(
         "heater_fan" => (
             FanRole::Heater {
                 heaters: heater_list(section)?,
-                heater_temp: section.get_float("heater_temp", Some(50.0), Bounds::NONE)?,
-                fan_speed: section.get_float("fan_speed", Some(1.0), Bounds::UNIT)?,
+                heater_temp: section.float("heater_temp", 50.0, Bounds::NONE)?,
+                fan_speed: section.float("fan_speed", 1.0, Bounds::UNIT)?,
             },
             1.0,
         ),
         "controller_fan" => {
-            let fan_speed = section.get_float("fan_speed", Some(1.0), Bounds::UNIT)?;
+            let fan_speed = section.float("fan_speed", 1.0, Bounds::UNIT)?;
             let steppers = match section.get_opt("stepper") {
                 Some(list) => bits(config, section, "stepper", list, steppers)? as u16,
                 None => u16::MAX,
@@ -194,7 +194,7 @@ pub(crate) fn read<'c, 'a>(
                     heaters: heater_list(section)?,
                     steppers,
                     fan_speed,
-                    idle_speed: section.get_float("idle_speed", Some(fan_speed), Bounds::UNIT)?,
+                    idle_speed: section.float("idle_speed", fan_speed, Bounds::UNIT)?,
                     idle_timeout: u32::try_from(idle_timeout).unwrap_or(u32::MAX),
                 },
                 0.0,
@@ -233,11 +233,11 @@ fn read_temperature_fan<'c, 'a>(
     sensors
         .push(sensor)
         .map_err(|_| section.error_for("sensor_type", "too many temperature sensors"))?;
-    let max_speed = section.get_float("max_speed", Some(1.0), Bounds::UNIT_ABOVE_ZERO)?;
-    let min_speed = section.get_float("min_speed", Some(0.3), Bounds::UNIT)?;
-    let target = section.get_float(
+    let max_speed = section.float("max_speed", 1.0, Bounds::UNIT_ABOVE_ZERO)?;
+    let min_speed = section.float("min_speed", 0.3, Bounds::UNIT)?;
+    let target = section.float(
         "target_temp",
-        Some(if max_temp > 40.0 { 40.0 } else { max_temp }),
+        if max_temp > 40.0 { 40.0 } else { max_temp },
         Bounds {
             minval: Some(min_temp),
             maxval: Some(max_temp),
@@ -246,13 +246,13 @@ fn read_temperature_fan<'c, 'a>(
     )?;
     let law = match section.get_choice("control", &["watermark", "pid"], None)? {
         "pid" => CoolingLaw::Pid {
-            kp: section.get_float("pid_kp", None, Bounds::NONE)? / PID_PARAM_BASE,
-            ki: section.get_float("pid_ki", None, Bounds::NONE)? / PID_PARAM_BASE,
-            kd: section.get_float("pid_kd", None, Bounds::NONE)? / PID_PARAM_BASE,
-            deriv_time: section.get_float("pid_deriv_time", Some(2.0), Bounds::POSITIVE)?,
+            kp: section.required_float("pid_kp", Bounds::NONE)? / PID_PARAM_BASE,
+            ki: section.required_float("pid_ki", Bounds::NONE)? / PID_PARAM_BASE,
+            kd: section.required_float("pid_kd", Bounds::NONE)? / PID_PARAM_BASE,
+            deriv_time: section.float("pid_deriv_time", 2.0, Bounds::POSITIVE)?,
         },
         _ => CoolingLaw::Watermark {
-            max_delta: section.get_float("max_delta", Some(2.0), Bounds::POSITIVE)?,
+            max_delta: section.float("max_delta", 2.0, Bounds::POSITIVE)?,
         },
     };
     Ok(TemperatureFan {

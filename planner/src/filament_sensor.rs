@@ -51,7 +51,7 @@ pub(crate) fn read<'c, 'a>(section: &Reader<'_, 'c, 'a>) -> Read<FilamentSensor<
         other => Ok(other),
     };
     // Klipper's debounce option of button pins.
-    let _ = section.get_float("debounce_delay", Some(0.0), Bounds::NON_NEGATIVE)?;
+    let _ = section.float("debounce_delay", 0.0, Bounds::NON_NEGATIVE)?;
     Ok(FilamentSensor {
         name: named(written, "filament_switch_sensor").unwrap_or(written),
         section: written,
@@ -59,7 +59,7 @@ pub(crate) fn read<'c, 'a>(section: &Reader<'_, 'c, 'a>) -> Read<FilamentSensor<
         pause_on_runout: section.get_bool("pause_on_runout", true)?,
         runout_gcode: gcode("runout_gcode")?,
         insert_gcode: gcode("insert_gcode")?,
-        event_delay: section.get_float("event_delay", Some(3.0), Bounds::NON_NEGATIVE)?,
-        pause_delay: section.get_float("pause_delay", Some(0.5), Bounds::POSITIVE)?,
+        event_delay: section.float("event_delay", 3.0, Bounds::NON_NEGATIVE)?,
+        pause_delay: section.float("pause_delay", 0.5, Bounds::POSITIVE)?,
     })
 }

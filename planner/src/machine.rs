@@ -236,8 +236,8 @@ impl<'a> Machine<'a> {
             "delta" => Kinematics::Delta,
             _ => Kinematics::Cartesian,
         };
-        let max_velocity = printer.get_float("max_velocity", None, Bounds::POSITIVE)?;
-        let max_accel = printer.get_float("max_accel", None, Bounds::POSITIVE)?;
+        let max_velocity = printer.required_float("max_velocity", Bounds::POSITIVE)?;
+        let max_accel = printer.required_float("max_accel", Bounds::POSITIVE)?;
         let mut min_cruise_ratio = 0.5;
         if printer
             .get_float_opt("minimum_cruise_ratio", Bounds::NONE)?
@@ -246,15 +246,15 @@ impl<'a> Machine<'a> {
         {
             min_cruise_ratio = 1.0 - (a2d / max_accel).min(1.0);
         }
-        let min_cruise_ratio = printer.get_float(
+        let min_cruise_ratio = printer.float(
             "minimum_cruise_ratio",
-            Some(min_cruise_ratio),
+            min_cruise_ratio,
             Bounds::UNIT_BELOW_ONE,
         )?;
-        let scv = printer.get_float("square_corner_velocity", Some(5.0), Bounds::NON_NEGATIVE)?;
-        let max_z_velocity = printer.get_float(
+        let scv = printer.float("square_corner_velocity", 5.0, Bounds::NON_NEGATIVE)?;
+        let max_z_velocity = printer.float(
             "max_z_velocity",
-            Some(max_velocity),
+            max_velocity,
             Bounds {
                 above: Some(0.0),
                 maxval: Some(max_velocity),
@@ -483,7 +483,7 @@ fn read_step_distance(section: &Reader<'_, '_, '_>) -> Read<f64> {
 /// A stepper section's rotation_distance (mm per turn) and microsteps
 /// per turn (full_steps_per_rotation × microsteps × gear_ratio).
 pub(crate) fn rotation(section: &Reader<'_, '_, '_>) -> Read<(f64, f64)> {
-    let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
+    let rotation_distance = section.required_float("rotation_distance", Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
     if full_steps % 4 != 0 {
@@ -520,10 +520,9 @@ fn read_stepper<'a>(section: &Reader<'_, '_, 'a>, kind: StepperKind) -> Read<Ste
     let (mut position_min, mut position_max) = (0.0, 0.0);
     match kind {
         StepperKind::Rail => {
-            position_min = section.get_float("position_min", Some(0.0), Bounds::NONE)?;
-            position_max = section.get_float(
+            position_min = section.float("position_min", 0.0, Bounds::NONE)?;
+            position_max = section.required_float(
                 "position_max",
-                None,
                 Bounds {
                     above: Some(position_min),
                     ..Bounds::NONE
@@ -659,7 +658,7 @@ fn read_homing(
     let probe_z = probe_z.map_err(|reason| section.error_for("endstop_pin", reason))?;
     let position_endstop = match probe_z {
         Some(z) => z,
-        None => section.get_float("position_endstop", None, Bounds::NONE)?,
+        None => section.required_float("position_endstop", Bounds::NONE)?,
     };
     read_homing_from(section, position_endstop, (min, max), probe_z.is_some())
 }
@@ -678,11 +677,10 @@ fn read_homing_from(
             "must be between position_min and position_max",
         ));
     }
-    let speed = section.get_float("homing_speed", Some(5.0), Bounds::POSITIVE)?;
-    let second_speed =
-        section.get_float("second_homing_speed", Some(speed / 2.0), Bounds::POSITIVE)?;
-    let retract_speed = section.get_float("homing_retract_speed", Some(speed), Bounds::POSITIVE)?;
-    let retract_dist = section.get_float("homing_retract_dist", Some(5.0), Bounds::NON_NEGATIVE)?;
+    let speed = section.float("homing_speed", 5.0, Bounds::POSITIVE)?;
+    let second_speed = section.float("second_homing_speed", speed / 2.0, Bounds::POSITIVE)?;
+    let retract_speed = section.float("homing_retract_speed", speed, Bounds::POSITIVE)?;
+    let retract_dist = section.float("homing_retract_dist", 5.0, Bounds::NON_NEGATIVE)?;
     let positive_dir = match section.get_opt("homing_positive_dir") {
         Some(_) => section.get_bool("homing_positive_dir", false)?,
         None => {
@@ -725,9 +723,9 @@ fn read_cartesian<'c, 'a>(
     ),
 ) -> Read<(Travel, [StepperKinematics; 3])> {
     let errors = printer.errors();
-    let max_z_accel = printer.get_float(
+    let max_z_accel = printer.float(
         "max_z_accel",
-        Some(max_accel),
+        max_accel,
         Bounds {
             above: Some(0.0),
             maxval: Some(max_accel),
@@ -772,8 +770,8 @@ fn read_delta<'c, 'a>(
     max_z_velocity: f64,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
 ) -> Read<(Travel, [StepperKinematics; 3])> {
-    let radius = printer.get_float("delta_radius", None, Bounds::POSITIVE)?;
-    let print_radius = printer.get_float("print_radius", Some(radius), Bounds::POSITIVE)?;
+    let radius = printer.required_float("delta_radius", Bounds::POSITIVE)?;
+    let print_radius = printer.float("print_radius", radius, Bounds::POSITIVE)?;
     let errors = printer.errors();
     let tower = |name| Ok(Reader::new(errors.check(config.require(name))?, errors));
     let towers = [
@@ -785,8 +783,8 @@ fn read_delta<'c, 'a>(
         above: Some(radius),
         ..Bounds::NONE
     };
-    let arm_a = towers[0].get_float("arm_length", None, above_radius)?;
-    let endstop_a = towers[0].get_float("position_endstop", None, Bounds::NONE)?;
+    let arm_a = towers[0].required_float("arm_length", above_radius)?;
+    let endstop_a = towers[0].required_float("position_endstop", Bounds::NONE)?;
     let (mut max_z, mut limit_z, mut min_arm, mut min_step_dist) =
         (f64::MAX, f64::MAX, f64::MAX, f64::MAX);
     let mut kinematics = [StepperKinematics::Axis(0); 3];
@@ -798,12 +796,12 @@ fn read_delta<'c, 'a>(
         .zip(kinematics.iter_mut())
         .enumerate()
     {
-        let arm = tower.get_float("arm_length", Some(arm_a), above_radius)?;
-        let endstop = tower.get_float("position_endstop", Some(endstop_a), Bounds::NONE)?;
+        let arm = tower.float("arm_length", arm_a, above_radius)?;
+        let endstop = tower.float("position_endstop", endstop_a, Bounds::NONE)?;
         // As Klipper's rails without a travel range: 0 to the endstop.
         let homing = read_homing_from(tower, endstop, (0.0, endstop), false)?;
         homing_a.get_or_insert(homing);
-        let angle = tower.get_float("angle", Some(default_angle), Bounds::NONE)?;
+        let angle = tower.float("angle", default_angle, Bounds::NONE)?;
         *kin = StepperKinematics::DeltaTower {
             arm2: arm * arm,
             tower: delta_tower(angle, radius),
@@ -818,9 +816,9 @@ fn read_delta<'c, 'a>(
         min_step_dist = min_step_dist.min(stepper.step_dist);
         let _ = steppers.push(stepper);
     }
-    let min_z = printer.get_float(
+    let min_z = printer.float(
         "minimum_z_position",
-        Some(0.0),
+        0.0,
         Bounds {
             maxval: Some(max_z),
             ..Bounds::NONE
@@ -858,10 +856,9 @@ fn read_delta<'c, 'a>(
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
 fn read_extruder(section: &Reader<'_, '_, '_>, limits: &Limits) -> Read<ExtruderLimits> {
-    let nozzle_diameter = section.get_float("nozzle_diameter", None, Bounds::POSITIVE)?;
-    let filament_diameter = section.get_float(
+    let nozzle_diameter = section.required_float("nozzle_diameter", Bounds::POSITIVE)?;
+    let filament_diameter = section.required_float(
         "filament_diameter",
-        None,
         Bounds {
             minval: Some(nozzle_diameter),
             ..Bounds::NONE
@@ -871,33 +868,29 @@ fn read_extruder(section: &Reader<'_, '_, '_>, limits: &Limits) -> Read<Extruder
         core::f64::consts::PI * (filament_diameter * 0.5) * (filament_diameter * 0.5);
     let def_max_cross_section = 4.0 * nozzle_diameter * nozzle_diameter;
     let def_max_extrude_ratio = def_max_cross_section / filament_area;
-    let max_cross_section = section.get_float(
+    let max_cross_section = section.float(
         "max_extrude_cross_section",
-        Some(def_max_cross_section),
+        def_max_cross_section,
         Bounds::POSITIVE,
     )?;
     Ok(ExtruderLimits {
         nozzle_diameter,
         filament_area,
         max_extrude_ratio: max_cross_section / filament_area,
-        max_e_velocity: section.get_float(
+        max_e_velocity: section.float(
             "max_extrude_only_velocity",
-            Some(limits.max_velocity * def_max_extrude_ratio),
+            limits.max_velocity * def_max_extrude_ratio,
             Bounds::POSITIVE,
         )?,
-        max_e_accel: section.get_float(
+        max_e_accel: section.float(
             "max_extrude_only_accel",
-            Some(limits.max_accel * def_max_extrude_ratio),
+            limits.max_accel * def_max_extrude_ratio,
             Bounds::POSITIVE,
         )?,
-        max_e_dist: section.get_float(
-            "max_extrude_only_distance",
-            Some(50.0),
-            Bounds::NON_NEGATIVE,
-        )?,
-        instant_corner_v: section.get_float(
+        max_e_dist: section.float("max_extrude_only_distance", 50.0, Bounds::NON_NEGATIVE)?,
+        instant_corner_v: section.float(
             "instantaneous_corner_velocity",
-            Some(1.0),
+            1.0,
             Bounds::NON_NEGATIVE,
         )?,
     })

@@ -112,9 +112,9 @@ pub(crate) fn read_output_pin<'a>(section: &Reader<'_, '_, 'a>) -> Read<OutputPi
     let pin = section.get("pin")?;
     let pwm = section.get_bool("pwm", false)?;
     let (cycle_time, hardware_pwm, scale) = if pwm {
-        let cycle_time = section.get_float(
+        let cycle_time = section.float(
             "cycle_time",
-            Some(0.100),
+            0.100,
             Bounds {
                 above: Some(0.0),
                 maxval: Some(MAX_SCHEDULE_TIME),
@@ -125,7 +125,7 @@ pub(crate) fn read_output_pin<'a>(section: &Reader<'_, '_, 'a>) -> Read<OutputPi
         (
             cycle_time,
             hardware_pwm,
-            section.get_float("scale", Some(1.0), Bounds::POSITIVE)?,
+            section.float("scale", 1.0, Bounds::POSITIVE)?,
         )
     } else {
         (0.0, false, 1.0)
@@ -136,9 +136,7 @@ pub(crate) fn read_output_pin<'a>(section: &Reader<'_, '_, 'a>) -> Read<OutputPi
             maxval: Some(scale),
             ..Bounds::NONE
         };
-        section
-            .get_float(option, Some(0.0), bounds)
-            .map(|v| v / scale)
+        section.float(option, 0.0, bounds).map(|v| v / scale)
     };
     let max_duration = match section.get_float_opt(
         "maximum_mcu_duration",

@@ -101,22 +101,20 @@ pub(crate) fn read<'c, 'a>(
         Bounds::NONE
     };
     let offsets = [
-        section.get_float("x_offset", Some(0.0), Bounds::NONE)?,
-        section.get_float("y_offset", Some(0.0), Bounds::NONE)?,
-        section.get_float("z_offset", None, z_offset_bounds)?,
+        section.float("x_offset", 0.0, Bounds::NONE)?,
+        section.float("y_offset", 0.0, Bounds::NONE)?,
+        section.required_float("z_offset", z_offset_bounds)?,
     ];
-    let speed = section.get_float("speed", Some(5.0), Bounds::POSITIVE)?;
-    let lift_speed = section.get_float("lift_speed", Some(speed), Bounds::POSITIVE)?;
+    let speed = section.float("speed", 5.0, Bounds::POSITIVE)?;
+    let lift_speed = section.float("lift_speed", speed, Bounds::POSITIVE)?;
     let samples = count(&section, "samples", 1, 1)?;
-    let sample_retract_dist =
-        section.get_float("sample_retract_dist", Some(2.0), Bounds::POSITIVE)?;
+    let sample_retract_dist = section.float("sample_retract_dist", 2.0, Bounds::POSITIVE)?;
     let samples_result =
         match section.get_choice("samples_result", &["average", "median"], Some("average"))? {
             "median" => SamplesResult::Median,
             _ => SamplesResult::Average,
         };
-    let samples_tolerance =
-        section.get_float("samples_tolerance", Some(0.100), Bounds::NON_NEGATIVE)?;
+    let samples_tolerance = section.float("samples_tolerance", 0.100, Bounds::NON_NEGATIVE)?;
     let samples_tolerance_retries = count(&section, "samples_tolerance_retries", 0, 0)?;
     if bltouch.is_none() {
         // Run around each probing move by Klipper; onechip takes them as
@@ -133,7 +131,7 @@ pub(crate) fn read<'c, 'a>(
         section.get_bool("deactivate_on_each_sample", true)?;
     }
     let z_position = match config.section("stepper_z").map(|s| Reader::new(s, errors)) {
-        Some(z) => z.get_float("position_min", Some(0.0), Bounds::NONE)?,
+        Some(z) => z.float("position_min", 0.0, Bounds::NONE)?,
         None => 0.0,
     };
     Ok(Some(ProbeConfig {

@@ -98,6 +98,19 @@ impl<'r, 'c, 'a> Reader<'r, 'c, 'a> {
             .check(self.section.get_float(option, default, bounds))
     }
 
+    /// [`Section::get_float`] with a default (taken apart from the
+    /// default's `Option`, which each call would otherwise build).
+    #[inline(never)]
+    pub fn float(&self, option: &'c str, default: f64, bounds: Bounds) -> Read<f64> {
+        self.get_float(option, Some(default), bounds)
+    }
+
+    /// [`Section::get_float`] of an option that must be present.
+    #[inline(never)]
+    pub fn required_float(&self, option: &'c str, bounds: Bounds) -> Read<f64> {
+        self.get_float(option, None, bounds)
+    }
+
     /// [`Section::get_float_opt`].
     #[inline(never)]
     pub fn get_float_opt(&self, option: &'c str, bounds: Bounds) -> Read<Option<f64>> {

@@ -85,9 +85,9 @@ fn read_safe_z_home(s: &Reader<'_, '_, '_>) -> Read<SafeZHome> {
     };
     Ok(SafeZHome {
         home_xy,
-        speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
-        z_hop: s.get_float("z_hop", Some(0.0), Bounds::NONE)?,
-        z_hop_speed: s.get_float("z_hop_speed", Some(15.0), Bounds::POSITIVE)?,
+        speed: s.float("speed", 50.0, Bounds::POSITIVE)?,
+        z_hop: s.float("z_hop", 0.0, Bounds::NONE)?,
+        z_hop_speed: s.float("z_hop_speed", 15.0, Bounds::POSITIVE)?,
         move_to_previous: s.get_bool("move_to_previous", false)?,
     })
 }

@@ -127,8 +127,8 @@ pub(crate) fn read<'c, 'a>(
         screws,
         pitch,
         clockwise_thread,
-        horizontal_move_z: s.get_float("horizontal_move_z", Some(5.0), Bounds::NONE)?,
-        speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
+        horizontal_move_z: s.float("horizontal_move_z", 5.0, Bounds::NONE)?,
+        speed: s.float("speed", 50.0, Bounds::POSITIVE)?,
     }))
 }
 

@@ -243,7 +243,7 @@ pub(crate) fn read<'c, 'a>(
                 "only the main MCU's temperature can be read (not a secondary's)",
             ));
         }
-        section.get_float("reference_voltage", Some(3.3), Bounds::POSITIVE)?;
+        section.float("reference_voltage", 3.3, Bounds::POSITIVE)?;
         SensorInput::Mcu(read_calibration(section)?)
     } else {
         match temperature_sensor::read(config, section)? {
@@ -269,9 +269,9 @@ pub(crate) fn read<'c, 'a>(
 fn read_calibration(section: &Reader<'_, '_, '_>) -> Read<McuCalibration> {
     let mut cal = McuCalibration::default();
     if let Some(t1) = section.get_float_opt("sensor_temperature1", Bounds::NONE)? {
-        cal.point1 = Some((t1, section.get_float("sensor_adc1", None, Bounds::UNIT)?));
+        cal.point1 = Some((t1, section.required_float("sensor_adc1", Bounds::UNIT)?));
         if let Some(t2) = section.get_float_opt("sensor_temperature2", Bounds::NONE)? {
-            cal.point2 = Some((t2, section.get_float("sensor_adc2", None, Bounds::UNIT)?));
+            cal.point2 = Some((t2, section.required_float("sensor_adc2", Bounds::UNIT)?));
         }
     }
     Ok(cal)

@@ -236,8 +236,8 @@ pub(crate) fn read(section: &Reader<'_, '_, '_>) -> Read<InputShaperConfig> {
         ("shaper_type_y", "shaper_freq_y", "damping_ratio_y"),
     ]) {
         let name = section.get_choice(type_key, &names, Some(default_type))?;
-        let freq = section.get_float(freq_key, Some(0.0), Bounds::NON_NEGATIVE)?;
-        let damping_ratio = section.get_float(damping_key, Some(0.1), Bounds::UNIT)?;
+        let freq = section.float(freq_key, 0.0, Bounds::NON_NEGATIVE)?;
+        let damping_ratio = section.float(damping_key, 0.1, Bounds::UNIT)?;
         let kind = ShaperType::NAMES
             .iter()
             .find(|(n, _)| *n == name)

@@ -330,8 +330,8 @@ pub(crate) fn read<'a>(section: &Reader<'_, '_, 'a>, chip: Chip) -> Read<(SpiSen
             sensor.set_init(&[0x80, cr0, code | avg_bits, MASK_DEFAULT]);
         }
         Chip::Max31865 => {
-            let nominal = section.get_float("rtd_nominal_r", Some(100.0), Bounds::POSITIVE)?;
-            let reference = section.get_float("rtd_reference_r", Some(430.0), Bounds::POSITIVE)?;
+            let nominal = section.float("rtd_nominal_r", 100.0, Bounds::POSITIVE)?;
+            let reference = section.float("rtd_reference_r", 430.0, Bounds::POSITIVE)?;
             sensor.rtd_ratio = reference / MAX31865_FULL / nominal;
             let mut config = RTD_CONFIG_DEFAULT;
             if section.get_bool("rtd_use_50Hz_filter", false)? {

@@ -101,24 +101,12 @@ impl VerifyHeater {
 pub(crate) fn read_verify_heater(section: &Reader<'_, '_, '_>, heater: &str) -> Read<VerifyHeater> {
     let defaults = VerifyHeater::defaults(heater);
     Ok(VerifyHeater {
-        hysteresis: section.get_float(
-            "hysteresis",
-            Some(defaults.hysteresis),
-            Bounds::NON_NEGATIVE,
-        )?,
-        max_error: section.get_float(
-            "max_error",
-            Some(defaults.max_error),
-            Bounds::NON_NEGATIVE,
-        )?,
-        heating_gain: section.get_float(
-            "heating_gain",
-            Some(defaults.heating_gain),
-            Bounds::POSITIVE,
-        )?,
-        check_gain_time: section.get_float(
+        hysteresis: section.float("hysteresis", defaults.hysteresis, Bounds::NON_NEGATIVE)?,
+        max_error: section.float("max_error", defaults.max_error, Bounds::NON_NEGATIVE)?,
+        heating_gain: section.float("heating_gain", defaults.heating_gain, Bounds::POSITIVE)?,
+        check_gain_time: section.float(
             "check_gain_time",
-            Some(defaults.check_gain_time),
+            defaults.check_gain_time,
             Bounds {
                 minval: Some(1.0),
                 ..Bounds::NONE
@@ -162,7 +150,7 @@ impl Default for IdleTimeoutConfig<'_> {
 // Out of line: see `Machine::from_config_in`.
 #[inline(never)]
 pub(crate) fn read_idle_timeout<'a>(section: &Reader<'_, '_, 'a>) -> Read<IdleTimeoutConfig<'a>> {
-    let timeout = section.get_float("timeout", Some(600.0), Bounds::POSITIVE)?;
+    let timeout = section.float("timeout", 600.0, Bounds::POSITIVE)?;
     let gcode = section.get_opt("gcode").unwrap_or(DEFAULT_IDLE_GCODE);
     if gcode.contains('{') {
         return Err(section.error_for(
@@ -236,17 +224,17 @@ pub(crate) fn read_heater<'c, 'a>(
     let (min_temp, max_temp) = read_temperature_limits(section, None, None)?;
     let control = match section.get_choice("control", &["pid", "watermark"], None)? {
         "pid" => Control::Pid {
-            kp: section.get_float("pid_kp", None, Bounds::NONE)?,
-            ki: section.get_float("pid_ki", None, Bounds::NONE)?,
-            kd: section.get_float("pid_kd", None, Bounds::NONE)?,
+            kp: section.required_float("pid_kp", Bounds::NONE)?,
+            ki: section.required_float("pid_ki", Bounds::NONE)?,
+            kd: section.required_float("pid_kd", Bounds::NONE)?,
         },
         _ => Control::Watermark {
-            max_delta: section.get_float("max_delta", Some(2.0), Bounds::POSITIVE)?,
+            max_delta: section.float("max_delta", 2.0, Bounds::POSITIVE)?,
         },
     };
-    let min_extrude_temp = section.get_float(
+    let min_extrude_temp = section.float(
         "min_extrude_temp",
-        Some(170.0),
+        170.0,
         Bounds {
             minval: Some(min_temp),
             maxval: Some(max_temp),
@@ -263,11 +251,11 @@ pub(crate) fn read_heater<'c, 'a>(
         control,
         min_temp,
         max_temp,
-        max_power: section.get_float("max_power", Some(1.0), Bounds::UNIT_ABOVE_ZERO)?,
-        smooth_time: section.get_float("smooth_time", Some(1.0), Bounds::POSITIVE)?,
-        pwm_cycle_time: section.get_float(
+        max_power: section.float("max_power", 1.0, Bounds::UNIT_ABOVE_ZERO)?,
+        smooth_time: section.float("smooth_time", 1.0, Bounds::POSITIVE)?,
+        pwm_cycle_time: section.float(
             "pwm_cycle_time",
-            Some(0.100),
+            0.100,
             Bounds {
                 above: Some(0.0),
                 maxval: Some(PWM_DELAY),
@@ -294,7 +282,7 @@ pub(crate) fn read_fan_options<'a>(
     section: &Reader<'_, '_, 'a>,
     default_shutdown_speed: f64,
 ) -> Read<Fan<'a>> {
-    let min_power = section.get_float("min_power", Some(0.0), Bounds::UNIT_BELOW_ONE)?;
+    let min_power = section.float("min_power", 0.0, Bounds::UNIT_BELOW_ONE)?;
     section.accept(&[
         "tachometer_pin",
         "tachometer_ppr",
@@ -302,17 +290,13 @@ pub(crate) fn read_fan_options<'a>(
     ]);
     Ok(Fan {
         pin: section.get("pin")?,
-        max_power: section.get_float("max_power", Some(1.0), Bounds::UNIT_ABOVE_ZERO)?,
+        max_power: section.float("max_power", 1.0, Bounds::UNIT_ABOVE_ZERO)?,
         min_power,
-        cycle_time: section.get_float("cycle_time", Some(0.010), Bounds::POSITIVE)?,
+        cycle_time: section.float("cycle_time", 0.010, Bounds::POSITIVE)?,
         hard_pwm: section.get_bool("hardware_pwm", false)?,
-        shutdown_speed: section.get_float(
-            "shutdown_speed",
-            Some(default_shutdown_speed),
-            Bounds::UNIT,
-        )?,
-        kick_start_time: section.get_float("kick_start_time", Some(0.1), Bounds::NON_NEGATIVE)?,
-        off_below: section.get_float("off_below", Some(0.0), Bounds::UNIT)?,
+        shutdown_speed: section.float("shutdown_speed", default_shutdown_speed, Bounds::UNIT)?,
+        kick_start_time: section.float("kick_start_time", 0.1, Bounds::NON_NEGATIVE)?,
+        off_below: section.float("off_below", 0.0, Bounds::UNIT)?,
     })
 }
 

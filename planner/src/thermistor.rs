@@ -160,11 +160,11 @@ impl Thermistor {
 /// input); a `vo_ref` above 0 selects that circuit, which onechip does not
 /// support.
 pub(crate) fn read_resistors(section: &Reader<'_, '_, '_>) -> Read<(f64, f64)> {
-    let pullup = section.get_float("pullup_resistor", Some(4700.0), Bounds::POSITIVE)?;
-    let inline = section.get_float("inline_resistor", Some(0.0), Bounds::NON_NEGATIVE)?;
-    section.get_float("adc_ref", Some(3.3), Bounds::NONE)?;
-    section.get_float("pullup_ref", Some(3.2), Bounds::NONE)?;
-    if section.get_float("vo_ref", Some(0.0), Bounds::NONE)? > 0.0 {
+    let pullup = section.float("pullup_resistor", 4700.0, Bounds::POSITIVE)?;
+    let inline = section.float("inline_resistor", 0.0, Bounds::NON_NEGATIVE)?;
+    section.float("adc_ref", 3.3, Bounds::NONE)?;
+    section.float("pullup_ref", 3.2, Bounds::NONE)?;
+    if section.float("vo_ref", 0.0, Bounds::NONE)? > 0.0 {
         return Err(section.error_for(
             "vo_ref",
             "selects Recore's amplified input, which onechip does not support yet",
@@ -187,8 +187,8 @@ fn read_point<'c>(
         ..Bounds::NONE
     };
     Ok((
-        section.get_float(temperature, None, celsius)?,
-        section.get_float(resistance, None, Bounds::NON_NEGATIVE)?,
+        section.required_float(temperature, celsius)?,
+        section.required_float(resistance, Bounds::NON_NEGATIVE)?,
     ))
 }
 
