@@ -295,7 +295,11 @@ impl<'a> Config<'a> {
                     .ok_or(err(line, ConfigErrorKind::Syntax))?;
                 let value_start = last.value.as_ptr() as usize - text.as_ptr() as usize;
                 let end = start + raw.trim_end().len();
-                last.value = text[value_start.min(end)..end].trim();
+                // Within the text, on character boundaries: never empty.
+                last.value = text
+                    .get(value_start.min(end)..end)
+                    .unwrap_or_default()
+                    .trim();
                 continue;
             }
             if let Some(header) = trimmed.strip_prefix('[') {
@@ -316,10 +320,10 @@ impl<'a> Config<'a> {
                     .map_err(|_| err(line, ConfigErrorKind::TooLarge))?;
                 continue;
             }
-            let split = trimmed
-                .find([':', '='])
+            let (option, value) = trimmed
+                .split_once([':', '='])
                 .ok_or(err(line, ConfigErrorKind::Syntax))?;
-            let option = trimmed[..split].trim();
+            let option = option.trim();
             if option.is_empty() {
                 return Err(err(line, ConfigErrorKind::Syntax));
             }
@@ -328,7 +332,7 @@ impl<'a> Config<'a> {
                 .iter()
                 .rposition(|h| h.file == file_index)
                 .ok_or(err(line, ConfigErrorKind::OptionOutsideSection))?;
-            let value = trimmed[split + 1..].trim();
+            let value = value.trim();
             self.options
                 .push(OptionLine {
                     section,
@@ -419,19 +423,28 @@ impl<'a> Config<'a> {
     /// belong to features handled elsewhere).
     pub fn accept_section(&self, name: &str) {
         for (i, option) in self.options.iter().enumerate() {
-            if self.sections[option.section].name == name {
+            if self.section_of(option) == name {
                 self.mark_used(i);
             }
         }
     }
 
+    /// The name of the section an option line is in.
+    fn section_of(&self, option: &OptionLine<'a>) -> &'a str {
+        // Every line's section was pushed before it: never "".
+        self.sections.get(option.section).map_or("", |h| h.name)
+    }
+
     fn mark_used(&self, index: usize) {
-        let cell = &self.used[index / 32];
-        cell.set(cell.get() | 1 << (index % 32));
+        if let Some(cell) = self.used.get(index / 32) {
+            cell.set(cell.get() | 1 << (index % 32));
+        }
     }
 
     fn is_used(&self, index: usize) -> bool {
-        self.used[index / 32].get() & (1 << (index % 32)) != 0
+        self.used
+            .get(index / 32)
+            .is_some_and(|cell| cell.get() & (1 << (index % 32)) != 0)
     }
 
     /// The first option nobody read, as an error.
@@ -447,7 +460,7 @@ impl<'a> Config<'a> {
                 file: self.file_of(option),
                 line: option.line,
                 kind: ConfigErrorKind::UnknownOption {
-                    section: self.sections[option.section].name,
+                    section: self.section_of(option),
                     option: option.name,
                 },
             }),
@@ -500,6 +513,27 @@ impl Bounds {
         maxval: None,
         above: None,
         below: None,
+    };
+    /// `[0, 1]`.
+    pub const UNIT: Self = Self {
+        minval: Some(0.0),
+        maxval: Some(1.0),
+        above: None,
+        below: None,
+    };
+    /// `(0, 1]`.
+    pub const UNIT_ABOVE_ZERO: Self = Self {
+        minval: None,
+        maxval: Some(1.0),
+        above: Some(0.0),
+        below: None,
+    };
+    /// `[0, 1)`.
+    pub const UNIT_BELOW_ONE: Self = Self {
+        minval: Some(0.0),
+        maxval: None,
+        above: None,
+        below: Some(1.0),
     };
 }
 
@@ -581,9 +615,7 @@ impl<'c, 'a> Section<'c, 'a> {
     /// definitions override earlier ones, which are not errors).
     fn mark_read(&self, option: &str, last: usize) {
         for (i, o) in self.config.options.iter().enumerate().take(last + 1) {
-            if self.config.sections[o.section].name == self.name
-                && o.name.eq_ignore_ascii_case(option)
-            {
+            if self.config.section_of(o) == self.name && o.name.eq_ignore_ascii_case(option) {
                 self.config.mark_used(i);
             }
         }
@@ -591,7 +623,7 @@ impl<'c, 'a> Section<'c, 'a> {
 
     fn find(&self, option: &str) -> Option<(usize, &'c OptionLine<'a>)> {
         self.config.options.iter().enumerate().rev().find(|(_, o)| {
-            self.config.sections[o.section].name == self.name && o.name.eq_ignore_ascii_case(option)
+            self.config.section_of(o) == self.name && o.name.eq_ignore_ascii_case(option)
         })
     }
 
@@ -719,7 +751,7 @@ impl<'c, 'a> Section<'c, 'a> {
             Err(default) => return Ok(default),
         };
         let bad = |reason| self.bad_value(line, option, reason);
-        let value: i64 = line.value.parse().map_err(|_| bad("is not an integer"))?;
+        let value = parse_int(line.value).ok_or_else(|| bad("is not an integer"))?;
         if minval.is_some_and(|m| value < m) {
             return Err(bad("is below its minimum"));
         }
@@ -764,6 +796,33 @@ impl<'c, 'a> Section<'c, 'a> {
             let _ = self.get_opt(option);
         }
     }
+}
+
+/// `text` as `i64::from_str` reads it (an optional sign, then decimal
+/// digits, within i64), without core's generic parser (a few hundred
+/// bytes of flash).
+fn parse_int(text: &str) -> Option<i64> {
+    let (negative, digits) = match text.as_bytes() {
+        [b'-', rest @ ..] => (true, rest),
+        [b'+', rest @ ..] => (false, rest),
+        rest => (false, rest),
+    };
+    if digits.is_empty() {
+        return None;
+    }
+    digits.iter().try_fold(0i64, |value, &b| {
+        let digit = i64::from(b.wrapping_sub(b'0'));
+        if digit > 9 {
+            return None;
+        }
+        let value = value.checked_mul(10)?;
+        // Negative numbers accumulate downwards: i64::MIN has no positive.
+        if negative {
+            value.checked_sub(digit)
+        } else {
+            value.checked_add(digit)
+        }
+    })
 }
 
 /// Boolean spellings Python's configparser accepts.
@@ -882,6 +941,34 @@ mod tests {
                 .kind,
             ConfigErrorKind::IncludeTooDeep
         );
+    }
+
+    #[test]
+    fn integers_read_as_rusts_parser_reads_them() {
+        for text in [
+            "0",
+            "-0",
+            "+7",
+            "250000",
+            "-12",
+            "007",
+            "9223372036854775807",
+            "9223372036854775808",
+            "-9223372036854775808",
+            "-9223372036854775809",
+            "",
+            "-",
+            "+",
+            "+-1",
+            "1.0",
+            "1e3",
+            " 1",
+            "1_000",
+            "0x10",
+            "١",
+        ] {
+            assert_eq!(parse_int(text), text.parse::<i64>().ok(), "{text:?}");
+        }
     }
 
     #[test]

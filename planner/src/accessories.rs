@@ -7,8 +7,9 @@ use crate::board_pins::{self, BoardPins};
 use crate::fan_sections::{self, CoolingTables, MAX_COOLING, MAX_FANS, NamedFan, TemperatureFan};
 use crate::filament_sensor::{self, FilamentSensor, MAX_FILAMENT_SENSORS};
 use crate::output_pin::{self, MAX_OUTPUT_PINS, MAX_STATIC_PINS, OutputPin, StaticPin};
+use crate::reader::{Errors, Read, Reader};
 use crate::sensor_section::{MAX_SENSORS, SensorSection};
-use onechip_config::{Config, ConfigError};
+use onechip_config::Config;
 
 /// Most outputs all these sections drive together (fans, output pins,
 /// static pins).
@@ -45,21 +46,25 @@ impl<'a> Accessories<'a> {
     /// machine's heater and stepper names, in order; temperature fans'
     /// sensors join `sensors`. A section past a table's size is an error
     /// naming it.
-    pub fn read<'c>(
+    // Out of line: see `Machine::from_config_in`.
+    #[inline(never)]
+    pub(crate) fn read<'c>(
         config: &'c Config<'a>,
+        errors: &Errors<'c>,
         heaters: &[&str],
         steppers: &[&str],
         sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
-    ) -> Result<Self, ConfigError<'c>> {
+    ) -> Read<Self> {
         let mut this = Self {
-            board_pins: BoardPins::read(config)?,
+            board_pins: BoardPins::read(config, errors)?,
             ..Self::default()
         };
-        output_pin::read_static_outputs(config, &mut this.static_pins)?;
+        output_pin::read_static_outputs(config, errors, &mut this.static_pins)?;
         for name in output_pin::unique_sections(config) {
             let Some(section) = config.section(name) else {
                 continue;
             };
+            let section = Reader::new(section, errors);
             let full = "is in one section too many of its kind for onechip";
             if fan_sections::is_section(name) {
                 let tables = CoolingTables {
@@ -90,7 +95,7 @@ impl<'a> Accessories<'a> {
                 .or(this.fans.last().map(|f| (f.section, "pin")))
                 .unwrap_or(("", "pin"));
             if let Some(s) = config.section(section) {
-                return Err(s.error_for(
+                return Err(Reader::new(s, errors).error_for(
                     option,
                     "is one output too many: onechip drives at most 24 fans and pins besides [fan]",
                 ));

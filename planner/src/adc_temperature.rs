@@ -12,8 +12,9 @@
 //! points, with Klipper's rules for which line applies (including its
 //! merging of lines that are exactly alike).
 
+use crate::reader::{Read, Reader};
 use crate::temperature_sensor::position;
-use onechip_config::{Bounds, ConfigError, Section};
+use onechip_config::Bounds;
 
 /// Most points a `[adc_temperature NAME]` section may have.
 pub const MAX_POINTS: usize = 16;
@@ -321,14 +322,14 @@ pub fn built_in(name: &str) -> Option<(Samples, Column)> {
 /// Reads the options of a heater section that a table of `column` reads:
 /// `adc_voltage` (V, default 5) and `voltage_offset` (V, default 0) for
 /// volts, `pullup_resistor` (Ω, default 4700) for Ω.
-pub fn read_input<'c>(section: &Section<'c, '_>, column: Column) -> Result<Input, ConfigError<'c>> {
+pub(crate) fn read_input(section: &Reader<'_, '_, '_>, column: Column) -> Read<Input> {
     Ok(match column {
         Column::Volts => Input::Voltage {
-            adc_voltage: section.get_float("adc_voltage", Some(5.0), Bounds::POSITIVE)?,
-            offset: section.get_float("voltage_offset", Some(0.0), Bounds::NONE)?,
+            adc_voltage: section.float("adc_voltage", 5.0, Bounds::POSITIVE)?,
+            offset: section.float("voltage_offset", 0.0, Bounds::NONE)?,
         },
         Column::Ohms => Input::Resistance {
-            pullup: section.get_float("pullup_resistor", Some(4700.0), Bounds::POSITIVE)?,
+            pullup: section.float("pullup_resistor", 4700.0, Bounds::POSITIVE)?,
         },
     })
 }
@@ -380,7 +381,7 @@ impl Numbered {
 /// `resistance1`), up to the first temperature missing; at most
 /// [`MAX_POINTS`] points.
 #[inline(never)]
-pub fn read_section<'c>(section: &Section<'c, '_>) -> Result<(Samples, Column), ConfigError<'c>> {
+pub(crate) fn read_section(section: &Reader<'_, '_, '_>) -> Read<(Samples, Column)> {
     let (column, names) = match section.get_opt("resistance1") {
         Some(_) => (Column::Ohms, RESISTANCE),
         None => (Column::Volts, VOLTAGE),
@@ -398,7 +399,7 @@ pub fn read_section<'c>(section: &Section<'c, '_>) -> Result<(Samples, Column), 
             return Err(section.error_for(temperature, "is past the 16 points onechip holds"));
         };
         let column_name = names.name(n);
-        let raw = section.get_float(column_name, None, Bounds::NONE)? as f32;
+        let raw = section.required_float(column_name, Bounds::NONE)? as f32;
         if !raw.is_finite() || !(celsius as f32).is_finite() {
             return Err(section.error_for(column_name, "is too large"));
         }

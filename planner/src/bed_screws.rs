@@ -6,9 +6,10 @@
 //! screws with a `_fine_adjust` point get a fine round there.
 
 use crate::move_sink::MoveSink;
+use crate::reader::{Errors, Read, Reader};
 use crate::screws_tilt::{Screw, Screws, read_fine_points, read_screws};
 use crate::toolhead::{MoveError, Toolhead};
-use onechip_config::{Bounds, Config, ConfigError};
+use onechip_config::{Bounds, Config};
 
 /// The `[bed_screws]` section.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -29,18 +30,24 @@ pub struct BedScrews<'a> {
 }
 
 /// Reads `[bed_screws]`, if present.
-pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<BedScrews<'a>>, ConfigError<'c>> {
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read<'c, 'a>(
+    config: &'c Config<'a>,
+    errors: &Errors<'c>,
+) -> Read<Option<BedScrews<'a>>> {
     let Some(s) = config.section("bed_screws") else {
         return Ok(None);
     };
+    let s = Reader::new(s, errors);
     let screws = read_screws(&s, "bed_screws: Must have at least three screws")?;
     Ok(Some(BedScrews {
         screws,
         fine: read_fine_points(&s, &screws)?,
-        speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
-        probe_speed: s.get_float("probe_speed", Some(5.0), Bounds::POSITIVE)?,
-        horizontal_move_z: s.get_float("horizontal_move_z", Some(5.0), Bounds::NONE)?,
-        probe_height: s.get_float("probe_height", Some(0.0), Bounds::NONE)?,
+        speed: s.float("speed", 50.0, Bounds::POSITIVE)?,
+        probe_speed: s.float("probe_speed", 5.0, Bounds::POSITIVE)?,
+        horizontal_move_z: s.float("horizontal_move_z", 5.0, Bounds::NONE)?,
+        probe_height: s.float("probe_height", 0.0, Bounds::NONE)?,
     }))
 }
 
@@ -166,7 +173,9 @@ mod tests {
                     screw1_fine_adjust: 0,0\nscrew2: 200, 30\nscrew3: 200,200\n\
                     screw3_fine_adjust: 220,220\nprobe_height: 0.1\n";
         let config = Config::parse("printer.cfg", text).expect("parses");
-        let b = read(&config).expect("reads").expect("present");
+        let b = Errors::run(|errors| read(&config, errors))
+            .expect("reads")
+            .expect("present");
         let names: std::vec::Vec<_> = b.round(false).iter().map(ToString::to_string).collect();
         assert_eq!(
             names,
@@ -190,7 +199,9 @@ mod tests {
         assert_eq!(options, (5.0, 0.1, 50.0, 5.0));
         let bad = "[bed_screws]\nscrew1: 30\nscrew2: 1,2\nscrew3: 3,4\n";
         let config = Config::parse("printer.cfg", bad).expect("parses");
-        let e = read(&config).expect_err("not a coordinate").to_string();
+        let e = Errors::run(|errors| read(&config, errors))
+            .expect_err("not a coordinate")
+            .to_string();
         assert!(
             e.contains("screw1") && e.contains("needs to be an x,y coordinate"),
             "{e}"

@@ -7,8 +7,9 @@
 //! The toolhead waits (a dwell) for the pin before it moves.
 
 use crate::move_sink::MoveSink;
+use crate::reader::{Read, Reader};
 use crate::toolhead::Toolhead;
-use onechip_config::{Bounds, ConfigError, Section};
+use onechip_config::Bounds;
 
 /// Servo signal period, s.
 pub const SIGNAL_PERIOD: f64 = 0.020;
@@ -122,7 +123,7 @@ pub struct BltouchConfig<'a> {
 }
 
 /// Reads `[bltouch]`'s own options.
-pub fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<BltouchConfig<'a>, ConfigError<'c>> {
+pub(crate) fn read<'a>(section: &Reader<'_, '_, 'a>) -> Read<BltouchConfig<'a>> {
     let output_mode = match section.get_opt("set_output_mode") {
         None => None,
         Some(_) => Some(
@@ -134,7 +135,7 @@ pub fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<BltouchConfig<'a>, Conf
     };
     Ok(BltouchConfig {
         control_pin: section.get("control_pin")?,
-        pin_move_time: section.get_float("pin_move_time", Some(0.680), Bounds::POSITIVE)?,
+        pin_move_time: section.float("pin_move_time", 0.680, Bounds::POSITIVE)?,
         stow_on_each_sample: section.get_bool("stow_on_each_sample", true)?,
         probe_with_touch_mode: section.get_bool("probe_with_touch_mode", false)?,
         pin_up_reports_not_triggered: section.get_bool("pin_up_reports_not_triggered", true)?,

@@ -9,8 +9,9 @@
 //! aliases costs nothing more.
 
 use crate::output_pin::{list_items, unique_sections};
+use crate::reader::{Errors, Read, Reader};
 use core::fmt;
-use onechip_config::{Config, ConfigError, Section};
+use onechip_config::Config;
 
 /// Most `[board_pins]` sections.
 pub const MAX_SECTIONS: usize = 4;
@@ -97,12 +98,13 @@ impl<'a> BoardPins<'a> {
     /// `NAME=PIN` (a plain pin name, or `<NAME>`), and no alias may map to
     /// two pins on one chip.
     #[inline(never)]
-    pub fn read<'c>(config: &'c Config<'a>) -> Result<Self, ConfigError<'c>> {
+    pub(crate) fn read<'c>(config: &'c Config<'a>, errors: &Errors<'c>) -> Read<Self> {
         let mut pins = Self::default();
         for name in unique_sections(config).filter(|n| is_section(n)) {
             let Some(section) = config.section(name) else {
                 continue;
             };
+            let section = Reader::new(section, errors);
             let chip = name.strip_prefix("board_pins").map_or("", str::trim);
             let chips =
                 section
@@ -121,12 +123,7 @@ impl<'a> BoardPins<'a> {
 
     /// The entries of `aliases` (of the section just added, for `chips`)
     /// parse, and each alias' first mapping on each chip is this one.
-    fn check<'c>(
-        &self,
-        section: &Section<'c, 'a>,
-        chips: &str,
-        aliases: &'a str,
-    ) -> Result<(), ConfigError<'c>> {
+    fn check(&self, section: &Reader<'_, '_, 'a>, chips: &str, aliases: &'a str) -> Read<()> {
         for pair in pairs(aliases) {
             let Some((name, value)) = pair else {
                 return Err(section.error_for("aliases", "has an entry that is not NAME=PIN"));
@@ -184,6 +181,12 @@ impl<'a> BoardPins<'a> {
 mod tests {
     extern crate std;
     use super::*;
+    use onechip_config::ConfigError;
+
+    /// `config`'s `[board_pins]`.
+    fn read<'c, 'a>(config: &'c Config<'a>) -> Result<BoardPins<'a>, ConfigError<'c>> {
+        Errors::run(|errors| BoardPins::read(config, errors))
+    }
 
     const BOARD: &str = "[board_pins]\naliases:\n    # EXP1\n    EXP1_1=PE8, EXP1_2=PE7, # a comment\n    EXP1_9=<GND>, BEEPER=EXP1_1,\n\
         [board_pins second]\nmcu: extra\naliases: EXP1_1=PA1\n";
@@ -191,7 +194,7 @@ mod tests {
     #[test]
     fn aliases_resolve_with_modifiers_and_chips() {
         let config = Config::parse("printer.cfg", BOARD).expect("parses");
-        let pins = BoardPins::read(&config).expect("reads");
+        let pins = read(&config).expect("reads");
         let text = |p: &'static str| {
             let mut s = heapless::String::<32>::new();
             core::fmt::write(&mut s, format_args!("{}", pins.resolve(p).expect("usable")))
@@ -215,23 +218,23 @@ mod tests {
     fn a_bad_alias_names_its_file_and_line() {
         let bad = "[board_pins]\naliases: EXP1_1=PE8, EXP1_2\n";
         let config = Config::parse("printer.cfg", bad).expect("parses");
-        let e = BoardPins::read(&config).expect_err("refused");
+        let e = read(&config).expect_err("refused");
         assert_eq!(
             std::format!("{e}"),
             "printer.cfg:2: option 'aliases' in section 'board_pins' has an entry that is not NAME=PIN"
         );
         let twice = "[board_pins]\naliases: A=PE8, A=PE7\n";
         let config = Config::parse("printer.cfg", twice).expect("parses");
-        assert!(BoardPins::read(&config).is_err());
+        assert!(read(&config).is_err());
         let across = "[board_pins]\naliases: A=PE8\n[board_pins b]\nmcu: mcu\naliases: A=PE7\n";
         let config = Config::parse("printer.cfg", across).expect("parses");
-        let e = BoardPins::read(&config).expect_err("refused");
+        let e = read(&config).expect_err("refused");
         assert_eq!(e.line, 5, "{e}");
         let other_chip = "[board_pins]\naliases: A=PE8\n[board_pins b]\naliases: A=PE7\n";
         let config = Config::parse("printer.cfg", other_chip).expect("parses");
-        assert!(BoardPins::read(&config).is_ok());
+        assert!(read(&config).is_ok());
         let modifier = "[board_pins]\naliases: A=!PE8\n";
         let config = Config::parse("printer.cfg", modifier).expect("parses");
-        assert!(BoardPins::read(&config).is_err());
+        assert!(read(&config).is_err());
     }
 }

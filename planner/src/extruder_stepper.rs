@@ -9,10 +9,11 @@ use crate::gcode::Extended;
 use crate::gcode_move::CommandError;
 use crate::machine::{MAX_STEPPERS, Stepper};
 use crate::move_sink::{ExtruderStepperMotion, MoveSink};
+use crate::reader::{Errors, Read, Reader};
 use crate::toolhead::Toolhead;
 use core::fmt::Write;
 use onechip_config::decimal::Fixed;
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// Most steppers following an extruder (the `[extruder]`'s and the
 /// `[extruder_stepper]`s): every stepper but the three rails'.
@@ -88,18 +89,17 @@ pub fn is_section(name: &str) -> bool {
 /// Reads a stepper section's rotation and pressure advance options
 /// (Klipper's defaults and bounds); `name`, `index` (in the machine's
 /// steppers) and `synced` as given.
-fn read_one<'c, 'a>(
-    section: &Section<'c, 'a>,
+fn read_one<'a>(
+    section: &Reader<'_, '_, 'a>,
     name: &'a str,
     index: usize,
     synced: bool,
-) -> Result<ExtruderStepper<'a>, ConfigError<'c>> {
+) -> Read<ExtruderStepper<'a>> {
     let (rotation_distance, steps_per_rotation) = crate::machine::rotation(section)?;
-    let pressure_advance =
-        section.get_float("pressure_advance", Some(0.0), Bounds::NON_NEGATIVE)?;
-    let smooth_time = section.get_float(
+    let pressure_advance = section.float("pressure_advance", 0.0, Bounds::NON_NEGATIVE)?;
+    let smooth_time = section.float(
         "pressure_advance_smooth_time",
-        Some(0.040),
+        0.040,
         Bounds {
             above: Some(0.0),
             maxval: Some(0.200),
@@ -119,10 +119,10 @@ fn read_one<'c, 'a>(
 
 /// The `[extruder]`'s stepper (the machine's stepper `index`), from its
 /// section.
-pub fn read_extruder<'c, 'a>(
-    section: &Section<'c, 'a>,
+pub(crate) fn read_extruder<'a>(
+    section: &Reader<'_, '_, 'a>,
     index: usize,
-) -> Result<ExtruderStepper<'a>, ConfigError<'c>> {
+) -> Read<ExtruderStepper<'a>> {
     read_one(section, EXTRUDER, index, true)
 }
 
@@ -130,13 +130,16 @@ pub fn read_extruder<'c, 'a>(
 /// stepper joins `steppers` (`read_stepper` reads its stepper options)
 /// and its entry `out`. `has_extruder`: an `[extruder]` is configured
 /// (else `extruder: extruder` names nothing).
-pub fn read_all<'c, 'a>(
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read_all<'c, 'a>(
     config: &'c Config<'a>,
+    errors: &Errors<'c>,
     has_extruder: bool,
-    read_stepper: impl Fn(&Section<'c, 'a>) -> Result<Stepper<'a>, ConfigError<'c>>,
+    read_stepper: impl Fn(&Reader<'_, 'c, 'a>) -> Read<Stepper<'a>>,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
     out: &mut heapless::Vec<ExtruderStepper<'a>, MAX_EXTRUDER_STEPPERS>,
-) -> Result<(), ConfigError<'c>> {
+) -> Read<()> {
     for section_name in config.section_names() {
         let Some(section) = config
             .section(section_name)
@@ -144,6 +147,7 @@ pub fn read_all<'c, 'a>(
         else {
             continue;
         };
+        let section = Reader::new(section, errors);
         let name = section
             .name_in_file()
             .get(SECTION_PREFIX.len()..)

@@ -5,20 +5,13 @@
 //! SPEED=…`). Each has every `[fan]` option ([`crate::thermal::Fan`]).
 
 use crate::output_pin::named;
+use crate::reader::{Read, Reader};
 use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::thermal::{self, Fan};
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// Most named fans (all kinds together).
 pub const MAX_FANS: usize = 8;
-
-/// `[0, 1]`.
-const UNIT: Bounds = Bounds {
-    minval: Some(0.0),
-    maxval: Some(1.0),
-    above: None,
-    below: None,
-};
 
 /// What turns a named fan on.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -134,11 +127,11 @@ pub fn is_section(section: &str) -> bool {
 /// yet, itself reported unsupported): it has no bit.
 fn bits<'c>(
     config: &Config<'_>,
-    section: &Section<'c, '_>,
+    section: &Reader<'_, 'c, '_>,
     option: &'c str,
     list: &str,
     names: &[&str],
-) -> Result<u32, ConfigError<'c>> {
+) -> Read<u32> {
     let mut mask = 0;
     for item in crate::output_pin::list_items(list) {
         match names.iter().position(|n| *n == item) {
@@ -164,19 +157,19 @@ pub struct CoolingTables<'t, 'a> {
 /// machine's heater and stepper names, in order; a temperature fan's
 /// sensor and control join `tables`.
 #[inline(never)]
-pub fn read<'c, 'a>(
+pub(crate) fn read<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
+    section: &Reader<'_, 'c, 'a>,
     heaters: &[&str],
     steppers: &[&str],
     tables: CoolingTables<'_, 'a>,
-) -> Result<NamedFan<'a>, ConfigError<'c>> {
+) -> Read<NamedFan<'a>> {
     let written = section.name_in_file();
     let (kind, name) = PREFIXES
         .iter()
         .find_map(|p| named(written, p).map(|n| (*p, n)))
         .unwrap_or(("fan_generic", written));
-    let heater_list = |section: &Section<'c, 'a>| {
+    let heater_list = |section: &Reader<'_, 'c, 'a>| {
         let list = section.get_opt("heater").unwrap_or("extruder");
         bits(config, section, "heater", list, heaters).map(|m| m as u8)
     };
@@ -184,13 +177,13 @@ pub fn read<'c, 'a>(
         "heater_fan" => (
             FanRole::Heater {
                 heaters: heater_list(section)?,
-                heater_temp: section.get_float("heater_temp", Some(50.0), Bounds::NONE)?,
-                fan_speed: section.get_float("fan_speed", Some(1.0), UNIT)?,
+                heater_temp: section.float("heater_temp", 50.0, Bounds::NONE)?,
+                fan_speed: section.float("fan_speed", 1.0, Bounds::UNIT)?,
             },
             1.0,
         ),
         "controller_fan" => {
-            let fan_speed = section.get_float("fan_speed", Some(1.0), UNIT)?;
+            let fan_speed = section.float("fan_speed", 1.0, Bounds::UNIT)?;
             let steppers = match section.get_opt("stepper") {
                 Some(list) => bits(config, section, "stepper", list, steppers)? as u16,
                 None => u16::MAX,
@@ -201,7 +194,7 @@ pub fn read<'c, 'a>(
                     heaters: heater_list(section)?,
                     steppers,
                     fan_speed,
-                    idle_speed: section.get_float("idle_speed", Some(fan_speed), UNIT)?,
+                    idle_speed: section.float("idle_speed", fan_speed, Bounds::UNIT)?,
                     idle_timeout: u32::try_from(idle_timeout).unwrap_or(u32::MAX),
                 },
                 0.0,
@@ -231,28 +224,20 @@ pub fn read<'c, 'a>(
 /// control, with Klipper's defaults.
 fn read_temperature_fan<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
+    section: &Reader<'_, 'c, 'a>,
     sensors: &mut heapless::Vec<SensorSection<'a>, MAX_SENSORS>,
-) -> Result<TemperatureFan, ConfigError<'c>> {
+) -> Read<TemperatureFan> {
     let sensor = sensor_section::read(config, section, (None, None))?;
     let (min_temp, max_temp) = (sensor.min_temp, sensor.max_temp);
     let index = sensors.len();
     sensors
         .push(sensor)
         .map_err(|_| section.error_for("sensor_type", "too many temperature sensors"))?;
-    let max_speed = section.get_float(
-        "max_speed",
-        Some(1.0),
-        Bounds {
-            above: Some(0.0),
-            maxval: Some(1.0),
-            ..Bounds::NONE
-        },
-    )?;
-    let min_speed = section.get_float("min_speed", Some(0.3), UNIT)?;
-    let target = section.get_float(
+    let max_speed = section.float("max_speed", 1.0, Bounds::UNIT_ABOVE_ZERO)?;
+    let min_speed = section.float("min_speed", 0.3, Bounds::UNIT)?;
+    let target = section.float(
         "target_temp",
-        Some(if max_temp > 40.0 { 40.0 } else { max_temp }),
+        if max_temp > 40.0 { 40.0 } else { max_temp },
         Bounds {
             minval: Some(min_temp),
             maxval: Some(max_temp),
@@ -261,13 +246,13 @@ fn read_temperature_fan<'c, 'a>(
     )?;
     let law = match section.get_choice("control", &["watermark", "pid"], None)? {
         "pid" => CoolingLaw::Pid {
-            kp: section.get_float("pid_kp", None, Bounds::NONE)? / PID_PARAM_BASE,
-            ki: section.get_float("pid_ki", None, Bounds::NONE)? / PID_PARAM_BASE,
-            kd: section.get_float("pid_kd", None, Bounds::NONE)? / PID_PARAM_BASE,
-            deriv_time: section.get_float("pid_deriv_time", Some(2.0), Bounds::POSITIVE)?,
+            kp: section.required_float("pid_kp", Bounds::NONE)? / PID_PARAM_BASE,
+            ki: section.required_float("pid_ki", Bounds::NONE)? / PID_PARAM_BASE,
+            kd: section.required_float("pid_kd", Bounds::NONE)? / PID_PARAM_BASE,
+            deriv_time: section.float("pid_deriv_time", 2.0, Bounds::POSITIVE)?,
         },
         _ => CoolingLaw::Watermark {
-            max_delta: section.get_float("max_delta", Some(2.0), Bounds::POSITIVE)?,
+            max_delta: section.float("max_delta", 2.0, Bounds::POSITIVE)?,
         },
     };
     Ok(TemperatureFan {
@@ -289,6 +274,7 @@ const PID_PARAM_BASE: f64 = 255.0;
 mod tests {
     extern crate std;
     use super::*;
+    use crate::reader::Errors;
 
     const HEATERS: [&str; 2] = ["extruder", "heater_bed"];
 
@@ -311,8 +297,11 @@ mod tests {
             cooling: &mut cooling,
             fan: 0,
         };
-        let fan =
-            read(config, &section, &HEATERS, &STEPPERS, tables).map_err(|e| std::format!("{e}"))?;
+        let fan = Errors::run(|errors| {
+            let section = Reader::new(section, errors);
+            read(config, &section, &HEATERS, &STEPPERS, tables)
+        })
+        .map_err(|e| std::format!("{e}"))?;
         COOLING.with(|c| *c.borrow_mut() = cooling.first().copied());
         Ok(fan)
     }

@@ -4,7 +4,8 @@
 //! SET_FILAMENT_SENSOR name it `SENSOR=NAME`.
 
 use crate::output_pin::named;
-use onechip_config::{Bounds, ConfigError, Section};
+use crate::reader::{Read, Reader};
+use onechip_config::Bounds;
 
 /// Most filament switch sensors.
 pub const MAX_FILAMENT_SENSORS: usize = 2;
@@ -40,7 +41,7 @@ pub fn is_section(section: &str) -> bool {
 
 /// Reads a `[filament_switch_sensor NAME]`. G-code templates cannot run
 /// here, so a runout or insert G-code using one is refused.
-pub fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<FilamentSensor<'a>, ConfigError<'c>> {
+pub(crate) fn read<'c, 'a>(section: &Reader<'_, 'c, 'a>) -> Read<FilamentSensor<'a>> {
     let written = section.name_in_file();
     let gcode = |option: &'c str| match section.get_opt(option) {
         Some(text) if text.contains('{') => Err(section.error_for(
@@ -50,7 +51,7 @@ pub fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<FilamentSensor<'a>, Con
         other => Ok(other),
     };
     // Klipper's debounce option of button pins.
-    let _ = section.get_float("debounce_delay", Some(0.0), Bounds::NON_NEGATIVE)?;
+    let _ = section.float("debounce_delay", 0.0, Bounds::NON_NEGATIVE)?;
     Ok(FilamentSensor {
         name: named(written, "filament_switch_sensor").unwrap_or(written),
         section: written,
@@ -58,7 +59,7 @@ pub fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<FilamentSensor<'a>, Con
         pause_on_runout: section.get_bool("pause_on_runout", true)?,
         runout_gcode: gcode("runout_gcode")?,
         insert_gcode: gcode("insert_gcode")?,
-        event_delay: section.get_float("event_delay", Some(3.0), Bounds::NON_NEGATIVE)?,
-        pause_delay: section.get_float("pause_delay", Some(0.5), Bounds::POSITIVE)?,
+        event_delay: section.float("event_delay", 3.0, Bounds::NON_NEGATIVE)?,
+        pause_delay: section.float("pause_delay", 0.5, Bounds::POSITIVE)?,
     })
 }

@@ -49,6 +49,7 @@ pub mod move_sink;
 pub mod output_pin;
 pub mod planned_move;
 pub mod probe;
+mod reader;
 pub mod safe_home;
 pub mod screws_tilt;
 pub mod sensor_section;

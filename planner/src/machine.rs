@@ -8,6 +8,7 @@ use crate::math::sqrt;
 use crate::mcu_section::{self, MAX_SECONDARIES, SecondaryMcu};
 use crate::planned_move::Limits;
 use crate::probe::{self, ProbeConfig};
+use crate::reader::{Errors, Read, Reader};
 use crate::safe_home::{self, G28};
 use crate::sensor_section::{self, MAX_SENSORS, SensorSection};
 use crate::shaper_config::{self, InputShaperConfig};
@@ -205,11 +206,26 @@ impl<'a> Machine<'a> {
     /// [`Self::from_config`] written into `slot` (a machine is several KB:
     /// on a microcontroller it goes where it stays, not through the
     /// stack).
+    ///
+    /// Out of line, as are the section readers it calls: inlined into
+    /// one function, every `?` of theirs copies its error through a frame
+    /// of tens of KB (5 KiB more flash).
+    #[inline(never)]
     pub fn from_config_in<'c, 's>(
         slot: &'s mut core::mem::MaybeUninit<Self>,
         config: &'c Config<'a>,
     ) -> Result<&'s mut Self, ConfigError<'c>> {
-        let printer = config.require("printer")?;
+        Errors::run(|errors| Self::read_in(slot, config, errors))
+    }
+
+    /// [`Self::from_config_in`] into a reading's errors.
+    fn read_in<'c, 's>(
+        slot: &'s mut core::mem::MaybeUninit<Self>,
+        config: &'c Config<'a>,
+        errors: &Errors<'c>,
+    ) -> Read<&'s mut Self> {
+        let section = |section| Reader::new(section, errors);
+        let printer = section(errors.check(config.require("printer"))?);
         let kinematics = match printer.get_choice(
             "kinematics",
             &["cartesian", "corexy", "corexz", "delta"],
@@ -220,8 +236,8 @@ impl<'a> Machine<'a> {
             "delta" => Kinematics::Delta,
             _ => Kinematics::Cartesian,
         };
-        let max_velocity = printer.get_float("max_velocity", None, Bounds::POSITIVE)?;
-        let max_accel = printer.get_float("max_accel", None, Bounds::POSITIVE)?;
+        let max_velocity = printer.required_float("max_velocity", Bounds::POSITIVE)?;
+        let max_accel = printer.required_float("max_accel", Bounds::POSITIVE)?;
         let mut min_cruise_ratio = 0.5;
         if printer
             .get_float_opt("minimum_cruise_ratio", Bounds::NONE)?
@@ -230,19 +246,15 @@ impl<'a> Machine<'a> {
         {
             min_cruise_ratio = 1.0 - (a2d / max_accel).min(1.0);
         }
-        let min_cruise_ratio = printer.get_float(
+        let min_cruise_ratio = printer.float(
             "minimum_cruise_ratio",
-            Some(min_cruise_ratio),
-            Bounds {
-                minval: Some(0.0),
-                below: Some(1.0),
-                ..Bounds::NONE
-            },
+            min_cruise_ratio,
+            Bounds::UNIT_BELOW_ONE,
         )?;
-        let scv = printer.get_float("square_corner_velocity", Some(5.0), Bounds::NON_NEGATIVE)?;
-        let max_z_velocity = printer.get_float(
+        let scv = printer.float("square_corner_velocity", 5.0, Bounds::NON_NEGATIVE)?;
+        let max_z_velocity = printer.float(
             "max_z_velocity",
-            Some(max_velocity),
+            max_velocity,
             Bounds {
                 above: Some(0.0),
                 maxval: Some(max_velocity),
@@ -252,54 +264,27 @@ impl<'a> Machine<'a> {
         let limits = Limits::new(max_velocity, max_accel, min_cruise_ratio, scv);
         let mut steppers = heapless::Vec::new();
         let mut extra_rails = heapless::Vec::new();
-        let probe = probe::read(config)?;
-        let g28 = safe_home::read(config)?;
-        let screws_tilt = crate::screws_tilt::read(config)?;
-        let bed_screws = crate::bed_screws::read(config)?;
+        let probe = probe::read(config, errors)?;
+        let g28 = safe_home::read(config, errors)?;
+        let screws_tilt = crate::screws_tilt::read(config, errors)?;
+        let bed_screws = crate::bed_screws::read(config, errors)?;
         let (travel, stepper_kinematics) = if kinematics == Kinematics::Delta {
             read_delta(config, &printer, &limits, max_z_velocity, &mut steppers)?
         } else {
-            let max_z_accel = printer.get_float(
-                "max_z_accel",
-                Some(max_accel),
-                Bounds {
-                    above: Some(0.0),
-                    maxval: Some(max_accel),
-                    ..Bounds::NONE
-                },
-            )?;
-            let mut ranges = [(0.0, 0.0); 3];
-            let mut homing = [None; 3];
-            for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
-                let section = config.require(name)?;
-                let stepper = read_stepper(&section, StepperKind::Rail)?;
-                ranges[i] = (stepper.position_min, stepper.position_max);
-                homing[i] = Some(read_homing(
-                    &section,
-                    ranges[i],
-                    probe_z(&stepper, i, &probe),
-                )?);
-                let _ = steppers.push(stepper);
-            }
-            read_extra_steppers(config, &mut steppers, &mut extra_rails)?;
-            let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
-            travel.homing = homing;
-            for (named, stepper) in travel.extra_steppers.iter_mut().zip(&steppers[3..]) {
-                *named = extra_stepper_name(stepper.name);
-            }
-            use StepperKinematics::{Axis, Difference, Sum};
-            let kin = match kinematics {
-                Kinematics::CoreXY => [Sum(0, 1), Difference(0, 1), Axis(2)],
-                Kinematics::CoreXZ => [Sum(0, 2), Axis(1), Difference(0, 2)],
-                _ => [Axis(0), Axis(1), Axis(2)],
-            };
-            (Travel::Cartesian(travel), kin)
+            read_cartesian(
+                config,
+                &printer,
+                kinematics,
+                (max_accel, max_z_velocity),
+                &probe,
+                (&mut steppers, &mut extra_rails),
+            )?
         };
 
         let mut extruder = None;
         let mut extruder_steppers = heapless::Vec::new();
         let mut heaters = heapless::Vec::new();
-        if let Some(section) = config.section("extruder") {
+        if let Some(section) = config.section("extruder").map(section) {
             extruder = Some(read_extruder(&section, &limits)?);
             let _ =
                 extruder_steppers.push(extruder_stepper::read_extruder(&section, steppers.len())?);
@@ -310,21 +295,22 @@ impl<'a> Machine<'a> {
         }
         extruder_stepper::read_all(
             config,
+            errors,
             extruder.is_some(),
             |section| read_stepper(section, StepperKind::Extruder),
             &mut steppers,
             &mut extruder_steppers,
         )?;
-        let input_shaper = match config.section("input_shaper") {
+        let input_shaper = match config.section("input_shaper").map(section) {
             Some(section) => shaper_config::read(&section)?,
             None => InputShaperConfig::default(),
         };
-        if let Some(section) = config.section("heater_bed") {
+        if let Some(section) = config.section("heater_bed").map(section) {
             let _ = heaters.push(thermal::read_heater(config, &section)?);
         }
         let fan = config
             .section("fan")
-            .map(|section| thermal::read_fan(&section))
+            .map(|s| thermal::read_fan(&section(s)))
             .transpose()?;
         // `[verify_heater NAME]` of a heater onechip drives; one naming
         // any other heater stays unsupported, as that heater is.
@@ -339,27 +325,28 @@ impl<'a> Machine<'a> {
             if let (Some(heater), Some(s)) = (heater, config.section(section))
                 && !verified.contains(&section)
             {
-                heater.verify = thermal::read_verify_heater(&s, heater.name)?;
+                heater.verify = thermal::read_verify_heater(&Reader::new(s, errors), heater.name)?;
                 let _ = verified.push(section);
             }
         }
-        let idle_timeout = match config.section("idle_timeout") {
+        let idle_timeout = match config.section("idle_timeout").map(section) {
             Some(section) => thermal::read_idle_timeout(&section)?,
             None => IdleTimeoutConfig::default(),
         };
-        if let Some(section) = config.section("force_move") {
+        if let Some(section) = config.section("force_move").map(section) {
             section.get_bool("enable_force_move", false)?;
         }
-        let secondaries = mcu_section::read_all(config)?;
+        let secondaries = mcu_section::read_all(config, errors)?;
         // Sensor types: Klipper reads every definition, used or not.
-        temperature_sensor::read_definitions(config)?;
+        temperature_sensor::read_definitions(config, errors)?;
         let heater_names: heapless::Vec<&str, 2> = heaters.iter().map(|h| h.name).collect();
         let stepper_names: heapless::Vec<&str, MAX_STEPPERS> =
             steppers.iter().map(|s| s.name).collect();
-        let mut sensors = sensor_section::read_all(config)?;
-        let accessories = Accessories::read(config, &heater_names, &stepper_names, &mut sensors)?;
-        let tmc = tmc::config::read_all(config, step_distance)?;
-        let stall_homing = virtual_endstops(config, &steppers, &tmc)?;
+        let mut sensors = sensor_section::read_all(config, errors)?;
+        let accessories =
+            Accessories::read(config, errors, &heater_names, &stepper_names, &mut sensors)?;
+        let tmc = errors.check(read_tmc(config))?;
+        let stall_homing = errors.check(virtual_endstops(config, &steppers, &tmc))?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -379,7 +366,7 @@ impl<'a> Machine<'a> {
                 config.accept_section(name);
             }
         }
-        config.check_unused()?;
+        errors.check(config.check_unused())?;
         Ok(slot.write(Self {
             kinematics,
             limits,
@@ -484,29 +471,27 @@ enum StepperKind {
 /// `parse_step_distance`: rotation_distance over full_steps_per_rotation
 /// times microsteps times gear_ratio).
 pub fn step_distance<'c>(section: &Section<'c, '_>) -> Result<f64, ConfigError<'c>> {
+    Errors::run(|errors| read_step_distance(&Reader::new(*section, errors)))
+}
+
+/// [`step_distance`] into a reading's errors.
+fn read_step_distance(section: &Reader<'_, '_, '_>) -> Read<f64> {
     let (rotation_distance, steps_per_rotation) = rotation(section)?;
     Ok(rotation_distance / steps_per_rotation)
 }
 
 /// A stepper section's rotation_distance (mm per turn) and microsteps
 /// per turn (full_steps_per_rotation × microsteps × gear_ratio).
-pub fn rotation<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError<'c>> {
-    let rotation_distance = section.get_float("rotation_distance", None, Bounds::POSITIVE)?;
+pub(crate) fn rotation(section: &Reader<'_, '_, '_>) -> Read<(f64, f64)> {
+    let rotation_distance = section.required_float("rotation_distance", Bounds::POSITIVE)?;
     let microsteps = section.get_int("microsteps", None, Some(1))?;
     let full_steps = section.get_int("full_steps_per_rotation", Some(200), Some(1))?;
     if full_steps % 4 != 0 {
-        return Err(bad(
-            section,
-            "full_steps_per_rotation",
-            "must be a multiple of 4",
-        ));
+        return Err(section.error_for("full_steps_per_rotation", "must be a multiple of 4"));
     }
     let gear_ratio = match section.get_opt("gear_ratio") {
-        Some(text) => parse_gear_ratio(text).ok_or(bad(
-            section,
-            "gear_ratio",
-            "is not a list of 'a:b' ratios",
-        ))?,
+        Some(text) => parse_gear_ratio(text)
+            .ok_or_else(|| section.error_for("gear_ratio", "is not a list of 'a:b' ratios"))?,
         None => 1.0,
     };
     Ok((
@@ -515,10 +500,7 @@ pub fn rotation<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError
     ))
 }
 
-fn read_stepper<'c, 'a>(
-    section: &Section<'c, 'a>,
-    kind: StepperKind,
-) -> Result<Stepper<'a>, ConfigError<'c>> {
+fn read_stepper<'a>(section: &Reader<'_, '_, 'a>, kind: StepperKind) -> Read<Stepper<'a>> {
     let step_pin = section.get("step_pin")?;
     let dir_pin = section.get("dir_pin")?;
     let enable_pin = section.get_opt("enable_pin");
@@ -526,7 +508,7 @@ fn read_stepper<'c, 'a>(
         StepperKind::Extruder => None,
         _ => section.get_opt("endstop_pin"),
     };
-    let step_dist = step_distance(section)?;
+    let step_dist = read_step_distance(section)?;
     let step_pulse_duration = section.get_float_opt(
         "step_pulse_duration",
         Bounds {
@@ -538,10 +520,9 @@ fn read_stepper<'c, 'a>(
     let (mut position_min, mut position_max) = (0.0, 0.0);
     match kind {
         StepperKind::Rail => {
-            position_min = section.get_float("position_min", Some(0.0), Bounds::NONE)?;
-            position_max = section.get_float(
+            position_min = section.float("position_min", 0.0, Bounds::NONE)?;
+            position_max = section.required_float(
                 "position_max",
-                None,
                 Bounds {
                     above: Some(position_min),
                     ..Bounds::NONE
@@ -586,13 +567,15 @@ fn extra_stepper_name(section: &str) -> Option<(u8, u8)> {
 /// order) after the rails; `rails` gets each one's rail.
 fn read_extra_steppers<'c, 'a>(
     config: &'c Config<'a>,
+    errors: &Errors<'c>,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
     rails: &mut heapless::Vec<usize, MAX_STEPPERS>,
-) -> Result<(), ConfigError<'c>> {
+) -> Read<()> {
     for name in config.section_names() {
         let (Some(rail), Some(section)) = (extra_stepper_rail(name), config.section(name)) else {
             continue;
         };
+        let section = Reader::new(section, errors);
         let stepper = read_stepper(&section, StepperKind::Extra)?;
         // Room for the extruder after it.
         if steppers.len() + 1 >= MAX_STEPPERS {
@@ -602,6 +585,15 @@ fn read_extra_steppers<'c, 'a>(
         let _ = rails.push(rail);
     }
     Ok(())
+}
+
+/// The TMC drivers of `config` ([`tmc::config::read_all`]), out of line
+/// (see [`Machine::from_config_in`]).
+#[inline(never)]
+fn read_tmc<'c, 'a>(
+    config: &'c Config<'a>,
+) -> Result<heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>, ConfigError<'c>> {
+    tmc::config::read_all(config, step_distance)
 }
 
 /// For each of `steppers`, the driver of `drivers` (its index) whose
@@ -658,39 +650,37 @@ fn probe_z(
 /// Reads how a rail homes, with Klipper's defaults; `probe_z` is the
 /// probe's z_offset if the rail homes on it (then position_endstop is not
 /// read).
-fn read_homing<'c>(
-    section: &Section<'c, '_>,
+fn read_homing(
+    section: &Reader<'_, '_, '_>,
     (min, max): (f64, f64),
     probe_z: Result<Option<f64>, &'static str>,
-) -> Result<HomingInfo, ConfigError<'c>> {
-    let probe_z = probe_z.map_err(|reason| bad(section, "endstop_pin", reason))?;
+) -> Read<HomingInfo> {
+    let probe_z = probe_z.map_err(|reason| section.error_for("endstop_pin", reason))?;
     let position_endstop = match probe_z {
         Some(z) => z,
-        None => section.get_float("position_endstop", None, Bounds::NONE)?,
+        None => section.required_float("position_endstop", Bounds::NONE)?,
     };
     read_homing_from(section, position_endstop, (min, max), probe_z.is_some())
 }
 
 /// [`read_homing`] with position_endstop known (mm): the speeds, the
 /// retract and the direction, checked against the travel `(min, max)`.
-fn read_homing_from<'c>(
-    section: &Section<'c, '_>,
+fn read_homing_from(
+    section: &Reader<'_, '_, '_>,
     position_endstop: f64,
     (min, max): (f64, f64),
     probe: bool,
-) -> Result<HomingInfo, ConfigError<'c>> {
+) -> Read<HomingInfo> {
     if position_endstop < min || position_endstop > max {
-        return Err(bad(
-            section,
+        return Err(section.error_for(
             "position_endstop",
             "must be between position_min and position_max",
         ));
     }
-    let speed = section.get_float("homing_speed", Some(5.0), Bounds::POSITIVE)?;
-    let second_speed =
-        section.get_float("second_homing_speed", Some(speed / 2.0), Bounds::POSITIVE)?;
-    let retract_speed = section.get_float("homing_retract_speed", Some(speed), Bounds::POSITIVE)?;
-    let retract_dist = section.get_float("homing_retract_dist", Some(5.0), Bounds::NON_NEGATIVE)?;
+    let speed = section.float("homing_speed", 5.0, Bounds::POSITIVE)?;
+    let second_speed = section.float("second_homing_speed", speed / 2.0, Bounds::POSITIVE)?;
+    let retract_speed = section.float("homing_retract_speed", speed, Bounds::POSITIVE)?;
+    let retract_dist = section.float("homing_retract_dist", 5.0, Bounds::NON_NEGATIVE)?;
     let positive_dir = match section.get_opt("homing_positive_dir") {
         Some(_) => section.get_bool("homing_positive_dir", false)?,
         None => {
@@ -700,11 +690,9 @@ fn read_homing_from<'c>(
             } else if position_endstop >= max - quarter {
                 true
             } else {
-                return Err(bad(
-                    section,
-                    "position_endstop",
-                    "is mid-travel: set homing_positive_dir",
-                ));
+                return Err(
+                    section.error_for("position_endstop", "is mid-travel: set homing_positive_dir")
+                );
             }
         }
     };
@@ -720,27 +708,83 @@ fn read_homing_from<'c>(
     })
 }
 
+/// Reads a cartesian (or corexy, corexz) machine's rails, their extra
+/// steppers into `steppers` (and `extra_rails`), and its travel limits.
+#[inline(never)]
+fn read_cartesian<'c, 'a>(
+    config: &'c Config<'a>,
+    printer: &Reader<'_, 'c, 'a>,
+    kinematics: Kinematics,
+    (max_accel, max_z_velocity): (f64, f64),
+    probe: &Option<ProbeConfig<'_>>,
+    (steppers, extra_rails): (
+        &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
+        &mut heapless::Vec<usize, MAX_STEPPERS>,
+    ),
+) -> Read<(Travel, [StepperKinematics; 3])> {
+    let errors = printer.errors();
+    let max_z_accel = printer.float(
+        "max_z_accel",
+        max_accel,
+        Bounds {
+            above: Some(0.0),
+            maxval: Some(max_accel),
+            ..Bounds::NONE
+        },
+    )?;
+    let mut ranges = [(0.0, 0.0); 3];
+    let mut homing = [None; 3];
+    for (i, name) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
+        let section = Reader::new(errors.check(config.require(name))?, errors);
+        let stepper = read_stepper(&section, StepperKind::Rail)?;
+        ranges[i] = (stepper.position_min, stepper.position_max);
+        homing[i] = Some(read_homing(
+            &section,
+            ranges[i],
+            probe_z(&stepper, i, probe),
+        )?);
+        let _ = steppers.push(stepper);
+    }
+    read_extra_steppers(config, errors, steppers, extra_rails)?;
+    let mut travel = CartesianLimits::new(ranges, max_z_velocity, max_z_accel);
+    travel.homing = homing;
+    for (named, stepper) in travel.extra_steppers.iter_mut().zip(&steppers[3..]) {
+        *named = extra_stepper_name(stepper.name);
+    }
+    use StepperKinematics::{Axis, Difference, Sum};
+    let kin = match kinematics {
+        Kinematics::CoreXY => [Sum(0, 1), Difference(0, 1), Axis(2)],
+        Kinematics::CoreXZ => [Sum(0, 2), Axis(1), Difference(0, 2)],
+        _ => [Axis(0), Axis(1), Axis(2)],
+    };
+    Ok((Travel::Cartesian(travel), kin))
+}
+
 /// Reads a linear delta's towers and derives its travel limits.
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
 fn read_delta<'c, 'a>(
     config: &'c Config<'a>,
-    printer: &Section<'c, 'a>,
+    printer: &Reader<'_, 'c, 'a>,
     limits: &Limits,
     max_z_velocity: f64,
     steppers: &mut heapless::Vec<Stepper<'a>, MAX_STEPPERS>,
-) -> Result<(Travel, [StepperKinematics; 3]), ConfigError<'c>> {
-    let radius = printer.get_float("delta_radius", None, Bounds::POSITIVE)?;
-    let print_radius = printer.get_float("print_radius", Some(radius), Bounds::POSITIVE)?;
+) -> Read<(Travel, [StepperKinematics; 3])> {
+    let radius = printer.required_float("delta_radius", Bounds::POSITIVE)?;
+    let print_radius = printer.float("print_radius", radius, Bounds::POSITIVE)?;
+    let errors = printer.errors();
+    let tower = |name| Ok(Reader::new(errors.check(config.require(name))?, errors));
     let towers = [
-        config.require("stepper_a")?,
-        config.require("stepper_b")?,
-        config.require("stepper_c")?,
+        tower("stepper_a")?,
+        tower("stepper_b")?,
+        tower("stepper_c")?,
     ];
     let above_radius = Bounds {
         above: Some(radius),
         ..Bounds::NONE
     };
-    let arm_a = towers[0].get_float("arm_length", None, above_radius)?;
-    let endstop_a = towers[0].get_float("position_endstop", None, Bounds::NONE)?;
+    let arm_a = towers[0].required_float("arm_length", above_radius)?;
+    let endstop_a = towers[0].required_float("position_endstop", Bounds::NONE)?;
     let (mut max_z, mut limit_z, mut min_arm, mut min_step_dist) =
         (f64::MAX, f64::MAX, f64::MAX, f64::MAX);
     let mut kinematics = [StepperKinematics::Axis(0); 3];
@@ -752,12 +796,12 @@ fn read_delta<'c, 'a>(
         .zip(kinematics.iter_mut())
         .enumerate()
     {
-        let arm = tower.get_float("arm_length", Some(arm_a), above_radius)?;
-        let endstop = tower.get_float("position_endstop", Some(endstop_a), Bounds::NONE)?;
+        let arm = tower.float("arm_length", arm_a, above_radius)?;
+        let endstop = tower.float("position_endstop", endstop_a, Bounds::NONE)?;
         // As Klipper's rails without a travel range: 0 to the endstop.
         let homing = read_homing_from(tower, endstop, (0.0, endstop), false)?;
         homing_a.get_or_insert(homing);
-        let angle = tower.get_float("angle", Some(default_angle), Bounds::NONE)?;
+        let angle = tower.float("angle", default_angle, Bounds::NONE)?;
         *kin = StepperKinematics::DeltaTower {
             arm2: arm * arm,
             tower: delta_tower(angle, radius),
@@ -772,9 +816,9 @@ fn read_delta<'c, 'a>(
         min_step_dist = min_step_dist.min(stepper.step_dist);
         let _ = steppers.push(stepper);
     }
-    let min_z = printer.get_float(
+    let min_z = printer.float(
         "minimum_z_position",
-        Some(0.0),
+        0.0,
         Bounds {
             maxval: Some(max_z),
             ..Bounds::NONE
@@ -809,14 +853,12 @@ fn read_delta<'c, 'a>(
     Ok((Travel::Delta(travel), kinematics))
 }
 
-fn read_extruder<'c>(
-    section: &Section<'c, '_>,
-    limits: &Limits,
-) -> Result<ExtruderLimits, ConfigError<'c>> {
-    let nozzle_diameter = section.get_float("nozzle_diameter", None, Bounds::POSITIVE)?;
-    let filament_diameter = section.get_float(
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+fn read_extruder(section: &Reader<'_, '_, '_>, limits: &Limits) -> Read<ExtruderLimits> {
+    let nozzle_diameter = section.required_float("nozzle_diameter", Bounds::POSITIVE)?;
+    let filament_diameter = section.required_float(
         "filament_diameter",
-        None,
         Bounds {
             minval: Some(nozzle_diameter),
             ..Bounds::NONE
@@ -826,40 +868,32 @@ fn read_extruder<'c>(
         core::f64::consts::PI * (filament_diameter * 0.5) * (filament_diameter * 0.5);
     let def_max_cross_section = 4.0 * nozzle_diameter * nozzle_diameter;
     let def_max_extrude_ratio = def_max_cross_section / filament_area;
-    let max_cross_section = section.get_float(
+    let max_cross_section = section.float(
         "max_extrude_cross_section",
-        Some(def_max_cross_section),
+        def_max_cross_section,
         Bounds::POSITIVE,
     )?;
     Ok(ExtruderLimits {
         nozzle_diameter,
         filament_area,
         max_extrude_ratio: max_cross_section / filament_area,
-        max_e_velocity: section.get_float(
+        max_e_velocity: section.float(
             "max_extrude_only_velocity",
-            Some(limits.max_velocity * def_max_extrude_ratio),
+            limits.max_velocity * def_max_extrude_ratio,
             Bounds::POSITIVE,
         )?,
-        max_e_accel: section.get_float(
+        max_e_accel: section.float(
             "max_extrude_only_accel",
-            Some(limits.max_accel * def_max_extrude_ratio),
+            limits.max_accel * def_max_extrude_ratio,
             Bounds::POSITIVE,
         )?,
-        max_e_dist: section.get_float(
-            "max_extrude_only_distance",
-            Some(50.0),
-            Bounds::NON_NEGATIVE,
-        )?,
-        instant_corner_v: section.get_float(
+        max_e_dist: section.float("max_extrude_only_distance", 50.0, Bounds::NON_NEGATIVE)?,
+        instant_corner_v: section.float(
             "instantaneous_corner_velocity",
-            Some(1.0),
+            1.0,
             Bounds::NON_NEGATIVE,
         )?,
     })
-}
-
-fn bad<'c>(section: &Section<'c, '_>, option: &'c str, reason: &'static str) -> ConfigError<'c> {
-    section.error_for(option, reason)
 }
 
 /// `"57:11, 2:1"` -> 57/11 * 2/1.

@@ -2,7 +2,8 @@
 //! firmware, with Klipper's options. The main MCU's `[mcu]` is the board
 //! onechip runs on; its options are accepted and need nothing.
 
-use onechip_config::{Config, ConfigError, Section};
+use crate::reader::{Errors, Read, Reader};
+use onechip_config::Config;
 
 /// Most secondary MCUs.
 pub const MAX_SECONDARIES: usize = 4;
@@ -36,9 +37,12 @@ pub struct SecondaryMcu<'a> {
 }
 
 /// Reads every `[mcu NAME]` section of `config`, and accepts `[mcu]`.
-pub fn read_all<'c, 'a>(
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read_all<'c, 'a>(
     config: &'c Config<'a>,
-) -> Result<heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>, ConfigError<'c>> {
+    errors: &Errors<'c>,
+) -> Read<heapless::Vec<SecondaryMcu<'a>, MAX_SECONDARIES>> {
     config.accept_section("mcu");
     let mut all = heapless::Vec::new();
     for name in config.section_names() {
@@ -48,6 +52,7 @@ pub fn read_all<'c, 'a>(
         let Some(section) = config.section(name) else {
             continue;
         };
+        let section = Reader::new(section, errors);
         let mcu = read(&section)?;
         if all.push(mcu).is_err() {
             return Err(
@@ -58,7 +63,7 @@ pub fn read_all<'c, 'a>(
     Ok(all)
 }
 
-fn read<'c, 'a>(section: &Section<'c, 'a>) -> Result<SecondaryMcu<'a>, ConfigError<'c>> {
+fn read<'a>(section: &Reader<'_, '_, 'a>) -> Read<SecondaryMcu<'a>> {
     if section.get_opt("canbus_uuid").is_some() {
         return Err(section.error_for("canbus_uuid", "CAN bus MCUs are not supported yet"));
     }

@@ -3,7 +3,8 @@
 //! (pins driven high, or low if written `!`, from start-up on), with
 //! Klipper's option names, defaults and bounds.
 
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use crate::reader::{Errors, Read, Reader};
+use onechip_config::{Bounds, Config};
 
 /// Most `[output_pin]` sections.
 pub const MAX_OUTPUT_PINS: usize = 8;
@@ -105,17 +106,15 @@ pub fn unique_sections<'c, 'a>(config: &'c Config<'a>) -> impl Iterator<Item = &
 
 /// Reads an `[output_pin NAME]` section.
 #[inline(never)]
-pub fn read_output_pin<'c, 'a>(
-    section: &Section<'c, 'a>,
-) -> Result<OutputPin<'a>, ConfigError<'c>> {
+pub(crate) fn read_output_pin<'a>(section: &Reader<'_, '_, 'a>) -> Read<OutputPin<'a>> {
     let written = section.name_in_file();
     let name = named(written, "output_pin").unwrap_or(written);
     let pin = section.get("pin")?;
     let pwm = section.get_bool("pwm", false)?;
     let (cycle_time, hardware_pwm, scale) = if pwm {
-        let cycle_time = section.get_float(
+        let cycle_time = section.float(
             "cycle_time",
-            Some(0.100),
+            0.100,
             Bounds {
                 above: Some(0.0),
                 maxval: Some(MAX_SCHEDULE_TIME),
@@ -126,7 +125,7 @@ pub fn read_output_pin<'c, 'a>(
         (
             cycle_time,
             hardware_pwm,
-            section.get_float("scale", Some(1.0), Bounds::POSITIVE)?,
+            section.float("scale", 1.0, Bounds::POSITIVE)?,
         )
     } else {
         (0.0, false, 1.0)
@@ -137,9 +136,7 @@ pub fn read_output_pin<'c, 'a>(
             maxval: Some(scale),
             ..Bounds::NONE
         };
-        section
-            .get_float(option, Some(0.0), bounds)
-            .map(|v| v / scale)
+        section.float(option, 0.0, bounds).map(|v| v / scale)
     };
     let max_duration = match section.get_float_opt(
         "maximum_mcu_duration",
@@ -178,10 +175,11 @@ pub fn read_output_pin<'c, 'a>(
 /// Reads every `[static_digital_output]` section's `pins` into `out`;
 /// more than [`MAX_STATIC_PINS`] in all is an error.
 #[inline(never)]
-pub fn read_static_outputs<'c, 'a>(
+pub(crate) fn read_static_outputs<'c, 'a>(
     config: &'c Config<'a>,
+    errors: &Errors<'c>,
     out: &mut heapless::Vec<StaticPin<'a>, MAX_STATIC_PINS>,
-) -> Result<(), ConfigError<'c>> {
+) -> Read<()> {
     for name in unique_sections(config) {
         if named(name, "static_digital_output").is_none() {
             continue;
@@ -189,6 +187,7 @@ pub fn read_static_outputs<'c, 'a>(
         let Some(section) = config.section(name) else {
             continue;
         };
+        let section = Reader::new(section, errors);
         let pins = section.get("pins")?;
         for pin in list_items(pins) {
             out.push(StaticPin {
@@ -208,29 +207,36 @@ mod tests {
     extern crate std;
     use super::*;
 
+    /// Reads the `[output_pin]` section `name` of `config`.
+    fn output_pin<'a>(
+        config: &Config<'a>,
+        name: &str,
+    ) -> Result<OutputPin<'a>, std::string::String> {
+        let section = config.section(name).expect("section");
+        Errors::run(|errors| read_output_pin(&Reader::new(section, errors)))
+            .map_err(|e| std::format!("{e}"))
+    }
+
     #[test]
     fn output_pins_read_with_klippers_defaults_and_scale() {
         let text = "[output_pin beeper]\npin: PE8\n\
             [output_pin current]\npin: PA5\npwm: True\nscale: 2.0\nvalue: 1.5\nshutdown_value: 0.5\n\
             cycle_time: 0.000030\nhardware_pwm: True\n";
         let config = Config::parse("printer.cfg", text).expect("parses");
-        let beeper =
-            read_output_pin(&config.section("output_pin beeper").expect("section")).expect("reads");
+        let beeper = output_pin(&config, "output_pin beeper").expect("reads");
         assert_eq!(
             (beeper.name, beeper.pwm, beeper.value),
             ("beeper", false, 0.0)
         );
         assert_eq!((beeper.cycle_time, beeper.max_duration), (0.0, 0.0));
-        let current = read_output_pin(&config.section("output_pin current").expect("section"))
-            .expect("reads");
+        let current = output_pin(&config, "output_pin current").expect("reads");
         assert_eq!((current.value, current.shutdown_value), (0.75, 0.25));
         assert!(current.hardware_pwm && current.pwm);
         let over = "[output_pin x]\npin: PA5\npwm: 1\nvalue: 1.5\n";
         let config = Config::parse("printer.cfg", over).expect("parses");
-        let e = read_output_pin(&config.section("output_pin x").expect("section"))
-            .expect_err("above scale");
+        let e = output_pin(&config, "output_pin x").expect_err("above scale");
         assert_eq!(
-            std::format!("{e}"),
+            e,
             "printer.cfg:4: option 'value' in section 'output_pin x' is above its maximum"
         );
     }
@@ -241,7 +247,7 @@ mod tests {
             "[static_digital_output leds]\npins: PA1, !PA2,PA3\n  # more\n  PB1, PB2, ; last\n";
         let config = Config::parse("printer.cfg", text).expect("parses");
         let mut pins = heapless::Vec::new();
-        read_static_outputs(&config, &mut pins).expect("reads");
+        Errors::run(|errors| read_static_outputs(&config, errors, &mut pins)).expect("reads");
         let written: heapless::Vec<&str, 8> = pins.iter().map(|p| p.pin).collect();
         assert_eq!(written.as_slice(), ["PA1", "!PA2", "PA3", "PB1", "PB2"]);
     }

@@ -13,9 +13,10 @@ use crate::bltouch::{self, Bltouch, BltouchConfig};
 use crate::homing::HomingHooks;
 use crate::homing::Rails;
 use crate::move_sink::MoveSink;
+use crate::reader::{Errors, Read, Reader};
 use crate::toolhead::{Detail, HomingInfo, MoveError, Toolhead};
 use onechip_config::decimal::Fixed;
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// The endstop pin a rail names to home on the probe.
 pub const VIRTUAL_ENDSTOP: &str = "probe:z_virtual_endstop";
@@ -71,8 +72,14 @@ pub struct ProbeConfig<'a> {
 
 /// Reads `[probe]` or `[bltouch]`, if present (both: an error, as in
 /// Klipper where each registers the `probe` object).
-pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, ConfigError<'c>> {
-    let (section, bltouch) = match (config.section("probe"), config.section("bltouch")) {
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read<'c, 'a>(
+    config: &'c Config<'a>,
+    errors: &Errors<'c>,
+) -> Read<Option<ProbeConfig<'a>>> {
+    let section = |name| config.section(name).map(|s| Reader::new(s, errors));
+    let (section, bltouch) = match (section("probe"), section("bltouch")) {
         (Some(_), Some(b)) => {
             return Err(b.error_for("control_pin", "[probe] is already defined"));
         }
@@ -94,22 +101,20 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, C
         Bounds::NONE
     };
     let offsets = [
-        section.get_float("x_offset", Some(0.0), Bounds::NONE)?,
-        section.get_float("y_offset", Some(0.0), Bounds::NONE)?,
-        section.get_float("z_offset", None, z_offset_bounds)?,
+        section.float("x_offset", 0.0, Bounds::NONE)?,
+        section.float("y_offset", 0.0, Bounds::NONE)?,
+        section.required_float("z_offset", z_offset_bounds)?,
     ];
-    let speed = section.get_float("speed", Some(5.0), Bounds::POSITIVE)?;
-    let lift_speed = section.get_float("lift_speed", Some(speed), Bounds::POSITIVE)?;
+    let speed = section.float("speed", 5.0, Bounds::POSITIVE)?;
+    let lift_speed = section.float("lift_speed", speed, Bounds::POSITIVE)?;
     let samples = count(&section, "samples", 1, 1)?;
-    let sample_retract_dist =
-        section.get_float("sample_retract_dist", Some(2.0), Bounds::POSITIVE)?;
+    let sample_retract_dist = section.float("sample_retract_dist", 2.0, Bounds::POSITIVE)?;
     let samples_result =
         match section.get_choice("samples_result", &["average", "median"], Some("average"))? {
             "median" => SamplesResult::Median,
             _ => SamplesResult::Average,
         };
-    let samples_tolerance =
-        section.get_float("samples_tolerance", Some(0.100), Bounds::NON_NEGATIVE)?;
+    let samples_tolerance = section.float("samples_tolerance", 0.100, Bounds::NON_NEGATIVE)?;
     let samples_tolerance_retries = count(&section, "samples_tolerance_retries", 0, 0)?;
     if bltouch.is_none() {
         // Run around each probing move by Klipper; onechip takes them as
@@ -125,8 +130,8 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, C
         }
         section.get_bool("deactivate_on_each_sample", true)?;
     }
-    let z_position = match config.section("stepper_z") {
-        Some(z) => z.get_float("position_min", Some(0.0), Bounds::NONE)?,
+    let z_position = match config.section("stepper_z").map(|s| Reader::new(s, errors)) {
+        Some(z) => z.float("position_min", 0.0, Bounds::NONE)?,
         None => 0.0,
     };
     Ok(Some(ProbeConfig {
@@ -146,12 +151,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ProbeConfig<'a>>, C
 }
 
 /// An integer option of at least `min`.
-pub(crate) fn count<'c>(
-    section: &Section<'c, '_>,
-    option: &'c str,
-    default: i64,
-    min: i64,
-) -> Result<u32, ConfigError<'c>> {
+fn count<'c>(section: &Reader<'_, 'c, '_>, option: &'c str, default: i64, min: i64) -> Read<u32> {
     let n = section.get_int(option, Some(default), Some(min))?;
     u32::try_from(n).map_err(|_| section.error_for(option, "is too large"))
 }

@@ -12,8 +12,9 @@
 
 use crate::homing::HomingHooks;
 use crate::move_sink::MoveSink;
+use crate::reader::{Errors, Read, Reader};
 use crate::toolhead::{Detail, MoveError, Toolhead};
-use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
+use onechip_config::{Bounds, Config, decimal};
 
 /// Klipper's error when Z would home before X and Y.
 pub const HOME_XY_FIRST: &str = "Must home X and Y axes first";
@@ -58,11 +59,11 @@ pub enum G28<'a> {
 
 /// Reads `[safe_z_home]` and `[homing_override]` (not both: Klipper's
 /// error).
-pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<G28<'a>, ConfigError<'c>> {
-    match (
-        config.section("safe_z_home"),
-        config.section("homing_override"),
-    ) {
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read<'c, 'a>(config: &'c Config<'a>, errors: &Errors<'c>) -> Read<G28<'a>> {
+    let section = |name| config.section(name).map(|s| Reader::new(s, errors));
+    match (section("safe_z_home"), section("homing_override")) {
         (Some(s), Some(_)) => Err(s.error_for(
             "home_xy_position",
             "homing_override and safe_z_homing cannot be used simultaneously",
@@ -73,7 +74,7 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<G28<'a>, ConfigError<'c>> 
     }
 }
 
-fn read_safe_z_home<'c>(s: &Section<'c, '_>) -> Result<SafeZHome, ConfigError<'c>> {
+fn read_safe_z_home(s: &Reader<'_, '_, '_>) -> Read<SafeZHome> {
     let text = s.get("home_xy_position")?;
     let mut parts = text.split(',').map(|p| decimal::parse(p.trim()));
     let home_xy = match (parts.next(), parts.next(), parts.next()) {
@@ -84,14 +85,14 @@ fn read_safe_z_home<'c>(s: &Section<'c, '_>) -> Result<SafeZHome, ConfigError<'c
     };
     Ok(SafeZHome {
         home_xy,
-        speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
-        z_hop: s.get_float("z_hop", Some(0.0), Bounds::NONE)?,
-        z_hop_speed: s.get_float("z_hop_speed", Some(15.0), Bounds::POSITIVE)?,
+        speed: s.float("speed", 50.0, Bounds::POSITIVE)?,
+        z_hop: s.float("z_hop", 0.0, Bounds::NONE)?,
+        z_hop_speed: s.float("z_hop_speed", 15.0, Bounds::POSITIVE)?,
         move_to_previous: s.get_bool("move_to_previous", false)?,
     })
 }
 
-fn read_override<'c, 'a>(s: &Section<'c, 'a>) -> Result<HomingOverride<'a>, ConfigError<'c>> {
+fn read_override<'a>(s: &Reader<'_, '_, 'a>) -> Read<HomingOverride<'a>> {
     let gcode = s.get("gcode")?;
     if gcode.contains('{') {
         return Err(s.error_for(

@@ -8,10 +8,11 @@ use crate::gcode::Extended;
 use crate::gcode_move::CommandError;
 use crate::move_sink::MoveSink;
 use crate::probe::{ProbeConfig, ProbeState, Sampling};
+use crate::reader::{Errors, Read, Reader};
 use crate::toolhead::{MoveError, Toolhead};
 use core::fmt::{self, Write};
 use onechip_config::decimal::{Fixed, Shortest};
-use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
+use onechip_config::{Bounds, Config, decimal};
 
 /// Most screws kept (Klipper reads `screw1` up to `screw99`; printers
 /// have 3 to 6).
@@ -105,10 +106,16 @@ pub struct ScrewsTilt<'a> {
 }
 
 /// Reads `[screws_tilt_adjust]`, if present.
-pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, ConfigError<'c>> {
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read<'c, 'a>(
+    config: &'c Config<'a>,
+    errors: &Errors<'c>,
+) -> Read<Option<ScrewsTilt<'a>>> {
     let Some(s) = config.section("screws_tilt_adjust") else {
         return Ok(None);
     };
+    let s = Reader::new(s, errors);
     let screws = read_screws(&s, "screws_tilt_adjust: Must have at least three screws")?;
     let names = THREADS.map(|(name, ..)| name);
     let thread = s.get_choice("screw_thread", &names, Some("CW-M3"))?;
@@ -120,8 +127,8 @@ pub fn read<'c, 'a>(config: &'c Config<'a>) -> Result<Option<ScrewsTilt<'a>>, Co
         screws,
         pitch,
         clockwise_thread,
-        horizontal_move_z: s.get_float("horizontal_move_z", Some(5.0), Bounds::NONE)?,
-        speed: s.get_float("speed", Some(50.0), Bounds::POSITIVE)?,
+        horizontal_move_z: s.float("horizontal_move_z", 5.0, Bounds::NONE)?,
+        speed: s.float("speed", 50.0, Bounds::POSITIVE)?,
     }))
 }
 
@@ -144,10 +151,7 @@ const SCREW_OPTIONS: [(&str, &str, &str); MAX_SCREWS + 1] = [
 /// A section's `screw1`, `screw2`, … (with their names) up to the first
 /// missing, at least three (else `too_few`, Klipper's message), as
 /// Klipper's screw helpers read them.
-pub(crate) fn read_screws<'c, 'a>(
-    s: &Section<'c, 'a>,
-    too_few: &'static str,
-) -> Result<Screws<'a>, ConfigError<'c>> {
+pub(crate) fn read_screws<'a>(s: &Reader<'_, '_, 'a>, too_few: &'static str) -> Read<Screws<'a>> {
     let mut screws = Screws::new();
     for (option, name, _) in SCREW_OPTIONS {
         let Some(at) = coordinate(s, option)? else {
@@ -170,10 +174,10 @@ pub(crate) fn read_screws<'c, 'a>(
 
 /// The fine-adjust points of `screws` (`screwN_fine_adjust`, each with
 /// its screw's name), in order, for the screws that have one.
-pub(crate) fn read_fine_points<'c, 'a>(
-    s: &Section<'c, 'a>,
+pub(crate) fn read_fine_points<'a>(
+    s: &Reader<'_, '_, 'a>,
     screws: &Screws<'a>,
-) -> Result<Screws<'a>, ConfigError<'c>> {
+) -> Read<Screws<'a>> {
     let mut fine = Screws::new();
     for (screw, (_, _, option)) in screws.iter().zip(SCREW_OPTIONS) {
         if let Some(at) = coordinate(s, option)? {
@@ -186,10 +190,7 @@ pub(crate) fn read_fine_points<'c, 'a>(
 
 /// Option `option` as an `x, y` coordinate (two finite numbers), if set
 /// (Klipper's message if not).
-fn coordinate<'c>(
-    s: &Section<'c, '_>,
-    option: &'c str,
-) -> Result<Option<[f64; 2]>, ConfigError<'c>> {
+fn coordinate<'c>(s: &Reader<'_, 'c, '_>, option: &'c str) -> Read<Option<[f64; 2]>> {
     let Some(text) = s.get_opt(option) else {
         return Ok(None);
     };
@@ -387,7 +388,9 @@ mod tests {
         let text: &'static str = std::boxed::Box::leak(text.into_boxed_str());
         let config = Config::parse("printer.cfg", text).expect("parses");
         let config: &'static Config<'static> = std::boxed::Box::leak(std::boxed::Box::new(config));
-        read(config).expect("reads").expect("present")
+        Errors::run(|errors| read(config, errors))
+            .expect("reads")
+            .expect("present")
     }
 
     #[test]
@@ -441,11 +444,15 @@ mod tests {
     fn fewer_than_three_screws_or_a_bad_thread_are_refused() {
         let two = "[screws_tilt_adjust]\nscrew1: 1,2\nscrew2: 3,4\n";
         let config = Config::parse("printer.cfg", two).expect("parses");
-        let e = read(&config).expect_err("two screws").to_string();
+        let e = Errors::run(|errors| read(&config, errors))
+            .expect_err("two screws")
+            .to_string();
         assert!(e.contains("Must have at least three screws"), "{e}");
         let bad = "[screws_tilt_adjust]\nscrew1: 1,2\nscrew2: 3,4\nscrew3: 5,6\nscrew_thread: M3\n";
         let config = Config::parse("printer.cfg", bad).expect("parses");
-        let e = read(&config).expect_err("bad thread").to_string();
+        let e = Errors::run(|errors| read(&config, errors))
+            .expect_err("bad thread")
+            .to_string();
         assert!(e.contains("screw_thread"), "{e}");
     }
 }

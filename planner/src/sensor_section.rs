@@ -10,10 +10,11 @@
 //! shut the printer down, as a heater's do; `gcode_id` makes the sensor
 //! part of the M105 report.
 
+use crate::reader::{Errors, Read, Reader};
 use crate::temperature_sensor::{self, TemperatureSensor};
 use crate::thermal;
 use crate::thermistor::ZERO_CELSIUS;
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// Most `[temperature_sensor]` sections.
 pub const MAX_SENSORS: usize = 4;
@@ -204,14 +205,18 @@ pub fn is_section(name: &str) -> bool {
 }
 
 /// Reads every `[temperature_sensor NAME]`.
-pub fn read_all<'c, 'a>(
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read_all<'c, 'a>(
     config: &'c Config<'a>,
-) -> Result<heapless::Vec<SensorSection<'a>, MAX_SENSORS>, ConfigError<'c>> {
+    errors: &Errors<'c>,
+) -> Read<heapless::Vec<SensorSection<'a>, MAX_SENSORS>> {
     let mut sensors = heapless::Vec::new();
     for name in config.section_names().filter(|n| is_section(n)) {
         let Some(section) = config.section(name) else {
             continue;
         };
+        let section = Reader::new(section, errors);
         let sensor = read(config, &section, (Some(-ZERO_CELSIUS), Some(NO_MAX_TEMP)))?;
         sensors
             .push(sensor)
@@ -223,11 +228,11 @@ pub fn read_all<'c, 'a>(
 /// Reads the sensor of `section` (a `[temperature_sensor]`, or a
 /// `[temperature_fan]`'s), min_temp and max_temp with these defaults
 /// (None: required).
-pub fn read<'c, 'a>(
+pub(crate) fn read<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
+    section: &Reader<'_, 'c, 'a>,
     (min_default, max_default): (Option<f64>, Option<f64>),
-) -> Result<SensorSection<'a>, ConfigError<'c>> {
+) -> Read<SensorSection<'a>> {
     let input = if section
         .get("sensor_type")?
         .eq_ignore_ascii_case("temperature_mcu")
@@ -238,7 +243,7 @@ pub fn read<'c, 'a>(
                 "only the main MCU's temperature can be read (not a secondary's)",
             ));
         }
-        section.get_float("reference_voltage", Some(3.3), Bounds::POSITIVE)?;
+        section.float("reference_voltage", 3.3, Bounds::POSITIVE)?;
         SensorInput::Mcu(read_calibration(section)?)
     } else {
         match temperature_sensor::read(config, section)? {
@@ -261,17 +266,12 @@ pub fn read<'c, 'a>(
 }
 
 /// `sensor_temperature1`/`sensor_adc1` and `…2`.
-fn read_calibration<'c>(section: &Section<'c, '_>) -> Result<McuCalibration, ConfigError<'c>> {
-    let unit = Bounds {
-        minval: Some(0.0),
-        maxval: Some(1.0),
-        ..Bounds::NONE
-    };
+fn read_calibration(section: &Reader<'_, '_, '_>) -> Read<McuCalibration> {
     let mut cal = McuCalibration::default();
     if let Some(t1) = section.get_float_opt("sensor_temperature1", Bounds::NONE)? {
-        cal.point1 = Some((t1, section.get_float("sensor_adc1", None, unit)?));
+        cal.point1 = Some((t1, section.required_float("sensor_adc1", Bounds::UNIT)?));
         if let Some(t2) = section.get_float_opt("sensor_temperature2", Bounds::NONE)? {
-            cal.point2 = Some((t2, section.get_float("sensor_adc2", None, unit)?));
+            cal.point2 = Some((t2, section.required_float("sensor_adc2", Bounds::UNIT)?));
         }
     }
     Ok(cal)
@@ -290,7 +290,7 @@ mod tests {
     ) {
         let text = format!("[printer]\n{extra}");
         let config = Config::parse("printer.cfg", &text).expect("parses");
-        match read_all(&config) {
+        match Errors::run(|errors| read_all(&config, errors)) {
             Ok(sensors) => check(Ok(&sensors)),
             Err(e) => check(Err(format!("{e}"))),
         }

@@ -3,7 +3,8 @@
 //! them. Applying the filter is step generation's work; this reads and
 //! checks the settings as Klipper does.
 
-use onechip_config::{Bounds, ConfigError, Section};
+use crate::reader::{Read, Reader};
+use onechip_config::Bounds;
 
 /// The input shapers Klipper defines.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -224,7 +225,9 @@ fn expansion<const N: usize>(
 }
 
 /// Reads `[input_shaper]`.
-pub fn read<'c>(section: &Section<'c, '_>) -> Result<InputShaperConfig, ConfigError<'c>> {
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read(section: &Reader<'_, '_, '_>) -> Read<InputShaperConfig> {
     let names: [&str; 6] = ShaperType::NAMES.map(|(n, _)| n);
     let default_type = section.get_choice("shaper_type", &names, Some("mzv"))?;
     let mut axes = [None; 2];
@@ -233,16 +236,8 @@ pub fn read<'c>(section: &Section<'c, '_>) -> Result<InputShaperConfig, ConfigEr
         ("shaper_type_y", "shaper_freq_y", "damping_ratio_y"),
     ]) {
         let name = section.get_choice(type_key, &names, Some(default_type))?;
-        let freq = section.get_float(freq_key, Some(0.0), Bounds::NON_NEGATIVE)?;
-        let damping_ratio = section.get_float(
-            damping_key,
-            Some(0.1),
-            Bounds {
-                minval: Some(0.0),
-                maxval: Some(1.0),
-                ..Bounds::NONE
-            },
-        )?;
+        let freq = section.float(freq_key, 0.0, Bounds::NON_NEGATIVE)?;
+        let damping_ratio = section.float(damping_key, 0.1, Bounds::UNIT)?;
         let kind = ShaperType::NAMES
             .iter()
             .find(|(n, _)| *n == name)
@@ -262,13 +257,20 @@ pub fn read<'c>(section: &Section<'c, '_>) -> Result<InputShaperConfig, ConfigEr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use onechip_config::Config;
+    use crate::reader::Errors;
+    use onechip_config::{Config, ConfigError};
+
+    /// `config`'s `[input_shaper]`.
+    fn input_shaper<'c>(config: &'c Config<'_>) -> Result<InputShaperConfig, ConfigError<'c>> {
+        let section = config.require("input_shaper").expect("present");
+        Errors::run(|errors| read(&Reader::new(section, errors)))
+    }
 
     #[test]
     fn reads_types_frequencies_and_default_damping() {
         let text = "[input_shaper]\nshaper_type_x: mzv\nshaper_freq_x: 40\nshaper_type_y: ei\nshaper_freq_y: 35\n";
         let config = Config::parse("p.cfg", text).expect("valid");
-        let shaper = read(&config.require("input_shaper").expect("present")).expect("valid");
+        let shaper = input_shaper(&config).expect("valid");
         assert_eq!(
             shaper.x,
             Some(AxisShaper {
@@ -293,7 +295,7 @@ mod tests {
             ("[input_shaper]\nshaper_freq_x: 0\n", true),
         ] {
             let config = Config::parse("p.cfg", text).expect("syntax");
-            let result = read(&config.require("input_shaper").expect("present"));
+            let result = input_shaper(&config);
             assert_eq!(result.is_ok(), ok, "{text}");
             if let Ok(s) = result {
                 assert_eq!(s, InputShaperConfig::default());

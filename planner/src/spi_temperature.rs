@@ -10,7 +10,8 @@
 //! MAX31865), and the bus (`spi_bus`, or a software bus on
 //! `spi_software_sclk_pin`/`…_mosi_pin`/`…_miso_pin`, at `spi_speed`).
 
-use onechip_config::{Bounds, ConfigError, Section};
+use crate::reader::{Read, Reader};
+use onechip_config::Bounds;
 
 /// The converter chip, as `sensor_type` names it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -313,10 +314,7 @@ pub struct SpiBus<'a> {
 /// Reads the SPI sensor of `section` (a heater or a
 /// `[temperature_sensor]`), whose `sensor_type` names `chip`: the chip's
 /// own options, then the bus's, with Klipper's defaults and limits.
-pub fn read<'c, 'a>(
-    section: &Section<'c, 'a>,
-    chip: Chip,
-) -> Result<(SpiSensor, SpiBus<'a>), ConfigError<'c>> {
+pub(crate) fn read<'a>(section: &Reader<'_, '_, 'a>, chip: Chip) -> Read<(SpiSensor, SpiBus<'a>)> {
     let mut sensor = SpiSensor::new(chip);
     match chip {
         Chip::Max31856 => {
@@ -332,12 +330,8 @@ pub fn read<'c, 'a>(
             sensor.set_init(&[0x80, cr0, code | avg_bits, MASK_DEFAULT]);
         }
         Chip::Max31865 => {
-            let positive = Bounds {
-                above: Some(0.0),
-                ..Bounds::NONE
-            };
-            let nominal = section.get_float("rtd_nominal_r", Some(100.0), positive)?;
-            let reference = section.get_float("rtd_reference_r", Some(430.0), positive)?;
+            let nominal = section.float("rtd_nominal_r", 100.0, Bounds::POSITIVE)?;
+            let reference = section.float("rtd_reference_r", 430.0, Bounds::POSITIVE)?;
             sensor.rtd_ratio = reference / MAX31865_FULL / nominal;
             let mut config = RTD_CONFIG_DEFAULT;
             if section.get_bool("rtd_use_50Hz_filter", false)? {
@@ -374,6 +368,7 @@ pub fn read<'c, 'a>(
 mod tests {
     extern crate std;
     use super::*;
+    use crate::reader::Errors;
     use onechip_config::Config;
     use std::string::{String, ToString};
 
@@ -385,7 +380,7 @@ mod tests {
         let config = Config::parse("printer.cfg", text).map_err(|e| e.to_string())?;
         let config: &'static Config<'static> = std::boxed::Box::leak(std::boxed::Box::new(config));
         let section = config.section("temperature_sensor t").expect("section");
-        read(&section, chip).map_err(|e| e.to_string())
+        Errors::run(|errors| read(&Reader::new(section, errors), chip)).map_err(|e| e.to_string())
     }
 
     fn close(a: f64, b: f64, tolerance: f64) -> bool {

@@ -13,9 +13,10 @@
 //! with a config error naming `sensor_type`.
 
 use crate::adc_temperature::{self, Column, LinearSensor, Samples};
+use crate::reader::{Errors, Read, Reader};
 use crate::spi_temperature::{self, Chip, SpiBus, SpiSensor};
 use crate::thermistor::{self, Curve, Thermistor};
-use onechip_config::{Config, ConfigError, Section};
+use onechip_config::Config;
 
 /// A sensor read through an ADC input, or an SPI converter chip.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -96,12 +97,14 @@ pub fn is_definition_section(section: &str) -> bool {
 /// Reads the definition section `name`.
 fn read_definition<'c>(
     config: &'c Config<'_>,
+    errors: &Errors<'c>,
     name: &'c str,
     kind: Kind,
-) -> Result<Option<Definition>, ConfigError<'c>> {
+) -> Read<Option<Definition>> {
     let Some(section) = config.section(name) else {
         return Ok(None);
     };
+    let section = Reader::new(section, errors);
     Ok(Some(match kind {
         Kind::Thermistor => Definition::Thermistor(thermistor::read_section(&section)?),
         Kind::AdcTemperature => {
@@ -113,10 +116,10 @@ fn read_definition<'c>(
 
 /// Checks every `[thermistor NAME]` and `[adc_temperature NAME]` section,
 /// used by a heater or not (Klipper reads them all).
-pub fn read_definitions<'c>(config: &'c Config<'_>) -> Result<(), ConfigError<'c>> {
+pub(crate) fn read_definitions<'c>(config: &'c Config<'_>, errors: &Errors<'c>) -> Read<()> {
     for section in config.section_names() {
         if let Some((kind, _)) = definition_name(section) {
-            read_definition(config, section, kind)?;
+            read_definition(config, errors, section, kind)?;
         }
     }
     Ok(())
@@ -124,7 +127,7 @@ pub fn read_definitions<'c>(config: &'c Config<'_>) -> Result<(), ConfigError<'c
 
 /// The definition of sensor type `name`: the last section defining it,
 /// else the built-in type.
-fn find<'c>(config: &'c Config<'_>, name: &str) -> Result<Option<Definition>, ConfigError<'c>> {
+fn find<'c>(config: &'c Config<'_>, errors: &Errors<'c>, name: &str) -> Read<Option<Definition>> {
     let custom = config
         .section_names()
         .filter_map(|s| {
@@ -134,7 +137,7 @@ fn find<'c>(config: &'c Config<'_>, name: &str) -> Result<Option<Definition>, Co
         })
         .last();
     if let Some((section, kind)) = custom {
-        return read_definition(config, section, kind);
+        return read_definition(config, errors, section, kind);
     }
     Ok(thermistor::built_in(name)
         .map(Definition::Thermistor)
@@ -162,14 +165,14 @@ fn unsupported(name: &str) -> &'static str {
 /// `inline_resistor`, a volts table's `adc_voltage` and `voltage_offset`,
 /// an Ω table's `pullup_resistor`, an SPI chip's own and bus options),
 /// with Klipper's defaults; an SPI chip's bus too.
-pub fn read<'c, 'a>(
+pub(crate) fn read<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
-) -> Result<(TemperatureSensor, Option<SpiBus<'a>>), ConfigError<'c>> {
+    section: &Reader<'_, 'c, 'a>,
+) -> Read<(TemperatureSensor, Option<SpiBus<'a>>)> {
     let name = section.get("sensor_type")?;
     // A `[thermistor NAME]` of the same name wins, as over the built-in
     // thermistors.
-    let definition = find(config, name)?;
+    let definition = find(config, section.errors(), name)?;
     if let (None, Some(chip)) = (definition, Chip::from_name(name)) {
         let (sensor, bus) = spi_temperature::read(section, chip)?;
         return Ok((TemperatureSensor::Spi(sensor), Some(bus)));
@@ -180,10 +183,10 @@ pub fn read<'c, 'a>(
 }
 
 /// An ADC sensor's options, for its definition.
-fn read_adc_sensor<'c>(
-    section: &Section<'c, '_>,
+fn read_adc_sensor(
+    section: &Reader<'_, '_, '_>,
     definition: Definition,
-) -> Result<TemperatureSensor, ConfigError<'c>> {
+) -> Read<TemperatureSensor> {
     Ok(match definition {
         Definition::Thermistor(curve) => {
             let (pullup, inline) = thermistor::read_resistors(section)?;

@@ -5,9 +5,10 @@
 //! turns the heaters off, with Klipper's option names, defaults and
 //! limits. A heater's sensor is [`crate::temperature_sensor`]'s.
 
+use crate::reader::{Read, Reader};
 use crate::temperature_sensor::{self, TemperatureSensor};
 use crate::thermistor::ZERO_CELSIUS;
-use onechip_config::{Bounds, Config, ConfigError, Section};
+use onechip_config::{Bounds, Config};
 
 /// The heater control (`control:`), with its options.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -95,30 +96,17 @@ impl VerifyHeater {
 
 /// Reads `[verify_heater NAME]` for the heater `heater` from `section`,
 /// with Klipper's defaults and bounds.
-pub fn read_verify_heater<'c>(
-    section: &Section<'c, '_>,
-    heater: &str,
-) -> Result<VerifyHeater, ConfigError<'c>> {
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read_verify_heater(section: &Reader<'_, '_, '_>, heater: &str) -> Read<VerifyHeater> {
     let defaults = VerifyHeater::defaults(heater);
     Ok(VerifyHeater {
-        hysteresis: section.get_float(
-            "hysteresis",
-            Some(defaults.hysteresis),
-            Bounds::NON_NEGATIVE,
-        )?,
-        max_error: section.get_float(
-            "max_error",
-            Some(defaults.max_error),
-            Bounds::NON_NEGATIVE,
-        )?,
-        heating_gain: section.get_float(
-            "heating_gain",
-            Some(defaults.heating_gain),
-            Bounds::POSITIVE,
-        )?,
-        check_gain_time: section.get_float(
+        hysteresis: section.float("hysteresis", defaults.hysteresis, Bounds::NON_NEGATIVE)?,
+        max_error: section.float("max_error", defaults.max_error, Bounds::NON_NEGATIVE)?,
+        heating_gain: section.float("heating_gain", defaults.heating_gain, Bounds::POSITIVE)?,
+        check_gain_time: section.float(
             "check_gain_time",
-            Some(defaults.check_gain_time),
+            defaults.check_gain_time,
             Bounds {
                 minval: Some(1.0),
                 ..Bounds::NONE
@@ -159,10 +147,10 @@ impl Default for IdleTimeoutConfig<'_> {
 
 /// Reads `[idle_timeout]`. G-code templates (`{ }`, `{% %}`) cannot run
 /// here, so a `gcode` using one is refused rather than run half-understood.
-pub fn read_idle_timeout<'c, 'a>(
-    section: &Section<'c, 'a>,
-) -> Result<IdleTimeoutConfig<'a>, ConfigError<'c>> {
-    let timeout = section.get_float("timeout", Some(600.0), Bounds::POSITIVE)?;
+// Out of line: see `Machine::from_config_in`.
+#[inline(never)]
+pub(crate) fn read_idle_timeout<'a>(section: &Reader<'_, '_, 'a>) -> Read<IdleTimeoutConfig<'a>> {
+    let timeout = section.float("timeout", 600.0, Bounds::POSITIVE)?;
     let gcode = section.get_opt("gcode").unwrap_or(DEFAULT_IDLE_GCODE);
     if gcode.contains('{') {
         return Err(section.error_for(
@@ -202,11 +190,11 @@ pub const PWM_DELAY: f64 = 0.300 + 0.001 * 8.0;
 
 /// `min_temp` and `max_temp` (°C), with these defaults (None: required):
 /// not below absolute zero, max_temp above min_temp.
-pub fn read_temperature_limits<'c>(
-    section: &Section<'c, '_>,
+pub(crate) fn read_temperature_limits(
+    section: &Reader<'_, '_, '_>,
     min_default: Option<f64>,
     max_default: Option<f64>,
-) -> Result<(f64, f64), ConfigError<'c>> {
+) -> Read<(f64, f64)> {
     let min_temp = section.get_float(
         "min_temp",
         min_default,
@@ -228,25 +216,25 @@ pub fn read_temperature_limits<'c>(
 
 /// Reads a heater from `section` (`[extruder]` or `[heater_bed]`) of
 /// `config` (which holds the sensor types it may name).
-pub fn read_heater<'c, 'a>(
+pub(crate) fn read_heater<'c, 'a>(
     config: &'c Config<'a>,
-    section: &Section<'c, 'a>,
-) -> Result<Heater<'a>, ConfigError<'c>> {
+    section: &Reader<'_, 'c, 'a>,
+) -> Read<Heater<'a>> {
     let (sensor, spi) = temperature_sensor::read(config, section)?;
     let (min_temp, max_temp) = read_temperature_limits(section, None, None)?;
     let control = match section.get_choice("control", &["pid", "watermark"], None)? {
         "pid" => Control::Pid {
-            kp: section.get_float("pid_kp", None, Bounds::NONE)?,
-            ki: section.get_float("pid_ki", None, Bounds::NONE)?,
-            kd: section.get_float("pid_kd", None, Bounds::NONE)?,
+            kp: section.required_float("pid_kp", Bounds::NONE)?,
+            ki: section.required_float("pid_ki", Bounds::NONE)?,
+            kd: section.required_float("pid_kd", Bounds::NONE)?,
         },
         _ => Control::Watermark {
-            max_delta: section.get_float("max_delta", Some(2.0), Bounds::POSITIVE)?,
+            max_delta: section.float("max_delta", 2.0, Bounds::POSITIVE)?,
         },
     };
-    let min_extrude_temp = section.get_float(
+    let min_extrude_temp = section.float(
         "min_extrude_temp",
-        Some(170.0),
+        170.0,
         Bounds {
             minval: Some(min_temp),
             maxval: Some(max_temp),
@@ -263,11 +251,11 @@ pub fn read_heater<'c, 'a>(
         control,
         min_temp,
         max_temp,
-        max_power: section.get_float("max_power", Some(1.0), UNIT_ABOVE_ZERO)?,
-        smooth_time: section.get_float("smooth_time", Some(1.0), Bounds::POSITIVE)?,
-        pwm_cycle_time: section.get_float(
+        max_power: section.float("max_power", 1.0, Bounds::UNIT_ABOVE_ZERO)?,
+        smooth_time: section.float("smooth_time", 1.0, Bounds::POSITIVE)?,
+        pwm_cycle_time: section.float(
             "pwm_cycle_time",
-            Some(0.100),
+            0.100,
             Bounds {
                 above: Some(0.0),
                 maxval: Some(PWM_DELAY),
@@ -279,24 +267,8 @@ pub fn read_heater<'c, 'a>(
     })
 }
 
-/// `(0, 1]`.
-const UNIT_ABOVE_ZERO: Bounds = Bounds {
-    above: Some(0.0),
-    maxval: Some(1.0),
-    minval: None,
-    below: None,
-};
-
-/// `[0, 1]`.
-const UNIT: Bounds = Bounds {
-    minval: Some(0.0),
-    maxval: Some(1.0),
-    above: None,
-    below: None,
-};
-
 /// Reads `[fan]`.
-pub fn read_fan<'c, 'a>(section: &Section<'c, 'a>) -> Result<Fan<'a>, ConfigError<'c>> {
+pub(crate) fn read_fan<'a>(section: &Reader<'_, '_, 'a>) -> Read<Fan<'a>> {
     read_fan_options(section, 0.0)
 }
 
@@ -306,19 +278,11 @@ pub fn read_fan<'c, 'a>(section: &Section<'c, 'a>) -> Result<Fan<'a>, ConfigErro
 /// is the section kind's default for `shutdown_speed`. A tachometer
 /// (`tachometer_pin`, `tachometer_ppr`, `tachometer_poll_interval`) is
 /// accepted but its speed is not measured yet.
-pub fn read_fan_options<'c, 'a>(
-    section: &Section<'c, 'a>,
+pub(crate) fn read_fan_options<'a>(
+    section: &Reader<'_, '_, 'a>,
     default_shutdown_speed: f64,
-) -> Result<Fan<'a>, ConfigError<'c>> {
-    let min_power = section.get_float(
-        "min_power",
-        Some(0.0),
-        Bounds {
-            minval: Some(0.0),
-            below: Some(1.0),
-            ..Bounds::NONE
-        },
-    )?;
+) -> Read<Fan<'a>> {
+    let min_power = section.float("min_power", 0.0, Bounds::UNIT_BELOW_ONE)?;
     section.accept(&[
         "tachometer_pin",
         "tachometer_ppr",
@@ -326,13 +290,13 @@ pub fn read_fan_options<'c, 'a>(
     ]);
     Ok(Fan {
         pin: section.get("pin")?,
-        max_power: section.get_float("max_power", Some(1.0), UNIT_ABOVE_ZERO)?,
+        max_power: section.float("max_power", 1.0, Bounds::UNIT_ABOVE_ZERO)?,
         min_power,
-        cycle_time: section.get_float("cycle_time", Some(0.010), Bounds::POSITIVE)?,
+        cycle_time: section.float("cycle_time", 0.010, Bounds::POSITIVE)?,
         hard_pwm: section.get_bool("hardware_pwm", false)?,
-        shutdown_speed: section.get_float("shutdown_speed", Some(default_shutdown_speed), UNIT)?,
-        kick_start_time: section.get_float("kick_start_time", Some(0.1), Bounds::NON_NEGATIVE)?,
-        off_below: section.get_float("off_below", Some(0.0), UNIT)?,
+        shutdown_speed: section.float("shutdown_speed", default_shutdown_speed, Bounds::UNIT)?,
+        kick_start_time: section.float("kick_start_time", 0.1, Bounds::NON_NEGATIVE)?,
+        off_below: section.float("off_below", 0.0, Bounds::UNIT)?,
     })
 }
 

@@ -10,8 +10,9 @@
 //! come from three (°C, Ω) points of a data sheet, or from one point and a
 //! beta (`c3 = 0`).
 
+use crate::reader::{Read, Reader};
 use crate::temperature_sensor::position;
-use onechip_config::{Bounds, ConfigError, Section};
+use onechip_config::Bounds;
 
 /// 0 °C in kelvin.
 pub const ZERO_CELSIUS: f64 = 273.15;
@@ -158,12 +159,12 @@ impl Thermistor {
 /// also reads `adc_ref`, `pullup_ref` and `vo_ref` (Recore's amplified
 /// input); a `vo_ref` above 0 selects that circuit, which onechip does not
 /// support.
-pub fn read_resistors<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), ConfigError<'c>> {
-    let pullup = section.get_float("pullup_resistor", Some(4700.0), Bounds::POSITIVE)?;
-    let inline = section.get_float("inline_resistor", Some(0.0), Bounds::NON_NEGATIVE)?;
-    section.get_float("adc_ref", Some(3.3), Bounds::NONE)?;
-    section.get_float("pullup_ref", Some(3.2), Bounds::NONE)?;
-    if section.get_float("vo_ref", Some(0.0), Bounds::NONE)? > 0.0 {
+pub(crate) fn read_resistors(section: &Reader<'_, '_, '_>) -> Read<(f64, f64)> {
+    let pullup = section.float("pullup_resistor", 4700.0, Bounds::POSITIVE)?;
+    let inline = section.float("inline_resistor", 0.0, Bounds::NON_NEGATIVE)?;
+    section.float("adc_ref", 3.3, Bounds::NONE)?;
+    section.float("pullup_ref", 3.2, Bounds::NONE)?;
+    if section.float("vo_ref", 0.0, Bounds::NONE)? > 0.0 {
         return Err(section.error_for(
             "vo_ref",
             "selects Recore's amplified input, which onechip does not support yet",
@@ -177,17 +178,17 @@ pub fn read_resistors<'c>(section: &Section<'c, '_>) -> Result<(f64, f64), Confi
 /// unrolled, the three points' reading would take three times the flash).
 #[inline(never)]
 fn read_point<'c>(
-    section: &Section<'c, '_>,
+    section: &Reader<'_, 'c, '_>,
     temperature: &'c str,
     resistance: &'c str,
-) -> Result<(f64, f64), ConfigError<'c>> {
+) -> Read<(f64, f64)> {
     let celsius = Bounds {
         minval: Some(-ZERO_CELSIUS),
         ..Bounds::NONE
     };
     Ok((
-        section.get_float(temperature, None, celsius)?,
-        section.get_float(resistance, None, Bounds::NON_NEGATIVE)?,
+        section.required_float(temperature, celsius)?,
+        section.required_float(resistance, Bounds::NON_NEGATIVE)?,
     ))
 }
 
@@ -195,7 +196,7 @@ fn read_point<'c>(
 /// `beta`, or three `temperatureN`/`resistanceN` points (any order), with
 /// Klipper's bounds.
 #[inline(never)]
-pub fn read_section<'c>(section: &Section<'c, '_>) -> Result<Curve, ConfigError<'c>> {
+pub(crate) fn read_section(section: &Reader<'_, '_, '_>) -> Read<Curve> {
     const NAMES: [(&str, &str); 3] = [
         ("temperature1", "resistance1"),
         ("temperature2", "resistance2"),
