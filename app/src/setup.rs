@@ -5,7 +5,7 @@
 
 use crate::config_files::ConfigFiles;
 use crate::mcu_config::pin_ref;
-use crate::pin_check;
+use crate::pin_check::{self, PinUse};
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
 use crate::text::cut_text;
 use core::fmt::Write as _;
@@ -89,13 +89,22 @@ impl<'a> PrinterSetup<'a> {
             &mut *core::ptr::addr_of_mut!((*p).machine).cast::<MaybeUninit<Machine<'a>>>()
         };
         let machine = Machine::from_config_in(machine_slot, config).map_err(|e| cut_text(&e))?;
+        // Where an option at fault is, as every config error says.
+        let at = |used: PinUse<'_>| {
+            (config.section(used.section)).map_or((config.file(), 0), |s| s.locate(used.option))
+        };
         pin_check::check(machine, reserved).map_err(|e| {
-            // Where the option at fault is, as every config error says.
-            let (file, line) = config
-                .section(e.at().section)
-                .map_or((config.file(), 0), |s| s.locate(e.at().option));
+            let (file, line) = at(e.at());
             cut_text(&format_args!("{file}:{line}: {e}"))
         })?;
+        if let Some(used) = unsupported_on_secondary(machine) {
+            let (file, line) = at(used);
+            return Err(cut_text(&format_args!(
+                "{file}:{line}: {used}: pin '{}' is on a secondary MCU, where onechip drives \
+                 only steppers, endstops, heaters, sensors, fans and pins so far",
+                used.pin.trim()
+            )));
+        }
         let mut step_pulse = [0.0; MAX_STEPPERS];
         for (pulse, stepper) in step_pulse.iter_mut().zip(&machine.steppers) {
             let tmc = has_tmc_driver(config.section_names(), stepper.name);
@@ -128,43 +137,6 @@ impl<'a> PrinterSetup<'a> {
                     mcu.name
                 )))
             }
-            None => Ok(()),
-        }
-    }
-
-    /// What every build drives on secondary MCUs: steppers, their
-    /// endstops and enable pins, heaters, temperature sensors on ADC pins,
-    /// fans, output pins and static pins. Any other pin on an `[mcu NAME]`
-    /// (a probe, a TMC driver's wires, a filament sensor, ...) is refused,
-    /// naming the section, option and pin. (An SPI sensor's chip select
-    /// there is refused when the secondary connects.)
-    #[allow(clippy::result_large_err)]
-    pub fn only_supported_on_secondaries(&self) -> Result<(), SetupError> {
-        const SUPPORTED: [&str; 8] = [
-            "step_pin",
-            "dir_pin",
-            "enable_pin",
-            "endstop_pin",
-            "heater_pin",
-            "sensor_pin",
-            "pin",
-            "pins",
-        ];
-        let on_secondary = |pin: &str| {
-            let chip = pin_ref(pin).mcu;
-            (self.machine.secondaries.iter()).any(|s| s.name == chip)
-        };
-        let probe = self.machine.probe.as_ref().map(|p| p.section);
-        let refused = pin_check::uses(&self.machine).find(|used| {
-            on_secondary(used.pin)
-                && (!SUPPORTED.contains(&used.option) || Some(used.section) == probe)
-        });
-        match refused {
-            Some(used) => Err(cut_text(&format_args!(
-                "{used}: pin '{}' is on a secondary MCU, where onechip drives only steppers, \
-                 endstops, heaters, temperature sensors, fans and output pins so far",
-                used.pin.trim()
-            ))),
             None => Ok(()),
         }
     }
@@ -253,19 +225,58 @@ impl<'a> PrinterSetup<'a> {
     }
 }
 
+/// The first pin on a secondary MCU that no build drives there yet, if
+/// any. Every build drives steppers, their endstops and enable pins,
+/// heaters, temperature sensors on ADC pins, fans, output pins and static
+/// pins on a secondary; anything else there (a probe, a TMC driver's
+/// wires, a filament sensor, ...) is refused. (An SPI sensor's chip
+/// select there is refused when the secondary connects.)
+fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<PinUse<'a>> {
+    const SUPPORTED: [&str; 8] = [
+        "step_pin",
+        "dir_pin",
+        "enable_pin",
+        "endstop_pin",
+        "heater_pin",
+        "sensor_pin",
+        "pin",
+        "pins",
+    ];
+    let on_secondary = |pin: &str| {
+        let chip = pin_ref(pin).mcu;
+        (machine.secondaries.iter()).any(|s| s.name == chip)
+    };
+    let probe = machine.probe.as_ref().map(|p| p.section);
+    pin_check::uses(machine).find(|used| {
+        on_secondary(used.pin) && (!SUPPORTED.contains(&used.option) || Some(used.section) == probe)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;
     use super::*;
     use onechip_config::ConfigFile;
     use std::boxed::Box;
+    use std::format;
     use std::string::{String, ToString};
 
     /// The shipped printer.cfg with `extra` appended, read as the board
     /// reads it.
     fn with_shipped(extra: &str, check: impl FnOnce(&PrinterSetup<'_>)) {
-        let text: String =
-            include_str!("../../sdcard-configs/octopus-pro-h723/printer.cfg").to_string() + extra;
+        load_shipped_then(extra, |setup| check(&setup.expect("loads")));
+    }
+
+    /// The shipped printer.cfg with `extra` appended: loaded, or why not.
+    fn load_shipped(extra: &str) -> Result<(), String> {
+        load_shipped_then(extra, |setup| setup.map(|_| ()).map_err(|e| e.to_string()))
+    }
+
+    fn load_shipped_then<R>(
+        extra: &str,
+        then: impl FnOnce(Result<PrinterSetup<'_>, SetupError>) -> R,
+    ) -> R {
+        let text = format!("{SHIPPED}{extra}");
         let mut files = ConfigFiles::new();
         let file = ConfigFile {
             name: "printer.cfg",
@@ -273,9 +284,19 @@ mod tests {
         };
         files.push(file).expect("one file");
         let mut scratch = Box::new(MaybeUninit::uninit());
-        let setup =
-            PrinterSetup::load(&files, pin_check::BOARD_RESERVED, &mut scratch).expect("loads");
-        check(&setup);
+        then(PrinterSetup::load(
+            &files,
+            pin_check::BOARD_RESERVED,
+            &mut scratch,
+        ))
+    }
+
+    /// The shipped printer.cfg.
+    const SHIPPED: &str = include_str!("../../sdcard-configs/octopus-pro-h723/printer.cfg");
+
+    /// Lines in the shipped printer.cfg.
+    fn shipped_lines() -> usize {
+        SHIPPED.lines().count()
     }
 
     #[test]
@@ -301,29 +322,24 @@ mod tests {
     fn steppers_heaters_and_fans_may_be_on_a_secondary_and_other_pins_are_refused_by_option() {
         let ext = "\n[mcu ext]\nserial: usart2\n";
         let fan = "\n[fan_generic exhaust]\npin: ext:PB1\n";
-        with_shipped(&(ext.to_string() + fan), |setup| {
-            assert_eq!(setup.only_supported_on_secondaries(), Ok(()));
-        });
+        with_shipped(&(ext.to_string() + fan), |_| {});
         let sensor = "\n[filament_switch_sensor runout]\nswitch_pin: ext:PB2\n";
-        with_shipped(&(ext.to_string() + sensor), |setup| {
-            assert_eq!(
-                setup
-                    .only_supported_on_secondaries()
-                    .map_err(|e| e.to_string()),
-                Err(
-                    "[filament_switch_sensor runout] switch_pin: pin 'ext:PB2' is on a secondary \
-                     MCU, where onechip drives only steppers, endstops, heaters, temperature \
-                     sensors, fans and output pins so far"
-                        .to_string()
-                )
-            );
-        });
+        let refused = load_shipped(&(ext.to_string() + sensor)).expect_err("refused");
+        let line = shipped_lines() + 6;
+        assert_eq!(
+            refused,
+            format!(
+                "printer.cfg:{line}: [filament_switch_sensor runout] switch_pin: pin 'ext:PB2' \
+                 is on a secondary MCU, where onechip drives only steppers, endstops, heaters, \
+                 sensors, fans and pins so far"
+            )
+        );
         let probe = "\n[probe]\npin: ext:PB3\nz_offset: 1\n";
-        with_shipped(&(ext.to_string() + probe), |setup| {
-            let refused = setup
-                .only_supported_on_secondaries()
-                .map_err(|e| e.to_string());
-            assert!(refused.is_err_and(|e| e.starts_with("[probe] pin: pin 'ext:PB3'")));
-        });
+        let refused = load_shipped(&(ext.to_string() + probe)).expect_err("refused");
+        let line = shipped_lines() + 6;
+        assert!(
+            refused.starts_with(&format!("printer.cfg:{line}: [probe] pin: pin 'ext:PB3'")),
+            "{refused}"
+        );
     }
 }

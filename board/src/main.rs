@@ -233,12 +233,7 @@ fn load_printer(
     #[cfg(not(feature = "secondaries"))]
     setup.without_secondaries().map_err(|e| error_text(&e))?;
     #[cfg(feature = "secondaries")]
-    {
-        setup
-            .only_supported_on_secondaries()
-            .map_err(|e| error_text(&e))?;
-        check_links(setup)?;
-    }
+    check_links(setup)?;
     for section in setup.unsupported() {
         defmt::info!("[{}] is not supported yet, ignored", section);
     }

@@ -654,7 +654,6 @@ fn with_secondaries(
     if setup.machine().secondaries.is_empty() {
         return Ok(HostMcu::new(mcu, None, freq));
     }
-    (setup.only_supported_on_secondaries()).map_err(|e| SimError::Secondary(e.to_string()))?;
     let pace = Pace::new(
         options.clock_origin,
         freq,

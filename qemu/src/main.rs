@@ -128,9 +128,6 @@ fn load_printer() -> Result<Loaded, ErrorText> {
     let texts = config_files::load(&mut card::BuiltIn, TEXT.take()).map_err(|e| error_text(&e))?;
     let mut setup = PrinterSetup::load(&texts, pin_check::BOARD_RESERVED, SCRATCH.uninit())
         .map_err(|e| error_text(&e))?;
-    setup
-        .only_supported_on_secondaries()
-        .map_err(|e| error_text(&e))?;
     install_engine(&setup)?;
     install_heaters(&mut setup)?;
     let secondaries = connect_secondaries(&setup)?;

@@ -45,7 +45,8 @@ const PREFIXES: [&str; 4] = ["printer-", "generic-", "example-", "kit-"];
 /// sensor, 122 after). Three files with an `[mcu NAME]` secondary
 /// (generic-cramps, generic-replicape, kit-voron2-250mm) now connect to
 /// it, as Klipper does, and are refused naming its `serial` option: no
-/// such device exists here. 137 since `[probe]`/`[bltouch]` and
+/// such device exists here (kit-voron2-250mm's, before that, naming its
+/// `[probe]` pin on the secondary, which no build drives there yet). 137 since `[probe]`/`[bltouch]` and
 /// `probe:z_virtual_endstop` load, 139 with the TMC drivers too; 138 since
 /// `[temperature_sensor]` is read, as generic-bigtreetech-gtr's has a
 /// MAX31855 (an SPI sensor, refused naming its `sensor_type`); 141 with
