@@ -201,8 +201,8 @@ pub fn check<'a>(
     // With the board's pins: its one hardware SPI bus.
     let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
     let sensor_buses = machine.sensors.iter().map(|s| match s.input {
-        SensorInput::Spi { bus, .. } => (s.name, Some(bus)),
-        _ => (s.name, None),
+        SensorInput::Spi { bus, .. } => (s.section, Some(bus)),
+        _ => (s.section, None),
     });
     for (section, bus) in heater_buses.chain(sensor_buses) {
         if let Some(SpiBusPins::Hardware(Some(name))) = bus.map(|b| b.pins)
@@ -245,14 +245,14 @@ pub(crate) fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = Pin
     });
     let sensors = machine.sensors.iter().filter_map(|s| match s.input {
         SensorInput::Adc { pin, .. } => Some(PinUse {
-            section: s.name,
+            section: s.section,
             option: "sensor_pin",
             pin,
         }),
         // The chip select; a bus's clock and data pins are shared by its
         // chips, as Klipper allows.
         SensorInput::Spi { bus, .. } => Some(PinUse {
-            section: s.name,
+            section: s.section,
             option: "sensor_pin",
             pin: bus.cs_pin,
         }),
@@ -261,8 +261,8 @@ pub(crate) fn uses<'m, 'a>(machine: &'m Machine<'a>) -> impl Iterator<Item = Pin
     // A software SPI bus's pins, which the bus's chips share.
     let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
     let sensor_buses = machine.sensors.iter().map(|s| match s.input {
-        SensorInput::Spi { bus, .. } => (s.name, Some(bus)),
-        _ => (s.name, None),
+        SensorInput::Spi { bus, .. } => (s.section, Some(bus)),
+        _ => (s.section, None),
     });
     let spi = heater_buses.chain(sensor_buses).flat_map(|(section, bus)| {
         let pins = match bus.map(|b| b.pins) {

@@ -13,6 +13,7 @@ use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::sensor_section::SensorInput;
 use onechip_planner::tmc::config::TmcDriver;
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
@@ -97,12 +98,11 @@ impl<'a> PrinterSetup<'a> {
             let (file, line) = at(e.at());
             cut_text(&format_args!("{file}:{line}: {e}"))
         })?;
-        if let Some(used) = unsupported_on_secondary(machine) {
+        if let Some((used, why)) = unsupported_on_secondary(machine) {
             let (file, line) = at(used);
+            let pin = used.pin.trim();
             return Err(cut_text(&format_args!(
-                "{file}:{line}: {used}: pin '{}' is on a secondary MCU, where onechip drives \
-                 only steppers, endstops, heaters, sensors, fans and pins so far",
-                used.pin.trim()
+                "{file}:{line}: {used}: pin '{pin}' {why}"
             )));
         }
         let mut step_pulse = [0.0; MAX_STEPPERS];
@@ -225,13 +225,18 @@ impl<'a> PrinterSetup<'a> {
     }
 }
 
-/// The first pin on a secondary MCU that no build drives there yet, if
-/// any. Every build drives steppers, their endstops and enable pins,
-/// heaters, temperature sensors on ADC pins, fans, output pins and static
-/// pins on a secondary; anything else there (a probe, a TMC driver's
-/// wires, a filament sensor, ...) is refused. (An SPI sensor's chip
-/// select there is refused when the secondary connects.)
-fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<PinUse<'a>> {
+/// Why a pin on a secondary MCU is refused: nothing drives it there yet.
+const NOT_DRIVEN_THERE: &str = "is on a secondary MCU, where onechip drives only steppers, \
+    endstops, heaters, sensors, fans and pins so far";
+
+/// The first pin that no build drives where printer.cfg puts it, and
+/// why, if any. Every build drives steppers, their endstops and enable
+/// pins, heaters, temperature sensors on ADC pins, fans, output pins and
+/// static pins on a secondary MCU; anything else there (a probe, a TMC
+/// driver's wires, a filament sensor, an SPI sensor's chip select, ...)
+/// is refused. A stepper's direction pin must be on its step pin's MCU
+/// (as Klipper requires), and its enable pin too, so far.
+fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<(PinUse<'a>, &'static str)> {
     const SUPPORTED: [&str; 8] = [
         "step_pin",
         "dir_pin",
@@ -242,14 +247,54 @@ fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<PinUse<'a>> {
         "pin",
         "pins",
     ];
-    let on_secondary = |pin: &str| {
-        let chip = pin_ref(pin).mcu;
-        (machine.secondaries.iter()).any(|s| s.name == chip)
-    };
+    fn mcu(pin: &str) -> &str {
+        pin_ref(pin).mcu
+    }
+    for s in &machine.steppers {
+        let split = [("dir_pin", Some(s.dir_pin)), ("enable_pin", s.enable_pin)]
+            .into_iter()
+            .find_map(|(option, pin)| {
+                pin.filter(|p| mcu(p) != mcu(s.step_pin))
+                    .map(|p| (option, p))
+            });
+        if let Some((option, pin)) = split {
+            let why = if option == "dir_pin" {
+                "must be on the same MCU as step_pin"
+            } else {
+                "is on another MCU than step_pin, which onechip does not drive yet"
+            };
+            return Some((
+                PinUse {
+                    section: s.name,
+                    option,
+                    pin,
+                },
+                why,
+            ));
+        }
+    }
+    let on_secondary = |pin: &str| (machine.secondaries.iter()).any(|s| s.name == mcu(pin));
     let probe = machine.probe.as_ref().map(|p| p.section);
-    pin_check::uses(machine).find(|used| {
-        on_secondary(used.pin) && (!SUPPORTED.contains(&used.option) || Some(used.section) == probe)
-    })
+    let spi = |used: &PinUse<'_>| {
+        let heaters = machine.heaters.iter().filter(|h| h.sensor.spi().is_some());
+        let sensors = machine.sensors.iter();
+        let chips =
+            (heaters.map(|h| (h.name, h.sensor_pin))).chain(sensors.filter_map(
+                |s| match s.input {
+                    SensorInput::Spi { bus, .. } => Some((s.section, bus.cs_pin)),
+                    _ => None,
+                },
+            ));
+        chips
+            .into_iter()
+            .any(|chip| chip == (used.section, used.pin))
+    };
+    pin_check::uses(machine)
+        .find(|used| {
+            on_secondary(used.pin)
+                && (!SUPPORTED.contains(&used.option) || Some(used.section) == probe || spi(used))
+        })
+        .map(|used| (used, NOT_DRIVEN_THERE))
 }
 
 #[cfg(test)]
@@ -333,6 +378,21 @@ mod tests {
                  is on a secondary MCU, where onechip drives only steppers, endstops, heaters, \
                  sensors, fans and pins so far"
             )
+        );
+        // A stepper's pins on two MCUs: its direction pin is refused (as
+        // Klipper does), its enable pin too so far.
+        let split = "\n[stepper_x]\nstep_pin: ext:PB0\n";
+        let refused = load_shipped(&(ext.to_string() + split)).expect_err("refused");
+        assert!(
+            refused.contains("[stepper_x] dir_pin: pin '")
+                && refused.ends_with("must be on the same MCU as step_pin"),
+            "{refused}"
+        );
+        let split = "\n[stepper_x]\nenable_pin: !ext:PB0\n";
+        let refused = load_shipped(&(ext.to_string() + split)).expect_err("refused");
+        assert!(
+            refused.contains("[stepper_x] enable_pin: pin '!ext:PB0' is on another MCU"),
+            "{refused}"
         );
         let probe = "\n[probe]\npin: ext:PB3\nz_offset: 1\n";
         let refused = load_shipped(&(ext.to_string() + probe)).expect_err("refused");

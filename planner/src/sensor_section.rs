@@ -30,6 +30,9 @@ const NO_MAX_TEMP: f64 = 99_999_999.9;
 pub struct SensorSection<'a> {
     /// NAME, as written.
     pub name: &'a str,
+    /// The whole section name, as written (`temperature_sensor NAME`,
+    /// `temperature_fan NAME`): where its options are.
+    pub section: &'a str,
     /// Where the reading comes from.
     pub input: SensorInput<'a>,
     /// Lowest temperature it may read, °C (below: shutdown).
@@ -258,6 +261,7 @@ pub(crate) fn read<'c, 'a>(
     let name = section.name_in_file();
     Ok(SensorSection {
         name: name.split_once(' ').map_or(name, |(_, n)| n.trim()),
+        section: name,
         input,
         min_temp,
         max_temp,

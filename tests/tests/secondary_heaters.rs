@@ -736,11 +736,12 @@ fn an_spi_temperature_chip_on_a_secondary_is_refused_naming_its_pin() {
     let refused = ConsolePrinter::new(&sd, &Options::default()).err();
     let _ = std::fs::remove_dir_all(&sd);
     let message = refused.map(|e| e.to_string()).unwrap_or_default();
+    // Refused as printer.cfg loads, before any connection.
     assert!(
-        message.contains("option 'serial' in section 'mcu ext'")
+        message.starts_with("printer.cfg:")
             && message.contains(
-                "pin 'ext:gpiochip0/gpio40': an SPI temperature sensor on a secondary MCU \
-                 is not supported yet"
+                "[temperature_sensor k_therm] sensor_pin: pin 'ext:gpiochip0/gpio40' is on a \
+                 secondary MCU"
             ),
         "{message}"
     );

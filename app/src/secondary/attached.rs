@@ -292,8 +292,9 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
     /// automated reset of MCU 'NAME'`; one that was not connected is
     /// connected as at start); what the steppers were sent counts from
     /// there, as their MCU positions do. On an error the printer has no
-    /// homing and only the secondaries before the failed one: the caller
-    /// shuts the printer down with it ([`Self::fail`]).
+    /// homing and only the secondaries connected before the error (the
+    /// failing one too if its link was up): the caller shuts the printer
+    /// down with it ([`Self::fail`]).
     pub fn restart<O: Links<Link = L>>(
         &mut self,
         machine: &Machine<'_>,
@@ -369,7 +370,6 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                     "pin '{pin}': hardware_pwm on a secondary MCU is not supported yet"
                 ))));
             }
-            thermal::check(machine, secondary.name).map_err(unsupported)?;
             // The config depends on the MCU's clock (step pulses in its
             // ticks), which identify tells; its object ids are kept.
             let oids = Cell::new(Oids::default());

@@ -22,9 +22,9 @@ pub struct ForwardedOutputs {
     /// and pins) is on a secondary.
     elsewhere: [bool; OUTPUTS],
     /// (output, clock, value) as the io queued them (clock: this MCU's,
-    /// 32-bit), oldest first. When it is full the oldest goes: the
-    /// secondary then misses that update (a heater's next one comes 0.3 s
-    /// later; were they all lost, its max_duration would shut it down).
+    /// 32-bit), oldest first. When it is full an update a later one
+    /// supersedes goes, so that a one-time change (a fan set once) is
+    /// kept.
     queued: heapless::Deque<(usize, u32, u32), QUEUED>,
 }
 
@@ -54,9 +54,30 @@ impl ForwardedOutputs {
             return;
         }
         if self.queued.is_full() {
-            self.queued.pop_front();
+            self.drop_one();
         }
         let _ = self.queued.push_back((index, clock, value));
+    }
+
+    /// Makes room in a full queue: the oldest update that a later one of
+    /// the same output supersedes goes (a heater's refresh, say), else
+    /// the oldest.
+    fn drop_one(&mut self) {
+        let superseded = (self.queued.iter().enumerate()).find_map(|(i, &(output, ..))| {
+            let later = self.queued.iter().skip(i + 1);
+            later.into_iter().any(|&(o, ..)| o == output).then_some(i)
+        });
+        let Some(gone) = superseded else {
+            self.queued.pop_front();
+            return;
+        };
+        let mut kept = heapless::Deque::new();
+        for (i, &update) in self.queued.iter().enumerate() {
+            if i != gone {
+                let _ = kept.push_back(update);
+            }
+        }
+        self.queued = kept;
     }
 
     /// The oldest update not taken yet: (output, clock, value).
@@ -86,7 +107,8 @@ mod tests {
     }
 
     #[test]
-    fn only_updates_of_outputs_elsewhere_are_kept_oldest_first_and_bounded() {
+    fn only_updates_of_outputs_elsewhere_are_kept_in_order_and_a_full_queue_drops_a_superseded_one()
+    {
         with_machine(|machine| {
             let mcu_sensor = crate::heaters::tests::typical_mcu();
             let setup = McuSetup::new(machine, 1e6, 4095, mcu_sensor, 0);
@@ -95,11 +117,20 @@ mod tests {
             assert!(!forwarded.is_elsewhere(2));
             forwarded.queued(2, 5, 1);
             assert_eq!(forwarded.take(), None);
+            // The fan set once, then the bed heater's refreshes: when the
+            // queue is full, the heater's oldest go, the fan's stays.
+            forwarded.queued(1, 1, 255);
             for k in 0..QUEUED as u32 + 3 {
                 forwarded.queued(0, k, k);
             }
-            // The three oldest went.
-            assert_eq!(forwarded.take(), Some((0, 3, 3)));
+            assert_eq!(forwarded.take(), Some((1, 1, 255)));
+            assert_eq!(forwarded.take(), Some((0, 4, 4)));
+            // Both outputs in turn: the oldest superseded goes.
+            let mut turns = ForwardedOutputs::new(&setup);
+            for k in 0..QUEUED as u32 + 1 {
+                turns.queued(usize::from(k % 2 == 1), k, k);
+            }
+            assert_eq!(turns.take(), Some((1, 1, 1)));
         });
     }
 }

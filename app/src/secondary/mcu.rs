@@ -53,7 +53,15 @@ pub struct WithSecondaries<M, L: 'static, const N: usize> {
 impl<M: Mcu, L: SecondaryLink, const N: usize> WithSecondaries<M, L, N> {
     /// `main` (this board's MCU role, its clock `freq` Hz) with
     /// `secondaries`, if printer.cfg has any.
-    pub fn new(main: M, secondaries: Option<&'static mut Secondaries<L, N>>, freq: f64) -> Self {
+    pub fn new(
+        mut main: M,
+        secondaries: Option<&'static mut Secondaries<L, N>>,
+        freq: f64,
+    ) -> Self {
+        // Updates the io queued for outputs on secondaries before they
+        // were connected: their connection queued their start values
+        // instead (and these could be too old to place on the clock).
+        while main.take_queued_output().is_some() {}
         Self {
             main,
             secondaries,

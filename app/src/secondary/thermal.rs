@@ -9,14 +9,12 @@
 //! and temperature fans ([`onechip_app::heaters::Heaters::remote_report`]).
 //!
 //! A heater's sensor and output may be on different MCUs. Not yet: an SPI
-//! temperature chip on a secondary (refused by [`check`]).
+//! temperature chip on a secondary (refused as printer.cfg loads,
+//! [`crate::setup::PrinterSetup::load`]).
 
-use super::{AnalogReport, CommandLine, Text, command, text};
+use super::{AnalogReport, CommandLine, command};
 use crate::heaters::SAMPLE_COUNT;
-use crate::mcu_config::pin_ref;
 use core::fmt::Write as _;
-use onechip_planner::machine::Machine;
-use onechip_planner::sensor_section::{SensorInput, SensorSection};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_sched::adc::AdcQuery;
 use onechip_secondary_mcu::clock_sync::ClockSync;
@@ -143,28 +141,6 @@ pub fn adc_max(dict: &Dictionary<'_>) -> Option<u16> {
     let max = dict.constant_int("ADC_MAX")?;
     let sum_fits = max.checked_mul(i64::from(SAMPLE_COUNT))? < 1 << 16;
     u16::try_from(max).ok().filter(|&m| m > 0 && sum_fits)
-}
-
-/// Refuses what is not supported yet on secondary `mcu`: a heater's or
-/// temperature sensor's SPI chip there (its `sensor_pin`, the chip
-/// select). The message names the pin.
-pub fn check(machine: &Machine<'_>, mcu: &str) -> Result<(), Text> {
-    let here = |pin: &&str| pin_ref(pin).mcu == mcu;
-    let heaters = (machine.heaters.iter())
-        .filter(|h| h.sensor.spi().is_some())
-        .map(|h| h.sensor_pin);
-    let not_adc = |s: &&SensorSection<'_>| !matches!(s.input, SensorInput::Adc { .. });
-    let sensors = machine
-        .sensors
-        .iter()
-        .filter(not_adc)
-        .map(|s| s.input.pin());
-    match heaters.chain(sensors).find(here) {
-        Some(pin) => Err(text(format_args!(
-            "pin '{pin}': an SPI temperature sensor on a secondary MCU is not supported yet"
-        ))),
-        None => Ok(()),
-    }
 }
 
 #[cfg(test)]
