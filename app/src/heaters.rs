@@ -7,7 +7,7 @@
 //! the heater's control (PID or watermark) at once, which queues the next
 //! PWM value 0.308 s after the report, as Klipper's host does. An ADC
 //! input on another MCU (`NAME:PIN`, a secondary board) is sampled there,
-//! not here: its reports come in through [`Heaters::remote_report`].
+//! not here: its reports come in through [`Heaters::remote_reading`].
 //!
 //! Klipper's host-side heater safety runs here too, on the same reports:
 //! each heater's `[verify_heater]` checks (once a second of heater time;
@@ -734,7 +734,7 @@ impl Heaters {
             match query {
                 InputQuery::Adc(q) => {
                     // One on another MCU is sampled there: its reports
-                    // come through `remote_report`.
+                    // come through `remote_reading`.
                     let here = crate::mcu_config::on_main(pin);
                     if let Ok(index) = io.add_input()
                         && here
@@ -864,33 +864,15 @@ impl Heaters {
             })
     }
 
-    /// Input `index`'s report taken by another MCU (a secondary's
-    /// `analog_in_state`): the sum of its readings as `reading` (0..1 of
-    /// its full scale), the first of them at clock `clock` (this MCU's),
-    /// at clock `now`. It is handled as this MCU's own reports are (the
-    /// heater's control and verify_heater, a temperature fan's update);
-    /// a fault is returned. Ignored after a shutdown (the other MCU may
-    /// report until it hears of it).
-    pub fn remote_report(
-        &mut self,
-        index: usize,
-        clock: u32,
-        reading: f64,
-        now: u32,
-        hw: &mut impl Peripherals,
-    ) -> Result<(), Shutdown> {
-        if self.io.shutdown_reason().is_some() {
-            return Ok(());
-        }
-        let Some(conversion) = self.conversion(index) else {
-            return Ok(());
-        };
-        let temp = conversion.temperature(reading);
-        self.on_temperature(index, clock, temp, now, hw)
-    }
-
-    /// [`Self::remote_report`] of `reading` (as the secondaries hand it
-    /// over, in host time), on this MCU's clock of `freq` Hz.
+    /// A report of io input `reading.input` taken by another MCU (a
+    /// secondary's `analog_in_state`, as the secondaries hand it over):
+    /// the sum of its samples as `reading.value` (0..1 of its full scale),
+    /// the first of them at host time `reading.at` (s), which is this
+    /// MCU's clock of `freq` Hz in seconds; `now` is this MCU's clock. It
+    /// is handled as this MCU's own reports are (the heater's control and
+    /// verify_heater, a temperature fan's update); a fault is returned.
+    /// Ignored after a shutdown (the other MCU may report until it hears
+    /// of it).
     pub fn remote_reading(
         &mut self,
         reading: &Reading,
@@ -898,8 +880,15 @@ impl Heaters {
         now: u32,
         hw: &mut impl Peripherals,
     ) -> Result<(), Shutdown> {
-        let clock = reading.clock(freq);
-        self.remote_report(reading.input, clock, reading.value, now, hw)
+        if self.io.shutdown_reason().is_some() {
+            return Ok(());
+        }
+        let Some(conversion) = self.conversion(reading.input) else {
+            return Ok(());
+        };
+        let clock = (reading.at * freq).max(0.0) as u64 as u32;
+        let temp = conversion.temperature(reading.value);
+        self.on_temperature(reading.input, clock, temp, now, hw)
     }
 
     /// Input `index`'s conversion (the heaters', then the temperature

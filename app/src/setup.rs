@@ -4,6 +4,7 @@
 //! planner's types.
 
 use crate::config_files::ConfigFiles;
+use crate::heaters::input_buses;
 use crate::mcu_config::pin_ref;
 use crate::pin_check::{self, PinUse};
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
@@ -13,7 +14,6 @@ use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
-use onechip_planner::sensor_section::SensorInput;
 use onechip_planner::tmc::config::TmcDriver;
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
@@ -275,24 +275,14 @@ fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<(PinUse<'a>, &'
     }
     let on_secondary = |pin: &str| (machine.secondaries.iter()).any(|s| s.name == mcu(pin));
     let probe = machine.probe.as_ref().map(|p| p.section);
-    let spi = |used: &PinUse<'_>| {
-        let heaters = machine.heaters.iter().filter(|h| h.sensor.spi().is_some());
-        let sensors = machine.sensors.iter();
-        let chips =
-            (heaters.map(|h| (h.name, h.sensor_pin))).chain(sensors.filter_map(
-                |s| match s.input {
-                    SensorInput::Spi { bus, .. } => Some((s.section, bus.cs_pin)),
-                    _ => None,
-                },
-            ));
-        chips
-            .into_iter()
-            .any(|chip| chip == (used.section, used.pin))
-    };
+    // An SPI sensor's chip select (its sensor_pin; a pin has one use).
+    let spi_chip = |pin: &str| (input_buses(machine).flatten()).any(|bus| bus.cs_pin == pin);
     pin_check::uses(machine)
         .find(|used| {
             on_secondary(used.pin)
-                && (!SUPPORTED.contains(&used.option) || Some(used.section) == probe || spi(used))
+                && (!SUPPORTED.contains(&used.option)
+                    || Some(used.section) == probe
+                    || spi_chip(used.pin))
         })
         .map(|used| (used, NOT_DRIVEN_THERE))
 }

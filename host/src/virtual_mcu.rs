@@ -10,7 +10,7 @@
 //! (the session then drives it through
 //! [`onechip_app::secondary::mcu::WithSecondaries`], as the firmware
 //! drives its own MCU role), a sensor's reports from there reach the
-//! heaters ([`Heaters::remote_report`]), and the io's output updates are
+//! heaters ([`Heaters::remote_reading`]), and the io's output updates are
 //! kept for the outputs there. It is the session's [`Mcu`]: a wait runs
 //! the next timer event, no earlier than its wall time when virtual time
 //! is paced ([`Pace`]).

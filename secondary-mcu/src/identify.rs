@@ -48,16 +48,9 @@ pub struct Identify<'b> {
 
 impl<'b> Identify<'b> {
     /// Starts fetching into `out` (the inflated JSON; Klipper's are 10–15
-    /// KB), over a link to an MCU that buffers `receive_window` bytes.
-    pub fn new(out: &'b mut [u8], receive_window: usize) -> Self {
-        let mut slot = MaybeUninit::uninit();
-        Self::init_in(&mut slot, out, receive_window);
-        // SAFETY: `init_in` initialised it.
-        unsafe { slot.assume_init() }
-    }
-
-    /// [`Self::new`] built in place in `slot`: the fetcher's inflate state
-    /// is about 11 KB, which a microcontroller's stack should not carry.
+    /// KB), over a link to an MCU that buffers `receive_window` bytes,
+    /// built in place in `slot`: the fetcher's inflate state is about
+    /// 11 KB, which a microcontroller's stack should not carry.
     pub fn init_in<'s>(
         slot: &'s mut MaybeUninit<Self>,
         out: &'b mut [u8],

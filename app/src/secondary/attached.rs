@@ -19,7 +19,7 @@
 //! A heater on a secondary (its sensor and output there) is run by the MCU
 //! role's heater control as the main MCU's are: its sensor is sampled
 //! there ([`super::thermal`]: `query_analog_in` after the config phase),
-//! its reports come back as readings ([`Secondaries::take_readings`]), and
+//! its reports come back as readings ([`Secondaries::take_reading`]), and
 //! the PWM updates the control queues go out as the fans' do.
 
 use super::homing::{Homing, TrsyncState};

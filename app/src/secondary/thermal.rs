@@ -6,7 +6,7 @@
 //! temperature sensor — and 4 reports out of range in a row shut that MCU
 //! down). Each `analog_in_state` becomes readings (0..1 of full scale) at
 //! the host time of their first sample, for the MCU role's heater control
-//! and temperature fans ([`onechip_app::heaters::Heaters::remote_report`]).
+//! and temperature fans ([`crate::heaters::Heaters::remote_reading`]).
 //!
 //! A heater's sensor and output may be on different MCUs. Not yet: an SPI
 //! temperature chip on a secondary (refused as printer.cfg loads,
@@ -37,14 +37,6 @@ pub struct Reading {
     pub at: f64,
     /// The sum of its samples, 0..1 of full scale.
     pub value: f64,
-}
-
-impl Reading {
-    /// Its first sample's clock on the main MCU of `freq` Hz (host time
-    /// is that clock in seconds), 32-bit as the io counts.
-    pub fn clock(&self, freq: f64) -> u32 {
-        (self.at * freq).max(0.0) as u64 as u32
-    }
 }
 
 /// A heater's or temperature sensor's ADC input on a secondary.
