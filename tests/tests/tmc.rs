@@ -339,7 +339,9 @@ fn invalid_driver_fields_name_file_line_and_option() {
 
 /// An SD folder: the shipped Octopus Pro config with TMC2209 drivers on
 /// its X, Y, Z and extruder sockets (the board's UART pins).
-fn sd_with_drivers() -> PathBuf {
+/// One folder per test (`test`): the tests of this file run as threads of
+/// one process, and one making its folder would remove another's.
+fn sd_with_drivers(test: &str) -> PathBuf {
     let drivers: String = [
         ("stepper_x", "PC4"),
         ("stepper_y", "PD11"),
@@ -353,7 +355,7 @@ fn sd_with_drivers() -> PathBuf {
         )
     })
     .collect();
-    shipped_plus("drivers", &drivers)
+    shipped_plus(&format!("drivers-{test}"), &drivers)
 }
 
 /// The registers the session wrote equal those the simulated driver of
@@ -368,7 +370,7 @@ fn in_sync(p: &mut ConsolePrinter, stepper: &str) -> bool {
 
 #[test]
 fn registers_are_written_at_start_and_again_after_a_driver_reset() {
-    let dir = sd_with_drivers();
+    let dir = sd_with_drivers("reset");
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
     // Power-on: the simulated drivers hold zeros until the firmware writes.
     assert_eq!(
@@ -407,7 +409,7 @@ fn registers_are_written_at_start_and_again_after_a_driver_reset() {
 
 #[test]
 fn a_driver_error_is_reported_as_klipper_words_it_and_shuts_the_printer_down() {
-    let dir = sd_with_drivers();
+    let dir = sd_with_drivers("error");
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
     p.send("G28");
     let out = p.run_for(1.5);
@@ -432,7 +434,7 @@ fn a_driver_error_is_reported_as_klipper_words_it_and_shuts_the_printer_down() {
 
 #[test]
 fn tmc_gcode_commands_answer_as_klipper() {
-    let dir = sd_with_drivers();
+    let dir = sd_with_drivers("gcode");
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
     // 0.8 A on 0.110 Ω: IRUN 25 with vsense, which gives back
     // 26 * 0.18 / (32 * 0.13 * √2) = 0.7955 A: "0.80A".
@@ -604,7 +606,7 @@ fn a_drivers_uart_or_chip_select_pin_is_checked_as_klipper_checks_pins() {
 
 #[test]
 fn set_tmc_current_takes_effect_once_the_queued_moves_have_run() {
-    let dir = sd_with_drivers();
+    let dir = sd_with_drivers("current");
     let mut p = ConsolePrinter::new(&dir, &Options::default()).expect("loads");
     assert!(p.send("G28").contains("ok"));
     // A 10 s move queued, then a new run current for X (0.5 A: irun 15).
