@@ -43,7 +43,9 @@ use onechip_sched::outputs::{OutputConfig, OutputKind, QueueError};
 use onechip_sched::shutdown::{self, Shutdown};
 use onechip_sched::thermocouple::{SpiChip, SpiQuery, SpiReport};
 
-use crate::outputs::{AccessoryCommand, AccessoryOutputs, FanControl, fan_config};
+use crate::outputs::{
+    AccessoryCommand, AccessoryOutputs, FanControl, Levels, fan_config, fan_levels,
+};
 use onechip_config::decimal::Fixed;
 
 /// Time between a thermistor's readings, s.
@@ -439,6 +441,8 @@ struct HeaterState {
 pub struct McuSetup<'a> {
     /// Each output's pin (as printer.cfg writes it) and configuration.
     pub outputs: heapless::Vec<(&'a str, OutputConfig), OUTPUTS>,
+    /// Each output's levels, by the index of `outputs`.
+    pub levels: heapless::Vec<Levels, OUTPUTS>,
     /// Each heater's sensor pin and query, then each temperature
     /// sensor's (an SPI chip's pin is its chip select).
     pub inputs: heapless::Vec<(&'a str, InputQuery), INPUTS>,
@@ -542,7 +546,12 @@ impl<'a> McuSetup<'a> {
     ) -> Self {
         let mut setup = Self {
             outputs: heapless::Vec::new(),
+            levels: heapless::Vec::new(),
             inputs: heapless::Vec::new(),
+        };
+        let off = Levels {
+            start: 0.0,
+            shutdown: 0.0,
         };
         for heater in &machine.heaters {
             let output = OutputConfig {
@@ -554,6 +563,7 @@ impl<'a> McuSetup<'a> {
                 max_duration: ticks(MAX_HEAT_TIME, freq),
             };
             let _ = setup.outputs.push((heater.heater_pin, output));
+            let _ = setup.levels.push(off);
             let limits = (heater.min_temp, heater.max_temp);
             let conversion = Conversion::Sensor(heater.sensor);
             let query = input_query(&conversion, limits, freq, adc_max, start);
@@ -565,13 +575,15 @@ impl<'a> McuSetup<'a> {
             let query = input_query(&conversion, limits, freq, adc_max, start);
             let _ = setup.inputs.push((sensor.input.pin(), query));
         }
-        if let Some(fan) = &machine.fan {
-            let _ = setup.outputs.push((fan.pin, fan_config(fan, freq)));
-        }
+        let part_fan =
+            (machine.fan.iter()).map(|fan| (fan.pin, fan_config(fan, freq), fan_levels(fan)));
         let accessories = crate::outputs::output_configs(&machine.accessories, freq);
-        setup
-            .outputs
-            .extend(accessories.take(setup.outputs.capacity() - setup.outputs.len()));
+        for (pin, config, levels) in part_fan.chain(accessories) {
+            if setup.outputs.push((pin, config)).is_err() {
+                break;
+            }
+            let _ = setup.levels.push(levels);
+        }
         setup
     }
 }
@@ -605,7 +617,7 @@ pub fn input_chips<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = Option<
 pub fn full_scale(kind: OutputKind) -> u32 {
     match kind {
         OutputKind::Digital { cycle_ticks } => cycle_ticks,
-        OutputKind::HardPwm => PWM_MAX,
+        OutputKind::HardPwm { .. } => PWM_MAX,
     }
 }
 

@@ -24,8 +24,8 @@
 //! levels (inverted for a `!` pin, as klippy inverts on the host) and
 //! max_duration, `set_digital_out_pwm_cycle` for software PWM; a static
 //! pin is `set_digital_out` and has no object id. A hardware PWM output
-//! (klippy's `config_pwm_out`, scaled by the MCU's PWM_MAX) is not
-//! configured yet: the host refuses it.
+//! is klippy's `config_pwm_out`, its start and shutdown values scaled by
+//! the MCU's PWM_MAX.
 //!
 //! A pin belongs to the MCU its prefix names (`ext:PA4`, `!ext:PA4`);
 //! without one, or with `mcu:`, to the main MCU.
@@ -39,6 +39,16 @@ use onechip_sched::outputs::OutputKind;
 
 /// The main MCU's name (`[mcu]`).
 pub const MAIN: &str = "mcu";
+
+/// The MCU a config is written for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConfigTarget<'a> {
+    /// Its name ([`MAIN`] or a `[mcu NAME]`'s).
+    pub mcu: &'a str,
+    /// Full scale of its hardware PWM channels (its dictionary's
+    /// `PWM_MAX`; 0 if it has none).
+    pub pwm_max: u32,
+}
 
 /// A pin as printer.cfg writes it, split up.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -171,17 +181,18 @@ fn in_config_order(machine: &Machine<'_>, outputs: usize, mut f: impl FnMut(Obje
     }
 }
 
-/// Writes the config commands for MCU `mcu` (clock `freq` Hz) to `out`,
-/// one line each, `allocate_oids` first and without `finalize_config`;
-/// `pulse_ticks(i)` is stepper `i`'s `step_pulse_ticks`. Returns the ids.
+/// Writes the config commands for MCU `target` to `out` (`setup` made
+/// for its clock), one line each, `allocate_oids` first and without
+/// `finalize_config`; `pulse_ticks(i)` is stepper `i`'s
+/// `step_pulse_ticks`. Returns the ids.
 pub fn write_config(
     machine: &Machine<'_>,
     setup: &McuSetup<'_>,
-    mcu: &str,
+    target: ConfigTarget<'_>,
     pulse_ticks: &dyn Fn(usize) -> u32,
     out: &mut dyn FnMut(&str),
 ) -> Oids {
-    let oids = assign(machine, setup, mcu);
+    let oids = assign(machine, setup, target.mcu);
     let mut line = Line::new();
     let mut enables = heapless::Vec::new();
     line.emit(out, format_args!("allocate_oids count={}", oids.count));
@@ -191,7 +202,7 @@ pub fn write_config(
             write_stepper(machine, &oids, i, ticks, &mut enables, &mut line, out);
         }
         Object::Heater(h) => write_heater(machine, setup, &oids, h, &mut line, out),
-        Object::Output(k) => write_output(machine, setup, mcu, &oids, k, &mut line, out),
+        Object::Output(k) => write_output(machine, setup, target, &oids, k, &mut line, out),
         Object::Sensor(i) => {
             if let (Some(oid), Some(sensor)) = (oids.sensors[i], machine.sensors.get(i)) {
                 let pin = pin_ref(sensor.input.pin()).pin;
@@ -209,11 +220,11 @@ fn first_static(machine: &Machine<'_>) -> usize {
     machine.heaters.len() + usize::from(machine.fan.is_some()) + a.fans.len() + a.output_pins.len()
 }
 
-/// Writes fan or pin output `k` of `setup`, if on MCU `mcu`.
+/// Writes fan or pin output `k` of `setup`, if on MCU `target`.
 fn write_output(
     machine: &Machine<'_>,
     setup: &McuSetup<'_>,
-    mcu: &str,
+    target: ConfigTarget<'_>,
     oids: &Oids,
     k: usize,
     line: &mut Line,
@@ -223,7 +234,7 @@ fn write_output(
         return;
     };
     let pin = pin_ref(written);
-    if pin.mcu != mcu {
+    if pin.mcu != target.mcu {
         return;
     }
     if k >= first_static(machine) {
@@ -248,6 +259,27 @@ fn write_output(
         if pin.inverted { 1.0 - f } else { f }
     };
     let (start, shutdown) = (level(config.value), level(config.default));
+    if let (OutputKind::HardPwm { cycle_ticks }, Some(levels)) = (config.kind, setup.levels.get(k))
+    {
+        // klippy writes printer.cfg's levels (inverted for a `!` pin)
+        // times PWM_MAX with `%d`: truncated.
+        let duty = |level: f64| {
+            let level = if pin.inverted { 1.0 - level } else { level };
+            (level.clamp(0.0, 1.0) * f64::from(target.pwm_max)) as u32
+        };
+        let (start, shutdown) = (levels.start, levels.shutdown);
+        line.emit(
+            out,
+            format_args!(
+                "config_pwm_out oid={oid} pin={} cycle_ticks={cycle_ticks} value={} default_value={} max_duration={}",
+                pin.pin,
+                duty(start),
+                duty(shutdown),
+                config.max_duration
+            ),
+        );
+        return;
+    }
     line.emit(
         out,
         format_args!(
@@ -356,10 +388,7 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             }
         }
         Object::Output(k) => {
-            // Hardware PWM is not configured on a secondary (refused).
-            let on_this = setup.outputs.get(k).is_some_and(|(pin, config)| {
-                on_mcu(Some(pin)) && config.kind != OutputKind::HardPwm
-            });
+            let on_this = (setup.outputs.get(k)).is_some_and(|(pin, _)| on_mcu(Some(pin)));
             if on_this && k < statics {
                 oids.outputs[k] = Some(take());
             }
@@ -480,7 +509,11 @@ mod tests {
         let machine = Machine::from_config(&config).expect("machine");
         let setup = McuSetup::new(&machine, 16e6, 1023, typical_mcu(), 0);
         let mut lines = std::vec::Vec::new();
-        let oids = write_config(&machine, &setup, "ext", &|_| 32, &mut |l| {
+        let ext = ConfigTarget {
+            mcu: "ext",
+            pwm_max: 255,
+        };
+        let oids = write_config(&machine, &setup, ext, &|_| 32, &mut |l| {
             lines.push(std::string::String::from(l));
         });
         (lines, oids)
@@ -516,6 +549,27 @@ mod tests {
         // Io order: no heaters, the part fan, the named fans, the pin.
         assert_eq!(oids.outputs[..4], [Some(1), None, Some(2), Some(3)]);
         assert_eq!(oids.enables[2], Some(4));
+    }
+
+    #[test]
+    fn hardware_pwm_outputs_on_a_secondary_are_klippys_config_pwm_out_scaled_by_its_pwm_max() {
+        let text = with_ext(
+            "step_pin: ext:PB0\ndir_pin: ext:PB1\n",
+            "[fan]\npin: ext:PH6\nhardware_pwm: True\ncycle_time: 0.002\nshutdown_speed: 0.5\n\
+             [output_pin tool]\npin: !ext:PB4\npwm: True\nhardware_pwm: True\n\
+             cycle_time: 0.001\nvalue: 0.3\nshutdown_value: 0.3\nmaximum_mcu_duration: 2\n",
+        );
+        let (lines, oids) = ext_config(&text);
+        // klippy: cycle_ticks = int(cycle_time * 16 MHz); values =
+        // int(level * 255), the tool's inverted (1 - 0.3).
+        let expected = [
+            "allocate_oids count=3",
+            "config_pwm_out oid=1 pin=PH6 cycle_ticks=32000 value=0 default_value=127 max_duration=0",
+            "config_pwm_out oid=2 pin=PB4 cycle_ticks=16000 value=178 default_value=178 max_duration=32000000",
+            "config_stepper oid=0 step_pin=PB0 dir_pin=PB1 invert_step=0 step_pulse_ticks=32",
+        ];
+        assert_eq!(lines, expected);
+        assert_eq!(oids.outputs[..2], [Some(1), Some(2)]);
     }
 
     #[test]

@@ -32,39 +32,65 @@ pub const CHECK_TIME: f64 = 1.0;
 /// again, s (Klipper's RESEND_HOST_TIME).
 pub const RESEND_HOST_TIME: f64 = 0.300 + PIN_MIN_TIME;
 
+/// An output's start and shutdown levels, 0..1 of its full scale, as
+/// printer.cfg gives them (before an MCU scales them: a secondary's
+/// hardware PWM channel takes them times its own PWM_MAX).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Levels {
+    /// From start-up.
+    pub start: f64,
+    /// At shutdown.
+    pub shutdown: f64,
+}
+
+/// A fan's levels: off at start, its shutdown_speed (at most max_power)
+/// at shutdown.
+pub fn fan_levels(fan: &Fan<'_>) -> Levels {
+    Levels {
+        start: 0.0,
+        shutdown: fan.shutdown_speed.min(fan.max_power),
+    }
+}
+
 /// The MCU output of a fan: software PWM of its cycle_time, or a
-/// hardware PWM channel; off at start, its shutdown_speed (at most
-/// max_power) at shutdown; no max_duration.
+/// hardware PWM channel, at its [`fan_levels`]; no max_duration.
 pub fn fan_config(fan: &Fan<'_>, freq: f64) -> OutputConfig {
+    let cycle_ticks = ticks(fan.cycle_time, freq);
     let kind = if fan.hard_pwm {
-        OutputKind::HardPwm
+        OutputKind::HardPwm { cycle_ticks }
     } else {
-        OutputKind::Digital {
-            cycle_ticks: ticks(fan.cycle_time, freq),
-        }
+        OutputKind::Digital { cycle_ticks }
     };
     OutputConfig {
         kind,
         value: 0,
-        default: scaled(fan.shutdown_speed.min(fan.max_power), full_scale(kind)),
+        default: scaled(fan_levels(fan).shutdown, full_scale(kind)),
         max_duration: 0,
     }
 }
 
+/// An `[output_pin]`'s levels: its `value` and its `shutdown_value`.
+fn pin_levels(pin: &OutputPin<'_>) -> Levels {
+    Levels {
+        start: pin.value,
+        shutdown: pin.shutdown_value,
+    }
+}
+
 /// The MCU output of an `[output_pin]`: steady (on/off) or PWM, at its
-/// `value` from start-up and its `shutdown_value` at shutdown.
+/// [`pin_levels`].
 fn pin_config(pin: &OutputPin<'_>, freq: f64) -> OutputConfig {
+    let cycle_ticks = ticks(pin.cycle_time, freq);
     let kind = match (pin.pwm, pin.hardware_pwm) {
         (false, _) => OutputKind::Digital { cycle_ticks: 0 },
-        (true, true) => OutputKind::HardPwm,
-        (true, false) => OutputKind::Digital {
-            cycle_ticks: ticks(pin.cycle_time, freq),
-        },
+        (true, true) => OutputKind::HardPwm { cycle_ticks },
+        (true, false) => OutputKind::Digital { cycle_ticks },
     };
+    let levels = pin_levels(pin);
     OutputConfig {
         kind,
-        value: pin_value(pin.value, kind),
-        default: pin_value(pin.shutdown_value, kind),
+        value: pin_value(levels.start, kind),
+        default: pin_value(levels.shutdown, kind),
         max_duration: ticks(pin.max_duration, freq),
     }
 }
@@ -78,26 +104,27 @@ fn pin_value(fraction: f64, kind: OutputKind) -> u32 {
 }
 
 /// Every accessory output, in the order the io numbers them: named fans,
-/// output pins, static pins; the pin as written and its configuration.
+/// output pins, static pins (on); the pin as written, its configuration
+/// and its levels.
 pub fn output_configs<'m, 'a>(
     accessories: &'m Accessories<'a>,
     freq: f64,
-) -> impl Iterator<Item = (&'a str, OutputConfig)> + 'm {
-    let fans = accessories
-        .fans
-        .iter()
-        .map(move |f| (f.fan.pin, fan_config(&f.fan, freq)));
-    let pins = accessories
-        .output_pins
-        .iter()
-        .map(move |p| (p.pin, pin_config(p, freq)));
+) -> impl Iterator<Item = (&'a str, OutputConfig, Levels)> + 'm {
+    let fans = (accessories.fans.iter())
+        .map(move |f| (f.fan.pin, fan_config(&f.fan, freq), fan_levels(&f.fan)));
+    let pins =
+        (accessories.output_pins.iter()).map(move |p| (p.pin, pin_config(p, freq), pin_levels(p)));
     let on = OutputConfig {
         kind: OutputKind::Digital { cycle_ticks: 0 },
         value: 1,
         default: 1,
         max_duration: 0,
     };
-    let statics = accessories.static_pins.iter().map(move |p| (p.pin, on));
+    let full_on = Levels {
+        start: 1.0,
+        shutdown: 1.0,
+    };
+    let statics = (accessories.static_pins.iter()).map(move |p| (p.pin, on, full_on));
     fans.chain(pins).chain(statics)
 }
 
@@ -673,7 +700,7 @@ impl AccessoryOutputs {
             .chain(pins)
             .chain(statics)
             .zip(configs)
-            .map(|(which, (_, config))| match which {
+            .map(|(which, (_, config, _))| match which {
                 (Some(f), _) => State::Fan {
                     control: FanControl::new(&f.fan, full_scale(config.kind), freq),
                     role: f.role,

@@ -5,7 +5,7 @@
 
 use crate::config_files::ConfigFiles;
 use crate::heaters::input_buses;
-use crate::mcu_config::pin_ref;
+use crate::mcu_config::{on_main, pin_ref};
 use crate::pin_check::{self, PinUse};
 use crate::step_pulse::{has_tmc_driver, step_pulse_duration};
 use crate::text::cut_text;
@@ -194,10 +194,11 @@ impl<'a> PrinterSetup<'a> {
             || self.machine.accessories.output_count() > 0
     }
 
-    /// For a board without hardware PWM outputs: a fan or output pin
-    /// configured with `hardware_pwm` runs software PWM instead, of its
-    /// cycle_time but at least [`MIN_SOFTWARE_CYCLE`] (a hardware cycle of
-    /// tens of µs would have the heaters' interrupt run at every edge).
+    /// For a board without hardware PWM outputs: a fan or output pin on
+    /// the main MCU configured with `hardware_pwm` runs software PWM
+    /// instead, of its cycle_time but at least [`MIN_SOFTWARE_CYCLE`] (a
+    /// hardware cycle of tens of µs would have the heaters' interrupt run
+    /// at every edge). One on a secondary keeps its hardware channel.
     /// True if one was changed.
     pub fn without_hard_pwm(&mut self) -> bool {
         let accessories = &mut self.machine.accessories;
@@ -207,7 +208,7 @@ impl<'a> PrinterSetup<'a> {
             .iter_mut()
             .chain(accessories.fans.iter_mut().map(|f| &mut f.fan));
         let mut changed = false;
-        for fan in fans.filter(|f| f.hard_pwm) {
+        for fan in fans.filter(|f| f.hard_pwm && on_main(f.pin)) {
             fan.hard_pwm = false;
             fan.cycle_time = fan.cycle_time.max(MIN_SOFTWARE_CYCLE);
             changed = true;
@@ -215,7 +216,7 @@ impl<'a> PrinterSetup<'a> {
         for pin in accessories
             .output_pins
             .iter_mut()
-            .filter(|p| p.hardware_pwm)
+            .filter(|p| p.hardware_pwm && on_main(p.pin))
         {
             pin.hardware_pwm = false;
             pin.cycle_time = pin.cycle_time.max(MIN_SOFTWARE_CYCLE);

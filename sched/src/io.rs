@@ -293,7 +293,7 @@ mod tests {
             max_duration: 10_000,
         };
         let fan = OutputConfig {
-            kind: OutputKind::HardPwm,
+            kind: OutputKind::HardPwm { cycle_ticks: 1000 },
             value: 0,
             default: 0,
             max_duration: 0,

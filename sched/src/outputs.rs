@@ -24,7 +24,10 @@ pub enum OutputKind {
     },
     /// A hardware PWM channel: the value is its duty, 0 to the channel's
     /// maximum; the hardware makes the waveform.
-    HardPwm,
+    HardPwm {
+        /// The channel's period, ticks (Klipper's `cycle_ticks`).
+        cycle_ticks: u32,
+    },
 }
 
 /// An output's configuration (Klipper's `config_digital_out` with
@@ -97,7 +100,7 @@ impl Output {
     pub fn drive(&self) -> Drive {
         match self.config.kind {
             OutputKind::Digital { .. } => Drive::Level(self.level),
-            OutputKind::HardPwm => Drive::Duty(self.value),
+            OutputKind::HardPwm { .. } => Drive::Duty(self.value),
         }
     }
 
@@ -163,7 +166,7 @@ impl Output {
     fn expired(&self) -> Shutdown {
         match self.config.kind {
             OutputKind::Digital { .. } => Shutdown::DigitalOutExpired,
-            OutputKind::HardPwm => Shutdown::PwmExpired,
+            OutputKind::HardPwm { .. } => Shutdown::PwmExpired,
         }
     }
 
@@ -271,7 +274,7 @@ mod tests {
         assert_eq!(heater.next_event(), None);
         // The same for a hardware channel, with its own message.
         let mut pwm = Output::new(OutputConfig {
-            kind: OutputKind::HardPwm,
+            kind: OutputKind::HardPwm { cycle_ticks: 1000 },
             value: 0,
             default: 0,
             max_duration: 100,

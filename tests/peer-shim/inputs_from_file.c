@@ -12,6 +12,12 @@
 // 0 for every sample) are that folder's in_voltageN_raw: a test writes
 // the raw reading there (0..4095 as decimal text, rewritten in place).
 //
+// Hardware PWM: Klipper's Linux MCU sets a channel up by writing the
+// files period, duty_cycle and enable of /sys/class/pwm/pwmchipC/pwmN/
+// (keeping duty_cycle open for its updates, written with write() at the
+// file's position). Here those files are stand-ins that log each write to
+// FAKEGPIO_LOG as "<monotonic ns> pwmchipC/pwmN/FILE <value>".
+//
 // Build: cc -shared -fPIC -O2 -I <peers>/linux -o X.so inputs_from_file.c -ldl
 #define _GNU_SOURCE
 #include <dlfcn.h>
@@ -44,8 +50,62 @@ static const char *iio_path(const char *path, char *buf, size_t len)
     return buf;
 }
 
+#define PWM_PREFIX "/sys/class/pwm/"
+
+// Each hardware PWM stand-in's name ("pwmchip0/pwm0/duty_cycle"), by fd.
+static char pwm_file[MAXFD][48];
+
+// A stand-in for the PWM file `path` (fd kind 3), or -2 if `path` is
+// not one.
+static int pwm_open(const char *path)
+{
+    size_t n = strlen(PWM_PREFIX);
+    if (!path || strncmp(path, PWM_PREFIX, n) != 0)
+        return -2;
+    int fd = new_fd(3, 0, 0);
+    if (fd >= 0 && fd < MAXFD)
+        snprintf(pwm_file[fd], sizeof(pwm_file[fd]), "%s", path + n);
+    return fd;
+}
+
+// Logs the value (decimal text, maybe NUL-terminated) written to the PWM
+// stand-in `fd`.
+static void pwm_log(int fd, const void *buf, size_t len)
+{
+    char value[32];
+    size_t n = len < sizeof(value) - 1 ? len : sizeof(value) - 1;
+    memcpy(value, buf, n);
+    value[n] = 0;
+    value[strcspn(value, "\n")] = 0;
+    if (!logf && getenv("FAKEGPIO_LOG"))
+        logf = fopen(getenv("FAKEGPIO_LOG"), "a");
+    if (logf) {
+        struct timespec ts;
+        clock_gettime(CLOCK_MONOTONIC, &ts);
+        fprintf(logf, "%lld %s %s\n",
+                (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec,
+                pwm_file[fd], value);
+        fflush(logf);
+    }
+}
+
+ssize_t write(int fd, const void *buf, size_t len)
+{
+    static ssize_t (*real)(int, const void *, size_t);
+    if (fd >= 0 && fd < MAXFD && fd_kind[fd] == 3) {
+        pwm_log(fd, buf, len);
+        return len;
+    }
+    if (!real)
+        real = dlsym(RTLD_NEXT, "write");
+    return real(fd, buf, len);
+}
+
 static int iio_open_with(const char *sym, const char *p, int flags, mode_t mode)
 {
+    int pwm = pwm_open(p);
+    if (pwm != -2)
+        return pwm;
     char buf[512];
     int (*real)(const char *, int, ...) = dlsym(RTLD_NEXT, sym);
     return real(iio_path(p, buf, sizeof(buf)), flags, mode);

@@ -13,14 +13,24 @@ pub use onechip_golden::{golden_dir, summary_value};
 ///
 /// # Panics
 ///
-/// If the dictionary has no `ADC_MAX` constant.
+/// If the dictionary has no `ADC_MAX` constant of 16 bits.
 pub fn golden_adc_max(case: &str) -> u16 {
+    u16::try_from(golden_constant(case, "ADC_MAX")).expect("ADC_MAX")
+}
+
+/// The integer constant `name` of the MCU golden case `case` ran on, from
+/// its dictionary.
+///
+/// # Panics
+///
+/// If the dictionary has no such constant.
+pub fn golden_constant(case: &str, name: &str) -> u32 {
     let dict = onechip_golden::dict(onechip_golden::dict_for(case));
-    dict.split("\"ADC_MAX\":")
+    dict.split(&format!("\"{name}\":"))
         .nth(1)
         .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
         .and_then(|n| n.parse().ok())
-        .expect("ADC_MAX")
+        .unwrap_or_else(|| panic!("{name} in {case}'s dictionary"))
 }
 
 /// Checks a run that heated the hot end to 200 °C with M109 and reported

@@ -407,6 +407,21 @@ impl Peer {
             .collect()
     }
 
+    /// Every value written to `file` (a hardware PWM channel's file as
+    /// the driven shim logs it, `pwmchip0/pwm0/duty_cycle`): the time (s,
+    /// CLOCK_MONOTONIC) and the value.
+    pub fn values(&self, file: &str) -> Vec<(f64, u64)> {
+        let text = std::fs::read_to_string(&self.pin_log).unwrap_or_default();
+        text.lines()
+            .filter_map(|line| {
+                let mut words = line.split_whitespace();
+                let (ns, name, value) = (words.next()?, words.next()?, words.next()?);
+                let value = value.parse().ok().filter(|_| name == file)?;
+                Some((ns.parse::<f64>().ok()? * 1e-9, value))
+            })
+            .collect()
+    }
+
     /// The rising edges in the pin log for `pin`: their times in seconds
     /// (Linux peer: CLOCK_MONOTONIC; AVR peer: its MCU clock / 16 MHz).
     pub fn rising_edges(&self, pin: &str) -> Vec<f64> {

@@ -408,7 +408,7 @@ fn a_secondary_mcu_gets_an_extruder_steppers_config_where_klippy_creates_it() {
     // stepper takes object id 0 and its config comes first; the shared
     // enable pin is configured once, with the first stepper.
     use onechip_app::heaters::McuSetup;
-    use onechip_app::mcu_config::{MAIN, write_config};
+    use onechip_app::mcu_config::{ConfigTarget, MAIN, write_config};
     let text = onechip_golden::config("cartesian.cfg")
         + "\n[extruder_stepper e1]\nextruder: extruder\nstep_pin: PE2\ndir_pin: PE3\n\
            enable_pin: !PA0\nmicrosteps: 16\nrotation_distance: 33.5\n";
@@ -423,7 +423,11 @@ fn a_secondary_mcu_gets_an_extruder_steppers_config_where_klippy_creates_it() {
         0,
     );
     let mut lines = Vec::new();
-    let oids = write_config(&machine, &setup, MAIN, &|_| 360, &mut |l| {
+    let main = ConfigTarget {
+        mcu: MAIN,
+        pwm_max: 255,
+    };
+    let oids = write_config(&machine, &setup, main, &|_| 360, &mut |l| {
         lines.push(l.to_string())
     });
     // 16 objects as klippy's golden session, and e1's stepper.

@@ -4,12 +4,12 @@
 //! `finalize_config`), and so does their CRC.
 
 use onechip_app::heaters::McuSetup;
-use onechip_app::mcu_config::{MAIN, write_config};
+use onechip_app::mcu_config::{ConfigTarget, MAIN, write_config};
 use onechip_app::step_pulse;
 use onechip_config::Config;
 use onechip_planner::machine::Machine;
 use onechip_secondary_mcu::connection::config_crc;
-use onechip_tests::{golden_adc_max, summary_value};
+use onechip_tests::{golden_adc_max, golden_constant, summary_value};
 
 #[test]
 fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
@@ -34,7 +34,11 @@ fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
             step_pulse::pulse_ticks(duration, freq)
         };
         let mut ours = Vec::new();
-        let oids = write_config(&machine, &setup, MAIN, &pulse, &mut |l| {
+        let main = ConfigTarget {
+            mcu: MAIN,
+            pwm_max: golden_constant(case, "PWM_MAX"),
+        };
+        let oids = write_config(&machine, &setup, main, &pulse, &mut |l| {
             ours.push(l.to_string())
         });
         let log = onechip_golden::read_string(format!("{case}/mcu-commands.txt"));

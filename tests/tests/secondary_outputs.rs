@@ -4,7 +4,8 @@
 //! and through `tests/peer-shim` the level each pin is set up with):
 //! the part fan's software PWM from M106, SET_PIN, a static pin, a heater
 //! fan following its heater, an enable pin following its stepper and M84,
-//! and the shutdown values an M112 leaves.
+//! hardware PWM channels (whose sysfs files the peer-shim logs), and the
+//! shutdown values an M112 leaves.
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
@@ -206,26 +207,108 @@ fn a_heater_fan_and_an_enable_pin_on_a_linux_mcu_follow_their_heater_and_stepper
     assert_eq!(peer.levels(pins.enable).last().map(|l| l.1), Some(true));
 }
 
+/// Two hardware PWM channels of the peer (its driven shim logs each
+/// write to their sysfs files).
+const FAN_CHANNEL: &str = "pwmchip0/pwm0";
+const TOOL_CHANNEL: &str = "pwmchip1/pwm0";
+/// The Linux MCU's PWM_MAX (its dictionary).
+const LINUX_PWM_MAX: f64 = 32768.0;
+
+/// The duty cycles (ns) `channel` had so far, as the Linux MCU sets
+/// them: a duty_cycle write, then enable 1; or enable 0 alone (duty 0).
+fn duties(peer: &Peer, channel: &str) -> Vec<u64> {
+    let file = |name: &str| peer.values(&format!("{channel}/{name}"));
+    let mut writes: Vec<(f64, bool, u64)> = (file("duty_cycle").into_iter())
+        .map(|(t, v)| (t, true, v))
+        .chain(file("enable").into_iter().map(|(t, v)| (t, false, v)))
+        .collect();
+    writes.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut duty = 0;
+    let mut duties = Vec::new();
+    for (_, is_duty, value) in writes {
+        match (is_duty, value) {
+            (true, ns) => duty = ns,
+            (false, 0) => duties.push(0),
+            (false, _) => duties.push(duty),
+        }
+    }
+    duties
+}
+
+/// The duty (ns) the Linux MCU writes for `level` (0..1) of a `period`
+/// ns channel, give or take one step of its PWM_MAX: klippy's
+/// `int(level * PWM_MAX + 0.5)`, then `period * value / PWM_MAX`.
+fn assert_duty(duty: u64, level: f64, period: u64) {
+    let value = (level * LINUX_PWM_MAX + 0.5).floor();
+    let wanted = (period as f64 * value / LINUX_PWM_MAX).floor();
+    let step = period as f64 / LINUX_PWM_MAX;
+    assert!(
+        (duty as f64 - wanted).abs() <= step + 1.0,
+        "duty {duty} ns, wanted {wanted} (level {level} of {period} ns)"
+    );
+}
+
 #[test]
-fn hardware_pwm_on_a_secondary_is_refused_naming_the_pin() {
-    let sd = std::env::temp_dir().join(format!("onechip-hard-pwm-{}", std::process::id()));
-    let serial = sd.join("no-such-mcu");
-    printer_with_outputs_on_the_peer(&sd, &serial);
+fn hardware_pwm_on_a_linux_mcu_is_configured_as_klippys_pwm_out_and_follows_m106_and_set_pin() {
+    let _alone = one_peer_at_a_time();
+    let peer = Peer::start_driven("outputs-hard-pwm");
+    let sd = peer.path.with_file_name("sd");
+    printer_with_outputs_on_the_peer(&sd, &peer.path);
     let cfg = sd.join("printer.cfg");
     let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
-    let hard = text.replace(
-        &format!("[fan]\npin: ext:{FAN}"),
-        &format!("[fan]\npin: ext:{FAN}\nhardware_pwm: True"),
+    let fan = format!(
+        "[fan]\npin: ext:{FAN_CHANNEL}\nhardware_pwm: True\ncycle_time: 0.001\nshutdown_speed: 0.5"
     );
+    let tool = format!(
+        "\n[output_pin tool]\npin: !ext:{TOOL_CHANNEL}\npwm: True\nhardware_pwm: True\n\
+         cycle_time: 0.0002\nvalue: 0.25\nshutdown_value: 0\n"
+    );
+    let hard = text.replace(&format!("[fan]\npin: ext:{FAN}"), &fan) + &tool;
     std::fs::write(&cfg, hard).expect("printer.cfg");
-    let refused = ConsolePrinter::new(&sd, &Options::default()).err();
-    let _ = std::fs::remove_dir_all(&sd);
-    let message = refused.map(|e| e.to_string()).unwrap_or_default();
-    assert!(
-        message.contains("option 'serial' in section 'mcu ext'")
-            && message.contains(&format!(
-                "pin 'ext:{FAN}': hardware_pwm on a secondary MCU is not supported yet"
-            )),
-        "{message}"
+    let mut p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
+    p.run_for(0.5);
+    // config_pwm_out: each channel's period (its cycle_time in 50 MHz
+    // ticks, 20 ns each), then its start duty.
+    let period = |channel: &str| peer.values(&format!("{channel}/period"));
+    let (fan_period, tool_period) = (1_000_000, 200_000);
+    assert_eq!(
+        period(FAN_CHANNEL).iter().map(|v| v.1).collect::<Vec<_>>(),
+        [fan_period]
     );
+    assert_eq!(
+        period(TOOL_CHANNEL).iter().map(|v| v.1).collect::<Vec<_>>(),
+        [tool_period]
+    );
+    assert_eq!(duties(&peer, FAN_CHANNEL), [0]);
+    // The tool's `!` pin: 0.25 is 0.75 on the channel.
+    assert_eq!(duties(&peer, TOOL_CHANNEL), [150_000]);
+    // M106: the kick at full power, then 128/255.
+    let replies = p.send("M106 S128");
+    assert!(!replies.contains("!!"), "{replies}");
+    p.run_for(1.0);
+    let fan = duties(&peer, FAN_CHANNEL);
+    println!("fan duty cycles (ns): {fan:?}");
+    assert_eq!(fan[..2], [0, fan_period], "the kick");
+    assert_eq!(fan.len(), 3, "{fan:?}");
+    assert_duty(fan[2], 128.0 / 255.0, fan_period);
+    p.send("M107");
+    p.run_for(0.5);
+    assert_eq!(duties(&peer, FAN_CHANNEL).last(), Some(&0));
+    let replies = p.send("SET_PIN PIN=tool VALUE=0.6");
+    assert!(!replies.contains("!!"), "{replies}");
+    p.run_for(0.5);
+    let tool = duties(&peer, TOOL_CHANNEL);
+    assert_eq!(tool.len(), 2, "{tool:?}");
+    assert_duty(tool[1], 0.4, tool_period);
+    // M112: the MCU sets each channel to its shutdown value: the fan's
+    // shutdown_speed, the tool's 0 (full duty on its `!` pin).
+    let stopped = p.send("M112");
+    assert!(stopped.contains("M112"), "{stopped}");
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    assert_duty(
+        *duties(&peer, FAN_CHANNEL).last().unwrap_or(&0),
+        0.5,
+        fan_period,
+    );
+    assert_eq!(duties(&peer, TOOL_CHANNEL).last(), Some(&tool_period));
 }

@@ -10,7 +10,8 @@
 //! Fans, output pins and stepper enable pins on a secondary are driven
 //! there as klippy drives them ([`RemoteOutput`]): the MCU role's io runs
 //! the fans and pins as for the main MCU, and each update it queues for an
-//! output on a secondary goes out as `queue_digital_out` on that MCU's
+//! output on a secondary goes out as `queue_digital_out` (a hardware PWM
+//! channel: `queue_pwm_out`, scaled by the MCU's PWM_MAX) on that MCU's
 //! clock (its level inverted on the host for a `!` pin, as klippy does);
 //! an enable pin goes active with its stepper's first step and inactive
 //! at M84/M18. A shutdown is the MCU's own: `emergency_stop` puts every
@@ -23,15 +24,15 @@
 //! the PWM updates the control queues go out as the fans' do.
 
 use super::homing::{Homing, TrsyncState};
-use super::remote_output::{RemoteEnable, RemoteOutput, level};
+use super::remote_output::{RemoteDrive, RemoteEnable, RemoteOutput, level, pwm_max};
 use super::sent_steps::{SentCommand, SentSteps, each_step};
 use super::thermal::{self, Reading, RemoteInput};
 use super::{
     ConnectError, FetchRoom, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text,
-    command, text,
+    clock_freq, command, text,
 };
 use crate::heaters::{INPUTS, LinearConversion, McuSetup, OUTPUTS, full_scale};
-use crate::mcu_config::{Oids, pin_ref, write_config};
+use crate::mcu_config::{ConfigTarget, Oids, pin_ref, write_config};
 use crate::setup::PrinterSetup;
 use crate::step_pulse::pulse_ticks;
 use core::cell::Cell;
@@ -40,6 +41,7 @@ use core::ptr::addr_of_mut;
 use heapless::binary_heap::{BinaryHeap, Min};
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::mcu_section::{MAX_SECONDARIES, RestartMethod};
+use onechip_protocol::dictionary::Dictionary;
 use onechip_protocol::transport::LinkStats;
 use onechip_sched::engine::Full;
 use onechip_sched::outputs::OutputKind;
@@ -362,24 +364,22 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             let name = self.names.get(k).copied().unwrap_or("?");
             let error = |error| McuError::new(name, secondary.serial_at, error);
             let unsupported = |why: Text| error(ConnectError::Unsupported(why));
-            let hard = (io.outputs.iter().skip(machine.heaters.len())).find(|(pin, c)| {
-                pin_ref(pin).mcu == secondary.name && c.kind == OutputKind::HardPwm
-            });
-            if let Some((pin, _)) = hard {
-                return Err(unsupported(text(format_args!(
-                    "pin '{pin}': hardware_pwm on a secondary MCU is not supported yet"
-                ))));
-            }
             // The config depends on the MCU's clock (step pulses in its
-            // ticks), which identify tells; its object ids are kept.
+            // ticks) and PWM_MAX, which identify tells; its object ids
+            // are kept.
             let oids = Cell::new(Oids::default());
-            let config = |mcu_freq: f64, out: &mut dyn FnMut(&str)| {
+            let config = |dict: &Dictionary<'_>, out: &mut dyn FnMut(&str)| {
+                let mcu_freq = clock_freq(dict);
+                let target = ConfigTarget {
+                    mcu: secondary.name,
+                    pwm_max: pwm_max(dict).unwrap_or(0),
+                };
                 let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor, 0);
                 let ticks = |i: usize| pulse_ticks(pulses[i], mcu_freq);
-                let o = write_config(machine, &setup, secondary.name, &ticks, &mut |_| {});
+                let o = write_config(machine, &setup, target, &ticks, &mut |_| {});
                 // One more object: the trsync for homing moves.
                 let mut first = true;
-                write_config(machine, &setup, secondary.name, &ticks, &mut |l| {
+                write_config(machine, &setup, target, &ticks, &mut |l| {
                     if core::mem::take(&mut first) {
                         out(&command(format_args!(
                             "allocate_oids count={}",
@@ -431,10 +431,11 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             }
             let oids = oids.get();
             let mcu = &mut self.attached[k].mcu;
-            let (dict, mcu_freq) = (mcu.dictionary(), mcu.clock_freq());
+            let dict = mcu.dictionary();
             let sync = mcu.connection().clock().copied();
             let start = sync.map_or(0, |s| s.clock_at(now() + START_LEAD));
-            self.add_outputs(machine, &io, &oids, k, mcu_freq, start);
+            self.add_outputs(machine, &io, &oids, k, start)
+                .map_err(unsupported)?;
             self.add_inputs(machine, &oids, k, now())
                 .map_err(unsupported)?;
             for (i, oid) in oids.steppers.iter().enumerate() {
@@ -465,20 +466,26 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
     }
 
     /// Takes the fan, pin and enable outputs of MCU `k` (index into
-    /// `attached`, clock `mcu_freq` Hz), whose object ids are `oids`; `io`
-    /// is the MCU role's io at the main clock. A software PWM output gets
-    /// its start value at clock `start` (that MCU's), as klippy's init
-    /// command.
+    /// `attached`), whose object ids are `oids`; `io` is the MCU role's io
+    /// at the main clock. A software PWM output gets its start value at
+    /// clock `start` (that MCU's), as klippy's init command; a hardware
+    /// PWM output only if the MCU kept its config (klippy's restart
+    /// command: a new config holds it). An MCU without a usable PWM_MAX
+    /// is refused if it has a hardware PWM output.
     fn add_outputs(
         &mut self,
         machine: &Machine<'_>,
         io: &McuSetup<'_>,
         oids: &Oids,
         k: usize,
-        mcu_freq: f64,
         start: u64,
-    ) {
-        let there = McuSetup::new(machine, mcu_freq, 0, self.mcu_sensor, 0);
+    ) -> Result<(), Text> {
+        let Some(Attached { mcu, .. }) = self.attached.get(k) else {
+            return Ok(());
+        };
+        let (name, kept) = (mcu.name, mcu.config_kept);
+        let pwm_max = pwm_max(mcu.dictionary());
+        let there = McuSetup::new(machine, mcu.clock_freq(), 0, self.mcu_sensor, 0);
         // The heaters' outputs first (io order), then the fans' and pins'.
         let heaters = oids.heaters.iter().take(machine.heaters.len());
         let heater_oids = heaters.map(|h| h.1);
@@ -489,13 +496,21 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             else {
                 continue;
             };
-            let cycle_ticks = match here.kind {
-                OutputKind::Digital { cycle_ticks } => cycle_ticks,
-                OutputKind::HardPwm => 0,
+            let (drive, queue_start) = match here.kind {
+                OutputKind::Digital { cycle_ticks: 0 } => (RemoteDrive::Steady, false),
+                OutputKind::Digital { cycle_ticks } => (RemoteDrive::SoftPwm { cycle_ticks }, true),
+                OutputKind::HardPwm { .. } => {
+                    let pwm_max = pwm_max.ok_or_else(|| {
+                        text(format_args!(
+                            "MCU '{name}' has no usable PWM_MAX for hardware_pwm pin '{pin}'"
+                        ))
+                    })?;
+                    (RemoteDrive::HardPwm { pwm_max }, kept)
+                }
             };
-            let mut output = RemoteOutput::new(k, oid, cycle_ticks, pin_ref(pin).inverted);
+            let mut output = RemoteOutput::new(k, oid, drive, pin_ref(pin).inverted);
             let full = full_scale(config.kind);
-            if cycle_ticks > 0 {
+            if queue_start {
                 output.queue(start, level(config.value, full));
             }
             if let Some(slot) = self.outputs.get_mut(index) {
@@ -513,7 +528,12 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                 Some(e) => e,
                 None => {
                     let enable = RemoteEnable {
-                        output: RemoteOutput::new(k, oid, 0, pin_ref(pin).inverted),
+                        output: RemoteOutput::new(
+                            k,
+                            oid,
+                            RemoteDrive::Steady,
+                            pin_ref(pin).inverted,
+                        ),
                         count: 0,
                     };
                     // One per stepper at most.
@@ -523,6 +543,7 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             };
             self.stepper_enables[i] = Some((e, false));
         }
+        Ok(())
     }
 
     /// Starts sampling the heaters' and temperature sensors' ADC inputs

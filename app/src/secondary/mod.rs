@@ -287,9 +287,15 @@ impl AnalogReport {
     }
 }
 
-/// One MCU's config commands, written for its clock: `config(freq, out)`
-/// calls `out` once per line, `allocate_oids` first.
-pub type ConfigWriter<'a> = &'a dyn Fn(f64, &mut dyn FnMut(&str));
+/// One MCU's config commands, written for it as its data dictionary
+/// describes it (its clock, its PWM_MAX): `config(dictionary, out)` calls
+/// `out` once per line, `allocate_oids` first.
+pub type ConfigWriter<'a> = &'a dyn Fn(&Dictionary<'_>, &mut dyn FnMut(&str));
+
+/// The clock frequency (Hz) an MCU's data dictionary tells (0 if none).
+pub fn clock_freq(dict: &Dictionary<'_>) -> f64 {
+    dict.constant_int("CLOCK_FREQ").map_or(0.0, |f| f as f64)
+}
 
 /// Room for a dictionary fetch while an MCU connects (about 12 KB, most
 /// of it the inflate state): a firmware keeps it in a static, beside the
@@ -304,6 +310,10 @@ pub struct Secondary<L> {
     conn: Connection<'static>,
     /// The MCU's move queue length (`get_config`'s `move_count`).
     pub move_count: u16,
+    /// The MCU held this config already, so none was sent (klippy then
+    /// sends its restart commands: the hardware PWM outputs' start
+    /// values).
+    pub config_kept: bool,
 }
 
 impl<L: SecondaryLink> Secondary<L> {
@@ -426,6 +436,7 @@ impl<L: SecondaryLink> Secondary<L> {
             addr_of_mut!((*p).link).write(link);
             addr_of_mut!((*p).conn).write(Connection::new(dict, host_link));
             addr_of_mut!((*p).move_count).write(0);
+            addr_of_mut!((*p).config_kept).write(false);
         }
         Ok(())
     }
@@ -478,10 +489,7 @@ impl<L: SecondaryLink> Secondary<L> {
 
     /// The MCU's nominal clock (`CLOCK_FREQ`), Hz.
     pub fn clock_freq(&self) -> f64 {
-        self.conn
-            .dictionary()
-            .constant_int("CLOCK_FREQ")
-            .map_or(0.0, |f| f as f64)
+        clock_freq(self.conn.dictionary())
     }
 
     /// The MCU's data dictionary.
@@ -511,7 +519,7 @@ impl<L: SecondaryLink> Secondary<L> {
     ) -> Result<(), ConnectError> {
         let mut lines = heapless::String::<CONFIG_TEXT>::new();
         let mut fits = true;
-        config(self.clock_freq(), &mut |line| {
+        config(self.conn.dictionary(), &mut |line| {
             fits &= lines.push_str(line).is_ok() && lines.push('\n').is_ok();
         });
         if !fits {
@@ -541,6 +549,7 @@ impl<L: SecondaryLink> Secondary<L> {
                     if let Err(why) = self.conn.configure(lines.lines(), crc) {
                         failure = Some(why);
                     }
+                    self.config_kept = crc.is_some();
                 }
                 None => {}
             }

@@ -8,7 +8,9 @@
 
 pub mod port;
 
-use onechip_app::secondary::{self, AnalogReport, ConnectError, Heard, LinkError, Links, Start};
+use onechip_app::secondary::{
+    self, AnalogReport, ConnectError, Heard, LinkError, Links, Start, clock_freq,
+};
 use onechip_planner::mcu_section::{MAX_SECONDARIES, RestartMethod};
 use onechip_protocol::dictionary::Dictionary;
 use onechip_secondary_mcu::connection::Failure;
@@ -94,9 +96,12 @@ fn connect_on(
     Secondary::connect(name, serial, links, &config, now, timeout, how)
 }
 
-/// `config`'s lines as the host role takes them, one call each.
-fn lines(config: &dyn Fn(f64) -> Vec<String>) -> impl Fn(f64, &mut dyn FnMut(&str)) + '_ {
-    move |freq, out| config(freq).iter().for_each(|l| out(l))
+/// `config`'s lines (for the MCU's clock frequency, Hz) as the host role
+/// takes them, one call each.
+fn lines(
+    config: &dyn Fn(f64) -> Vec<String>,
+) -> impl Fn(&Dictionary<'_>, &mut dyn FnMut(&str)) + '_ {
+    move |dict, out| config(clock_freq(dict)).iter().for_each(|l| out(l))
 }
 
 /// `text` for as long as the process runs (an MCU's name in its shutdown
