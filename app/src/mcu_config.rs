@@ -7,9 +7,11 @@
 //! created: the `[extruder_stepper]`s' (klippy loads them with the other
 //! extra sections, before the toolhead), the rails, then the extruder's
 //! stepper; enable pins, heater sensors and heater, fan and pin outputs
-//! take theirs when their config is written. Config order: each
+//! take theirs when their config is written. Config order: the
+//! `[static_digital_output]` pins (klippy adds their commands as the
+//! sections load, before any config callback runs); each
 //! `[extruder_stepper]`'s stepper and enable pin; the part fan, the named
-//! fans, the `[output_pin]`s and the `[static_digital_output]` pins, then
+//! fans and the `[output_pin]`s, then
 //! the `[temperature_sensor]`s on an ADC pin (extra sections, which klippy
 //! loads before the toolhead); each rail's endstop,
 //! trsync, stepper and enable pin; the extruder's heater (sensor, output)
@@ -151,15 +153,16 @@ fn in_creation_order<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = usize
         .chain(extruder)
 }
 
-/// Calls `f` with each object in klippy's config order: the
-/// `[extruder_stepper]`s, the fans and pins (`outputs`: how many
-/// [`McuSetup::outputs`] there are), the temperature sensors, the rails,
-/// then the heaters, the
-/// extruder's stepper right after the extruder's heater (or after the
-/// heaters if it has none).
+/// Calls `f` with each object klippy configures in its config callbacks,
+/// in their order: the `[extruder_stepper]`s, the fans and pins but the
+/// static ones (`outputs`: how many [`McuSetup::outputs`] there are), the
+/// temperature sensors, the rails, then the heaters, the extruder's
+/// stepper right after the extruder's heater (or after the heaters if it
+/// has none).
 fn in_config_order(machine: &Machine<'_>, outputs: usize, mut f: impl FnMut(Object)) {
     extra_extruder_steppers(machine).for_each(|i| f(Object::Stepper(i)));
-    (machine.heaters.len()..outputs).for_each(|k| f(Object::Output(k)));
+    let statics = first_static(machine).min(outputs);
+    (machine.heaters.len()..statics).for_each(|k| f(Object::Output(k)));
     (0..machine.sensors.len()).for_each(|i| f(Object::Sensor(i)));
     (0..machine.motion_steppers()).for_each(|i| f(Object::Stepper(i)));
     let extruder = machine
@@ -196,6 +199,11 @@ pub fn write_config(
     let mut line = Line::new();
     let mut enables = heapless::Vec::new();
     line.emit(out, format_args!("allocate_oids count={}", oids.count));
+    // klippy adds a static pin's command as the section loads, before
+    // its config callbacks write the others'.
+    for k in first_static(machine)..setup.outputs.len() {
+        write_output(machine, setup, target, &oids, k, &mut line, out);
+    }
     in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
             let ticks = pulse_ticks(i);
@@ -361,7 +369,6 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
         }
     }
     // Given out as the config is written.
-    let statics = first_static(machine);
     in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
             let stepper = &machine.steppers[i];
@@ -389,7 +396,7 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
         }
         Object::Output(k) => {
             let on_this = (setup.outputs.get(k)).is_some_and(|(pin, _)| on_mcu(Some(pin)));
-            if on_this && k < statics {
+            if on_this {
                 oids.outputs[k] = Some(take());
             }
         }
@@ -535,13 +542,13 @@ mod tests {
         // first (klippy loads them before the toolhead).
         let expected = [
             "allocate_oids count=5",
+            "set_digital_out pin=PC3 value=1",
+            "set_digital_out pin=PC4 value=0",
             "config_digital_out oid=1 pin=PC0 value=0 default_value=0 max_duration=0",
             "set_digital_out_pwm_cycle oid=1 cycle_ticks=160000",
             "config_digital_out oid=2 pin=PC1 value=1 default_value=0 max_duration=0",
             "set_digital_out_pwm_cycle oid=2 cycle_ticks=160000",
             "config_digital_out oid=3 pin=PC2 value=1 default_value=1 max_duration=32000000",
-            "set_digital_out pin=PC3 value=1",
-            "set_digital_out pin=PC4 value=0",
             "config_stepper oid=0 step_pin=PB0 dir_pin=PB1 invert_step=0 step_pulse_ticks=32",
             "config_digital_out oid=4 pin=PA1 value=1 default_value=1 max_duration=0",
         ];
