@@ -743,11 +743,11 @@ impl Heaters {
             let _ = io.add_output(*config, hw);
         }
         for (pin, query) in &setup.inputs {
+            // One on another MCU is read there: its reports come through
+            // `remote_reading`.
+            let here = crate::mcu_config::on_main(pin);
             match query {
                 InputQuery::Adc(q) => {
-                    // One on another MCU is sampled there: its reports
-                    // come through `remote_reading`.
-                    let here = crate::mcu_config::on_main(pin);
                     if let Ok(index) = io.add_input()
                         && here
                     {
@@ -755,7 +755,9 @@ impl Heaters {
                     }
                 }
                 InputQuery::Spi(q) => {
-                    if let Ok(index) = io.add_spi_input() {
+                    if let Ok(index) = io.add_spi_input()
+                        && here
+                    {
                         let _ = io.query_spi(index, *q, hw);
                     }
                 }

@@ -32,11 +32,12 @@
 //! A pin belongs to the MCU its prefix names (`ext:PA4`, `!ext:PA4`);
 //! without one, or with `mcu:`, to the main MCU.
 
-use crate::heaters::{McuSetup, OUTPUTS, full_scale};
+use crate::heaters::{INPUTS, McuSetup, OUTPUTS, full_scale, input_buses, input_chips};
 use core::fmt::{self, Write};
 use onechip_planner::extruder_stepper::EXTRUDER;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::sensor_section::{MAX_SENSORS, SensorInput};
+use onechip_planner::spi_temperature::{NAMES, SpiBus, SpiBusPins};
 use onechip_sched::outputs::OutputKind;
 
 /// The main MCU's name (`[mcu]`).
@@ -50,6 +51,9 @@ pub struct ConfigTarget<'a> {
     /// Full scale of its hardware PWM channels (its dictionary's
     /// `PWM_MAX`; 0 if it has none).
     pub pwm_max: u32,
+    /// Its SPI bus of value 0, which a chip without `spi_bus` is on (the
+    /// dictionary's name for it; "0" if it names none).
+    pub spi_bus: &'a str,
 }
 
 /// A pin as printer.cfg writes it, split up.
@@ -108,8 +112,12 @@ pub struct Oids {
     /// Each heater's sensor and output (by `machine.heaters` index), each
     /// if on this MCU.
     pub heaters: [(Option<u8>, Option<u8>); 2],
-    /// Each temperature sensor's ADC input (by `machine.sensors` index).
+    /// Each temperature sensor's ADC input or SPI chip reader (by
+    /// `machine.sensors` index).
     pub sensors: [Option<u8>; MAX_SENSORS],
+    /// Each SPI chip's bus object, by io input (the heaters', then the
+    /// temperature sensors'); its reader is the heater's or sensor's.
+    pub spi: [Option<u8>; INPUTS],
     /// Each fan's or pin's output, by its index in [`McuSetup::outputs`]
     /// (the MCU role's io order; heaters and static pins have none).
     pub outputs: [Option<u8>; OUTPUTS],
@@ -127,8 +135,20 @@ enum Object {
     /// Output `k` of [`McuSetup::outputs`]: the part fan, a named fan, an
     /// output pin or a static pin.
     Output(usize),
-    /// Temperature sensor `i` of the machine, read on an ADC pin.
+    /// Temperature sensor `i` of the machine.
     Sensor(usize),
+}
+
+impl Object {
+    /// The io input of a heater's or temperature sensor's sensor (the
+    /// heaters', then the temperature sensors').
+    fn input(self, machine: &Machine<'_>) -> Option<usize> {
+        match self {
+            Self::Heater(h) => Some(h),
+            Self::Sensor(i) => Some(machine.heaters.len() + i),
+            Self::Stepper(_) | Self::Output(_) => None,
+        }
+    }
 }
 
 /// The `[extruder_stepper]`s' steppers (by `machine.steppers` index), in
@@ -138,19 +158,6 @@ fn extra_extruder_steppers<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item =
     (machine.extruder_steppers.iter())
         .filter(|e| e.name != EXTRUDER)
         .map(|e| e.stepper)
-}
-
-/// The machine's steppers in the order klippy creates them (and gives
-/// their endstops and steppers object ids): the `[extruder_stepper]`s,
-/// the rails, the extruder's.
-fn in_creation_order<'m>(machine: &'m Machine<'_>) -> impl Iterator<Item = usize> + 'm {
-    let motion = machine.motion_steppers();
-    let extruder = (machine.extruder_steppers.iter())
-        .filter(|e| e.name == EXTRUDER)
-        .map(|e| e.stepper);
-    extra_extruder_steppers(machine)
-        .chain(0..motion)
-        .chain(extruder)
 }
 
 /// Calls `f` with each object klippy configures in its config callbacks,
@@ -199,20 +206,38 @@ pub fn write_config(
     let mut line = Line::new();
     let mut enables = heapless::Vec::new();
     line.emit(out, format_args!("allocate_oids count={}", oids.count));
-    // klippy adds a static pin's command as the section loads, before
-    // its config callbacks write the others'.
+    // klippy adds a static pin's command, and an SPI chip's
+    // `config_spi`, as the section loads, before its config callbacks
+    // write the others'.
     for k in first_static(machine)..setup.outputs.len() {
         write_output(machine, setup, target, &oids, k, &mut line, out);
     }
+    in_config_order(machine, 0, |object| {
+        let input = object.input(machine);
+        let bus = input.and_then(|i| input_buses(machine).nth(i).flatten());
+        if let (Some(oid), Some(bus)) = (input.and_then(|i| oids.spi[i]), bus) {
+            let pin = pin_ref(bus.cs_pin).pin;
+            line.emit(
+                out,
+                format_args!("config_spi oid={oid} pin={pin} cs_active_high=0"),
+            );
+        }
+    });
     in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
             let ticks = pulse_ticks(i);
             write_stepper(machine, &oids, i, ticks, &mut enables, &mut line, out);
         }
-        Object::Heater(h) => write_heater(machine, setup, &oids, h, &mut line, out),
+        Object::Heater(h) => {
+            write_spi_chip(machine, &oids, h, target, &mut line, out);
+            write_heater(machine, setup, &oids, h, &mut line, out);
+        }
         Object::Output(k) => write_output(machine, setup, target, &oids, k, &mut line, out),
         Object::Sensor(i) => {
-            if let (Some(oid), Some(sensor)) = (oids.sensors[i], machine.sensors.get(i)) {
+            let input = machine.heaters.len() + i;
+            if oids.spi[input].is_some() {
+                write_spi_chip(machine, &oids, input, target, &mut line, out);
+            } else if let (Some(oid), Some(sensor)) = (oids.sensors[i], machine.sensors.get(i)) {
                 let pin = pin_ref(sensor.input.pin()).pin;
                 line.emit(out, format_args!("config_analog_in oid={oid} pin={pin}"));
             }
@@ -308,7 +333,58 @@ fn write_output(
     }
 }
 
-/// Writes heater `h`'s sensor and output, those on this MCU.
+/// Writes the bus and the reader of io input `input`'s SPI chip, if it is
+/// on this MCU, as klippy's config callbacks of its `MCU_SPI` and its
+/// sensor do. A bit-banged bus is not written (refused as printer.cfg
+/// loads).
+fn write_spi_chip(
+    machine: &Machine<'_>,
+    oids: &Oids,
+    input: usize,
+    target: ConfigTarget<'_>,
+    line: &mut Line,
+    out: &mut dyn FnMut(&str),
+) {
+    let (Some(spi), Some(reader)) = (oids.spi[input], reader_oid(oids, machine, input)) else {
+        return;
+    };
+    let bus = input_buses(machine).nth(input).flatten();
+    let chip = input_chips(machine).nth(input).flatten();
+    let (
+        Some(SpiBus {
+            pins: SpiBusPins::Hardware(name),
+            speed,
+            mode,
+            ..
+        }),
+        Some(chip),
+    ) = (bus, chip)
+    else {
+        return;
+    };
+    let name = name.unwrap_or(target.spi_bus);
+    line.emit(
+        out,
+        format_args!("spi_set_bus oid={spi} spi_bus={name} mode={mode} rate={speed}"),
+    );
+    let chip = NAMES[chip.chip as usize];
+    line.emit(
+        out,
+        format_args!("config_thermocouple oid={reader} spi_oid={spi} thermocouple_type={chip}"),
+    );
+}
+
+/// The reader object of io input `input` (the heaters', then the
+/// temperature sensors'): its ADC input or SPI chip.
+pub fn reader_oid(oids: &Oids, machine: &Machine<'_>, input: usize) -> Option<u8> {
+    match input.checked_sub(machine.heaters.len()) {
+        None => oids.heaters.get(input)?.0,
+        Some(i) => *oids.sensors.get(i)?,
+    }
+}
+
+/// Writes heater `h`'s sensor (on an ADC pin) and output, those on this
+/// MCU.
 fn write_heater(
     machine: &Machine<'_>,
     setup: &McuSetup<'_>,
@@ -324,7 +400,7 @@ fn write_heater(
     ) else {
         return;
     };
-    if let Some(adc) = adc {
+    if let Some(adc) = adc.filter(|_| oids.spi[h].is_none()) {
         let pin = pin_ref(heater.sensor_pin).pin;
         line.emit(out, format_args!("config_analog_in oid={adc} pin={pin}"));
     }
@@ -358,16 +434,31 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
         oid
     };
     let on_mcu = |pin: Option<&str>| pin.is_some_and(|p| pin_ref(p).mcu == mcu);
-    // Created with their objects.
-    for i in in_creation_order(machine) {
-        let stepper = &machine.steppers[i];
-        if on_mcu(stepper.endstop_pin) {
-            oids.endstops[i] = Some((take(), take()));
+    // Created with their objects, as printer.cfg loads: endstops (with
+    // their trsyncs) and steppers, an SPI chip's bus and reader.
+    in_config_order(machine, 0, |object| {
+        if let Object::Stepper(i) = object {
+            let stepper = &machine.steppers[i];
+            if on_mcu(stepper.endstop_pin) {
+                oids.endstops[i] = Some((take(), take()));
+            }
+            if on_mcu(Some(stepper.step_pin)) {
+                oids.steppers[i] = Some(take());
+            }
         }
-        if on_mcu(Some(stepper.step_pin)) {
-            oids.steppers[i] = Some(take());
+        let input = object.input(machine);
+        let bus = input.and_then(|i| input_buses(machine).nth(i).flatten());
+        if let (Some(input), Some(bus)) = (input, bus)
+            && on_mcu(Some(bus.cs_pin))
+        {
+            oids.spi[input] = Some(take());
+            let reader = match object {
+                Object::Heater(h) => &mut oids.heaters[h].0,
+                _ => &mut oids.sensors[input - machine.heaters.len()],
+            };
+            *reader = Some(take());
         }
-    }
+    });
     // Given out as the config is written.
     in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
@@ -382,12 +473,13 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
             }
         }
         Object::Heater(h) => {
-            // klippy creates the sensor's ADC, then the heater's output.
+            // klippy creates the sensor's ADC (an SPI chip's reader is
+            // given already), then the heater's output.
             let heater = machine
                 .heaters
                 .get(h)
                 .filter(|_| setup.outputs.get(h).is_some());
-            if on_mcu(heater.map(|heater| heater.sensor_pin)) {
+            if on_mcu(heater.map(|heater| heater.sensor_pin)) && oids.spi[h].is_none() {
                 oids.heaters[h].0 = Some(take());
             }
             if on_mcu(heater.map(|heater| heater.heater_pin)) {
@@ -519,6 +611,7 @@ mod tests {
         let ext = ConfigTarget {
             mcu: "ext",
             pwm_max: 255,
+            spi_bus: "spi",
         };
         let oids = write_config(&machine, &setup, ext, &|_| 32, &mut |l| {
             lines.push(std::string::String::from(l));
@@ -577,6 +670,32 @@ mod tests {
         ];
         assert_eq!(lines, expected);
         assert_eq!(oids.outputs[..2], [Some(1), Some(2)]);
+    }
+
+    #[test]
+    fn an_spi_chip_on_a_secondary_is_klippys_mcu_spi_and_thermocouple_reader() {
+        let text = with_ext(
+            "step_pin: ext:PB4\ndir_pin: ext:PB5\n",
+            "[temperature_sensor chamber]\nsensor_type: MAX31865\nsensor_pin: ext:PB0\n\
+             rtd_reference_r: 430\n\
+             [temperature_sensor here]\nsensor_type: MAX31855\nsensor_pin: PA4\n",
+        );
+        let (lines, oids) = ext_config(&text);
+        // The chip's bus and reader take their ids as the section loads
+        // (before the Z stepper's); `config_spi` is added then, the
+        // rest by their config callbacks.
+        let expected = [
+            "allocate_oids count=3",
+            "config_spi oid=0 pin=PB0 cs_active_high=0",
+            "spi_set_bus oid=0 spi_bus=spi mode=1 rate=4000000",
+            "config_thermocouple oid=1 spi_oid=0 thermocouple_type=MAX31865",
+            "config_stepper oid=2 step_pin=PB4 dir_pin=PB5 invert_step=0 step_pulse_ticks=32",
+        ];
+        assert_eq!(lines, expected);
+        assert_eq!(
+            (oids.spi[0], oids.sensors[0], oids.sensors[1]),
+            (Some(0), Some(1), None)
+        );
     }
 
     #[test]

@@ -198,13 +198,15 @@ pub fn check<'a>(
     if reserved.is_empty() {
         return Ok(());
     }
-    // With the board's pins: its one hardware SPI bus.
+    // With the board's pins: its one hardware SPI bus (a chip on a
+    // secondary MCU is on that MCU's buses).
     let heater_buses = machine.heaters.iter().map(|h| (h.name, h.spi));
     let sensor_buses = machine.sensors.iter().map(|s| match s.input {
         SensorInput::Spi { bus, .. } => (s.section, Some(bus)),
         _ => (s.section, None),
     });
     for (section, bus) in heater_buses.chain(sensor_buses) {
+        let bus = bus.filter(|b| crate::mcu_config::on_main(b.cs_pin));
         if let Some(SpiBusPins::Hardware(Some(name))) = bus.map(|b| b.pins)
             && !name.trim().eq_ignore_ascii_case(BOARD_SPI_BUS)
         {

@@ -14,6 +14,7 @@ use core::mem::MaybeUninit;
 pub use onechip_config::Config;
 use onechip_planner::board_pins::ReservedPin;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
+use onechip_planner::spi_temperature::{SpiBus, SpiBusPins};
 use onechip_planner::tmc::config::TmcDriver;
 
 /// A config error, with its file, line and option, as text (cut to fit; the config it
@@ -232,10 +233,10 @@ const NOT_DRIVEN_THERE: &str = "is on a secondary MCU, where onechip drives only
 
 /// The first pin that no build drives where printer.cfg puts it, and
 /// why, if any. Every build drives steppers, their endstops and enable
-/// pins, heaters, temperature sensors on ADC pins, fans, output pins and
-/// static pins on a secondary MCU; anything else there (a probe, a TMC
-/// driver's wires, a filament sensor, an SPI sensor's chip select, ...)
-/// is refused. A stepper's direction pin must be on its step pin's MCU
+/// pins, heaters, temperature sensors (on ADC pins, or SPI chips on a
+/// hardware bus), fans, output pins and static pins on a secondary MCU;
+/// anything else there (a probe, a TMC driver's wires, a filament sensor,
+/// an SPI chip on a bit-banged bus, ...) is refused. A stepper's direction pin must be on its step pin's MCU
 /// (as Klipper requires), and its enable pin too, so far.
 fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<(PinUse<'a>, &'static str)> {
     const SUPPORTED: [&str; 8] = [
@@ -276,8 +277,12 @@ fn unsupported_on_secondary<'a>(machine: &Machine<'a>) -> Option<(PinUse<'a>, &'
     }
     let on_secondary = |pin: &str| (machine.secondaries.iter()).any(|s| s.name == mcu(pin));
     let probe = machine.probe.as_ref().map(|p| p.section);
-    // An SPI sensor's chip select (its sensor_pin; a pin has one use).
-    let spi_chip = |pin: &str| (input_buses(machine).flatten()).any(|bus| bus.cs_pin == pin);
+    // The chip select (its sensor_pin; a pin has one use) of an SPI
+    // sensor on a bit-banged bus.
+    let spi_chip = |pin: &str| {
+        let software = |bus: &SpiBus<'_>| matches!(bus.pins, SpiBusPins::Software { .. });
+        (input_buses(machine).flatten()).any(|bus| bus.cs_pin == pin && software(&bus))
+    };
     pin_check::uses(machine)
         .find(|used| {
             on_secondary(used.pin)

@@ -18,11 +18,20 @@
 // file's position). Here those files are stand-ins that log each write to
 // FAKEGPIO_LOG as "<monotonic ns> pwmchipC/pwmN/FILE <value>".
 //
+// SPI: /dev/spidevB.D is a register chip (a MAX31865's or MAX31856's
+// layout: the first byte of a transfer is the register address, bit 7
+// set for a write; the chip answers a read with the registers from that
+// address on). With FAKESPI_DIR set, the registers read are the bytes of
+// that folder's file spidevB.D (at their address as offset; a test
+// rewrites it in place); writes are logged as "<ns> spidevB.D <hex>".
+//
 // Build: cc -shared -fPIC -O2 -I <peers>/linux -o X.so inputs_from_file.c -ldl
 #define _GNU_SOURCE
 #include <dlfcn.h>
 #include <fcntl.h>
 #include <stdio.h>
+#include <linux/spi/spidev.h>
+#include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -51,32 +60,37 @@ static const char *iio_path(const char *path, char *buf, size_t len)
 }
 
 #define PWM_PREFIX "/sys/class/pwm/"
+#define SPI_PREFIX "/dev/"
+// Stand-in fd kinds (fakegpio's are 1 and 2).
+#define KIND_PWM 3
+#define KIND_SPI 4
 
-// Each hardware PWM stand-in's name ("pwmchip0/pwm0/duty_cycle"), by fd.
-static char pwm_file[MAXFD][48];
+// Each stand-in's name ("pwmchip0/pwm0/duty_cycle", "spidev0.0"), by fd.
+static char fake_name[MAXFD][48];
 
-// A stand-in for the PWM file `path` (fd kind 3), or -2 if `path` is
-// not one.
-static int pwm_open(const char *path)
+// A stand-in for `path` if it is a PWM file or an SPI device, or -2.
+static int fake_open(const char *path)
 {
-    size_t n = strlen(PWM_PREFIX);
-    if (!path || strncmp(path, PWM_PREFIX, n) != 0)
+    const char *name;
+    int kind;
+    if (path && strncmp(path, PWM_PREFIX, strlen(PWM_PREFIX)) == 0) {
+        name = path + strlen(PWM_PREFIX);
+        kind = KIND_PWM;
+    } else if (path && strncmp(path, SPI_PREFIX "spidev", strlen(SPI_PREFIX) + 6) == 0) {
+        name = path + strlen(SPI_PREFIX);
+        kind = KIND_SPI;
+    } else {
         return -2;
-    int fd = new_fd(3, 0, 0);
+    }
+    int fd = new_fd(kind, 0, 0);
     if (fd >= 0 && fd < MAXFD)
-        snprintf(pwm_file[fd], sizeof(pwm_file[fd]), "%s", path + n);
+        snprintf(fake_name[fd], sizeof(fake_name[fd]), "%s", name);
     return fd;
 }
 
-// Logs the value (decimal text, maybe NUL-terminated) written to the PWM
-// stand-in `fd`.
-static void pwm_log(int fd, const void *buf, size_t len)
+// Logs "<ns> <stand-in's name> <text>" to FAKEGPIO_LOG.
+static void fake_log(int fd, const char *text)
 {
-    char value[32];
-    size_t n = len < sizeof(value) - 1 ? len : sizeof(value) - 1;
-    memcpy(value, buf, n);
-    value[n] = 0;
-    value[strcspn(value, "\n")] = 0;
     if (!logf && getenv("FAKEGPIO_LOG"))
         logf = fopen(getenv("FAKEGPIO_LOG"), "a");
     if (logf) {
@@ -84,16 +98,35 @@ static void pwm_log(int fd, const void *buf, size_t len)
         clock_gettime(CLOCK_MONOTONIC, &ts);
         fprintf(logf, "%lld %s %s\n",
                 (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec,
-                pwm_file[fd], value);
+                fake_name[fd], text);
         fflush(logf);
     }
+}
+
+// Logs the bytes written to SPI stand-in `fd`, in hex.
+static void spi_log(int fd, const uint8_t *data, size_t len)
+{
+    char hex[2 * 64 + 1] = "";
+    for (size_t i = 0; i < len && i < 64; i++)
+        snprintf(hex + 2 * i, 3, "%02x", data[i]);
+    fake_log(fd, hex);
 }
 
 ssize_t write(int fd, const void *buf, size_t len)
 {
     static ssize_t (*real)(int, const void *, size_t);
-    if (fd >= 0 && fd < MAXFD && fd_kind[fd] == 3) {
-        pwm_log(fd, buf, len);
+    if (fd >= 0 && fd < MAXFD && fd_kind[fd] == KIND_PWM) {
+        // Decimal text, maybe NUL-terminated.
+        char value[32];
+        size_t n = len < sizeof(value) - 1 ? len : sizeof(value) - 1;
+        memcpy(value, buf, n);
+        value[n] = 0;
+        value[strcspn(value, "\n")] = 0;
+        fake_log(fd, value);
+        return len;
+    }
+    if (fd >= 0 && fd < MAXFD && fd_kind[fd] == KIND_SPI) {
+        spi_log(fd, buf, len);
         return len;
     }
     if (!real)
@@ -101,11 +134,43 @@ ssize_t write(int fd, const void *buf, size_t len)
     return real(fd, buf, len);
 }
 
+// One SPI_IOC_MESSAGE transfer on stand-in `fd`: a register write is
+// logged, a read answered from FAKESPI_DIR's register file.
+static void spi_transfer(int fd, struct spi_ioc_transfer *t)
+{
+    uint8_t *tx = (uint8_t *)(uintptr_t)t->tx_buf;
+    uint8_t *rx = (uint8_t *)(uintptr_t)t->rx_buf;
+    uint32_t len = t->len;
+    if (!len || !tx || !rx)
+        return;
+    if (tx[0] & 0x80) {
+        spi_log(fd, tx, len);
+        memset(rx, 0, len);
+        return;
+    }
+    uint8_t regs[128] = { 0 };
+    const char *dir = getenv("FAKESPI_DIR");
+    char path[512];
+    if (dir && snprintf(path, sizeof(path), "%s/%s", dir, fake_name[fd]) < (int)sizeof(path)) {
+        int (*real_open)(const char *, int, ...) = dlsym(RTLD_NEXT, "open");
+        int regs_fd = real_open(path, O_RDONLY | O_CLOEXEC);
+        if (regs_fd >= 0) {
+            if (pread(regs_fd, regs, sizeof(regs), 0) < 0)
+                memset(regs, 0, sizeof(regs));
+            close(regs_fd);
+        }
+    }
+    uint8_t addr = tx[0] & 0x7f;
+    rx[0] = 0;
+    for (uint32_t i = 1; i < len; i++)
+        rx[i] = regs[(addr + i - 1) & 0x7f];
+}
+
 static int iio_open_with(const char *sym, const char *p, int flags, mode_t mode)
 {
-    int pwm = pwm_open(p);
-    if (pwm != -2)
-        return pwm;
+    int fake = fake_open(p);
+    if (fake != -2)
+        return fake;
     char buf[512];
     int (*real)(const char *, int, ...) = dlsym(RTLD_NEXT, sym);
     return real(iio_path(p, buf, sizeof(buf)), flags, mode);
@@ -149,6 +214,12 @@ int ioctl(int fd, unsigned long req, ...)
     va_start(ap, req);
     void *arg = va_arg(ap, void *);
     va_end(ap);
+    if (fd >= 0 && fd < MAXFD && fd_kind[fd] == KIND_SPI) {
+        // Mode and speed are taken; a transfer is answered.
+        if (req == SPI_IOC_MESSAGE(1))
+            spi_transfer(fd, arg);
+        return 0;
+    }
     if (req == GPIO_GET_LINEHANDLE_IOCTL && fd >= 0 && fd < MAXFD
         && fd_kind[fd] == 1) {
         struct gpiohandle_request *r = arg;

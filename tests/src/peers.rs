@@ -163,6 +163,9 @@ pub struct Peer {
     /// The folder standing in for its IIO device, if a test drives its
     /// ADC ([`Self::adc`]).
     iio: Option<PathBuf>,
+    /// The folder of its SPI devices' registers, if a test drives them
+    /// ([`Self::spi`]).
+    spi: Option<PathBuf>,
 }
 
 /// One ADC channel of a driven Linux MCU (`analogN` in its pin names): the
@@ -185,6 +188,27 @@ impl AdcChannel {
             .truncate(false)
             .open(&self.path)?;
         file.write_all_at(format!("{raw:05}\n").as_bytes(), 0)
+    }
+}
+
+/// An SPI device of a driven Linux MCU (`spidevB.D`), a register chip as
+/// the peer-shim wrapper serves it: the file holding its registers.
+#[derive(Debug, Clone)]
+pub struct SpiRegisters {
+    path: PathBuf,
+}
+
+impl SpiRegisters {
+    /// Registers `address` on read `bytes` from now on. The file is
+    /// rewritten in place (the wrapper reads it at each transfer).
+    pub fn set(&self, address: u8, bytes: &[u8]) -> std::io::Result<()> {
+        use std::os::unix::fs::FileExt;
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&self.path)?;
+        file.write_all_at(bytes, u64::from(address))
     }
 }
 
@@ -251,6 +275,19 @@ impl Peer {
         }
     }
 
+    /// SPI device `device` (`spidev0.0`) of a peer started with
+    /// [`Self::start_driven`]: a register chip, all zero until set.
+    ///
+    /// # Panics
+    ///
+    /// If the peer's inputs are not driven.
+    pub fn spi(&self, device: &str) -> SpiRegisters {
+        let dir = self.spi.as_ref().expect("a peer started driven");
+        SpiRegisters {
+            path: dir.join(device),
+        }
+    }
+
     fn launch(firmware: Firmware, test: &str, inputs: Inputs) -> Self {
         let dir = scratch_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
@@ -259,6 +296,7 @@ impl Peer {
         let pin_log = dir.join("pins.log");
         let input_file = dir.join("inputs");
         let iio = dir.join("iio");
+        let spi = dir.join("spi");
         let mut cmd = match firmware {
             Firmware::Linux => {
                 let mut c = Command::new(peers_dir().join("start-linux-mcu"));
@@ -268,9 +306,11 @@ impl Peer {
                     Inputs::File => {
                         std::fs::write(&input_file, "0").expect("inputs file");
                         std::fs::create_dir_all(&iio).expect("iio folder");
+                        std::fs::create_dir_all(&spi).expect("spi folder");
                         c.env("FAKEGPIO_SO", driven_shim())
                             .env("FAKEGPIO_IN_FILE", &input_file)
                             .env("FAKEIIO_DIR", &iio)
+                            .env("FAKESPI_DIR", &spi)
                     }
                 };
                 // Real-time priority keeps its steps punctual; it needs root.
@@ -315,6 +355,7 @@ impl Peer {
             pin_log,
             inputs: (inputs == Inputs::File).then_some(input_file),
             iio: (inputs == Inputs::File).then_some(iio),
+            spi: (inputs == Inputs::File).then_some(spi),
         }
     }
 

@@ -426,6 +426,7 @@ fn a_secondary_mcu_gets_an_extruder_steppers_config_where_klippy_creates_it() {
     let main = ConfigTarget {
         mcu: MAIN,
         pwm_max: 255,
+        spi_bus: "spi",
     };
     let oids = write_config(&machine, &setup, main, &|_| 360, &mut |l| {
         lines.push(l.to_string())

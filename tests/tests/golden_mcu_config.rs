@@ -37,6 +37,7 @@ fn config_commands_and_crc_equal_klippys_on_every_golden_case() {
         let main = ConfigTarget {
             mcu: MAIN,
             pwm_max: golden_constant(case, "PWM_MAX"),
+            spi_bus: "spi",
         };
         let oids = write_config(&machine, &setup, main, &pulse, &mut |l| {
             ours.push(l.to_string())

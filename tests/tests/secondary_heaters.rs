@@ -12,7 +12,9 @@
 //! communication with MCU 'ext'`; a heater's sensor and output on
 //! different MCUs, either way; a `[temperature_sensor]` and a
 //! `[temperature_fan]` on the peer; M190 with the bed there too (watermark);
-//! an SPI chip there refused.
+//! a MAX31865 on the peer's SPI bus (the peer-shim wrapper's register
+//! chip) read and its fault the peer's shutdown; an SPI chip on a
+//! bit-banged bus there refused.
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
@@ -723,15 +725,79 @@ fn m190_with_the_bed_and_the_extruder_on_a_linux_mcu_heats_both_there() {
     });
 }
 
+/// A MAX31865 (PT100 through a 430 Ω reference) as a
+/// `[temperature_sensor]` on the peer's SPI bus `spidev0.0`, its chip
+/// select on gpio40.
+const RTD_SENSOR: &str = "\n[temperature_sensor rtd]\nsensor_type: MAX31865\n\
+    sensor_pin: ext:gpiochip0/gpio40\nspi_bus: spidev0.0\nrtd_reference_r: 430\n\
+    gcode_id: RTD\n";
+/// The MAX31865's registers: the RTD ratio (MSB, LSB) and the fault
+/// status.
+const RTD_MSB: u8 = 0x01;
+const FAULT_STATUS: u8 = 0x07;
+
+/// A PT100's resistance at `celsius` (Callendar–Van Dusen, above 0 °C), Ω.
+fn pt100(celsius: f64) -> f64 {
+    100.0 * (1.0 + 3.9083e-3 * celsius - 5.775e-7 * celsius * celsius)
+}
+
+/// The MAX31865's RTD register for `ohms` on its 430 Ω reference: the
+/// 15-bit ratio, its fault bit clear.
+fn rtd_register(ohms: f64) -> [u8; 2] {
+    let ratio = (ohms / 430.0 * 32768.0) as u16;
+    (ratio << 1).to_be_bytes()
+}
+
 #[test]
-fn an_spi_temperature_chip_on_a_secondary_is_refused_naming_its_pin() {
+fn a_max31865_on_a_linux_mcus_spi_bus_reads_there_and_a_chip_fault_shuts_that_mcu_down() {
+    let _alone = one_peer_at_a_time();
+    let (peer, mut p, _) = start("heaters-spi", RTD_SENSOR);
+    let chip = peer.spi("spidev0.0");
+    chip.set(FAULT_STATUS, &[0]).expect("SPI registers");
+    chip.set(RTD_MSB, &rtd_register(pt100(25.0)))
+        .expect("SPI registers");
+    p.run_for(3.0);
+    let room = p.send("M105");
+    chip.set(RTD_MSB, &rtd_register(pt100(60.0)))
+        .expect("SPI registers");
+    p.run_for(1.0);
+    let warm = p.send("M105");
+    println!("{}\n{}", room.trim(), warm.trim());
+    assert!(!room.contains("!!") && !warm.contains("!!"), "{room}{warm}");
+    // Within the register's resolution (0.013 Ω, 0.03 °C).
+    let near =
+        |reply: &str, t: f64| m105_sensor(reply, "RTD").is_some_and(|r| (r.0 - t).abs() < 0.1);
+    assert!(near(&room, 25.0) && near(&warm, 60.0), "{room}{warm}");
+    // The chip's start-up: its configuration register written (address
+    // 0 with the write bit).
+    let log = std::fs::read_to_string(&peer.pin_log).unwrap_or_default();
+    let writes: Vec<&str> = (log.lines())
+        .filter_map(|l| l.split_once(" spidev0.0 ").map(|w| w.1))
+        .collect();
+    assert!(
+        writes.first().is_some_and(|w| w.starts_with("80")),
+        "{writes:?}"
+    );
+    // A fault (the RTD above its high threshold): the reads carry no
+    // temperature; the MCU shuts down after max_invalid_count of them.
+    chip.set(FAULT_STATUS, &[0x80]).expect("SPI registers");
+    let (out, at) = run_until_shutdown(&mut p, 5.0);
+    println!("{}", out.trim());
+    assert!(at.is_some(), "no shutdown: {out}");
+    assert!(out.contains("MCU 'ext' shutdown: Thermocouple"), "{out}");
+    assert_heaters_off(&peer, &mut p);
+}
+
+#[test]
+fn an_spi_temperature_chip_on_a_bit_banged_bus_of_a_secondary_is_refused_naming_its_pin() {
     let sd = std::env::temp_dir().join(format!("onechip-spi-secondary-{}", std::process::id()));
     let serial = sd.join("no-such-mcu");
     printer_with_extruder_on(Firmware::Linux, &sd, &serial, "command", "");
     let cfg = sd.join("printer.cfg");
     let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
     let chip = "\n[temperature_sensor k_therm]\nsensor_type: MAX31855\n\
-        sensor_pin: ext:gpiochip0/gpio40\nspi_bus: spi1\n";
+        sensor_pin: ext:gpiochip0/gpio40\nspi_software_sclk_pin: ext:gpiochip0/gpio41\n\
+        spi_software_mosi_pin: ext:gpiochip0/gpio42\nspi_software_miso_pin: ext:gpiochip0/gpio43\n";
     std::fs::write(&cfg, text + chip).expect("printer.cfg");
     let refused = ConsolePrinter::new(&sd, &Options::default()).err();
     let _ = std::fs::remove_dir_all(&sd);
@@ -739,10 +805,8 @@ fn an_spi_temperature_chip_on_a_secondary_is_refused_naming_its_pin() {
     // Refused as printer.cfg loads, before any connection.
     assert!(
         message.starts_with("printer.cfg:")
-            && message.contains(
-                "[temperature_sensor k_therm] sensor_pin: pin 'ext:gpiochip0/gpio40' is on a \
-                 secondary MCU"
-            ),
+            && message.contains("[temperature_sensor k_therm] ")
+            && message.contains("is on a secondary MCU"),
         "{message}"
     );
 }

@@ -28,11 +28,11 @@ use super::remote_output::{RemoteDrive, RemoteEnable, RemoteOutput, level, pwm_m
 use super::sent_steps::{SentCommand, SentSteps, each_step};
 use super::thermal::{self, Reading, RemoteInput};
 use super::{
-    ConnectError, FetchRoom, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text,
-    clock_freq, command, text,
+    CommandLine, ConnectError, FetchRoom, Heard, Links, McuError, Secondary, SecondaryLink, Start,
+    Text, clock_freq, command, text,
 };
-use crate::heaters::{INPUTS, LinearConversion, McuSetup, OUTPUTS, full_scale};
-use crate::mcu_config::{ConfigTarget, Oids, pin_ref, write_config};
+use crate::heaters::{INPUTS, InputQuery, LinearConversion, McuSetup, OUTPUTS, full_scale};
+use crate::mcu_config::{ConfigTarget, Oids, pin_ref, reader_oid, write_config};
 use crate::setup::PrinterSetup;
 use crate::step_pulse::pulse_ticks;
 use core::cell::Cell;
@@ -370,9 +370,11 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             let oids = Cell::new(Oids::default());
             let config = |dict: &Dictionary<'_>, out: &mut dyn FnMut(&str)| {
                 let mcu_freq = clock_freq(dict);
+                let spi_bus = thermal::default_spi_bus(dict);
                 let target = ConfigTarget {
                     mcu: secondary.name,
                     pwm_max: pwm_max(dict).unwrap_or(0),
+                    spi_bus: &spi_bus,
                 };
                 let setup = McuSetup::new(machine, mcu_freq, 0, mcu_sensor, 0);
                 let ticks = |i: usize| pulse_ticks(pulses[i], mcu_freq);
@@ -559,38 +561,52 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
         now: f64,
     ) -> Result<(), Text> {
         // Io inputs: the heaters', then the temperature sensors'.
-        let heaters = oids.heaters.iter().take(machine.heaters.len());
-        let adcs = heaters.map(|h| h.0).chain(oids.sensors);
-        let mut sensors = adcs
-            .enumerate()
-            .filter_map(|(index, oid)| Some((index, oid?)))
-            .peekable();
+        let readers = (0..INPUTS).filter_map(|i| Some((i, reader_oid(oids, machine, i)?)));
+        let mut readers = readers.peekable();
         let Some(Attached { mcu, .. }) = self.attached.get_mut(k) else {
             return Ok(());
         };
-        if sensors.peek().is_none() {
+        if readers.peek().is_none() {
             return Ok(());
         }
         let dict = mcu.dictionary();
         let name = mcu.name;
-        let adc_max = thermal::adc_max(dict)
-            .ok_or_else(|| text(format_args!("MCU '{name}' has no usable ADC_MAX")))?;
-        let setup = McuSetup::new(machine, mcu.clock_freq(), adc_max, self.mcu_sensor, 0);
+        // Readings of an SPI chip need no ADC_MAX (nor does its range).
+        let adc_max = thermal::adc_max(dict);
+        let setup = McuSetup::new(
+            machine,
+            mcu.clock_freq(),
+            adc_max.unwrap_or(1),
+            self.mcu_sensor,
+            0,
+        );
         let Some(sync) = mcu.connection().clock().copied() else {
             return Err(text(format_args!("MCU '{name}': no clock")));
         };
-        for (h, oid) in sensors {
-            let Some(query) = setup.inputs.get(h).and_then(|(_, q)| q.adc()) else {
-                continue;
-            };
+        for (h, oid) in readers {
             let clock = thermal::query_slot(&sync, oid, now);
-            let command = thermal::query_command(dict, oid, query, clock);
-            let sent = mcu.connection().send_text(&command, 0);
-            sent.map_err(|_| text(format_args!("MCU '{name}': {command} not sent")))?;
+            let (commands, input) = match (setup.inputs.get(h).map(|(_, q)| q), oids.spi[h]) {
+                (Some(InputQuery::Spi(query)), Some(spi)) => (
+                    thermal::spi_query_commands(spi, oid, query, clock),
+                    RemoteInput::spi(k, oid, h, query),
+                ),
+                (Some(InputQuery::Adc(query)), None) => {
+                    let adc_max = adc_max
+                        .ok_or_else(|| text(format_args!("MCU '{name}' has no usable ADC_MAX")))?;
+                    let command = thermal::query_command(dict, oid, query, clock);
+                    (
+                        [CommandLine::new(), command],
+                        RemoteInput::new(k, oid, h, query, adc_max),
+                    )
+                }
+                _ => continue,
+            };
+            for command in commands.iter().filter(|c| !c.is_empty()) {
+                let sent = mcu.connection().send_text(command, 0);
+                sent.map_err(|_| text(format_args!("MCU '{name}': {command} not sent")))?;
+            }
             // At most INPUTS inputs in the io.
-            let _ = self
-                .inputs
-                .push(RemoteInput::new(k, oid, h, query, adc_max));
+            let _ = self.inputs.push(input);
         }
         Ok(())
     }
@@ -777,7 +793,14 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                 }
                 Heard::Failed(_) => failure = Some(lost),
                 Heard::Response(msg) => {
-                    if let Some(state) = TrsyncState::from_message(msg) {
+                    let spi = (inputs.iter().filter(|i| i.mcu == k))
+                        .find_map(|i| i.spi_reading(msg, sync.as_ref()?));
+                    if let Some(reading) = spi {
+                        if readings.is_full() {
+                            readings.pop_front();
+                        }
+                        let _ = readings.push_back(reading);
+                    } else if let Some(state) = TrsyncState::from_message(msg) {
                         if states.is_full() {
                             states.remove(0);
                         }

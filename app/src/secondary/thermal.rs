@@ -8,15 +8,22 @@
 //! the host time of their first sample, for the MCU role's heater control
 //! and temperature fans ([`crate::heaters::Heaters::remote_reading`]).
 //!
-//! A heater's sensor and output may be on different MCUs. Not yet: an SPI
-//! temperature chip on a secondary (refused as printer.cfg loads,
-//! [`crate::setup::PrinterSetup::load`]).
+//! An SPI temperature chip there (MAX6675, MAX31855, MAX31856, MAX31865 on
+//! a hardware bus) is read as klippy's `spi_temperature` reads it: its
+//! start-up bytes (`spi_send`) and `query_thermocouple` after the config
+//! phase, each `thermocouple_result` a reading of the chip's raw value
+//! (one with its fault bits set is dropped, as klippy does; the MCU
+//! counts it towards its own shutdown).
+//!
+//! A heater's sensor and output may be on different MCUs.
 
 use super::{AnalogReport, CommandLine, command};
 use crate::heaters::SAMPLE_COUNT;
 use core::fmt::Write as _;
+use onechip_protocol::codec::Decoded;
 use onechip_protocol::dictionary::Dictionary;
 use onechip_sched::adc::AdcQuery;
+use onechip_sched::thermocouple::SpiQuery;
 use onechip_secondary_mcu::clock_sync::ClockSync;
 
 /// Bytes of one report in a batched `analog_in_state` (one `u16` sum:
@@ -51,7 +58,8 @@ pub struct RemoteInput {
     pub index: usize,
     /// Ticks between two reports on that MCU.
     rest_ticks: u32,
-    /// A report's full scale: sample count × that MCU's ADC_MAX.
+    /// A report's full scale: sample count × that MCU's ADC_MAX (1: an
+    /// SPI chip's raw value).
     full: f64,
 }
 
@@ -66,6 +74,38 @@ impl RemoteInput {
             rest_ticks: query.rest_ticks,
             full: f64::from(query.sample_count) * f64::from(adc_max),
         }
+    }
+
+    /// Input `index` of the io, the reader `oid` of an SPI chip on MCU
+    /// `mcu`, read as `query` says.
+    pub fn spi(mcu: usize, oid: u8, index: usize, query: &SpiQuery) -> Self {
+        Self {
+            mcu,
+            oid,
+            index,
+            rest_ticks: query.rest_ticks,
+            full: 1.0,
+        }
+    }
+
+    /// The reading in an SPI chip's `thermocouple_result` (`msg`) for
+    /// this input, at the host time of its read (klippy's `next_clock`
+    /// less one report period), if it is one for this input and carries
+    /// no fault.
+    pub fn spi_reading(&self, msg: &Decoded<'_, '_, '_>, sync: &ClockSync) -> Option<Reading> {
+        let field = |name| msg.int(name);
+        let is_this = msg.message.name() == "thermocouple_result"
+            && field("oid") == Some(i64::from(self.oid));
+        let (next_clock, value) = (field("next_clock")?, field("value")?);
+        if !is_this || field("fault") != Some(0) {
+            return None;
+        }
+        let next = sync.widen(next_clock as u32);
+        Some(Reading {
+            input: self.index,
+            at: sync.time_at(next.saturating_sub(u64::from(self.rest_ticks))),
+            value: value as f64 / self.full,
+        })
     }
 
     /// The readings in `report` of this input (its MCU's clock line
@@ -119,12 +159,51 @@ pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u6
     line
 }
 
+/// The commands that start reading an SPI chip (reader `oid`, its bus
+/// object `spi`) as `query` says, the first read at that MCU's clock
+/// `clock`: its start-up bytes if it has any (klippy's `spi_send`), then
+/// `query_thermocouple`.
+pub fn spi_query_commands(spi: u8, oid: u8, query: &SpiQuery, clock: u64) -> [CommandLine; 2] {
+    let init = query.init.get(..usize::from(query.init_len)).unwrap_or(&[]);
+    let mut send = command(format_args!("spi_send oid={spi} data="));
+    let fits = init.iter().all(|b| write!(send, "{b:02x}").is_ok());
+    if init.is_empty() || !fits {
+        send.clear();
+    }
+    let query = command(format_args!(
+        "query_thermocouple oid={oid} clock={} rest_ticks={} min_value={} max_value={} max_invalid_count={}",
+        clock & 0xffff_ffff,
+        query.rest_ticks,
+        query.min,
+        query.max,
+        query.max_invalid
+    ));
+    [send, query]
+}
+
 /// Where klippy starts sampling input `oid` (`get_query_slot`): the whole
 /// second at least 1.5 s after host time `now` (s), plus 10 ms per oid, on
 /// the MCU's clock line `sync`.
 pub fn query_slot(sync: &ClockSync, oid: u8, now: f64) -> u64 {
     let slot = (f64::from(oid) * QUERY_SLOT * sync.mcu_freq()) as u64;
     sync.clock_at(libm::floor(now + QUERY_LEAD)) + slot
+}
+
+/// The name `dict`'s MCU gives its SPI bus of value 0, which klippy puts
+/// a chip without `spi_bus` on ("0" if its dictionary names no buses).
+pub fn default_spi_bus(dict: &Dictionary<'_>) -> heapless::String<24> {
+    let mut name = heapless::String::new();
+    let buses = dict
+        .enumeration_for("spi_bus")
+        .or_else(|| dict.enumeration_for("bus"));
+    match buses {
+        Some(buses) if buses.write_name(0, &mut name).is_ok() => {}
+        _ => {
+            name.clear();
+            let _ = name.push('0');
+        }
+    }
+    name
 }
 
 /// The secondary's ADC full scale (`ADC_MAX` in its dictionary), if it
