@@ -220,6 +220,9 @@ fn check_shared<'c>(
 }
 
 /// Reads one TMC driver section.
+// Not inlined: its reader and register file would widen `read_all`'s
+// frame past short stack addressing (1 KB more flash).
+#[inline(never)]
 pub fn read<'c, 'a>(
     config: &'c Config<'a>,
     section: &Section<'c, 'a>,
