@@ -313,6 +313,8 @@ impl<'a, const N: usize> Printer<'a, N> {
         ran.map(|()| true)
     }
 
+    // Not inlined: see `Printer::thermal`.
+    #[inline(never)]
     fn probe_extended<'l>(
         &mut self,
         e: &Extended<'l>,
