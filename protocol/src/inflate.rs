@@ -501,7 +501,7 @@ mod tests {
     extern crate std;
     use super::*;
     use miniz_oxide::deflate::core::{
-        CompressionStrategy, CompressorOxide, TDEFLFlush, TDEFLStatus, compress,
+        CompressionStrategy as Strategy, CompressorOxide, TDEFLFlush, TDEFLStatus, compress,
         create_comp_flags_from_zip_params,
     };
     use std::string::String;
@@ -525,7 +525,7 @@ mod tests {
     }
 
     /// `text` zlib-compressed at `level` (0: stored blocks) with `strategy`.
-    fn zlib(text: &[u8], level: u8, strategy: CompressionStrategy) -> Vec<u8> {
+    fn zlib(text: &[u8], level: u8, strategy: Strategy) -> Vec<u8> {
         let flags = create_comp_flags_from_zip_params(level.into(), 1, strategy.into());
         let mut compressor = CompressorOxide::new(flags);
         let mut out = vec![0; text.len() + text.len() / 8 + 64];
@@ -556,11 +556,11 @@ mod tests {
     fn dictionaries_round_trip_in_every_block_kind_and_piece_size() {
         for text in dictionaries() {
             for (level, strategy) in [
-                (0, CompressionStrategy::Default),
-                (1, CompressionStrategy::Fixed),
-                (6, CompressionStrategy::Default),
-                (9, CompressionStrategy::Default),
-                (9, CompressionStrategy::RLE),
+                (0, Strategy::Default),
+                (1, Strategy::Fixed),
+                (6, Strategy::Default),
+                (9, Strategy::Default),
+                (9, Strategy::RLE),
             ] {
                 let stream = zlib(&text, level, strategy);
                 for piece in [1, 3, 40, stream.len()] {
@@ -593,50 +593,48 @@ mod tests {
     #[test]
     fn a_short_buffer_or_trailing_bytes_are_errors() {
         let text = onechip_golden::dict("stm32h723").into_bytes();
-        let mut stream = zlib(&text, 9, CompressionStrategy::Default);
+        let mut stream = zlib(&text, 9, Strategy::Default);
         assert_eq!(inflate(&stream, 40, text.len() - 1), Err(Stop::OutputFull));
         stream.push(0);
         assert_eq!(inflate(&stream, 40, text.len()), Err(Stop::Corrupt));
     }
 
-    #[test]
-    fn every_truncation_needs_input() {
-        let text = onechip_golden::dict("atmega2560").into_bytes();
-        for (level, strategy) in [
-            (0, CompressionStrategy::Default),
-            (9, CompressionStrategy::Default),
-        ] {
-            let stream = zlib(&text, level, strategy);
-            for end in 0..stream.len() {
-                assert_eq!(
-                    inflate(&stream[..end], 40, text.len()),
-                    Err(Stop::NeedsInput)
-                );
-            }
+    /// Runs `check` on the golden dictionary `name` and each of its zlib
+    /// streams of `kinds` (level, strategy).
+    fn each_stream(name: &str, kinds: [(u8, Strategy); 2], check: impl Fn(&[u8], &[u8])) {
+        let text = onechip_golden::dict(name).into_bytes();
+        for (level, strategy) in kinds {
+            check(&text, &zlib(&text, level, strategy));
         }
     }
 
     #[test]
+    fn every_truncation_needs_input() {
+        let kinds = [(0, Strategy::Default), (9, Strategy::Default)];
+        each_stream("atmega2560", kinds, |text, stream| {
+            for end in 0..stream.len() {
+                let result = inflate(&stream[..end], 40, text.len());
+                assert_eq!(result, Err(Stop::NeedsInput), "{end} bytes");
+            }
+        });
+    }
+
+    #[test]
     fn damaged_streams_are_errors_not_panics() {
-        let text = onechip_golden::dict("lpc176x").into_bytes();
-        for (level, strategy) in [
-            (1, CompressionStrategy::Fixed),
-            (9, CompressionStrategy::Default),
-        ] {
-            let stream = zlib(&text, level, strategy);
-            for at in 0..stream.len() {
-                for flip in [0x01, 0x40] {
-                    let mut damaged = stream.clone();
-                    damaged[at] ^= flip;
-                    // Any error will do (a longer text fills the buffer, a
-                    // lost last-block flag needs more input), or the text
-                    // itself: the padding before the checksum carries nothing.
-                    if let Ok(inflated) = inflate(&damaged, 40, text.len()) {
-                        assert_eq!(inflated, text, "byte {at} ^ {flip:#x}");
-                    }
+        let kinds = [(1, Strategy::Fixed), (9, Strategy::Default)];
+        each_stream("lpc176x", kinds, |text, stream| {
+            let flips = (0..stream.len()).flat_map(|at| [(at, 0x01), (at, 0x40)]);
+            for (at, flip) in flips {
+                let mut damaged = stream.to_vec();
+                damaged[at] ^= flip;
+                // Any error will do (a longer text fills the buffer, a lost
+                // last-block flag needs more input), or the text itself: the
+                // padding before the checksum carries nothing.
+                if let Ok(inflated) = inflate(&damaged, 40, text.len()) {
+                    assert_eq!(inflated, text, "byte {at} ^ {flip:#x}");
                 }
             }
-        }
+        });
     }
 
     #[test]
