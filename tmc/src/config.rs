@@ -280,20 +280,6 @@ pub fn read<'c, 'a>(
     let interpolate = section.get_bool("interpolate", true)?;
     r.set("intpol", i64::from(interpolate));
     let step_dist = step_distance(&stepper)?;
-    let mut driver = TmcDriver {
-        kind,
-        stepper: stepper_name,
-        section: section.name_in_file(),
-        bus,
-        diag,
-        scale: current.scale,
-        max_current: current.max,
-        run_current: current.run,
-        hold_current: current.hold,
-        idle_current_percent: current.idle_percent,
-        step_dist,
-        regs: RegisterFile::new(kind),
-    };
     for &(field, value) in defaults.fixed_late {
         r.set(field, i64::from(value));
     }
@@ -312,8 +298,20 @@ pub fn read<'c, 'a>(
     if let Some(e) = r.error {
         return Err(e);
     }
-    driver.regs = r.regs;
-    Ok(driver)
+    Ok(TmcDriver {
+        kind,
+        stepper: stepper_name,
+        section: section.name_in_file(),
+        bus,
+        diag,
+        scale: current.scale,
+        max_current: current.max,
+        run_current: current.run,
+        hold_current: current.hold,
+        idle_current_percent: current.idle_percent,
+        step_dist,
+        regs: r.regs,
+    })
 }
 
 /// A field and its default (or fixed value).
