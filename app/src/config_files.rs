@@ -62,6 +62,9 @@ pub type ConfigFiles<'b> = heapless::Vec<ConfigFile<'b>, MAX_FILES>;
 /// Reads printer.cfg and, transitively, every file its `[include]`
 /// patterns match (as Klipper, patterns are relative to the root and may
 /// use `*` and `?`), each once, names and texts stored in `buf`.
+// Not inlined: its path list (1 KB) would sit in the caller's frame for
+// the whole printer set-up.
+#[inline(never)]
 pub fn load<'b, F: Files>(
     fs: &mut F,
     buf: &'b mut [u8],

@@ -122,6 +122,9 @@ impl Console {
     /// Answers one console event: through `session`, or without a printer
     /// (no valid printer.cfg) with `no_printer` as the error of every
     /// command that needs one.
+    // Not inlined (nor is `poll`): in the board's serve loop their frames
+    // added up past short stack addressing.
+    #[inline(never)]
     pub fn line(
         &mut self,
         session: Option<&mut dyn ConsoleSession<'_>>,
@@ -165,6 +168,8 @@ impl Console {
     /// To call whenever woken without a console line: the session's timers
     /// ([`Session::idle`](crate::session::Session::idle), every [`IDLE_PERIOD`] at most), the auto-reports
     /// that are due, and the next line of a file printing from the card.
+    // Not inlined: see `line`.
+    #[inline(never)]
     pub fn poll(
         &mut self,
         mut session: Option<&mut dyn ConsoleSession<'_>>,

@@ -235,6 +235,10 @@ impl<'a, const N: usize> Printer<'a, N> {
     /// Handles `line` if it is a heater or fan command; false otherwise
     /// (also for fan commands without a `[fan]`: "Unknown command", as
     /// Klipper).
+    // Not inlined (nor is `probe_command`): inlined into `execute`, their
+    // locals and error exits widened its frame past the reach of short
+    // stack addressing (600 bytes more flash).
+    #[inline(never)]
     fn thermal<'l>(
         &mut self,
         line: &Line<'l>,

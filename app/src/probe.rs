@@ -189,6 +189,8 @@ impl<'a, const N: usize> Printer<'a, N> {
 
     /// Runs `line` if it is a probe command or a G28 that `[safe_z_home]`
     /// or `[homing_override]` changes; false otherwise.
+    // Not inlined: see `Printer::thermal`.
+    #[inline(never)]
     pub(crate) fn probe_command<'l>(
         &mut self,
         line: &Line<'l>,
@@ -311,6 +313,8 @@ impl<'a, const N: usize> Printer<'a, N> {
         ran.map(|()| true)
     }
 
+    // Not inlined: see `Printer::thermal`.
+    #[inline(never)]
     fn probe_extended<'l>(
         &mut self,
         e: &Extended<'l>,

@@ -78,6 +78,9 @@ impl<'a> PrinterSetup<'a> {
     /// on a microcontroller go where they stay (a static), not through
     /// the stack.
     #[allow(clippy::result_large_err)]
+    // Not inlined: its error exits and locals stay out of the caller's
+    // frame.
+    #[inline(never)]
     pub fn load_in<'s>(
         slot: &'s mut MaybeUninit<Self>,
         files: &ConfigFiles<'a>,

@@ -7,13 +7,14 @@ use core::fmt::{Display, Write};
 pub type ErrorText = heapless::String<96>;
 
 /// Formats `e` as an [`ErrorText`], cutting what does not fit.
-pub fn error_text(e: &impl Display) -> ErrorText {
+#[inline(never)]
+pub fn error_text(e: &dyn Display) -> ErrorText {
     cut_text(e)
 }
 
 /// Formats `e` into a string of at most `N` bytes, cutting what does not
 /// fit (at a character boundary).
-pub fn cut_text<const N: usize>(e: &impl Display) -> heapless::String<N> {
+pub fn cut_text<const N: usize>(e: &(impl Display + ?Sized)) -> heapless::String<N> {
     struct Cut<const N: usize>(heapless::String<N>);
     impl<const N: usize> Write for Cut<N> {
         fn write_str(&mut self, s: &str) -> core::fmt::Result {

@@ -832,9 +832,15 @@ impl fmt::Display for Pretty<'_> {
         let mut label = heapless::String::<24>::new();
         let _ = write!(label, "{}:", reg.name);
         write!(f, "{label:<11} {value:08x}")?;
-        let mut fields: heapless::Vec<_, 32> = reg.fields.iter().collect();
-        fields.sort_unstable_by_key(|fd| fd.mask());
-        for field in fields {
+        // By mask, each field once (a register's masks are distinct): a
+        // pick of the next one each time, instead of a sort's code.
+        let above = |mask: Option<u32>| {
+            let later = reg.fields.iter().filter(move |fd| mask < Some(fd.mask()));
+            later.min_by_key(|fd| fd.mask())
+        };
+        let mut next = above(None);
+        while let Some(field) = next {
+            next = above(Some(field.mask()));
             let mut text = heapless::String::<32>::new();
             let _ = format_field(&mut text, kind, field.name, field.get(value));
             if !text.is_empty() && text != "0" {

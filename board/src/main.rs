@@ -101,7 +101,7 @@ fn main() -> ! {
 #[embassy_executor::task]
 async fn run(tcm: tcm::Loaded) -> ! {
     safety::start_watchdog();
-    let p = embassy_stm32::init(clocks::config());
+    let p = init_hal();
     priority::apply();
     step_timer::start(tcm);
     defmt::info!("onechip: core at {} Hz", clocks::SYSCLK_HZ);
@@ -115,6 +115,14 @@ async fn run(tcm: tcm::Loaded) -> ! {
         defmt::warn!("{}", e.as_str());
     }
     serve(card.ok(), session)
+}
+
+/// The HAL with this board's clocks. Not inlined: inlined into the `run`
+/// task, the clock set-up's locals widened the task's frame past short
+/// stack addressing.
+#[inline(never)]
+fn init_hal() -> embassy_stm32::Peripherals {
+    embassy_stm32::init(clocks::config())
 }
 
 /// The card in the slot, as the session reads and writes it.
@@ -216,11 +224,37 @@ fn load_printer(
     card: &mut Result<BoardCard, ErrorText>,
     thermistors: octopus_pro_v1_1::ThermistorPins,
 ) -> Result<(&'static mut BoardSession<'static>, BoardRole), ErrorText> {
-    static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     static AREA: StaticCell<LoadArea> = StaticCell::new();
+    let area = AREA.uninit();
+    let setup = read_setup(card, area)?;
+    install_engine(setup)?;
+    install_heaters(setup, thermistors)?;
+    let mcu = install_board_mcu(setup)?;
+    #[cfg(feature = "secondaries")]
+    let mcu = WithSecondaries::new(mcu, connect_secondaries(setup)?, step_timer::TIMER_HZ);
+    let session = BoardSession::init_board_in(
+        LoadArea::session(area),
+        setup.machine(),
+        step_timer::TIMER_HZ,
+        profile::MAX_STEP_ERROR,
+        step_timer::now64(),
+    );
+    Ok((session, mcu))
+}
+
+/// Reads printer.cfg and its includes from the card and the printer from
+/// them, indexing the text in `area`; checks what this build cannot drive.
+// Not inlined (nor is `install_board_mcu`): their locals stay out of
+// `load_printer`'s frame, which they made too large for short stack
+// addressing.
+#[inline(never)]
+fn read_setup(
+    card: &mut Result<BoardCard, ErrorText>,
+    area: &mut MaybeUninit<LoadArea>,
+) -> Result<&'static mut PrinterSetup<'static>, ErrorText> {
+    static TEXT: ConstStaticCell<[u8; CONFIG_BUFFER]> = ConstStaticCell::new([0; CONFIG_BUFFER]);
     // The printer read from it (several KB: kept out of the stack).
     static SETUP: StaticCell<PrinterSetup<'static>> = StaticCell::new();
-    let area = AREA.uninit();
     let files = card.as_mut().map_err(|e| e.clone())?;
     let texts = config_files::load(files, TEXT.take()).map_err(|e| error_text(&e))?;
     let setup = PrinterSetup::load_in(
@@ -237,8 +271,14 @@ fn load_printer(
     for section in setup.unsupported() {
         defmt::info!("[{}] is not supported yet, ignored", section);
     }
-    install_engine(setup)?;
-    install_heaters(setup, thermistors)?;
+    Ok(setup)
+}
+
+/// Configures the BLTouch's control pin, the TMC drivers' wires and the
+/// filament sensors' inputs: this board's MCU role.
+// Not inlined: see `read_setup`.
+#[inline(never)]
+fn install_board_mcu(setup: &PrinterSetup<'_>) -> Result<board_mcu::BoardMcu, ErrorText> {
     if let Some(pin) = setup
         .machine()
         .probe
@@ -262,16 +302,7 @@ fn load_printer(
             .map_err(|e| error_text(&format_args!("[{}] {e}", sensor.section)))?;
         let _ = mcu.filament.push(input);
     }
-    #[cfg(feature = "secondaries")]
-    let mcu = WithSecondaries::new(mcu, connect_secondaries(setup)?, step_timer::TIMER_HZ);
-    let session = BoardSession::init_board_in(
-        LoadArea::session(area),
-        setup.machine(),
-        step_timer::TIMER_HZ,
-        profile::MAX_STEP_ERROR,
-        step_timer::now64(),
-    );
-    Ok((session, mcu))
+    Ok(mcu)
 }
 
 /// The memory printer.cfg is indexed in while the machine is read from it

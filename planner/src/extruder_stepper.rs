@@ -181,6 +181,8 @@ pub(crate) fn read_all<'c, 'a>(
 /// SYNC_EXTRUDER_MOTION) on `steppers`; false if it is none of them (or
 /// there is no stepper to run it on). A change takes effect after the
 /// moves queued so far: step generation is flushed first, as Klipper's.
+// Not inlined: see `GcodeMove::traditional`.
+#[inline(never)]
 pub fn command<'l, const N: usize>(
     steppers: &mut [ExtruderStepper<'_>],
     e: &Extended<'l>,

@@ -174,6 +174,9 @@ impl GcodeMove {
         result
     }
 
+    // Not inlined (nor is `extended`): the printer's `execute` would
+    // carry both frames at once.
+    #[inline(never)]
     fn traditional<'a, const N: usize>(
         &mut self,
         t: &Traditional<'a>,
@@ -351,6 +354,8 @@ impl GcodeMove {
         Ok(())
     }
 
+    // Not inlined: see `traditional`.
+    #[inline(never)]
     fn extended<'a, const N: usize>(
         &mut self,
         e: &Extended<'a>,

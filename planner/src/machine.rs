@@ -19,6 +19,7 @@ use crate::toolhead::HomingInfo;
 use crate::toolhead::{
     CartesianLimits, DeltaHoming, DeltaLimits, ExtruderLimits, Toolhead, Travel,
 };
+use core::ptr::addr_of_mut;
 use onechip_config::{Bounds, Config, ConfigError, Section, decimal};
 
 /// Most steppers a machine may have.
@@ -345,8 +346,17 @@ impl<'a> Machine<'a> {
         let mut sensors = sensor_section::read_all(config, errors)?;
         let accessories =
             Accessories::read(config, errors, &heater_names, &stepper_names, &mut sensors)?;
-        let tmc = errors.check(read_tmc(config))?;
-        let stall_homing = errors.check(virtual_endstops(config, &steppers, &tmc))?;
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` is valid for writes; the field is written before the
+        // reference is made. The drivers are read in place: returned, they
+        // would cross this frame and read_tmc's (3.5 KB each).
+        let tmc = unsafe {
+            let field = addr_of_mut!((*p).tmc);
+            field.write(heapless::Vec::new());
+            &mut *field
+        };
+        errors.check(read_tmc(config, tmc))?;
+        let stall_homing = errors.check(virtual_endstops(config, &steppers, tmc))?;
         let mut unsupported = heapless::Vec::new();
         for name in config.section_names() {
             if !MOTION_SECTIONS.contains(&name)
@@ -367,30 +377,32 @@ impl<'a> Machine<'a> {
             }
         }
         errors.check(config.check_unused())?;
-        Ok(slot.write(Self {
-            kinematics,
-            limits,
-            travel,
-            extra_rails,
-            extruder,
-            extruder_steppers,
-            steppers,
-            stepper_kinematics,
-            input_shaper,
-            heaters,
-            fan,
-            idle_timeout,
-            secondaries,
-            probe,
-            g28,
-            screws_tilt,
-            bed_screws,
-            accessories,
-            tmc,
-            stall_homing,
-            sensors,
-            unsupported,
-        }))
+        // SAFETY: every field but `tmc` (written above) is written here,
+        // once, before the slot is taken as initialised.
+        unsafe {
+            addr_of_mut!((*p).kinematics).write(kinematics);
+            addr_of_mut!((*p).limits).write(limits);
+            addr_of_mut!((*p).travel).write(travel);
+            addr_of_mut!((*p).extra_rails).write(extra_rails);
+            addr_of_mut!((*p).extruder).write(extruder);
+            addr_of_mut!((*p).extruder_steppers).write(extruder_steppers);
+            addr_of_mut!((*p).steppers).write(steppers);
+            addr_of_mut!((*p).stepper_kinematics).write(stepper_kinematics);
+            addr_of_mut!((*p).input_shaper).write(input_shaper);
+            addr_of_mut!((*p).heaters).write(heaters);
+            addr_of_mut!((*p).fan).write(fan);
+            addr_of_mut!((*p).idle_timeout).write(idle_timeout);
+            addr_of_mut!((*p).secondaries).write(secondaries);
+            addr_of_mut!((*p).probe).write(probe);
+            addr_of_mut!((*p).g28).write(g28);
+            addr_of_mut!((*p).screws_tilt).write(screws_tilt);
+            addr_of_mut!((*p).bed_screws).write(bed_screws);
+            addr_of_mut!((*p).accessories).write(accessories);
+            addr_of_mut!((*p).stall_homing).write(stall_homing);
+            addr_of_mut!((*p).sensors).write(sensors);
+            addr_of_mut!((*p).unsupported).write(unsupported);
+            Ok(slot.assume_init_mut())
+        }
     }
 
     /// The TMC driver whose virtual endstop stepper `i` homes on
@@ -587,13 +599,14 @@ fn read_extra_steppers<'c, 'a>(
     Ok(())
 }
 
-/// The TMC drivers of `config` ([`tmc::config::read_all`]), out of line
-/// (see [`Machine::from_config_in`]).
+/// The TMC drivers of `config` into `drivers` ([`tmc::config::read_all`]),
+/// out of line (see [`Machine::from_config_in`]).
 #[inline(never)]
 fn read_tmc<'c, 'a>(
     config: &'c Config<'a>,
-) -> Result<heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>, ConfigError<'c>> {
-    tmc::config::read_all(config, step_distance)
+    drivers: &mut heapless::Vec<TmcDriver<'a>, { tmc::config::MAX_DRIVERS }>,
+) -> Result<(), ConfigError<'c>> {
+    tmc::config::read_all(config, step_distance, drivers)
 }
 
 /// For each of `steppers`, the driver of `drivers` (its index) whose

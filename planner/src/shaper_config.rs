@@ -120,7 +120,7 @@ impl AxisShaper {
     /// Impulse amplitudes and times (s, from 0) in the textbook orientation.
     fn impulses(&self) -> ([f64; MAX_PULSES], [f64; MAX_PULSES], usize) {
         let zeta = self.damping_ratio;
-        let df = libm::sqrt(1.0 - zeta * zeta);
+        let df = crate::math::sqrt(1.0 - zeta * zeta);
         // Damped period, s.
         let t_d = 1.0 / (self.freq * df);
         let k = libm::exp(-zeta * core::f64::consts::PI / df);
@@ -321,7 +321,7 @@ mod tests {
             // Residual vibration of a damped 40 Hz oscillator after the
             // impulses (the earliest offset is the last impulse in
             // textbook time): every shaper leaves at most ~5 %.
-            let df = libm::sqrt(1.0 - 0.01);
+            let df = crate::math::sqrt(1.0 - 0.01);
             let w = 2.0 * core::f64::consts::PI * 40.0 * df;
             let (mut c, mut s) = (0.0, 0.0);
             for (a, t) in a.iter().zip(t) {
@@ -329,7 +329,7 @@ mod tests {
                 c += a * decay * libm::cos(w * t);
                 s += a * decay * libm::sin(w * t);
             }
-            let residual = libm::sqrt(c * c + s * s);
+            let residual = crate::math::sqrt(c * c + s * s);
             assert!(residual < 0.051, "{kind:?} residual {residual}");
         }
     }

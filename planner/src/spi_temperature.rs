@@ -137,7 +137,7 @@ impl SpiSensor {
         if self.chip == Chip::Max31865 {
             let counts = f64::from(raw >> 1);
             let r = counts * self.rtd_ratio;
-            let discriminant = libm::sqrt(CVD_A * CVD_A - 4.0 * CVD_B * (1.0 - r));
+            let discriminant = crate::math::sqrt(CVD_A * CVD_A - 4.0 * CVD_B * (1.0 - r));
             return (-CVD_A + discriminant) / (2.0 * CVD_B);
         }
         let (shift, sign, mask, step) = word_format(self.chip);
@@ -473,7 +473,8 @@ mod tests {
         // ... and back: t = (-A + sqrt(A² - 4B(1 - R/R0))) / 2B with the
         // counts' R/R0; within one count (0.03 °C) of 100 °C.
         let r = f64::from(counts) * 430.0 / 32768.0 / 100.0;
-        let t = (-3.9083e-3 + libm::sqrt(3.9083e-3 * 3.9083e-3 + 4.0 * 5.775e-7 * (1.0 - r)))
+        let t = (-3.9083e-3
+            + crate::math::sqrt(3.9083e-3 * 3.9083e-3 + 4.0 * 5.775e-7 * (1.0 - r)))
             / (2.0 * -5.775e-7);
         assert!(close(s.temperature(counts << 1), t, 1e-9));
         assert!(close(t, 100.0, 0.03), "{t}");

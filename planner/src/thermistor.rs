@@ -144,7 +144,7 @@ impl Thermistor {
         let ln_r = if self.c3 != 0.0 {
             // The cubic c3 x^3 + c2 x + (c1 - 1/T) = 0, by Cardano.
             let y = (self.c1 - inv_t) / (2.0 * self.c3);
-            let x = libm::sqrt(libm::pow(self.c2 / (3.0 * self.c3), 3.0) + y * y);
+            let x = crate::math::sqrt(libm::pow(self.c2 / (3.0 * self.c3), 3.0) + y * y);
             libm::cbrt(x - y) - libm::cbrt(x + y)
         } else {
             (inv_t - self.c1) / self.c2

@@ -4,17 +4,12 @@
 //! `identify_response offset=N data=…` with that slice of its
 //! zlib-compressed dictionary, and an empty slice past the end. The
 //! [`Fetcher`] inflates the chunks as they arrive straight into the caller's
-//! buffer (no heap, no copy of the compressed data), checking the zlib
-//! checksum at the end.
+//! buffer (no heap, no copy of the compressed data) with [`crate::inflate`],
+//! checking the zlib checksum at the end.
 
+use crate::inflate::{Inflater, Stop};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
-use miniz_oxide::inflate::TINFLStatus;
-use miniz_oxide::inflate::core::inflate_flags::{
-    TINFL_FLAG_COMPUTE_ADLER32, TINFL_FLAG_HAS_MORE_INPUT, TINFL_FLAG_PARSE_ZLIB_HEADER,
-    TINFL_FLAG_USING_NON_WRAPPING_OUTPUT_BUF,
-};
-use miniz_oxide::inflate::core::{DecompressorOxide, decompress};
 
 /// Bytes requested per `identify`, as Klipper's host asks.
 pub const CHUNK: u8 = 40;
@@ -61,7 +56,7 @@ pub enum Progress {
 
 /// Host-side state of one dictionary fetch.
 pub struct Fetcher<'b> {
-    inflater: DecompressorOxide,
+    inflater: Inflater,
     out: &'b mut [u8],
     out_len: usize,
     offset: u32,
@@ -78,14 +73,13 @@ impl<'b> Fetcher<'b> {
     }
 
     /// [`Self::new`] built in place in `slot`: the inflate state is about
-    /// 11 KB, which a microcontroller's stack should not carry twice.
+    /// 1.6 KB, which a microcontroller's stack should not carry twice.
     pub fn init_in<'s>(slot: &'s mut MaybeUninit<Self>, out: &'b mut [u8]) -> &'s mut Self {
         let p = slot.as_mut_ptr();
         // SAFETY: `p` is valid for writes; each field is written once, in
-        // place (the inflate state's default is all zeros: a memset),
-        // before the slot is taken as initialised.
+        // place, before the slot is taken as initialised.
         unsafe {
-            addr_of_mut!((*p).inflater).write(DecompressorOxide::default());
+            addr_of_mut!((*p).inflater).write(Inflater::new());
             addr_of_mut!((*p).out).write(out);
             addr_of_mut!((*p).out_len).write(0);
             addr_of_mut!((*p).offset).write(0);
@@ -96,7 +90,7 @@ impl<'b> Fetcher<'b> {
 
     /// The same fetch from its start, into the same buffer.
     pub fn restart(&mut self) {
-        self.inflater.init();
+        self.inflater = Inflater::new();
         (self.out_len, self.offset, self.stream_ended) = (0, 0, false);
     }
 
@@ -124,30 +118,14 @@ impl<'b> Fetcher<'b> {
             return Err(IdentifyError::Corrupt);
         }
         self.offset += data.len() as u32;
-        let flags = TINFL_FLAG_PARSE_ZLIB_HEADER
-            | TINFL_FLAG_USING_NON_WRAPPING_OUTPUT_BUF
-            | TINFL_FLAG_COMPUTE_ADLER32
-            | TINFL_FLAG_HAS_MORE_INPUT;
-        let mut input = data;
-        loop {
-            let (status, used, written) =
-                decompress(&mut self.inflater, input, self.out, self.out_len, flags);
-            input = input.get(used..).unwrap_or_default();
-            self.out_len += written;
-            match status {
-                TINFLStatus::Done => {
-                    self.stream_ended = true;
-                    return if input.is_empty() {
-                        Ok(Progress::More)
-                    } else {
-                        Err(IdentifyError::Corrupt)
-                    };
-                }
-                TINFLStatus::NeedsMoreInput if input.is_empty() => return Ok(Progress::More),
-                TINFLStatus::NeedsMoreInput => {}
-                TINFLStatus::HasMoreOutput => return Err(IdentifyError::TooLarge),
-                _ => return Err(IdentifyError::Corrupt),
+        match self.inflater.inflate(data, self.out, &mut self.out_len) {
+            Ok(()) => {
+                self.stream_ended = true;
+                Ok(Progress::More)
             }
+            Err(Stop::NeedsInput) => Ok(Progress::More),
+            Err(Stop::OutputFull) => Err(IdentifyError::TooLarge),
+            Err(Stop::Corrupt) => Err(IdentifyError::Corrupt),
         }
     }
 

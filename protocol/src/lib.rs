@@ -12,7 +12,8 @@
 //! - [`json`] and [`dictionary`]: the data dictionary of commands,
 //!   responses, enumerations and constants;
 //! - [`codec`]: messages to and from bytes and Klipper's text form;
-//! - [`identify`]: fetching a dictionary from an MCU;
+//! - [`identify`]: fetching a dictionary from an MCU, inflated by
+//!   [`inflate`];
 //! - [`mcu`]: the MCU side (our own dictionary, identify, dispatch).
 //!
 //! Everything here is `no_std` and allocation-free.
@@ -23,6 +24,7 @@ pub mod codec;
 pub mod crc;
 pub mod dictionary;
 pub mod identify;
+pub mod inflate;
 pub mod json;
 pub mod mcu;
 pub mod transport;

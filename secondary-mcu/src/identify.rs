@@ -50,7 +50,7 @@ impl<'b> Identify<'b> {
     /// Starts fetching into `out` (the inflated JSON; Klipper's are 10–15
     /// KB), over a link to an MCU that buffers `receive_window` bytes,
     /// built in place in `slot`: the fetcher's inflate state is about
-    /// 11 KB, which a microcontroller's stack should not carry.
+    /// 1.6 KB, which a microcontroller's stack should not carry.
     pub fn init_in<'s>(
         slot: &'s mut MaybeUninit<Self>,
         out: &'b mut [u8],

@@ -532,11 +532,13 @@ fn stock_tmc_sections_load_or_say_why() {
             continue;
         }
         sections += count;
+        let mut drivers = Default::default();
         match onechip_planner::tmc::config::read_all(
             &config,
             onechip_planner::machine::step_distance,
+            &mut drivers,
         ) {
-            Ok(drivers) => loaded += drivers.len(),
+            Ok(()) => loaded += drivers.len(),
             Err(e) => refused.push(format!("{name}: {e}")),
         }
     }

@@ -12,8 +12,9 @@
 //! - TMC2240: the full scale is set by the reference resistor (`rref`) and
 //!   `current_range`; then GLOBALSCALER and IRUN/IHOLD.
 
-/// Correctly rounded (libm's), so the bits equal Python's `math.sqrt`.
-use libm::sqrt;
+/// √2, correctly rounded: the bits of Python's `math.sqrt(2)` (Klipper's
+/// formulas take the square root of 2 each time).
+const SQRT_2: f64 = core::f64::consts::SQRT_2;
 
 /// How a driver turns current into bits.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -80,17 +81,17 @@ fn cs_bits_late(x: f64) -> u8 {
 impl CurrentScale {
     /// Vsense drivers: the bits for `current` A.
     fn vsense_bits(resistance: f64, vref: f64, current: f64) -> u8 {
-        cs_bits(32.0 * resistance * current * sqrt(2.0) / vref)
+        cs_bits(32.0 * resistance * current * SQRT_2 / vref)
     }
 
     /// Vsense drivers: the current of `cs` bits, A.
     fn vsense_current(resistance: f64, vref: f64, cs: u8) -> f64 {
-        f64::from(cs + 1) * vref / (32.0 * resistance * sqrt(2.0))
+        f64::from(cs + 1) * vref / (32.0 * resistance * SQRT_2)
     }
 
     /// TMC2240: the full scale of `range`, A rms.
     pub fn ifs_rms(rref: f64, range: u8) -> f64 {
-        KIFS[usize::from(range.min(3))] / rref / sqrt(2.0)
+        KIFS[usize::from(range.min(3))] / rref / SQRT_2
     }
 
     /// TMC2240: the smallest current_range whose full scale takes `run`
@@ -141,10 +142,10 @@ impl CurrentScale {
                 out.ihold = Self::vsense_bits(resistance, vref, hold);
             }
             Self::GlobalScaler { sense_resistor } => {
-                let gs = scaler(run * 256.0 * sqrt(2.0) * sense_resistor / VREF_5160);
+                let gs = scaler(run * 256.0 * SQRT_2 * sense_resistor / VREF_5160);
                 let scale = f64::from(if gs == 0 { 256 } else { gs }) * VREF_5160;
                 let bits =
-                    |c: f64| cs_bits_late(c * 256.0 * 32.0 * sqrt(2.0) * sense_resistor / scale);
+                    |c: f64| cs_bits_late(c * 256.0 * 32.0 * SQRT_2 * sense_resistor / scale);
                 out.globalscaler = gs;
                 out.irun = bits(run);
                 out.ihold = bits(hold);
@@ -181,7 +182,7 @@ impl CurrentScale {
                 Self::vsense_current(resistance, vref, cs)
             }
             Self::GlobalScaler { sense_resistor } => {
-                gs * f64::from(cs + 1) * VREF_5160 / (256.0 * 32.0 * sqrt(2.0) * sense_resistor)
+                gs * f64::from(cs + 1) * VREF_5160 / (256.0 * 32.0 * SQRT_2 * sense_resistor)
             }
             Self::Rref { rref, range } => {
                 gs * f64::from(cs + 1) * Self::ifs_rms(rref, range) / (256.0 * 32.0)
@@ -206,6 +207,11 @@ mod tests {
         vref_high: 0.32,
         vref_low: 0.18,
     };
+
+    #[test]
+    fn sqrt_2_is_the_correctly_rounded_root() {
+        assert_eq!(SQRT_2.to_bits(), 2f64.sqrt().to_bits());
+    }
 
     #[test]
     fn vsense_scale_rounds_as_klipper() {

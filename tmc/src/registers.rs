@@ -1037,4 +1037,30 @@ mod tests {
             assert!(regs().all(|a| regs().filter(|r| r.addr == a.addr).count() == 1));
         }
     }
+
+    #[test]
+    fn fields_of_a_register_have_distinct_masks() {
+        // DUMP_TMC lists a register's fields by mask, each once.
+        for driver in [
+            TMC2130,
+            TMC2130_STATUS,
+            TMC2208,
+            TMC2208_STATUS,
+            TMC2209,
+            TMC2209_STATUS,
+            TMC5160,
+            TMC5160_STATUS,
+            TMC2240,
+            TMC2240_STATUS,
+            TMC2660,
+            TMC2660_STATUS,
+        ] {
+            for reg in driver {
+                for (i, a) in reg.fields.iter().enumerate() {
+                    let same = reg.fields[i + 1..].iter().any(|b| b.mask() == a.mask());
+                    assert!(!same, "{} {}", reg.name, a.name);
+                }
+            }
+        }
+    }
 }
