@@ -463,7 +463,8 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
     in_config_order(machine, setup.outputs.len(), |object| match object {
         Object::Stepper(i) => {
             let stepper = &machine.steppers[i];
-            if oids.steppers[i].is_some() && on_mcu(stepper.enable_pin) {
+            // Its enable pin may be on another MCU than the stepper.
+            if on_mcu(stepper.enable_pin) {
                 // Steppers sharing an enable pin share its output (the
                 // first one's, given out already).
                 let shared = (machine.steppers.iter().zip(oids.enables))
@@ -532,11 +533,9 @@ fn write_stepper(
         );
         line.emit(out, format_args!("config_trsync oid={trsync}"));
     }
-    let Some(oid) = oids.steppers[i] else {
-        return;
-    };
-    let (step, dir) = (pin_ref(stepper.step_pin), pin_ref(stepper.dir_pin));
-    line.emit(
+    if let Some(oid) = oids.steppers[i] {
+        let (step, dir) = (pin_ref(stepper.step_pin), pin_ref(stepper.dir_pin));
+        line.emit(
         out,
         format_args!(
             "config_stepper oid={oid} step_pin={} dir_pin={} invert_step={} step_pulse_ticks={pulse_ticks}",
@@ -545,7 +544,9 @@ fn write_stepper(
             u8::from(step.inverted)
         ),
     );
-    // A shared enable output is configured with its first stepper.
+    }
+    // A shared enable output is configured with its first stepper (on
+    // its own MCU, which may not be the stepper's).
     if let (Some(enable), Some(pin)) = (oids.enables[i], stepper.enable_pin)
         && !enables.contains(&enable)
         && enables.push(enable).is_ok()
@@ -696,6 +697,18 @@ mod tests {
             (oids.spi[0], oids.sensors[0], oids.sensors[1]),
             (Some(0), Some(1), None)
         );
+    }
+
+    #[test]
+    fn an_enable_pin_is_configured_on_its_own_mcu_whichever_steps_its_stepper() {
+        let text = with_ext("step_pin: PB4\ndir_pin: PB5\nenable_pin: !ext:PA1\n", "");
+        let (lines, oids) = ext_config(&text);
+        let expected = [
+            "allocate_oids count=1",
+            "config_digital_out oid=0 pin=PA1 value=1 default_value=1 max_duration=0",
+        ];
+        assert_eq!(lines, expected);
+        assert_eq!((oids.steppers[2], oids.enables[2]), (None, Some(0)));
     }
 
     #[test]

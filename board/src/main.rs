@@ -338,20 +338,21 @@ impl LoadArea {
 fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [step_pins::StepperPins::default(); step_timer::STEPPERS];
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
-        // A stepper on a secondary runs there (its slot here stays
-        // empty); so do an enable pin or endstop written `NAME:PIN`.
-        if !on_main(stepper.step_pin) {
-            continue;
-        }
         let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
         let pin = |written| setup.resolve_pin(written).map_err(|e| fail(&e));
-        let (step, dir) = (pin(stepper.step_pin)?, pin(stepper.dir_pin)?);
-        let pins = step_pins::StepperPins::new(&step, &dir).map_err(|e| fail(&e))?;
+        // An enable pin here is on, whichever MCU steps its stepper.
         if let Some(enable) = stepper.enable_pin.filter(|p| on_main(p)) {
             step_pins::OutPin::new_safe_off(&pin(enable)?)
                 .map_err(|e| fail(&e))?
                 .set(true);
         }
+        // A stepper on a secondary runs there (its slot here stays
+        // empty); so do an enable pin or endstop written `NAME:PIN`.
+        if !on_main(stepper.step_pin) {
+            continue;
+        }
+        let (step, dir) = (pin(stepper.step_pin)?, pin(stepper.dir_pin)?);
+        let pins = step_pins::StepperPins::new(&step, &dir).map_err(|e| fail(&e))?;
         *slot = pins.with_step_pulse(stepper.step_pulse);
         if let Some(endstop) = stepper.endstop_pin.filter(|p| on_main(p)) {
             let endstop = step_pins::InPin::new(&pin(endstop)?).map_err(|e| fail(&e))?;

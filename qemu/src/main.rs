@@ -169,15 +169,16 @@ fn connect_secondaries(
 fn install_engine(setup: &PrinterSetup<'_>) -> Result<(), ErrorText> {
     let mut slots = [pins::StepperPins::default(); step_timer::STEPPERS];
     for (slot, stepper) in slots.iter_mut().zip(setup.steppers()) {
-        if !on_main(stepper.step_pin) {
-            continue;
-        }
         let fail = |e: &dyn core::fmt::Display| error_text(&format_args!("[{}] {e}", stepper.name));
-        *slot = pins::StepperPins::new(stepper.step_pin, stepper.dir_pin, stepper.step_pulse)
-            .map_err(|e| fail(&e))?;
+        // An enable pin here is on, whichever MCU steps its stepper.
         if let Some(pin) = stepper.enable_pin.filter(|p| on_main(p)) {
             pins::OutPin::new(pin).map_err(|e| fail(&e))?.set(true);
         }
+        if !on_main(stepper.step_pin) {
+            continue;
+        }
+        *slot = pins::StepperPins::new(stepper.step_pin, stepper.dir_pin, stepper.step_pulse)
+            .map_err(|e| fail(&e))?;
         if let Some(pin) = stepper.endstop_pin.filter(|p| on_main(p)) {
             *slot = slot.with_endstop(pins::InPin::new(pin).map_err(|e| fail(&e))?);
         }

@@ -9,7 +9,9 @@
 
 use onechip_host::Options;
 use onechip_host::console_printer::ConsolePrinter;
-use onechip_tests::peers::{Firmware, Peer, extruder_pins, printer_with_extruder_on};
+use onechip_tests::peers::{
+    Firmware, Peer, extruder_pins, monotonic_now, printer_with_extruder_on,
+};
 use std::path::Path;
 use std::sync::{Mutex, MutexGuard, PoisonError};
 
@@ -141,6 +143,43 @@ fn the_part_fan_on_a_linux_mcu_makes_software_pwm_from_m106_and_pins_follow_set_
     assert!(!replies.contains("!!"), "{replies}");
     // Nothing moved the fan since M107.
     assert_eq!(peer.levels(FAN).last().map(|l| l.0), Some(off_at));
+}
+
+/// The enable pin of the main MCU's Y stepper, moved to the peer.
+const Y_ENABLE: &str = "gpiochip0/gpio25";
+
+#[test]
+fn an_enable_pin_on_a_linux_mcu_follows_its_stepper_on_the_main_mcu() {
+    let _alone = one_peer_at_a_time();
+    let peer = Peer::start_driven("outputs-split-enable");
+    let sd = peer.path.with_file_name("sd");
+    printer_with_outputs_on_the_peer(&sd, &peer.path);
+    let cfg = sd.join("printer.cfg");
+    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
+    let y = "step_pin: PG0\ndir_pin: PG1\nenable_pin: !PF15\n";
+    assert!(text.contains(y), "the shipped [stepper_y] changed");
+    let moved = format!("step_pin: PG0\ndir_pin: PG1\nenable_pin: !ext:{Y_ENABLE}\n");
+    std::fs::write(&cfg, text.replace(y, &moved)).expect("printer.cfg");
+    let mut p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
+    p.run_for(0.5);
+    // `!` pin: configured high (inactive).
+    assert_eq!(peer.levels(Y_ENABLE).last().map(|l| l.1), Some(true));
+    let sent = monotonic_now();
+    let replies = [p.send("G28 Y"), p.send("G1 Y20 F3000"), p.send("M400")].concat();
+    let done = monotonic_now();
+    assert!(!replies.contains("!!"), "{replies}");
+    let levels = peer.levels(Y_ENABLE);
+    let active = levels.iter().find(|l| !l.1).map(|l| l.0);
+    println!("Y enable: {levels:?} (G28 sent at {sent:.3}, M400 done at {done:.3})");
+    // Active with Y's first move (homing), before the moves were done.
+    assert!(
+        active.is_some_and(|t| (sent..done).contains(&t)),
+        "{levels:?}"
+    );
+    let replies = p.send("M84");
+    assert!(!replies.contains("!!"), "{replies}");
+    p.run_for(0.4);
+    assert_eq!(peer.levels(Y_ENABLE).last().map(|l| l.1), Some(true));
 }
 
 #[test]

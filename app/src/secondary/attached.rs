@@ -640,10 +640,11 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
         output.queue(sync.clock_at(output.last_at), level(value, *full));
     }
 
-    /// Stepper `stepper` steps from its MCU's clock `clock` (ticks) on:
-    /// its enable pin on a secondary goes active just before, if it was
-    /// not (klippy enables a stepper with its first move).
-    fn enable(&mut self, stepper: usize, clock: u64) {
+    /// Stepper `stepper` (on any MCU) steps from host time `at` (s) on:
+    /// its enable pin, if on a secondary, goes active [`ENABLE_LEAD`]
+    /// before, if it was not (klippy enables a stepper with its first
+    /// move).
+    pub fn enable_for(&mut self, stepper: usize, at: f64) {
         let Some(Some((e, enabled))) = self.stepper_enables.get_mut(stepper) else {
             return;
         };
@@ -654,9 +655,9 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             return;
         };
         enable.count += 1;
-        if enable.count == 1 {
-            let lead = (ENABLE_LEAD * self.attached[enable.output.mcu].mcu.clock_freq()) as u64;
-            enable.output.queue(clock.saturating_sub(lead), 1.0);
+        let conn = self.attached[enable.output.mcu].mcu.connection();
+        if let (1, Some(sync)) = (enable.count, conn.clock()) {
+            enable.output.queue(sync.clock_at(at - ENABLE_LEAD), 1.0);
         }
     }
 
@@ -765,9 +766,11 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             StepCommand::Dir(forward) => sent.forward = forward,
             StepCommand::ResetClock(_) => {}
         }
-        let _ = attached.mcu.connection().send(&bytes[..len], min_clock);
-        if matches!(cmd, StepCommand::Steps { .. }) {
-            self.enable(stepper, clock);
+        let conn = attached.mcu.connection();
+        let _ = conn.send(&bytes[..len], min_clock);
+        let at = conn.clock().map(|sync| sync.time_at(clock));
+        if let (StepCommand::Steps { .. }, Some(at)) = (cmd, at) {
+            self.enable_for(stepper, at);
         }
         Ok(())
     }

@@ -157,7 +157,15 @@ impl<M: Mcu, L: SecondaryLink, const N: usize> Mcu for WithSecondaries<M, L, N> 
                 self.main.sent_elsewhere(stepper, cmd, clock);
                 Ok(())
             }
-            _ => self.main.push(stepper, cmd, clock),
+            Some(s) => {
+                self.main.push(stepper, cmd, clock)?;
+                // Its enable pin may be on a secondary.
+                if let StepCommand::Steps { .. } = cmd {
+                    s.enable_for(stepper, clock as f64 / self.freq);
+                }
+                Ok(())
+            }
+            None => self.main.push(stepper, cmd, clock),
         }
     }
 
