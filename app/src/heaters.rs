@@ -61,8 +61,11 @@ pub const RANGE_CHECK_COUNT: u8 = 4;
 pub const SPI_MAX_INVALID: u8 = 3;
 /// Longest a heater output may hold a value without an update, s.
 pub const MAX_HEAT_TIME: f64 = 3.0;
-/// Full scale of a hardware PWM duty.
-pub const PWM_MAX: u32 = 65_535;
+/// Full scale of a hardware PWM duty in the MCU role's io. Fine enough
+/// (2^24) that a duty set as a fraction with up to three decimals, or as
+/// M106's n/255, rescales to a secondary's own PWM_MAX (255 to 65535) as
+/// klippy rounds it from the fraction itself.
+pub const PWM_MAX: u32 = 1 << 24;
 /// Delay from start-up to the first readings, s.
 pub const FIRST_REPORT: f64 = 0.2;
 /// Time between two verify_heater checks of a heater, s (Klipper's).

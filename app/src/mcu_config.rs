@@ -6,15 +6,19 @@
 //! Object ids: endstops (with their trsync) and steppers take theirs when
 //! created: the `[extruder_stepper]`s' (klippy loads them with the other
 //! extra sections, before the toolhead), the rails, then the extruder's
-//! stepper; enable pins, heater sensors and heater, fan and pin outputs
-//! take theirs when their config is written. Config order: the
+//! stepper, and an SPI temperature chip's bus and reader (with its
+//! `config_spi`, added then); enable pins, ADC inputs and heater, fan and
+//! pin outputs take theirs when their config is written. Config order: the
 //! `[static_digital_output]` pins (klippy adds their commands as the
 //! sections load, before any config callback runs); each
 //! `[extruder_stepper]`'s stepper and enable pin; the part fan, the named
 //! fans and the `[output_pin]`s, then
 //! the `[temperature_sensor]`s on an ADC pin (extra sections, which klippy
-//! loads before the toolhead); each rail's endstop,
-//! trsync, stepper and enable pin; the extruder's heater (sensor, output)
+//! loads before the toolhead), an SPI chip's `spi_set_bus` and
+//! `config_thermocouple` where an ADC input's `config_analog_in` would
+//! be; each rail's endstop,
+//! trsync, stepper and enable pin (an enable pin on its own MCU, which
+//! may not be the stepper's); the extruder's heater (sensor, output)
 //! before its stepper and enable pin; then the other heaters. (Checked
 //! against klippy for the golden configs, which have no `[heater_bed]`,
 //! `[extruder_stepper]`, fan or pin: the order of those follows from when
@@ -37,7 +41,7 @@ use core::fmt::{self, Write};
 use onechip_planner::extruder_stepper::EXTRUDER;
 use onechip_planner::machine::{MAX_STEPPERS, Machine};
 use onechip_planner::sensor_section::{MAX_SENSORS, SensorInput};
-use onechip_planner::spi_temperature::{NAMES, SpiBus, SpiBusPins};
+use onechip_planner::spi_temperature::{NAMES, SpiBus, SpiBusPins, SpiSensor};
 use onechip_sched::outputs::OutputKind;
 
 /// The main MCU's name (`[mcu]`).
@@ -149,6 +153,15 @@ impl Object {
             Self::Stepper(_) | Self::Output(_) => None,
         }
     }
+
+    /// A heater's or temperature sensor's SPI chip: its io input, its
+    /// bus and the chip.
+    fn spi_chip<'a>(self, machine: &Machine<'a>) -> Option<(usize, SpiBus<'a>, SpiSensor)> {
+        let input = self.input(machine)?;
+        let bus = input_buses(machine).nth(input).flatten()?;
+        let chip = input_chips(machine).nth(input).flatten()?;
+        Some((input, bus, chip))
+    }
 }
 
 /// The `[extruder_stepper]`s' steppers (by `machine.steppers` index), in
@@ -213,9 +226,9 @@ pub fn write_config(
         write_output(machine, setup, target, &oids, k, &mut line, out);
     }
     in_config_order(machine, 0, |object| {
-        let input = object.input(machine);
-        let bus = input.and_then(|i| input_buses(machine).nth(i).flatten());
-        if let (Some(oid), Some(bus)) = (input.and_then(|i| oids.spi[i]), bus) {
+        if let Some((input, bus, _)) = object.spi_chip(machine)
+            && let Some(oid) = oids.spi[input]
+        {
             let pin = pin_ref(bus.cs_pin).pin;
             line.emit(
                 out,
@@ -229,14 +242,13 @@ pub fn write_config(
             write_stepper(machine, &oids, i, ticks, &mut enables, &mut line, out);
         }
         Object::Heater(h) => {
-            write_spi_chip(machine, &oids, h, target, &mut line, out);
+            write_spi_chip(machine, &oids, object, target, &mut line, out);
             write_heater(machine, setup, &oids, h, &mut line, out);
         }
         Object::Output(k) => write_output(machine, setup, target, &oids, k, &mut line, out),
         Object::Sensor(i) => {
-            let input = machine.heaters.len() + i;
-            if oids.spi[input].is_some() {
-                write_spi_chip(machine, &oids, input, target, &mut line, out);
+            if object.spi_chip(machine).is_some() {
+                write_spi_chip(machine, &oids, object, target, &mut line, out);
             } else if let (Some(oid), Some(sensor)) = (oids.sensors[i], machine.sensors.get(i)) {
                 let pin = pin_ref(sensor.input.pin()).pin;
                 line.emit(out, format_args!("config_analog_in oid={oid} pin={pin}"));
@@ -333,35 +345,28 @@ fn write_output(
     }
 }
 
-/// Writes the bus and the reader of io input `input`'s SPI chip, if it is
+/// Writes the bus and the reader of `object`'s SPI chip, if it has one
 /// on this MCU, as klippy's config callbacks of its `MCU_SPI` and its
 /// sensor do. A bit-banged bus is not written (refused as printer.cfg
 /// loads).
 fn write_spi_chip(
     machine: &Machine<'_>,
     oids: &Oids,
-    input: usize,
+    object: Object,
     target: ConfigTarget<'_>,
     line: &mut Line,
     out: &mut dyn FnMut(&str),
 ) {
+    let Some((input, bus, chip)) = object.spi_chip(machine) else {
+        return;
+    };
     let (Some(spi), Some(reader)) = (oids.spi[input], reader_oid(oids, machine, input)) else {
         return;
     };
-    let bus = input_buses(machine).nth(input).flatten();
-    let chip = input_chips(machine).nth(input).flatten();
-    let (
-        Some(SpiBus {
-            pins: SpiBusPins::Hardware(name),
-            speed,
-            mode,
-            ..
-        }),
-        Some(chip),
-    ) = (bus, chip)
-    else {
+    let SpiBusPins::Hardware(name) = bus.pins else {
         return;
     };
+    let (speed, mode) = (bus.speed, bus.mode);
     let name = name.unwrap_or(target.spi_bus);
     line.emit(
         out,
@@ -446,9 +451,7 @@ fn assign(machine: &Machine<'_>, setup: &McuSetup<'_>, mcu: &str) -> Oids {
                 oids.steppers[i] = Some(take());
             }
         }
-        let input = object.input(machine);
-        let bus = input.and_then(|i| input_buses(machine).nth(i).flatten());
-        if let (Some(input), Some(bus)) = (input, bus)
+        if let Some((input, bus, _)) = object.spi_chip(machine)
             && on_mcu(Some(bus.cs_pin))
         {
             oids.spi[input] = Some(take());

@@ -23,7 +23,9 @@
 // set for a write; the chip answers a read with the registers from that
 // address on). With FAKESPI_DIR set, the registers read are the bytes of
 // that folder's file spidevB.D (at their address as offset; a test
-// rewrites it in place); writes are logged as "<ns> spidevB.D <hex>".
+// rewrites it in place); writes are logged as "<ns> spidevB.D <hex>". A
+// write of the configuration register (0) with the fault-clear bit (0x02)
+// clears the fault status register (7) in that file, as a MAX31865 does.
 //
 // Build: cc -shared -fPIC -O2 -I <peers>/linux -o X.so inputs_from_file.c -ldl
 #define _GNU_SOURCE
@@ -103,13 +105,35 @@ static void fake_log(int fd, const char *text)
     }
 }
 
-// Logs the bytes written to SPI stand-in `fd`, in hex.
-static void spi_log(int fd, const uint8_t *data, size_t len)
+// The register file of SPI stand-in `fd` under FAKESPI_DIR, opened with
+// `flags` (-1 if there is none).
+static int spi_regs_open(int fd, int flags)
+{
+    const char *dir = getenv("FAKESPI_DIR");
+    char path[512];
+    if (!dir || snprintf(path, sizeof(path), "%s/%s", dir, fake_name[fd]) >= (int)sizeof(path))
+        return -1;
+    int (*real_open)(const char *, int, ...) = dlsym(RTLD_NEXT, "open");
+    return real_open(path, flags | O_CLOEXEC);
+}
+
+// A register write to SPI stand-in `fd`: logged in hex; the fault-clear
+// bit of the configuration register clears the fault status.
+static void spi_write(int fd, const uint8_t *data, size_t len)
 {
     char hex[2 * 64 + 1] = "";
     for (size_t i = 0; i < len && i < 64; i++)
         snprintf(hex + 2 * i, 3, "%02x", data[i]);
     fake_log(fd, hex);
+    if (len >= 2 && data[0] == 0x80 && (data[1] & 0x02)) {
+        int regs_fd = spi_regs_open(fd, O_WRONLY);
+        uint8_t clear = 0;
+        if (regs_fd >= 0) {
+            if (pwrite(regs_fd, &clear, 1, 7) < 0)
+                perror("fakespi fault clear");
+            close(regs_fd);
+        }
+    }
 }
 
 ssize_t write(int fd, const void *buf, size_t len)
@@ -126,7 +150,7 @@ ssize_t write(int fd, const void *buf, size_t len)
         return len;
     }
     if (fd >= 0 && fd < MAXFD && fd_kind[fd] == KIND_SPI) {
-        spi_log(fd, buf, len);
+        spi_write(fd, buf, len);
         return len;
     }
     if (!real)
@@ -144,21 +168,16 @@ static void spi_transfer(int fd, struct spi_ioc_transfer *t)
     if (!len || !tx || !rx)
         return;
     if (tx[0] & 0x80) {
-        spi_log(fd, tx, len);
+        spi_write(fd, tx, len);
         memset(rx, 0, len);
         return;
     }
     uint8_t regs[128] = { 0 };
-    const char *dir = getenv("FAKESPI_DIR");
-    char path[512];
-    if (dir && snprintf(path, sizeof(path), "%s/%s", dir, fake_name[fd]) < (int)sizeof(path)) {
-        int (*real_open)(const char *, int, ...) = dlsym(RTLD_NEXT, "open");
-        int regs_fd = real_open(path, O_RDONLY | O_CLOEXEC);
-        if (regs_fd >= 0) {
-            if (pread(regs_fd, regs, sizeof(regs), 0) < 0)
-                memset(regs, 0, sizeof(regs));
-            close(regs_fd);
-        }
+    int regs_fd = spi_regs_open(fd, O_RDONLY);
+    if (regs_fd >= 0) {
+        if (pread(regs_fd, regs, sizeof(regs), 0) < 0)
+            memset(regs, 0, sizeof(regs));
+        close(regs_fd);
     }
     uint8_t addr = tx[0] & 0x7f;
     rx[0] = 0;

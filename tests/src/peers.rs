@@ -288,6 +288,16 @@ impl Peer {
         }
     }
 
+    /// The file holding SPI device `device`'s registers
+    /// ([`Self::spi`]).
+    ///
+    /// # Panics
+    ///
+    /// If the peer's inputs are not driven.
+    pub fn spi_path(&self, device: &str) -> PathBuf {
+        self.spi(device).path
+    }
+
     fn launch(firmware: Firmware, test: &str, inputs: Inputs) -> Self {
         let dir = scratch_dir().join(format!("onechip-peer-{test}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);

@@ -749,7 +749,8 @@ fn rtd_register(ohms: f64) -> [u8; 2] {
 }
 
 #[test]
-fn a_max31865_on_a_linux_mcus_spi_bus_reads_there_and_a_chip_fault_shuts_that_mcu_down() {
+fn a_max31865_on_a_linux_mcus_spi_bus_reads_there_clears_a_passing_fault_and_stops_at_a_lasting_one()
+ {
     let _alone = one_peer_at_a_time();
     let (peer, mut p, _) = start("heaters-spi", RTD_SENSOR);
     let chip = peer.spi("spidev0.0");
@@ -769,18 +770,33 @@ fn a_max31865_on_a_linux_mcus_spi_bus_reads_there_and_a_chip_fault_shuts_that_mc
         |reply: &str, t: f64| m105_sensor(reply, "RTD").is_some_and(|r| (r.0 - t).abs() < 0.1);
     assert!(near(&room, 25.0) && near(&warm, 60.0), "{room}{warm}");
     // The chip's start-up: its configuration register written (address
-    // 0 with the write bit).
-    let log = std::fs::read_to_string(&peer.pin_log).unwrap_or_default();
-    let writes: Vec<&str> = (log.lines())
-        .filter_map(|l| l.split_once(" spidev0.0 ").map(|w| w.1))
-        .collect();
-    assert!(
-        writes.first().is_some_and(|w| w.starts_with("80")),
-        "{writes:?}"
-    );
-    // A fault (the RTD above its high threshold): the reads carry no
-    // temperature; the MCU shuts down after max_invalid_count of them.
+    // 0 with the write bit), its fault-clear bit set.
+    let config_writes = || {
+        let log = std::fs::read_to_string(&peer.pin_log).unwrap_or_default();
+        (log.lines())
+            .filter_map(|l| l.split_once(" spidev0.0 ").map(|w| w.1.to_string()))
+            .filter(|w| w.starts_with("80"))
+            .collect::<Vec<_>>()
+    };
+    let started = config_writes();
+    assert_eq!(started.len(), 1, "{started:?}");
+    // A passing fault (the RTD above its high threshold once): klippy
+    // clears it by writing the configuration again; the readings go on
+    // and the MCU, which shuts down at its third fault in a row, runs.
     chip.set(FAULT_STATUS, &[0x80]).expect("SPI registers");
+    p.run_for(2.0);
+    let after = p.send("M105");
+    let cleared = std::fs::read(peer.spi_path("spidev0.0")).unwrap_or_default();
+    println!("{}; config writes {:?}", after.trim(), config_writes());
+    assert!(!after.contains("!!") && near(&after, 60.0), "{after}");
+    assert_eq!(cleared.get(usize::from(FAULT_STATUS)), Some(&0));
+    assert!(config_writes().len() >= 2, "{:?}", config_writes());
+    // A lasting fault (the RTD register's own fault bit, which the
+    // configuration does not clear): the MCU shuts down after
+    // max_invalid_count of them.
+    let mut faulty = rtd_register(pt100(60.0));
+    faulty[1] |= 1;
+    chip.set(RTD_MSB, &faulty).expect("SPI registers");
     let (out, at) = run_until_shutdown(&mut p, 5.0);
     println!("{}", out.trim());
     assert!(at.is_some(), "no shutdown: {out}");
@@ -805,8 +821,10 @@ fn an_spi_temperature_chip_on_a_bit_banged_bus_of_a_secondary_is_refused_naming_
     // Refused as printer.cfg loads, before any connection.
     assert!(
         message.starts_with("printer.cfg:")
-            && message.contains("[temperature_sensor k_therm] ")
-            && message.contains("is on a secondary MCU"),
+            && message.contains(
+                "[temperature_sensor k_therm] sensor_pin: pin 'ext:gpiochip0/gpio40' is on a \
+                 secondary MCU"
+            ),
         "{message}"
     );
 }

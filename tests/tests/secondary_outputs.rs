@@ -183,6 +183,30 @@ fn an_enable_pin_on_a_linux_mcu_follows_its_stepper_on_the_main_mcu() {
 }
 
 #[test]
+fn a_linux_mcu_that_kept_its_config_gets_its_steady_outputs_back_at_their_start_levels() {
+    let _alone = one_peer_at_a_time();
+    let (peer, mut p) = start("outputs-kept");
+    let pins = extruder_pins(Firmware::Linux);
+    p.run_for(0.5);
+    let replies = [p.send("M83"), p.send("G1 E1 F300"), p.send("M400")].concat();
+    assert!(!replies.contains("!!"), "{replies}");
+    p.run_for(0.2);
+    // The extruder's `!` enable pin is active (low) when the host goes.
+    assert_eq!(peer.levels(pins.enable).last().map(|l| l.1), Some(false));
+    drop(p);
+    // The same printer.cfg again: the MCU holds its config (same CRC),
+    // so none is sent; klippy's restart commands put the enable pin back
+    // to inactive.
+    let sd = peer.path.with_file_name("sd");
+    let mut p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
+    p.run_for(0.5);
+    let enable = peer.levels(pins.enable);
+    assert_eq!(enable.last().map(|l| l.1), Some(true), "{enable:?}");
+    let replies = p.send("M105");
+    assert!(!replies.contains("!!"), "{replies}");
+}
+
+#[test]
 fn a_heater_fan_and_an_enable_pin_on_a_linux_mcu_follow_their_heater_and_stepper() {
     let _alone = one_peer_at_a_time();
     let (peer, mut p) = start("outputs-enable");
@@ -274,17 +298,13 @@ fn duties(peer: &Peer, channel: &str) -> Vec<u64> {
     duties
 }
 
-/// The duty (ns) the Linux MCU writes for `level` (0..1) of a `period`
-/// ns channel, give or take one step of its PWM_MAX: klippy's
-/// `int(level * PWM_MAX + 0.5)`, then `period * value / PWM_MAX`.
+/// Asserts `duty` (ns) is what the Linux MCU writes for `level` (0..1)
+/// of a `period` ns channel as klippy sets it: `int(level * PWM_MAX +
+/// 0.5)`, then `period * value / PWM_MAX`.
 fn assert_duty(duty: u64, level: f64, period: u64) {
-    let value = (level * LINUX_PWM_MAX + 0.5).floor();
-    let wanted = (period as f64 * value / LINUX_PWM_MAX).floor();
-    let step = period as f64 / LINUX_PWM_MAX;
-    assert!(
-        (duty as f64 - wanted).abs() <= step + 1.0,
-        "duty {duty} ns, wanted {wanted} (level {level} of {period} ns)"
-    );
+    let value = (level * LINUX_PWM_MAX + 0.5) as u64;
+    let wanted = period * value / LINUX_PWM_MAX as u64;
+    assert_eq!(duty, wanted, "level {level} of {period} ns");
 }
 
 #[test]

@@ -26,10 +26,10 @@
 use super::homing::{Homing, TrsyncState};
 use super::remote_output::{RemoteDrive, RemoteEnable, RemoteOutput, level, pwm_max};
 use super::sent_steps::{SentCommand, SentSteps, each_step};
-use super::thermal::{self, Reading, RemoteInput};
+use super::thermal::{self, Reading, RemoteInput, SpiBytes, SpiResult};
 use super::{
-    CommandLine, ConnectError, FetchRoom, Heard, Links, McuError, Secondary, SecondaryLink, Start,
-    Text, clock_freq, command, text,
+    ConnectError, FetchRoom, Heard, Links, McuError, Secondary, SecondaryLink, Start, Text,
+    clock_freq, command, text,
 };
 use crate::heaters::{INPUTS, InputQuery, LinearConversion, McuSetup, OUTPUTS, full_scale};
 use crate::mcu_config::{ConfigTarget, Oids, pin_ref, reader_oid, write_config};
@@ -471,8 +471,8 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
     /// `attached`), whose object ids are `oids`; `io` is the MCU role's io
     /// at the main clock. A software PWM output gets its start value at
     /// clock `start` (that MCU's), as klippy's init command; a hardware
-    /// PWM output only if the MCU kept its config (klippy's restart
-    /// command: a new config holds it). An MCU without a usable PWM_MAX
+    /// PWM or steady output only if the MCU kept its config (klippy's
+    /// restart commands: a new config holds it). An MCU without a usable PWM_MAX
     /// is refused if it has a hardware PWM output.
     fn add_outputs(
         &mut self,
@@ -510,10 +510,14 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                     (RemoteDrive::HardPwm { pwm_max }, kept)
                 }
             };
-            let mut output = RemoteOutput::new(k, oid, drive, pin_ref(pin).inverted);
+            let inverted = pin_ref(pin).inverted;
+            let mut output = RemoteOutput::new(k, oid, drive, inverted);
             let full = full_scale(config.kind);
             if queue_start {
                 output.queue(start, level(config.value, full));
+            }
+            if kept && drive == RemoteDrive::Steady {
+                self.restart_level(k, oid, (config.value != 0) != inverted);
             }
             if let Some(slot) = self.outputs.get_mut(index) {
                 *slot = Some((output, full));
@@ -529,6 +533,10 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             let e = match shared {
                 Some(e) => e,
                 None => {
+                    if kept {
+                        // Inactive.
+                        self.restart_level(k, oid, pin_ref(pin).inverted);
+                    }
                     let enable = RemoteEnable {
                         output: RemoteOutput::new(
                             k,
@@ -548,11 +556,23 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
         Ok(())
     }
 
-    /// Starts sampling the heaters' and temperature sensors' ADC inputs
-    /// on MCU `k` (index into `attached`), whose
-    /// object ids are `oids`, as klippy's init commands do at host time
-    /// `now` (s). An MCU without a usable ADC_MAX is refused if it has
-    /// any.
+    /// Puts steady output `oid` of MCU `k`, which kept its config, back at
+    /// its start level `high` (klippy's restart command for its
+    /// `MCU_digital_out`: `update_digital_out`). Not sent if the outbox
+    /// is full (it has room for the start-up).
+    fn restart_level(&mut self, k: usize, oid: u8, high: bool) {
+        let line = command(format_args!(
+            "update_digital_out oid={oid} value={}",
+            u8::from(high)
+        ));
+        let _ = self.attached[k].mcu.connection().send_text(&line, 0);
+    }
+
+    /// Starts reading the heaters' and temperature sensors' inputs on MCU
+    /// `k` (index into `attached`), whose object ids are `oids`, as
+    /// klippy's init commands do at host time `now` (s): an ADC channel's
+    /// sampling, an SPI chip's start-up bytes and reads. An MCU without a
+    /// usable ADC_MAX is refused if it has an ADC input.
     fn add_inputs(
         &mut self,
         machine: &Machine<'_>,
@@ -588,20 +608,20 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             let (commands, input) = match (setup.inputs.get(h).map(|(_, q)| q), oids.spi[h]) {
                 (Some(InputQuery::Spi(query)), Some(spi)) => (
                     thermal::spi_query_commands(spi, oid, query, clock),
-                    RemoteInput::spi(k, oid, h, query),
+                    RemoteInput::spi(k, (spi, oid), h, query),
                 ),
                 (Some(InputQuery::Adc(query)), None) => {
                     let adc_max = adc_max
                         .ok_or_else(|| text(format_args!("MCU '{name}' has no usable ADC_MAX")))?;
                     let command = thermal::query_command(dict, oid, query, clock);
                     (
-                        [CommandLine::new(), command],
+                        [command].into_iter().collect(),
                         RemoteInput::new(k, oid, h, query, adc_max),
                     )
                 }
                 _ => continue,
             };
-            for command in commands.iter().filter(|c| !c.is_empty()) {
+            for command in &commands {
                 let sent = mcu.connection().send_text(command, 0);
                 sent.map_err(|_| text(format_args!("MCU '{name}': {command} not sent")))?;
             }
@@ -611,8 +631,8 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
         Ok(())
     }
 
-    /// The next reading of the ADC inputs on secondaries heard and not
-    /// taken yet, oldest first.
+    /// The next reading of the sensor inputs (ADC channels, SPI chips) on
+    /// secondaries heard and not taken yet, oldest first.
     pub fn take_reading(&mut self) -> Option<Reading> {
         self.readings.pop_front()
     }
@@ -790,6 +810,8 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             let (inputs, readings, positions) =
                 (&self.inputs, &mut self.readings, &mut self.positions);
             let sync = a.mcu.connection().clock().copied();
+            // SPI chips' faults to clear: bus object, bytes.
+            let mut clears = heapless::Vec::<(u8, SpiBytes), 2>::new();
             let io = a.mcu.service(&|| now, 0.0, &mut |h| match h {
                 Heard::Shutdown(reason) => {
                     failure = Some(Shutdown::Secondary { mcu: name, reason });
@@ -797,12 +819,18 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
                 Heard::Failed(_) => failure = Some(lost),
                 Heard::Response(msg) => {
                     let spi = (inputs.iter().filter(|i| i.mcu == k))
-                        .find_map(|i| i.spi_reading(msg, sync.as_ref()?));
-                    if let Some(reading) = spi {
+                        .find_map(|i| i.spi_result(msg, sync.as_ref()?));
+                    if let Some(SpiResult::Reading(reading)) = spi {
                         if readings.is_full() {
                             readings.pop_front();
                         }
                         let _ = readings.push_back(reading);
+                    } else if let Some(SpiResult::Fault(clear)) = spi {
+                        // At most one a round per chip; more wait for
+                        // the next fault.
+                        if let Some(clear) = clear {
+                            let _ = clears.push(clear);
+                        }
                     } else if let Some(state) = TrsyncState::from_message(msg) {
                         if states.is_full() {
                             states.remove(0);
@@ -831,6 +859,10 @@ impl<L: SecondaryLink, const N: usize> Secondaries<L, N> {
             });
             if io.is_err() {
                 failure.get_or_insert(lost);
+            }
+            for line in clears.iter().filter_map(|(spi, bytes)| bytes.send(*spi)) {
+                // Not sent (the outbox is full): the next fault asks again.
+                let _ = a.mcu.connection().send_text(&line, 0);
             }
             if self.failure.is_none() && failure.is_some() {
                 self.failure = failure;

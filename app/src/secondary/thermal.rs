@@ -11,9 +11,11 @@
 //! An SPI temperature chip there (MAX6675, MAX31855, MAX31856, MAX31865 on
 //! a hardware bus) is read as klippy's `spi_temperature` reads it: its
 //! start-up bytes (`spi_send`) and `query_thermocouple` after the config
-//! phase, each `thermocouple_result` a reading of the chip's raw value
-//! (one with its fault bits set is dropped, as klippy does; the MCU
-//! counts it towards its own shutdown).
+//! phase, each `thermocouple_result` a reading of the chip's raw value.
+//! One with its fault bits set is dropped, as klippy does (the MCU counts
+//! it towards its own shutdown), and a MAX31865's fault, which latches,
+//! is cleared by writing its configuration again, as klippy's
+//! `handle_fault` does.
 //!
 //! A heater's sensor and output may be on different MCUs.
 
@@ -23,7 +25,7 @@ use core::fmt::Write as _;
 use onechip_protocol::codec::Decoded;
 use onechip_protocol::dictionary::Dictionary;
 use onechip_sched::adc::AdcQuery;
-use onechip_sched::thermocouple::SpiQuery;
+use onechip_sched::thermocouple::{SpiChip, SpiQuery};
 use onechip_secondary_mcu::clock_sync::ClockSync;
 
 /// Bytes of one report in a batched `analog_in_state` (one `u16` sum:
@@ -35,18 +37,67 @@ const QUERY_LEAD: f64 = 1.5;
 /// How far apart klippy starts the inputs' sampling, s per object id.
 const QUERY_SLOT: f64 = 0.01;
 
-/// One report of an ADC input on a secondary, for the MCU role's io.
+/// One report of a sensor input on a secondary, for the MCU role's io.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Reading {
     /// The io input (the heaters', then the temperature sensors').
     pub input: usize,
     /// Host time of the report's first sample, s.
     pub at: f64,
-    /// The sum of its samples, 0..1 of full scale.
+    /// An ADC input's sum of samples, 0..1 of full scale; an SPI chip's
+    /// raw value.
     pub value: f64,
 }
 
-/// A heater's or temperature sensor's ADC input on a secondary.
+/// What an SPI chip's `thermocouple_result` says.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SpiResult {
+    /// A temperature reading.
+    Reading(Reading),
+    /// A fault: no reading, and the bytes that clear it (a MAX31865's
+    /// configuration) on its bus object, if the chip needs them.
+    Fault(Option<(u8, SpiBytes)>),
+}
+
+/// How an input on a secondary is read.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum InputKind {
+    /// An ADC channel: a report's full scale (sample count × that MCU's
+    /// ADC_MAX).
+    Adc { full: f64 },
+    /// An SPI chip on bus object `spi`. `clear`: the bytes written again
+    /// after a fault (a MAX31865's configuration with its fault-clear
+    /// bit), if the chip needs them.
+    Spi { spi: u8, clear: Option<SpiBytes> },
+}
+
+/// Bytes an SPI chip is sent: up to four, `len` of them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SpiBytes {
+    bytes: [u8; 4],
+    len: u8,
+}
+
+impl SpiBytes {
+    /// A query's start-up bytes.
+    fn init(query: &SpiQuery) -> Self {
+        Self {
+            bytes: query.init,
+            len: query.init_len,
+        }
+    }
+
+    /// `spi_send` of these bytes on bus object `spi`, if there are any.
+    pub fn send(self, spi: u8) -> Option<CommandLine> {
+        let bytes = self.bytes.get(..usize::from(self.len)).unwrap_or(&[]);
+        let mut line = command(format_args!("spi_send oid={spi} data="));
+        let fits = bytes.iter().all(|b| write!(line, "{b:02x}").is_ok());
+        (!bytes.is_empty() && fits).then_some(line)
+    }
+}
+
+/// A heater's or temperature sensor's input on a secondary: an ADC
+/// channel or an SPI chip.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RemoteInput {
     /// Its MCU (index into the attached secondaries).
@@ -58,9 +109,7 @@ pub struct RemoteInput {
     pub index: usize,
     /// Ticks between two reports on that MCU.
     rest_ticks: u32,
-    /// A report's full scale: sample count × that MCU's ADC_MAX (1: an
-    /// SPI chip's raw value).
-    full: f64,
+    kind: InputKind,
 }
 
 impl RemoteInput {
@@ -72,40 +121,51 @@ impl RemoteInput {
             oid,
             index,
             rest_ticks: query.rest_ticks,
-            full: f64::from(query.sample_count) * f64::from(adc_max),
+            kind: InputKind::Adc {
+                full: f64::from(query.sample_count) * f64::from(adc_max),
+            },
         }
     }
 
     /// Input `index` of the io, the reader `oid` of an SPI chip on MCU
-    /// `mcu`, read as `query` says.
-    pub fn spi(mcu: usize, oid: u8, index: usize, query: &SpiQuery) -> Self {
+    /// `mcu` (its bus object `spi`), read as `query` says.
+    pub fn spi(mcu: usize, (spi, oid): (u8, u8), index: usize, query: &SpiQuery) -> Self {
+        let latches = query.chip == SpiChip::Max31865;
         Self {
             mcu,
             oid,
             index,
             rest_ticks: query.rest_ticks,
-            full: 1.0,
+            kind: InputKind::Spi {
+                spi,
+                clear: latches.then(|| SpiBytes::init(query)),
+            },
         }
     }
 
-    /// The reading in an SPI chip's `thermocouple_result` (`msg`) for
-    /// this input, at the host time of its read (klippy's `next_clock`
-    /// less one report period), if it is one for this input and carries
-    /// no fault.
-    pub fn spi_reading(&self, msg: &Decoded<'_, '_, '_>, sync: &ClockSync) -> Option<Reading> {
+    /// What an SPI chip's `thermocouple_result` (`msg`) says, if it is
+    /// one for this input: a reading at the host time of its read
+    /// (klippy's `next_clock` less one report period), or a fault.
+    pub fn spi_result(&self, msg: &Decoded<'_, '_, '_>, sync: &ClockSync) -> Option<SpiResult> {
+        let InputKind::Spi { spi, clear } = self.kind else {
+            return None;
+        };
         let field = |name| msg.int(name);
         let is_this = msg.message.name() == "thermocouple_result"
             && field("oid") == Some(i64::from(self.oid));
-        let (next_clock, value) = (field("next_clock")?, field("value")?);
-        if !is_this || field("fault") != Some(0) {
+        let (next_clock, value, fault) = (field("next_clock")?, field("value")?, field("fault")?);
+        if !is_this {
             return None;
         }
+        if fault != 0 {
+            return Some(SpiResult::Fault(clear.map(|bytes| (spi, bytes))));
+        }
         let next = sync.widen(next_clock as u32);
-        Some(Reading {
+        Some(SpiResult::Reading(Reading {
             input: self.index,
             at: sync.time_at(next.saturating_sub(u64::from(self.rest_ticks))),
-            value: value as f64 / self.full,
-        })
+            value: value as f64,
+        }))
     }
 
     /// The readings in `report` of this input (its MCU's clock line
@@ -117,7 +177,11 @@ impl RemoteInput {
         sync: &'r ClockSync,
     ) -> impl Iterator<Item = Reading> + 'r {
         let next = sync.widen(report.next_clock);
-        let (rest, full, count) = (u64::from(self.rest_ticks), self.full, report.values.len());
+        let full = match self.kind {
+            InputKind::Adc { full } => full,
+            InputKind::Spi { .. } => 1.0,
+        };
+        let (rest, count) = (u64::from(self.rest_ticks), report.values.len());
         let input = self.index;
         report.values.iter().enumerate().map(move |(i, &v)| {
             let periods = (count - i) as u64;
@@ -163,13 +227,13 @@ pub fn query_command(dict: &Dictionary<'_>, oid: u8, query: &AdcQuery, clock: u6
 /// object `spi`) as `query` says, the first read at that MCU's clock
 /// `clock`: its start-up bytes if it has any (klippy's `spi_send`), then
 /// `query_thermocouple`.
-pub fn spi_query_commands(spi: u8, oid: u8, query: &SpiQuery, clock: u64) -> [CommandLine; 2] {
-    let init = query.init.get(..usize::from(query.init_len)).unwrap_or(&[]);
-    let mut send = command(format_args!("spi_send oid={spi} data="));
-    let fits = init.iter().all(|b| write!(send, "{b:02x}").is_ok());
-    if init.is_empty() || !fits {
-        send.clear();
-    }
+pub fn spi_query_commands(
+    spi: u8,
+    oid: u8,
+    query: &SpiQuery,
+    clock: u64,
+) -> heapless::Vec<CommandLine, 2> {
+    let send = SpiBytes::init(query).send(spi);
     let query = command(format_args!(
         "query_thermocouple oid={oid} clock={} rest_ticks={} min_value={} max_value={} max_invalid_count={}",
         clock & 0xffff_ffff,
@@ -178,7 +242,7 @@ pub fn spi_query_commands(spi: u8, oid: u8, query: &SpiQuery, clock: u64) -> [Co
         query.max,
         query.max_invalid
     ));
-    [send, query]
+    send.into_iter().chain([query]).collect()
 }
 
 /// Where klippy starts sampling input `oid` (`get_query_slot`): the whole
