@@ -54,10 +54,18 @@ fn printer_with_outputs_on_the_peer(sd: &Path, serial: &Path) {
 
 /// A started printer on a fresh Linux MCU peer.
 fn start(test: &str) -> (Peer, ConsolePrinter) {
+    start_edited(test, |text| text)
+}
+
+/// [`start`] with printer.cfg's text changed by `edit` first.
+fn start_edited(test: &str, edit: impl FnOnce(String) -> String) -> (Peer, ConsolePrinter) {
     // Driven: its GPIO shim logs the levels pins are set up with too.
     let peer = Peer::start_driven(test);
     let sd = peer.path.with_file_name("sd");
     printer_with_outputs_on_the_peer(&sd, &peer.path);
+    let cfg = sd.join("printer.cfg");
+    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
+    std::fs::write(&cfg, edit(text)).expect("printer.cfg");
     let p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
     (peer, p)
 }
@@ -151,16 +159,12 @@ const Y_ENABLE: &str = "gpiochip0/gpio25";
 #[test]
 fn an_enable_pin_on_a_linux_mcu_follows_its_stepper_on_the_main_mcu() {
     let _alone = one_peer_at_a_time();
-    let peer = Peer::start_driven("outputs-split-enable");
-    let sd = peer.path.with_file_name("sd");
-    printer_with_outputs_on_the_peer(&sd, &peer.path);
-    let cfg = sd.join("printer.cfg");
-    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
-    let y = "step_pin: PG0\ndir_pin: PG1\nenable_pin: !PF15\n";
-    assert!(text.contains(y), "the shipped [stepper_y] changed");
-    let moved = format!("step_pin: PG0\ndir_pin: PG1\nenable_pin: !ext:{Y_ENABLE}\n");
-    std::fs::write(&cfg, text.replace(y, &moved)).expect("printer.cfg");
-    let mut p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
+    let (peer, mut p) = start_edited("outputs-split-enable", |text| {
+        let y = "step_pin: PG0\ndir_pin: PG1\nenable_pin: !PF15\n";
+        assert!(text.contains(y), "the shipped [stepper_y] changed");
+        let moved = format!("step_pin: PG0\ndir_pin: PG1\nenable_pin: !ext:{Y_ENABLE}\n");
+        text.replace(y, &moved)
+    });
     p.run_for(0.5);
     // `!` pin: configured high (inactive).
     assert_eq!(peer.levels(Y_ENABLE).last().map(|l| l.1), Some(true));
@@ -310,11 +314,6 @@ fn assert_duty(duty: u64, level: f64, period: u64) {
 #[test]
 fn hardware_pwm_on_a_linux_mcu_is_configured_as_klippys_pwm_out_and_follows_m106_and_set_pin() {
     let _alone = one_peer_at_a_time();
-    let peer = Peer::start_driven("outputs-hard-pwm");
-    let sd = peer.path.with_file_name("sd");
-    printer_with_outputs_on_the_peer(&sd, &peer.path);
-    let cfg = sd.join("printer.cfg");
-    let text = std::fs::read_to_string(&cfg).expect("printer.cfg");
     let fan = format!(
         "[fan]\npin: ext:{FAN_CHANNEL}\nhardware_pwm: True\ncycle_time: 0.001\nshutdown_speed: 0.5"
     );
@@ -322,9 +321,9 @@ fn hardware_pwm_on_a_linux_mcu_is_configured_as_klippys_pwm_out_and_follows_m106
         "\n[output_pin tool]\npin: !ext:{TOOL_CHANNEL}\npwm: True\nhardware_pwm: True\n\
          cycle_time: 0.0002\nvalue: 0.25\nshutdown_value: 0\n"
     );
-    let hard = text.replace(&format!("[fan]\npin: ext:{FAN}"), &fan) + &tool;
-    std::fs::write(&cfg, hard).expect("printer.cfg");
-    let mut p = ConsolePrinter::new(&sd, &Options::default()).unwrap_or_else(|e| panic!("{e}"));
+    let (peer, mut p) = start_edited("outputs-hard-pwm", |text| {
+        text.replace(&format!("[fan]\npin: ext:{FAN}"), &fan) + &tool
+    });
     p.run_for(0.5);
     // config_pwm_out: each channel's period (its cycle_time in 50 MHz
     // ticks, 20 ns each), then its start duty.
